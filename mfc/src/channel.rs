@@ -1,0 +1,238 @@
+//! One control channel: a control law (intelligent, PID or ADRC) and its output map.
+//!
+//! The channel closes the "what did the plant really get" loop: after mapping `u` to the
+//! output `v` it tells the law the *applied* `u` (the inverse map of `v`), and
+//! [`Channel::report_applied`] corrects it when the plant reports something else (a lost
+//! command, a held value, a safety stop).
+
+use crate::adrc::{Adrc, AdrcParams};
+use crate::error::{finite, Result};
+use crate::estimator::{EstimatorConfig, DEFAULT_CAPACITY};
+use crate::intelligent::{IntelligentController, IntelligentParams};
+use crate::output_map::{OutputMap, OutputMapConfig};
+use crate::pid::{Pid, PidParams};
+use crate::Reference;
+
+/// Which control law a channel runs, with its parameters.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(
+    feature = "serde",
+    serde(tag = "law", rename_all = "snake_case", deny_unknown_fields)
+)]
+pub enum LawConfig {
+    /// iP, iPI, iPD or iPID on an ultra-local model.
+    Intelligent {
+        /// Gains, `α`, kind, order.
+        #[cfg_attr(feature = "serde", serde(default))]
+        params: IntelligentParams,
+        /// Estimator of `F`.
+        #[cfg_attr(feature = "serde", serde(default))]
+        estimator: EstimatorConfig,
+    },
+    /// PID baseline.
+    Pid {
+        /// Gains and limits.
+        #[cfg_attr(feature = "serde", serde(default))]
+        params: PidParams,
+    },
+    /// Linear ADRC baseline.
+    Adrc {
+        /// Bandwidths and `b0`.
+        #[cfg_attr(feature = "serde", serde(default))]
+        params: AdrcParams,
+    },
+}
+
+impl Default for LawConfig {
+    fn default() -> Self {
+        LawConfig::Intelligent {
+            params: IntelligentParams::default(),
+            estimator: EstimatorConfig::default(),
+        }
+    }
+}
+
+/// Configuration of a [`Channel`].
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "serde", serde(default, deny_unknown_fields))]
+pub struct ChannelConfig {
+    /// The control law. Default: iP with `α = 1`, `Kp = 1`, a 10-interval algebraic window.
+    pub law: LawConfig,
+    /// The output map. Default: identity (no dead zone, no limits).
+    pub output: OutputMapConfig,
+}
+
+/// The control law of a channel.
+#[derive(Debug, Clone)]
+enum Law<const CAP: usize> {
+    Intelligent(IntelligentController<CAP>),
+    Pid(Pid),
+    Adrc(Adrc),
+}
+
+impl<const CAP: usize> Law<CAP> {
+    fn new(config: &LawConfig) -> Result<Self> {
+        Ok(match *config {
+            LawConfig::Intelligent { params, estimator } => {
+                Law::Intelligent(IntelligentController::new(params, estimator)?)
+            }
+            LawConfig::Pid { params } => Law::Pid(Pid::new(params)?),
+            LawConfig::Adrc { params } => Law::Adrc(Adrc::new(params)?),
+        })
+    }
+
+    fn check(&self, t: f64, y: f64, r: &Reference) -> Result<()> {
+        match self {
+            Law::Intelligent(c) => c.check(t, y, r),
+            Law::Pid(c) => c.check(t, y, r),
+            Law::Adrc(c) => c.check(t, y, r),
+        }
+    }
+
+    fn set_applied(&mut self, u: f64) -> Result<()> {
+        match self {
+            Law::Intelligent(c) => c.set_applied(u),
+            Law::Pid(c) => c.set_applied(u),
+            Law::Adrc(c) => c.set_applied(u),
+        }
+    }
+
+    fn bumpless_start(&mut self, u: f64) -> Result<()> {
+        match self {
+            Law::Intelligent(c) => c.bumpless_start(u),
+            Law::Pid(c) => c.bumpless_start(u),
+            Law::Adrc(c) => c.bumpless_start(u),
+        }
+    }
+}
+
+/// What one step of a channel produced.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ChannelOutput {
+    /// The law's control `u`.
+    pub u: f64,
+    /// The output sent to the plant, `v = map(u)`.
+    pub v: f64,
+    /// The law's estimate of the lumped term (`F_est` for MFC, the ESO's `f` for ADRC).
+    pub f_est: Option<f64>,
+    /// Tracking error `y - y*`.
+    pub error: f64,
+}
+
+/// A control law and its output map: one output of the plant.
+#[derive(Debug, Clone)]
+pub struct Channel<const CAP: usize = DEFAULT_CAPACITY> {
+    law: Law<CAP>,
+    config: ChannelConfig,
+    map: OutputMap,
+    last_t: Option<f64>,
+    last_v: f64,
+}
+
+impl<const CAP: usize> Channel<CAP> {
+    /// A channel with a checked configuration.
+    pub fn new(config: &ChannelConfig) -> Result<Self> {
+        let map = OutputMap::new(config.output)?;
+        let law = Law::new(&config.law)?;
+        Ok(Self {
+            law,
+            config: *config,
+            map,
+            last_t: None,
+            last_v: 0.0,
+        })
+    }
+
+    /// The configuration in force.
+    pub fn config(&self) -> &ChannelConfig {
+        &self.config
+    }
+
+    /// The output map.
+    pub fn output_map(&self) -> &OutputMap {
+        &self.map
+    }
+
+    /// The intelligent controller, if that is the law.
+    pub fn intelligent(&self) -> Option<&IntelligentController<CAP>> {
+        match &self.law {
+            Law::Intelligent(c) => Some(c),
+            _ => None,
+        }
+    }
+
+    /// Check a step's inputs without changing anything.
+    pub fn check(&self, t: f64, y: f64, r: &Reference) -> Result<()> {
+        self.law.check(t, y, r)
+    }
+
+    /// One step: compute `u`, map it to `v`, and remember that `v` is being applied.
+    pub fn step(&mut self, t: f64, y: f64, r: &Reference) -> Result<ChannelOutput> {
+        self.check(t, y, r)?;
+        let (u, f_est, error) = match &mut self.law {
+            Law::Intelligent(c) => {
+                let o = c.step(t, y, r)?;
+                (o.u, o.f_est, o.error)
+            }
+            Law::Pid(c) => (c.step(t, y, r)?, None, y - r.y),
+            Law::Adrc(c) => {
+                let u = c.step(t, y, r)?;
+                (u, Some(c.disturbance()), y - r.y)
+            }
+        };
+        // A non-finite u can only come from extreme (finite) data; never send it.
+        let u = if u.is_nan() { 0.0 } else { u };
+        let v = self.map.apply(t, u.clamp(-f64::MAX, f64::MAX))?;
+        self.law.set_applied(self.map.inverse(v))?;
+        self.last_t = Some(t);
+        self.last_v = v;
+        Ok(ChannelOutput { u, v, f_est, error })
+    }
+
+    /// The plant reports that it applied `v` since the last step (not the commanded value):
+    /// the estimator and anti-windup will use it.
+    pub fn report_applied(&mut self, v: f64) -> Result<()> {
+        finite("applied output", v)?;
+        self.law.set_applied(self.map.inverse(v))?;
+        if let Some(t) = self.last_t {
+            self.map.record_applied(t, v);
+        }
+        self.last_v = v;
+        Ok(())
+    }
+
+    /// Change the law while running, bumplessly. Same law with new parameters: the state is
+    /// kept (the estimator window too). Another law, or another estimator: the new law starts
+    /// from the output being applied now, and any difference fades out.
+    ///
+    /// Refused with nothing changed if the configuration is invalid.
+    pub fn reconfigure(&mut self, config: &ChannelConfig) -> Result<()> {
+        let map_changed = config.output != self.config.output;
+        if map_changed {
+            config.output.validate()?;
+        }
+        match (&mut self.law, &config.law) {
+            (Law::Intelligent(c), LawConfig::Intelligent { params, estimator })
+                if estimator == c.estimator().config() =>
+            {
+                c.set_params(*params)?
+            }
+            (Law::Pid(c), LawConfig::Pid { params }) => c.set_params(*params)?,
+            (Law::Adrc(c), LawConfig::Adrc { params }) => c.set_params(*params)?,
+            (_, new) => {
+                let mut law = Law::new(new)?;
+                if self.last_t.is_some() {
+                    law.bumpless_start(self.map.inverse(self.last_v))?;
+                }
+                self.law = law;
+            }
+        }
+        if map_changed {
+            self.map.set_config(config.output)?;
+        }
+        self.config = *config;
+        Ok(())
+    }
+}

@@ -1,0 +1,102 @@
+//! MIMO control as in the paper: one ultra-local model and one controller per output,
+//! `y_i^(n_i) = F_i + α_i u_i`, each `F_i` absorbing the influence of the other inputs.
+
+use alloc::vec::Vec;
+
+use crate::channel::{Channel, ChannelConfig, ChannelOutput};
+use crate::error::{MfcError, Result};
+use crate::estimator::DEFAULT_CAPACITY;
+use crate::Reference;
+
+/// A controller of `m` independent channels, stepped together.
+#[derive(Debug, Clone)]
+pub struct MimoController<const CAP: usize = DEFAULT_CAPACITY> {
+    channels: Vec<Channel<CAP>>,
+}
+
+impl<const CAP: usize> MimoController<CAP> {
+    /// One channel per configuration (allocates once, here).
+    pub fn new(configs: &[ChannelConfig]) -> Result<Self> {
+        let channels = configs
+            .iter()
+            .map(Channel::new)
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self { channels })
+    }
+
+    /// Number of channels.
+    pub fn len(&self) -> usize {
+        self.channels.len()
+    }
+
+    /// Whether there is no channel.
+    pub fn is_empty(&self) -> bool {
+        self.channels.is_empty()
+    }
+
+    /// The channels.
+    pub fn channels(&self) -> &[Channel<CAP>] {
+        &self.channels
+    }
+
+    /// One channel, mutably (to reconfigure it or report what it applied).
+    pub fn channel_mut(&mut self, i: usize) -> Option<&mut Channel<CAP>> {
+        self.channels.get_mut(i)
+    }
+
+    fn dims(&self, got: usize) -> Result<()> {
+        if got == self.channels.len() {
+            Ok(())
+        } else {
+            Err(MfcError::DimensionMismatch {
+                expected: self.channels.len(),
+                got,
+            })
+        }
+    }
+
+    /// Step every channel at time `t`. All inputs are checked before any channel moves, so
+    /// an error leaves every channel untouched. Allocation-free.
+    pub fn step(
+        &mut self,
+        t: f64,
+        y: &[f64],
+        r: &[Reference],
+        out: &mut [ChannelOutput],
+    ) -> Result<()> {
+        self.dims(y.len())?;
+        self.dims(r.len())?;
+        self.dims(out.len())?;
+        for ((c, y), r) in self.channels.iter().zip(y).zip(r) {
+            c.check(t, *y, r)?;
+        }
+        for (((c, y), r), o) in self.channels.iter_mut().zip(y).zip(r).zip(out) {
+            *o = c.step(t, *y, r)?;
+        }
+        Ok(())
+    }
+
+    /// The plant reports the outputs it applied since the last step.
+    pub fn report_applied(&mut self, v: &[f64]) -> Result<()> {
+        self.dims(v.len())?;
+        for v in v {
+            crate::error::finite("applied output", *v)?;
+        }
+        for (c, v) in self.channels.iter_mut().zip(v) {
+            c.report_applied(*v)?;
+        }
+        Ok(())
+    }
+
+    /// Reconfigure every channel; all or nothing.
+    pub fn reconfigure(&mut self, configs: &[ChannelConfig]) -> Result<()> {
+        self.dims(configs.len())?;
+        // Try on a copy so that a refusal in channel k leaves channels 0..k untouched.
+        let mut next = self.channels.clone();
+        for (c, cfg) in next.iter_mut().zip(configs) {
+            c.reconfigure(cfg)?;
+        }
+        self.channels = next;
+        Ok(())
+    }
+}
