@@ -65,7 +65,11 @@ pub struct ChannelConfig {
 }
 
 /// The control law of a channel.
+///
+/// The intelligent variant is much larger (its window lives inline so that the core needs
+/// no allocator); boxing it would cost an allocation and `alloc` for the common case.
 #[derive(Debug, Clone)]
+#[allow(clippy::large_enum_variant)]
 enum Law<const CAP: usize> {
     Intelligent(IntelligentController<CAP>),
     Pid(Pid),

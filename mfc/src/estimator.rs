@@ -213,13 +213,14 @@ impl Moments {
             let bubble = half * half * (1.0 - x * x);
             let s2 = s * s;
             let p = [1.0, s, s2, s2 * s, s2 * s2];
-            for j in 0..3 {
-                m.y[j] += w * p[j] * y;
-                m.k[j] += w * p[j] * bubble;
-                m.ku[j] += w * p[j] * bubble * iv.u;
-            }
-            for j in 0..5 {
-                m.u[j] += w * p[j] * iv.u;
+            for (j, pj) in p.iter().enumerate() {
+                let wp = w * pj;
+                m.u[j] += wp * iv.u;
+                if j < 3 {
+                    m.y[j] += wp * y;
+                    m.k[j] += wp * bubble;
+                    m.ku[j] += wp * bubble * iv.u;
+                }
             }
         }
         m

@@ -132,16 +132,19 @@ impl Order {
 /// Which intelligent controller: the terms added to the cancellation of `F`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
-#[cfg_attr(feature = "serde", serde(rename_all = "snake_case"))]
 pub enum ControllerKind {
-    /// iP (n = 1): `u = -(F - y*' + Kp e)/α`.
+    /// iP (n = 1): `u = -(F - y*' + Kp e)/α`. Written `"ip"` in files.
     #[default]
+    #[cfg_attr(feature = "serde", serde(rename = "ip"))]
     P,
-    /// iPI (n = 1): iP plus `Ki ∫e`.
+    /// iPI (n = 1): iP plus `Ki ∫e`. Written `"ipi"`.
+    #[cfg_attr(feature = "serde", serde(rename = "ipi"))]
     PI,
-    /// iPD (n = 2): `u = -(F - y*'' + Kp e + Kd e')/α`.
+    /// iPD (n = 2): `u = -(F - y*'' + Kp e + Kd e')/α`. Written `"ipd"`.
+    #[cfg_attr(feature = "serde", serde(rename = "ipd"))]
     PD,
-    /// iPID (n = 1 or 2): all three terms.
+    /// iPID (n = 1 or 2): all three terms. Written `"ipid"`.
+    #[cfg_attr(feature = "serde", serde(rename = "ipid"))]
     PID,
 }
 

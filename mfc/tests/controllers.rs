@@ -1,0 +1,355 @@
+//! Closed-loop behaviour of every controller on test plants the controllers do not know.
+
+mod common;
+
+use common::{rms, Rk4Plant};
+use mfc::{
+    AdrcParams, Channel, ChannelConfig, ControllerKind, EstimatorConfig, EstimatorKind,
+    IntelligentController, IntelligentParams, LawConfig, Order, OutputMapConfig, PidParams,
+    Reference,
+};
+
+const H: f64 = 0.01;
+
+fn intelligent(
+    kind: ControllerKind,
+    order: Order,
+    alpha: f64,
+    kp: f64,
+    ki: f64,
+    kd: f64,
+) -> LawConfig {
+    LawConfig::Intelligent {
+        params: IntelligentParams {
+            kind,
+            order,
+            alpha,
+            kp,
+            ki,
+            kd,
+            ..Default::default()
+        },
+        estimator: EstimatorConfig::default(),
+    }
+}
+
+fn limits(limit: f64) -> OutputMapConfig {
+    OutputMapConfig {
+        min: -limit,
+        max: limit,
+        ..Default::default()
+    }
+}
+
+/// Closed loop of `channel` on `plant` (output = state 0) for `duration` seconds; returns the
+/// RMS error after `settle` seconds and the largest |error| over the whole run.
+fn run<const N: usize>(
+    channel: &mut Channel,
+    plant: &mut Rk4Plant<N>,
+    reference: impl Fn(f64) -> Reference,
+    duration: f64,
+    settle: f64,
+) -> (f64, f64) {
+    let steps = (duration / H).round() as usize;
+    let mut errors = Vec::new();
+    let mut worst: f64 = 0.0;
+    for k in 0..steps {
+        let t = k as f64 * H;
+        let r = reference(t);
+        let out = channel.step(t, plant.x[0], &r).expect("step");
+        worst = worst.max(out.error.abs());
+        if t >= settle {
+            errors.push(out.error);
+        }
+        plant.advance(H, out.v, 10);
+    }
+    (rms(&errors), worst)
+}
+
+/// y' = -0.8 y + 2.5 u + 1.5: stable first-order plant with an unknown constant disturbance.
+fn first_order() -> Rk4Plant<1> {
+    Rk4Plant {
+        x: [0.0],
+        deriv: |x, u| [-0.8 * x[0] + 2.5 * u + 1.5],
+    }
+}
+
+/// y'' = -0.3 y' - 4 y + 3 u + 2: lightly damped second-order plant with a disturbance.
+fn second_order() -> Rk4Plant<2> {
+    Rk4Plant {
+        x: [0.0, 0.0],
+        deriv: |x, u| [x[1], -0.3 * x[1] - 4.0 * x[0] + 3.0 * u + 2.0],
+    }
+}
+
+fn sine(amplitude: f64, w: f64, offset: f64) -> impl Fn(f64) -> Reference {
+    move |t| Reference {
+        y: offset + amplitude * (w * t).sin(),
+        dy: amplitude * w * (w * t).cos(),
+        ddy: -amplitude * w * w * (w * t).sin(),
+    }
+}
+
+#[test]
+fn every_controller_tracks_a_first_order_plant() {
+    let laws = [
+        (
+            "iP",
+            intelligent(ControllerKind::P, Order::One, 2.0, 10.0, 0.0, 0.0),
+        ),
+        (
+            "iPI",
+            intelligent(ControllerKind::PI, Order::One, 2.0, 10.0, 20.0, 0.0),
+        ),
+        (
+            "iPID",
+            intelligent(ControllerKind::PID, Order::One, 2.0, 10.0, 10.0, 0.05),
+        ),
+        (
+            "PID",
+            LawConfig::Pid {
+                params: PidParams {
+                    kp: 8.0,
+                    ki: 20.0,
+                    kd: 0.05,
+                    ..Default::default()
+                },
+            },
+        ),
+        (
+            "ADRC",
+            LawConfig::Adrc {
+                params: AdrcParams {
+                    order: Order::One,
+                    b0: 2.0,
+                    wc: 10.0,
+                    wo: 50.0,
+                },
+            },
+        ),
+    ];
+    for (name, law) in laws {
+        let mut channel: Channel = Channel::new(&ChannelConfig {
+            law,
+            output: limits(20.0),
+        })
+        .unwrap();
+        let (rms, worst) = run(
+            &mut channel,
+            &mut first_order(),
+            sine(0.5, 1.0, 0.3),
+            10.0,
+            3.0,
+        );
+        eprintln!("first order, {name}: rms {rms:.2e}, worst {worst:.3}");
+        // 2 % of the reference amplitude after the transient, and no excursion beyond the
+        // initial offset (|e(0)| = 0.3).
+        assert!(rms < 0.01, "{name}: rms {rms}");
+        assert!(worst <= 0.31, "{name}: worst {worst}");
+    }
+}
+
+#[test]
+fn every_controller_tracks_a_second_order_plant() {
+    let laws = [
+        (
+            "iPD",
+            intelligent(ControllerKind::PD, Order::Two, 3.0, 25.0, 0.0, 10.0),
+        ),
+        (
+            "iPID",
+            intelligent(ControllerKind::PID, Order::Two, 3.0, 25.0, 10.0, 10.0),
+        ),
+        (
+            "PID",
+            LawConfig::Pid {
+                params: PidParams {
+                    kp: 80.0,
+                    ki: 150.0,
+                    kd: 8.0,
+                    ..Default::default()
+                },
+            },
+        ),
+        (
+            "ADRC",
+            LawConfig::Adrc {
+                params: AdrcParams {
+                    order: Order::Two,
+                    b0: 3.0,
+                    wc: 5.0,
+                    wo: 30.0,
+                },
+            },
+        ),
+    ];
+    for (name, law) in laws {
+        let mut channel: Channel = Channel::new(&ChannelConfig {
+            law,
+            output: limits(50.0),
+        })
+        .unwrap();
+        let (rms, worst) = run(
+            &mut channel,
+            &mut second_order(),
+            sine(0.4, 0.8, 0.0),
+            12.0,
+            4.0,
+        );
+        eprintln!("second order, {name}: rms {rms:.2e}, worst {worst:.3}");
+        assert!(rms < 0.01, "{name}: rms {rms}");
+        assert!(worst < 0.2, "{name}: worst {worst}");
+    }
+}
+
+/// The literal reading of the paper's closed-loop formula,
+/// F_est = (1/τ) ∫ (y*' - α u - Kp e), fed with the iP's own output, is an identity: each
+/// integrand equals the previous F_est, so F_est never moves. The non-circular form (measured
+/// y, applied u) follows a step in F.
+#[test]
+fn closed_loop_form_is_not_the_identity_trap() {
+    let (alpha, kp, window) = (1.0, 5.0, 10usize);
+    let f_true = |t: f64| if t < 1.0 { 1.0 } else { 3.0 };
+    let reference = |t: f64| Reference {
+        y: 0.5 * t,
+        dy: 0.5,
+        ddy: 0.0,
+    };
+
+    // Ours.
+    let cfg = EstimatorConfig {
+        kind: EstimatorKind::ClosedLoop,
+        window,
+        ..Default::default()
+    };
+    let params = IntelligentParams {
+        alpha,
+        kp,
+        ..Default::default()
+    };
+    let mut ctrl: IntelligentController = IntelligentController::new(params, cfg).unwrap();
+    let mut y = 0.0;
+    let mut last_f = None;
+    for k in 0..300 {
+        let t = k as f64 * H;
+        let out = ctrl.step(t, y, &reference(t)).unwrap();
+        last_f = out.f_est;
+        y += H * (f_true(t) + alpha * out.u);
+    }
+    let ours = last_f.unwrap();
+    assert!((ours - 3.0).abs() < 1e-6, "non-circular form: {ours}");
+
+    // The trap: a window of past integrands (y*' - α u - Kp e).
+    let mut integrands = std::collections::VecDeque::from(vec![1.0; window]);
+    let mut f_trap: f64 = 1.0;
+    let mut y = 0.0;
+    for k in 0..300 {
+        let t = k as f64 * H;
+        let r = reference(t);
+        let e = y - r.y;
+        let u = -(f_trap - r.dy + kp * e) / alpha;
+        integrands.pop_front();
+        integrands.push_back(r.dy - alpha * u - kp * e);
+        f_trap = integrands.iter().sum::<f64>() / window as f64;
+        y += H * (f_true(t) + alpha * u);
+    }
+    assert!(
+        (f_trap - 1.0).abs() < 1e-9,
+        "the trap never moves: {f_trap}"
+    );
+}
+
+/// The estimator is fed what the plant got. With the output saturated, feeding the computed
+/// output (the mistake) biases F_est; feeding the applied one (what `Channel` does) keeps it
+/// exact.
+#[test]
+fn saturation_aware_estimation() {
+    let (f, alpha) = (-2.0, 1.0);
+    let params = IntelligentParams {
+        alpha,
+        kp: 5.0,
+        ..Default::default()
+    };
+    let law = LawConfig::Intelligent {
+        params,
+        estimator: EstimatorConfig::default(),
+    };
+    let mut channel: Channel = Channel::new(&ChannelConfig {
+        law,
+        output: limits(1.0),
+    })
+    .unwrap();
+    let mut naive: IntelligentController =
+        IntelligentController::new(params, EstimatorConfig::default()).unwrap();
+    // An unreachable ramp keeps the output saturated at +1 (the plant: y' = F + α v).
+    let reference = |t: f64| Reference {
+        y: 5.0 * t,
+        dy: 5.0,
+        ddy: 0.0,
+    };
+    let (mut y1, mut y2) = (0.0, 0.0);
+    let (mut est1, mut est2) = (0.0, 0.0);
+    for k in 0..200 {
+        let t = k as f64 * H;
+        let o1 = channel.step(t, y1, &reference(t)).unwrap();
+        assert!(k < 15 || o1.v == 1.0, "saturated");
+        est1 = o1.f_est.unwrap_or(0.0);
+        y1 += H * (f + alpha * o1.v);
+        let o2 = naive.step(t, y2, &reference(t)).unwrap();
+        est2 = o2.f_est.unwrap_or(0.0);
+        y2 += H * (f + alpha * o2.u.clamp(-1.0, 1.0));
+    }
+    assert!((est1 - f).abs() < 1e-9, "applied input: {est1}");
+    assert!((est2 - f).abs() > 1.0, "computed input: {est2}");
+}
+
+/// Dead-zone compensation: v = ±10 + u, saturation at ±24, and the inverse.
+#[test]
+fn aero_output_map() {
+    let mut map = mfc::OutputMap::new(OutputMapConfig::AERO).unwrap();
+    assert_eq!(map.apply(0.0, 2.0).unwrap(), 12.0);
+    assert_eq!(map.apply(0.01, -3.0).unwrap(), -13.0);
+    assert_eq!(map.apply(0.02, 0.0).unwrap(), 0.0);
+    assert_eq!(map.apply(0.03, 100.0).unwrap(), 24.0);
+    assert_eq!(map.inverse(24.0), 14.0);
+    assert_eq!(map.inverse(-12.5), -2.5);
+    assert_eq!(map.inverse(5.0), 0.0);
+    let mut limited = mfc::OutputMap::new(OutputMapConfig {
+        rate_limit: Some(100.0),
+        ..Default::default()
+    })
+    .unwrap();
+    assert_eq!(limited.apply(0.0, 0.0).unwrap(), 0.0);
+    assert!((limited.apply(0.01, 50.0).unwrap() - 1.0).abs() < 1e-12);
+}
+
+/// MIMO: two coupled outputs, one loop each, the coupling left to each F.
+#[test]
+fn mimo_tracks_a_coupled_plant() {
+    let cfg = |alpha| ChannelConfig {
+        law: intelligent(ControllerKind::P, Order::One, alpha, 8.0, 0.0, 0.0),
+        output: limits(30.0),
+    };
+    let mut mimo: mfc::MimoController = mfc::MimoController::new(&[cfg(2.0), cfg(1.0)]).unwrap();
+    // y1' = -y1 + 2 u1 + 0.8 u2 + 0.5 y2,  y2' = -0.5 y2 + 1.2 u2 - 0.6 u1 - 1.
+    let mut x = [0.0f64; 2];
+    let mut out = [mfc::ChannelOutput::default(); 2];
+    let mut errs = Vec::new();
+    for k in 0..1000 {
+        let t = k as f64 * H;
+        let refs = [sine(0.5, 1.5, 0.0)(t), sine(0.3, 0.7, 0.2)(t)];
+        mimo.step(t, &x, &refs, &mut out).unwrap();
+        if t > 2.0 {
+            errs.push(out[0].error);
+            errs.push(out[1].error);
+        }
+        let (v1, v2) = (out[0].v, out[1].v);
+        for _ in 0..10 {
+            let d1 = -x[0] + 2.0 * v1 + 0.8 * v2 + 0.5 * x[1];
+            let d2 = -0.5 * x[1] + 1.2 * v2 - 0.6 * v1 - 1.0;
+            x[0] += H / 10.0 * d1;
+            x[1] += H / 10.0 * d2;
+        }
+    }
+    assert!(rms(&errs) < 0.01, "mimo rms {}", rms(&errs));
+}
