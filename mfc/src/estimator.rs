@@ -22,8 +22,8 @@
 //! linear interpolation of `y`, plus, for n = 2, the curvature correction
 //! `-(F + α u_k)/2 · (t-a)(b-t)`, whose `F` part moves to the left-hand side. The result is
 //! exact to rounding for constant `F` and *any* spacing, so a lost sample (a longer interval)
-//! does not bias the estimate. The trapezoid rule is off by 5 % (n = 1) and 2400 % (n = 2)
-//! on ten samples; these weights are not.
+//! does not bias the estimate. On ten samples of a constant `F` (with `u = 0`) the trapezoid rule is
+//! off by 2.5 % (n = 1) and 25 % (n = 2); these weights are not.
 //!
 //! # Cost independent of the window
 //! The kernels are polynomials in σ, so each interval contributes fixed "moments"

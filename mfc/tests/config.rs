@@ -21,9 +21,17 @@ fn channel_config_from_toml() {
     };
     assert_eq!(params.kind, ControllerKind::PD);
     assert_eq!(params.order, Order::Two);
-    assert_eq!(params.ki, 0.0, "omitted fields take their documented defaults");
+    assert_eq!(
+        params.ki, 0.0,
+        "omitted fields take their documented defaults"
+    );
     assert_eq!(estimator.window, 20);
-    assert_eq!(estimator.kind, EstimatorKind::LowPass { time_constant: 0.05 });
+    assert_eq!(
+        estimator.kind,
+        EstimatorKind::LowPass {
+            time_constant: 0.05
+        }
+    );
     assert_eq!(cfg.output.max, 24.0);
     mfc::Channel::<256>::new(&cfg).unwrap();
 }
@@ -36,7 +44,9 @@ fn unknown_fields_are_refused() {
         "[output]\ndeadzone = 10.0",
         "[law]\nlaw = \"fuzzy\"",
     ] {
-        let err = toml::from_str::<ChannelConfig>(text).unwrap_err().to_string();
+        let err = toml::from_str::<ChannelConfig>(text)
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("unknown"), "{text}: {err}");
     }
 }

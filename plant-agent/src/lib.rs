@@ -1,1 +1,18 @@
-//! Plant agent: bridges a plant (the simulated AERO or a real rig's driver) to the controller.
+//! Plant agent: bridges a plant (the simulated Quanser AERO, or a real rig's driver) to the
+//! model-free controller.
+//!
+//! This crate holds the AERO simulator ([`aero`]), the scenario format ([`scenario`],
+//! [`reference`]), the offline closed loop ([`offline`]), the fair tuner ([`tune`]), the
+//! comparison ([`compare`]) and the plots ([`plot`]); the `plant-agent` binary is a thin CLI
+//! over them.
+
+pub mod aero;
+pub mod compare;
+pub mod metrics;
+pub mod offline;
+pub mod output;
+pub mod plot;
+pub mod reference;
+pub mod rng;
+pub mod scenario;
+pub mod tune;

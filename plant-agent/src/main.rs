@@ -1,0 +1,228 @@
+//! `plant-agent`: the command line. Thin: parsing, progress and printing; the work is in the
+//! library.
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Context, Result};
+use clap::{Parser, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use plant_agent::compare::compare;
+use plant_agent::offline::run;
+use plant_agent::output::write_run;
+use plant_agent::scenario::{
+    load_controller, load_scenario, shipped_controller, ControllerSet, SHIPPED_CONTROLLERS,
+    SHIPPED_SCENARIOS,
+};
+use plant_agent::tune::{starting_point, tune, KINDS};
+
+#[derive(Parser)]
+#[command(
+    name = "plant-agent",
+    version,
+    about = "Model-free control of the Quanser AERO: simulation, tuning, comparison"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run a scenario closed-loop offline (no network), or compare every controller.
+    Sim {
+        /// Scenario file, or a shipped one: 1, 2, 3, 4.
+        #[arg(long, default_value = "2")]
+        scenario: String,
+        /// Shipped controller: ip, ipi, ipd, ipd-tuned, pid, adrc. Default: the scenario's.
+        #[arg(long, conflicts_with = "controller_file")]
+        controller: Option<String>,
+        /// Controller file, as written by `tune`.
+        #[arg(long)]
+        controller_file: Option<PathBuf>,
+        /// Output directory.
+        #[arg(long, default_value = "out/sim")]
+        out: PathBuf,
+        /// Run every controller on the four shipped scenarios and print the table.
+        #[arg(long)]
+        compare: bool,
+    },
+    /// Tune one controller kind on one scenario with a fixed budget of simulated runs.
+    Tune {
+        /// Scenario file, or a shipped one: 1, 2, 3, 4.
+        #[arg(long, default_value = "1")]
+        scenario: String,
+        /// Controller kind: ip, ipi, ipd, pid, adrc.
+        #[arg(long)]
+        controller: String,
+        /// Where to write the tuned controller (TOML, usable by `sim --controller-file`).
+        #[arg(long)]
+        out: PathBuf,
+        /// Number of simulated runs (the same for every kind makes the comparison fair).
+        #[arg(long, default_value_t = 150)]
+        budget: usize,
+        /// Seed of the random phase.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Name of the written controller set. Default: the kind.
+        #[arg(long)]
+        name: Option<String>,
+    },
+}
+
+fn main() -> std::process::ExitCode {
+    match real_main() {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn real_main() -> Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    match Cli::parse().command {
+        Command::Sim {
+            scenario,
+            controller,
+            controller_file,
+            out,
+            compare: true,
+        } => {
+            if controller.is_some() || controller_file.is_some() || scenario != "2" {
+                bail!("--compare runs every shipped controller on every shipped scenario: drop --scenario/--controller");
+            }
+            sim_compare(&out)
+        }
+        Command::Sim {
+            scenario,
+            controller,
+            controller_file,
+            out,
+            compare: false,
+        } => {
+            let scenario = load_scenario(&scenario)?;
+            let set = match (controller, controller_file) {
+                (Some(kind), _) => shipped_controller(&kind)?,
+                (None, Some(file)) => load_controller(&file.to_string_lossy())?,
+                (None, None) => scenario.controller.clone(),
+            };
+            let r = run(&scenario, &set, true)?;
+            write_run(&out, &scenario, &r)?;
+            println!("{} with {}:", scenario.name, set.name);
+            for c in &r.summary.channels {
+                println!(
+                    "  {:<18} rms {:.3e}  max {:.3e}  iae {:.3e}  saturated {:.1}%  chatter {:.2} V",
+                    c.name,
+                    c.rms,
+                    c.max_abs,
+                    c.iae,
+                    100.0 * c.saturated_fraction,
+                    c.control_variation
+                );
+            }
+            println!(
+                "wrote {}/{{timeseries.csv, summary.json, *.png, *.svg}}",
+                out.display()
+            );
+            Ok(())
+        }
+        Command::Tune {
+            scenario,
+            controller,
+            out,
+            budget,
+            seed,
+            name,
+        } => {
+            if budget == 0 {
+                bail!("--budget must be at least 1");
+            }
+            let scenario = load_scenario(&scenario)?;
+            let start = starting_point(&controller).with_context(|| {
+                format!(
+                    "unknown controller kind `{controller}` (known: {})",
+                    KINDS.join(", ")
+                )
+            })?;
+            let bar = ProgressBar::new(budget as u64).with_style(
+                ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} runs ({eta})")
+                    .expect("static template")
+                    .progress_chars("=> "),
+            );
+            let tuned = tune(&scenario, &start, budget, seed, |done, best| {
+                bar.set_position(done as u64);
+                bar.set_message(format!("tuning {controller}: best {best:.4}"));
+            })?;
+            bar.finish_and_clear();
+            let mut set = tuned.set;
+            if let Some(name) = &name {
+                set.name = name.clone();
+            }
+            let text = toml::to_string_pretty(&set)?;
+            if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+                std::fs::create_dir_all(dir)?;
+            }
+            let command = format!(
+                "plant-agent tune --scenario {} --controller {controller} --budget {budget} --seed {seed}{}",
+                scenario.name,
+                name.as_ref().map(|n| format!(" --name {n}")).unwrap_or_default()
+            );
+            std::fs::write(&out, format!("# Written by `{command}`.\n{text}"))
+                .with_context(|| format!("writing {}", out.display()))?;
+            println!(
+                "{controller} on {}: objective {:.4} (start {:.4}) in {} runs; wrote {}",
+                scenario.name,
+                tuned.cost,
+                tuned.start_cost,
+                tuned.runs,
+                out.display()
+            );
+            Ok(())
+        }
+    }
+}
+
+fn sim_compare(out: &std::path::Path) -> Result<()> {
+    let scenarios = SHIPPED_SCENARIOS
+        .iter()
+        .map(|(n, _, _)| load_scenario(n))
+        .collect::<Result<Vec<_>, _>>()?;
+    let controllers = SHIPPED_CONTROLLERS
+        .iter()
+        .map(|(k, _)| shipped_controller(k))
+        .collect::<Result<Vec<ControllerSet>, _>>()?;
+    let bar = ProgressBar::new((scenarios.len() * controllers.len()) as u64).with_style(
+        ProgressStyle::with_template("{msg:<28} [{bar:30}] {pos}/{len} runs")
+            .expect("static template")
+            .progress_chars("=> "),
+    );
+    let cmp = compare(&scenarios, &controllers, |s, c| {
+        bar.set_message(format!("{s} / {c}"));
+        bar.inc(1);
+    })?;
+    bar.finish_and_clear();
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let md = format!(
+        "{}\nRMS with the 4 g mass over RMS without (no retuning):\n\n{}",
+        cmp.markdown(),
+        cmp.mass_markdown()
+    );
+    std::fs::write(out.join("comparison.md"), &md)?;
+    std::fs::write(
+        out.join("comparison.json"),
+        serde_json::to_string_pretty(&cmp)? + "\n",
+    )?;
+    println!("{md}");
+    println!(
+        "wrote {0}/comparison.md and {0}/comparison.json",
+        out.display()
+    );
+    Ok(())
+}
