@@ -5,8 +5,8 @@
 
 use divan::{black_box, Bencher};
 use mfc::{
-    AdrcParams, Channel, ChannelConfig, ControllerKind, EstimatorConfig, IntelligentParams,
-    LawConfig, Order, OutputMapConfig, PidParams, Reference,
+    AdrcParams, Channel, ChannelConfig, ControllerKind, LawConfig, Order, OutputMapConfig,
+    PidParams, Reference,
 };
 
 fn main() {
@@ -14,21 +14,7 @@ fn main() {
 }
 
 fn intelligent(kind: ControllerKind, order: Order, window: usize) -> LawConfig {
-    LawConfig::Intelligent {
-        params: IntelligentParams {
-            kind,
-            order,
-            alpha: 2.0,
-            kp: 5.0,
-            ki: 1.0,
-            kd: 0.5,
-            ..Default::default()
-        },
-        estimator: EstimatorConfig {
-            window,
-            ..Default::default()
-        },
-    }
+    LawConfig::intelligent(kind, order, 2.0, [5.0, 1.0, 0.5], window)
 }
 
 fn bench_law(bencher: Bencher, law: LawConfig) {

@@ -11,7 +11,7 @@ use crate::estimator::{EstimatorConfig, DEFAULT_CAPACITY};
 use crate::intelligent::{IntelligentController, IntelligentParams};
 use crate::output_map::{OutputMap, OutputMapConfig};
 use crate::pid::{Pid, PidParams};
-use crate::Reference;
+use crate::{ControllerKind, Order, Reference};
 
 /// Which control law a channel runs, with its parameters.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -42,6 +42,35 @@ pub enum LawConfig {
         #[cfg_attr(feature = "serde", serde(default))]
         params: AdrcParams,
     },
+}
+
+impl LawConfig {
+    /// An intelligent controller of `kind` on a model of `order`, with `α` and the gains
+    /// `[kp, ki, kd]`, the other parameters at their defaults, over an algebraic window of
+    /// `window` samples: the usual way to write one down in code.
+    pub fn intelligent(
+        kind: ControllerKind,
+        order: Order,
+        alpha: f64,
+        [kp, ki, kd]: [f64; 3],
+        window: usize,
+    ) -> Self {
+        LawConfig::Intelligent {
+            params: IntelligentParams {
+                kind,
+                order,
+                alpha,
+                kp,
+                ki,
+                kd,
+                ..IntelligentParams::default()
+            },
+            estimator: EstimatorConfig {
+                window,
+                ..EstimatorConfig::default()
+            },
+        }
+    }
 }
 
 impl Default for LawConfig {

@@ -4,8 +4,8 @@ mod common;
 
 use common::Rk4Plant;
 use mfc::{
-    AdrcParams, Channel, ChannelConfig, ControllerKind, EstimatorConfig, IntelligentParams,
-    LawConfig, Order, OutputMapConfig, PidParams, Reference,
+    AdrcParams, Channel, ChannelConfig, ControllerKind, LawConfig, Order, OutputMapConfig,
+    PidParams, Reference,
 };
 
 const H: f64 = 0.01;
@@ -28,18 +28,7 @@ fn plant() -> Rk4Plant<2> {
 
 fn ip(kind: ControllerKind, order: Order, alpha: f64, kp: f64, ki: f64, kd: f64) -> ChannelConfig {
     ChannelConfig {
-        law: LawConfig::Intelligent {
-            params: IntelligentParams {
-                kind,
-                order,
-                alpha,
-                kp,
-                ki,
-                kd,
-                ..Default::default()
-            },
-            estimator: EstimatorConfig::default(),
-        },
+        law: LawConfig::intelligent(kind, order, alpha, [kp, ki, kd], 10),
         output: OutputMapConfig::default(),
     }
 }

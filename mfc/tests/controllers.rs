@@ -19,18 +19,7 @@ fn intelligent(
     ki: f64,
     kd: f64,
 ) -> LawConfig {
-    LawConfig::Intelligent {
-        params: IntelligentParams {
-            kind,
-            order,
-            alpha,
-            kp,
-            ki,
-            kd,
-            ..Default::default()
-        },
-        estimator: EstimatorConfig::default(),
-    }
+    LawConfig::intelligent(kind, order, alpha, [kp, ki, kd], 10)
 }
 
 fn limits(limit: f64) -> OutputMapConfig {

@@ -16,9 +16,7 @@
 //! intelligent controllers, and, for PID and ADRC, gains computed from the *linear model's*
 //! DC gains and time constants (knowledge the intelligent controllers do not get).
 
-use mfc::{
-    AdrcParams, ControllerKind, EstimatorConfig, IntelligentParams, LawConfig, Order, PidParams,
-};
+use mfc::{AdrcParams, ControllerKind, LawConfig, Order, PidParams};
 
 use crate::offline::{run, RunError};
 use crate::reference::evaluate;
@@ -37,21 +35,7 @@ fn intelligent(
     kd: f64,
     window: usize,
 ) -> LawConfig {
-    LawConfig::Intelligent {
-        params: IntelligentParams {
-            kind,
-            order,
-            alpha,
-            kp,
-            ki,
-            kd,
-            ..Default::default()
-        },
-        estimator: EstimatorConfig {
-            window,
-            ..Default::default()
-        },
-    }
+    LawConfig::intelligent(kind, order, alpha, [kp, ki, kd], window)
 }
 
 /// The untuned starting point of a kind.
