@@ -1,3 +1,14 @@
-//! Controller service: per-device MFC state answering sensor samples over Zenoh.
+//! Controller service: holds per-device model-free control state and answers each sensor
+//! sample, published over Zenoh, with a control command. One process serves many plants.
 //!
-//! Not written yet: see the service issue.
+//! * [`config`]: the TOML file (declared devices, templates);
+//! * [`registry`]: the per-device state and the rules for samples, configuration and status,
+//!   without I/O;
+//! * [`service`]: the Zenoh wiring and the worker task.
+
+pub mod config;
+pub mod registry;
+pub mod service;
+
+pub use config::ServiceConfig;
+pub use registry::Registry;

@@ -31,6 +31,7 @@
 //! * [`OutputMap`]: dead-zone compensation, saturation, rate limit, and the inverse that
 //!   tells the estimator what the plant really got;
 //! * baselines for honest comparisons: [`Pid`] and linear [`Adrc`];
+//! * [`trajectory`]: references as sums of smooth pieces with analytic derivatives;
 //! * [`Channel`] (a law plus its output map) and, with `alloc`, [`mimo::MimoController`].
 //!
 //! Every fallible call checks its input first and returns a [`MfcError`] with the state
@@ -87,6 +88,7 @@ pub mod intelligent;
 pub mod mimo;
 pub mod output_map;
 pub mod pid;
+pub mod trajectory;
 
 pub use adrc::{Adrc, AdrcParams};
 pub use channel::{Channel, ChannelConfig, ChannelOutput, LawConfig};

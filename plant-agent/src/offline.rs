@@ -9,7 +9,7 @@ use mfc::{ChannelOutput, MimoController, Reference};
 
 use crate::aero::{AeroSim, CHANNELS};
 use crate::metrics::{Accumulator, Summary};
-use crate::reference::evaluate;
+use mfc::trajectory::evaluate;
 use crate::scenario::{ControllerSet, Scenario};
 
 /// Why a run could not be done.

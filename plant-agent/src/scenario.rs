@@ -33,7 +33,7 @@ use mfc::{ChannelConfig, LawConfig, OutputMapConfig};
 use serde::{Deserialize, Serialize};
 
 use crate::aero::{AeroParams, CHANNELS, PAPER_ADDED_MASS};
-use crate::reference::Piece;
+use mfc::trajectory::Piece;
 
 /// Why a scenario, plant or controller file could not be used.
 #[derive(Debug, thiserror::Error)]

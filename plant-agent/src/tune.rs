@@ -19,7 +19,7 @@
 use mfc::{AdrcParams, ControllerKind, LawConfig, Order, PidParams};
 
 use crate::offline::{run, RunError};
-use crate::reference::evaluate;
+use mfc::trajectory::evaluate;
 use crate::rng::Rng;
 use crate::scenario::{ControllerSet, Scenario};
 

@@ -1,5 +1,8 @@
 //! Reference trajectories as sums of smooth pieces with analytic derivatives.
 //!
+//! Part of the core because the controller (in the service) and the plant side (offline
+//! simulation, local fallback) must evaluate the same reference at the same time.
+//!
 //! The intelligent controllers use `y*'` (and `y*''` for n = 2) as a feed-forward, so the
 //! reference generator gives them exactly rather than by differencing.
 //!
@@ -12,12 +15,15 @@
 //! ]
 //! ```
 
-use mfc::Reference;
-use serde::{Deserialize, Serialize};
+use crate::Reference;
 
 /// One piece of a reference; the reference is the sum of its pieces.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(
+    feature = "serde",
+    serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)
+)]
 pub enum Piece {
     /// `value` at all times.
     Constant {
@@ -51,20 +57,21 @@ pub enum Piece {
         /// Period (s), > 0.
         period: f64,
         /// Phase (rad). Default 0.
-        #[serde(default)]
+        #[cfg_attr(feature = "serde", serde(default))]
         phase: f64,
         /// Start time (s). Default 0.
-        #[serde(default)]
+        #[cfg_attr(feature = "serde", serde(default))]
         start: f64,
         /// End time (s). Default: never.
-        #[serde(default = "infinity")]
+        #[cfg_attr(feature = "serde", serde(default = "infinity"))]
         end: f64,
         /// Fade-in and fade-out time (s). Default 0 (abrupt).
-        #[serde(default)]
+        #[cfg_attr(feature = "serde", serde(default))]
         fade: f64,
     },
 }
 
+#[cfg(feature = "serde")]
 fn infinity() -> f64 {
     f64::INFINITY
 }
@@ -145,12 +152,13 @@ impl Piece {
                 if t < start || t > end {
                     return Jet::default();
                 }
-                let w = std::f64::consts::TAU / period;
+                let w = core::f64::consts::TAU / period;
                 let arg = w * (t - start) + phase;
+                let (sin, cos) = (libm::sin(arg), libm::cos(arg));
                 let wave = Jet {
-                    v: amplitude * arg.sin(),
-                    d: amplitude * w * arg.cos(),
-                    dd: -amplitude * w * w * arg.sin(),
+                    v: amplitude * sin,
+                    d: amplitude * w * cos,
+                    dd: -amplitude * w * w * sin,
                 };
                 if fade <= 0.0 {
                     return wave;
@@ -255,7 +263,7 @@ pub fn evaluate(pieces: &[Piece], t: f64) -> Reference {
     }
 }
 
-#[cfg(test)]
+#[cfg(all(test, feature = "std"))]
 mod tests {
     use super::*;
 

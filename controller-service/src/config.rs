@@ -1,0 +1,202 @@
+//! The service's configuration file (TOML).
+//!
+//! ```toml
+//! controller_id = "controller-1"      # default "controller-1"
+//!
+//! [[devices]]                          # declared devices
+//! id = "aero-1"
+//! [[devices.channels]]
+//! law = { law = "intelligent", params = { kind = "ip", alpha = 0.001, kp = 0.5 } }
+//! output = { dead_zone = 10.0, min = -24.0, max = 24.0 }
+//! reference = [{ kind = "constant", value = 0.0 }]
+//!
+//! [[templates]]                        # provision unknown devices whose id matches
+//! pattern = "aero-$*"                  # a zenoh key expression over the id (`*`: any)
+//! [[templates.channels]]
+//! ...
+//! ```
+//!
+//! A sample from a device that is neither declared nor matched by a template is refused and
+//! counted in the service status.
+
+use std::path::Path;
+
+use mfc::trajectory::Piece;
+use mfc::{ChannelConfig, LawConfig, OutputMapConfig};
+use serde::{Deserialize, Serialize};
+
+/// Why a configuration was refused.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// Unreadable file.
+    #[error("{file}: {source}")]
+    Io {
+        /// File.
+        file: String,
+        /// Cause.
+        source: std::io::Error,
+    },
+    /// Not valid TOML for the schema (the message names the field and line).
+    #[error("{file}: {message}")]
+    Parse {
+        /// File.
+        file: String,
+        /// Parser message.
+        message: String,
+    },
+    /// A value is out of range.
+    #[error("{file}: `{field}`: {reason}")]
+    Invalid {
+        /// File.
+        file: String,
+        /// Field path.
+        field: String,
+        /// Reason.
+        reason: String,
+    },
+}
+
+/// One channel of a device: its law, its output map and its reference.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ChannelSpec {
+    /// Control law. Default: iP, alpha 1, Kp 1.
+    #[serde(default)]
+    pub law: LawConfig,
+    /// Output map. Default: identity.
+    #[serde(default)]
+    pub output: OutputMapConfig,
+    /// Reference pieces (evaluated on the plant's clock). Default: constant 0.
+    #[serde(default)]
+    pub reference: Vec<Piece>,
+}
+
+impl ChannelSpec {
+    /// The core configuration of the channel.
+    pub fn channel(&self) -> ChannelConfig {
+        ChannelConfig {
+            law: self.law,
+            output: self.output,
+        }
+    }
+}
+
+/// A declared device.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DeviceSpec {
+    /// Device id (letters, digits, `-`, `_`, `.`).
+    pub id: String,
+    /// One entry per plant output.
+    pub channels: Vec<ChannelSpec>,
+}
+
+/// A template that provisions unknown devices on their first sample.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TemplateSpec {
+    /// Zenoh key expression matched against the device id: `*` for any id, `aero-$*` for
+    /// ids that start with `aero-` (zenoh syntax: `$*` inside a chunk).
+    pub pattern: String,
+    /// Channels given to a matching device.
+    pub channels: Vec<ChannelSpec>,
+}
+
+/// The whole file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ServiceConfig {
+    /// This controller's id (in commands, status and liveliness keys). Default
+    /// `controller-1`.
+    #[serde(default = "default_id")]
+    pub controller_id: String,
+    /// Declared devices.
+    #[serde(default)]
+    pub devices: Vec<DeviceSpec>,
+    /// Templates for devices provisioned on first sample, tried in order.
+    #[serde(default)]
+    pub templates: Vec<TemplateSpec>,
+}
+
+fn default_id() -> String {
+    "controller-1".into()
+}
+
+impl Default for ServiceConfig {
+    fn default() -> Self {
+        Self {
+            controller_id: default_id(),
+            devices: Vec::new(),
+            templates: Vec::new(),
+        }
+    }
+}
+
+fn check_channels(file: &str, at: &str, channels: &[ChannelSpec]) -> Result<(), ConfigError> {
+    let invalid = |field: String, reason: String| ConfigError::Invalid {
+        file: file.into(),
+        field,
+        reason,
+    };
+    if channels.is_empty() {
+        return Err(invalid(format!("{at}.channels"), "at least one channel".into()));
+    }
+    for (i, c) in channels.iter().enumerate() {
+        mfc::Channel::<{ mfc::DEFAULT_CAPACITY }>::new(&c.channel())
+            .map_err(|e| invalid(format!("{at}.channels[{i}]"), e.to_string()))?;
+        for (j, p) in c.reference.iter().enumerate() {
+            p.validate().map_err(|(f, r)| {
+                invalid(format!("{at}.channels[{i}].reference[{j}].{f}"), r.into())
+            })?;
+        }
+    }
+    Ok(())
+}
+
+impl ServiceConfig {
+    /// Read and check a configuration file.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let file = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
+            file: file.clone(),
+            source,
+        })?;
+        Self::parse(&file, &text)
+    }
+
+    /// Parse and check configuration text; `file` names it in errors.
+    pub fn parse(file: &str, text: &str) -> Result<Self, ConfigError> {
+        let cfg: ServiceConfig = toml::from_str(text).map_err(|e| ConfigError::Parse {
+            file: file.into(),
+            message: e.to_string().trim_end().into(),
+        })?;
+        cfg.check(file)?;
+        Ok(cfg)
+    }
+
+    /// Check ids, patterns and every channel.
+    pub fn check(&self, file: &str) -> Result<(), ConfigError> {
+        let invalid = |field: String, reason: String| ConfigError::Invalid {
+            file: file.into(),
+            field,
+            reason,
+        };
+        protocol::keys::check_id(&self.controller_id)
+            .map_err(|e| invalid("controller_id".into(), e.to_string()))?;
+        let mut seen = std::collections::HashSet::new();
+        for (i, d) in self.devices.iter().enumerate() {
+            protocol::keys::check_id(&d.id)
+                .map_err(|e| invalid(format!("devices[{i}].id"), e.to_string()))?;
+            if !seen.insert(d.id.clone()) {
+                return Err(invalid(format!("devices[{i}].id"), format!("duplicate id {:?}", d.id)));
+            }
+            check_channels(file, &format!("devices[{i}]"), &d.channels)?;
+        }
+        for (i, t) in self.templates.iter().enumerate() {
+            zenoh::key_expr::KeyExpr::try_from(t.pattern.as_str())
+                .map_err(|e| invalid(format!("templates[{i}].pattern"), e.to_string()))?;
+            check_channels(file, &format!("templates[{i}]"), &t.channels)?;
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,445 @@
+//! Per-device control state and the rules for answering samples. No I/O: the Zenoh wiring
+//! in [`crate::service`] feeds it decoded messages and publishes what it returns, so every
+//! rule here is tested without a network.
+//!
+//! Rules for a sample of device `d` with sequence `s` and plant time `t`:
+//! * unknown `d`: provisioned from the first matching template, else refused and counted;
+//! * a new `run_id`: the plant restarted; its state is rebuilt from the configuration;
+//! * `s` = last: a duplicate; the cached command is sent again (commands are idempotent);
+//! * `s` < last: older than one already answered; answered `STALE`, nothing moves;
+//! * `s` > last + 1: the samples in between were lost (counted); the estimator follows the
+//!   timestamps, so the hole does not bias it;
+//! * bad values (NaN, wrong channel count, `t` not after the last one): answered
+//!   `REJECTED` with the reason, counted, state untouched;
+//! * otherwise the applied inputs the plant reports are given to the estimators, the
+//!   controllers step, and a `CONTROL` command carries the same `s`.
+
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
+
+use mfc::trajectory::{evaluate, Piece};
+use mfc::{ChannelConfig, ChannelOutput, MimoController, Reference};
+use protocol::convert::{channel_from_pb, channel_to_pb, reference_from_pb, reference_to_pb};
+use protocol::{pb, PROTOCOL_VERSION};
+
+use crate::config::{ChannelSpec, ServiceConfig};
+
+/// Round trips kept per device for the status percentiles.
+const RTT_WINDOW: usize = 1000;
+/// Unknown device ids remembered for the status.
+const UNKNOWN_KEPT: usize = 64;
+
+/// What to do with a sample.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Outcome {
+    /// Publish this command on the device's command key.
+    Reply(pb::Command),
+    /// Unknown device and no template: nothing to publish (counted).
+    Unknown,
+}
+
+#[derive(Debug, Clone)]
+struct Device {
+    from_template: bool,
+    configs: Vec<ChannelConfig>,
+    mimo: MimoController,
+    reference: Vec<Vec<Piece>>,
+    reference_start: f64,
+    run_id: Option<u64>,
+    last_seq: Option<u64>,
+    last_time: f64,
+    last_command: Option<pb::Command>,
+    outputs: Vec<ChannelOutput>,
+    refs: Vec<Reference>,
+    samples: u64,
+    commands: u64,
+    lost: u64,
+    duplicates: u64,
+    stale: u64,
+    rejected: u64,
+    plant_fallbacks: u64,
+    rtts: VecDeque<u32>,
+    f_est: Vec<f64>,
+    last_error: String,
+}
+
+impl Device {
+    fn new(channels: &[ChannelSpec], from_template: bool) -> Result<Self, mfc::MfcError> {
+        let configs: Vec<ChannelConfig> = channels.iter().map(ChannelSpec::channel).collect();
+        let n = configs.len();
+        Ok(Self {
+            from_template,
+            mimo: MimoController::new(&configs)?,
+            configs,
+            reference: channels.iter().map(|c| c.reference.clone()).collect(),
+            reference_start: 0.0,
+            run_id: None,
+            last_seq: None,
+            last_time: f64::NEG_INFINITY,
+            last_command: None,
+            outputs: vec![ChannelOutput::default(); n],
+            refs: vec![Reference::default(); n],
+            samples: 0,
+            commands: 0,
+            lost: 0,
+            duplicates: 0,
+            stale: 0,
+            rejected: 0,
+            plant_fallbacks: 0,
+            rtts: VecDeque::with_capacity(RTT_WINDOW),
+            f_est: vec![f64::NAN; n],
+            last_error: String::new(),
+        })
+    }
+
+    /// A restarted plant: fresh control state, same configuration and reference.
+    fn restart(&mut self) {
+        if let Ok(m) = MimoController::new(&self.configs) {
+            self.mimo = m;
+        }
+        self.last_seq = None;
+        self.last_time = f64::NEG_INFINITY;
+        self.last_command = None;
+    }
+
+    fn channels(&self) -> usize {
+        self.configs.len()
+    }
+
+    fn check(&self, s: &pb::Sample) -> Result<(), String> {
+        let n = self.channels();
+        if s.outputs.len() != n {
+            return Err(format!("expected {n} outputs, got {}", s.outputs.len()));
+        }
+        if !s.applied.is_empty() && s.applied.len() != n {
+            return Err(format!("expected {n} applied values (or none), got {}", s.applied.len()));
+        }
+        if let Some(bad) = s.outputs.iter().chain(&s.applied).find(|v| !v.is_finite()) {
+            return Err(format!("non-finite value {bad}"));
+        }
+        if !s.plant_time.is_finite() || s.plant_time <= self.last_time {
+            return Err(format!(
+                "plant time {} does not advance past {}",
+                s.plant_time, self.last_time
+            ));
+        }
+        Ok(())
+    }
+
+    fn config_pb(&self, id: &str) -> pb::DeviceConfig {
+        pb::DeviceConfig {
+            version: PROTOCOL_VERSION,
+            device_id: id.into(),
+            channels: self.configs.iter().map(channel_to_pb).collect(),
+            reference: Some(reference_to_pb(&self.reference, self.reference_start)),
+        }
+    }
+
+    fn status_pb(&self, id: &str) -> pb::DeviceStatus {
+        pb::DeviceStatus {
+            version: PROTOCOL_VERSION,
+            device_id: id.into(),
+            last_seq: self.last_seq.unwrap_or(0),
+            plant_time: if self.last_time.is_finite() { self.last_time } else { 0.0 },
+            samples: self.samples,
+            commands: self.commands,
+            lost: self.lost,
+            duplicates: self.duplicates,
+            stale: self.stale,
+            rejected: self.rejected,
+            plant_fallbacks: self.plant_fallbacks,
+            loop_rtt: Some(latency(&self.rtts)),
+            f_est: self.f_est.clone(),
+            last_error: self.last_error.clone(),
+            from_template: self.from_template,
+        }
+    }
+}
+
+/// Percentiles of round trips (µs).
+pub fn latency(rtts: &VecDeque<u32>) -> pb::LatencyStats {
+    if rtts.is_empty() {
+        return pb::LatencyStats::default();
+    }
+    let mut v: Vec<u32> = rtts.iter().copied().collect();
+    v.sort_unstable();
+    let pick = |q: f64| f64::from(v[((v.len() - 1) as f64 * q).round() as usize]);
+    pb::LatencyStats {
+        count: v.len() as u32,
+        p50_us: pick(0.5),
+        p99_us: pick(0.99),
+        max_us: f64::from(*v.last().unwrap_or(&0)),
+    }
+}
+
+/// A command without control values (refusals and stale answers).
+fn reply(controller_id: &str, id: &str, s: &pb::Sample, mode: pb::Mode, error: String) -> pb::Command {
+    pb::Command {
+        version: PROTOCOL_VERSION,
+        device_id: id.into(),
+        seq: s.seq,
+        controller_unix_ns: protocol::unix_ns(),
+        mode: mode as i32,
+        sample_sent_unix_ns: s.sent_unix_ns,
+        controller_id: controller_id.into(),
+        error,
+        ..Default::default()
+    }
+}
+
+/// All devices of one controller.
+#[derive(Debug)]
+pub struct Registry {
+    controller_id: String,
+    config: ServiceConfig,
+    devices: BTreeMap<String, Device>,
+    unknown_samples: u64,
+    unknown_devices: BTreeSet<String>,
+    decode_errors: u64,
+}
+
+impl Registry {
+    /// Build every declared device from a checked configuration.
+    pub fn new(config: ServiceConfig) -> Result<Self, mfc::MfcError> {
+        let mut devices = BTreeMap::new();
+        for d in &config.devices {
+            devices.insert(d.id.clone(), Device::new(&d.channels, false)?);
+        }
+        Ok(Self {
+            controller_id: config.controller_id.clone(),
+            config,
+            devices,
+            unknown_samples: 0,
+            unknown_devices: BTreeSet::new(),
+            decode_errors: 0,
+        })
+    }
+
+    /// This controller's id.
+    pub fn controller_id(&self) -> &str {
+        &self.controller_id
+    }
+
+    /// Ids of the devices served now.
+    pub fn device_ids(&self) -> impl Iterator<Item = &str> {
+        self.devices.keys().map(String::as_str)
+    }
+
+    /// Count a payload that did not decode.
+    pub fn note_decode_error(&mut self) {
+        self.decode_errors += 1;
+    }
+
+    fn provision(&mut self, id: &str) -> bool {
+        let Ok(ke) = zenoh::key_expr::KeyExpr::try_from(id) else {
+            return false;
+        };
+        for t in &self.config.templates {
+            let Ok(pattern) = zenoh::key_expr::KeyExpr::try_from(t.pattern.as_str()) else {
+                continue;
+            };
+            if pattern.includes(&ke) {
+                if let Ok(d) = Device::new(&t.channels, true) {
+                    tracing::info!(device = id, pattern = %t.pattern, "provisioned from template");
+                    self.devices.insert(id.to_string(), d);
+                    return true;
+                }
+            }
+        }
+        false
+    }
+
+    /// Answer a sample received on the key of device `key_id`.
+    pub fn handle_sample(&mut self, key_id: &str, s: &pb::Sample) -> Outcome {
+        let controller_id = self.controller_id.clone();
+        if s.device_id != key_id {
+            let reason = format!("device id {:?} in a sample on the key of {key_id:?}", s.device_id);
+            tracing::warn!(device = key_id, "{reason}");
+            if let Some(d) = self.devices.get_mut(key_id) {
+                d.rejected += 1;
+                d.last_error = reason.clone();
+            }
+            return Outcome::Reply(reply(&controller_id, key_id, s, pb::Mode::Rejected, reason));
+        }
+        if !self.devices.contains_key(key_id) && !self.provision(key_id) {
+            self.unknown_samples += 1;
+            if self.unknown_devices.len() < UNKNOWN_KEPT && self.unknown_devices.insert(key_id.into()) {
+                tracing::warn!(device = key_id, "sample from an unknown device (no template matches): refused");
+            }
+            return Outcome::Unknown;
+        }
+        let Some(d) = self.devices.get_mut(key_id) else {
+            return Outcome::Unknown;
+        };
+        if d.run_id.is_some_and(|r| r != s.run_id) {
+            tracing::info!(device = key_id, "plant restarted (new run id): state reset");
+            d.restart();
+        }
+        d.run_id = Some(s.run_id);
+        d.samples += 1;
+        if s.last_rtt_us > 0 {
+            if d.rtts.len() == RTT_WINDOW {
+                d.rtts.pop_front();
+            }
+            d.rtts.push_back(s.last_rtt_us);
+        }
+        let plant_trouble = pb::SampleFlags::Holding as u32
+            | pb::SampleFlags::Fallback as u32
+            | pb::SampleFlags::SafeStop as u32;
+        if s.flags & plant_trouble != 0 {
+            d.plant_fallbacks += 1;
+        }
+        match d.last_seq {
+            Some(last) if s.seq == last => {
+                d.duplicates += 1;
+                if let Some(c) = &d.last_command {
+                    return Outcome::Reply(c.clone());
+                }
+            }
+            Some(last) if s.seq < last => {
+                d.stale += 1;
+                return Outcome::Reply(reply(&controller_id, key_id, s, pb::Mode::Stale, String::new()));
+            }
+            _ => {}
+        }
+        if let Err(reason) = d.check(s) {
+            d.rejected += 1;
+            tracing::debug!(device = key_id, seq = s.seq, "sample refused: {reason}");
+            d.last_error = reason.clone();
+            return Outcome::Reply(reply(&controller_id, key_id, s, pb::Mode::Rejected, reason));
+        }
+        if let Some(last) = d.last_seq {
+            d.lost += s.seq.saturating_sub(last + 1);
+        }
+        if d.last_seq.is_some() && !s.applied.is_empty() {
+            // Checked finite above, so this cannot fail.
+            let _ = d.mimo.report_applied(&s.applied);
+        }
+        for (r, pieces) in d.refs.iter_mut().zip(&d.reference) {
+            *r = evaluate(pieces, s.plant_time - d.reference_start);
+        }
+        if let Err(e) = d.mimo.step(s.plant_time, &s.outputs, &d.refs, &mut d.outputs) {
+            d.rejected += 1;
+            d.last_error = e.to_string();
+            return Outcome::Reply(reply(&controller_id, key_id, s, pb::Mode::Rejected, e.to_string()));
+        }
+        d.last_seq = Some(s.seq);
+        d.last_time = s.plant_time;
+        for (f, o) in d.f_est.iter_mut().zip(&d.outputs) {
+            *f = o.f_est.unwrap_or(f64::NAN);
+        }
+        let command = pb::Command {
+            version: PROTOCOL_VERSION,
+            device_id: key_id.into(),
+            seq: s.seq,
+            u: d.outputs.iter().map(|o| o.u).collect(),
+            v: d.outputs.iter().map(|o| o.v).collect(),
+            controller_unix_ns: protocol::unix_ns(),
+            f_est: d.f_est.clone(),
+            mode: pb::Mode::Control as i32,
+            sample_sent_unix_ns: s.sent_unix_ns,
+            controller_id,
+            error: String::new(),
+        };
+        d.commands += 1;
+        d.last_command = Some(command.clone());
+        Outcome::Reply(command)
+    }
+
+    /// The configuration of a device, if served.
+    pub fn config_of(&self, id: &str) -> Option<pb::DeviceConfig> {
+        self.devices.get(id).map(|d| d.config_pb(id))
+    }
+
+    /// Apply a configuration request, all or nothing, bumplessly.
+    pub fn configure(&mut self, id: &str, req: &pb::ConfigRequest) -> pb::ConfigReply {
+        let refuse = |reason: String, config: Option<pb::DeviceConfig>| pb::ConfigReply {
+            version: PROTOCOL_VERSION,
+            accepted: false,
+            reason,
+            config,
+        };
+        let Some(d) = self.devices.get_mut(id) else {
+            return refuse(format!("unknown device {id:?}"), None);
+        };
+        let n = d.channels();
+        let configs = if req.channels.is_empty() {
+            None
+        } else {
+            if req.channels.len() != n {
+                return refuse(
+                    format!("device has {n} channels, request has {}", req.channels.len()),
+                    Some(d.config_pb(id)),
+                );
+            }
+            match req.channels.iter().enumerate().map(|(i, c)| {
+                channel_from_pb(c).map_err(|e| format!("channels[{i}].{}: {}", e.field, e.reason))
+            }).collect::<Result<Vec<_>, _>>() {
+                Ok(c) => Some(c),
+                Err(reason) => return refuse(reason, Some(d.config_pb(id))),
+            }
+        };
+        let reference = match &req.reference {
+            None => None,
+            Some(r) => match reference_from_pb(r) {
+                Ok((pieces, _)) if pieces.len() != n => {
+                    return refuse(
+                        format!("device has {n} channels, reference has {}", pieces.len()),
+                        Some(d.config_pb(id)),
+                    )
+                }
+                Ok(r) => Some(r),
+                Err(e) => return refuse(format!("{}: {}", e.field, e.reason), Some(d.config_pb(id))),
+            },
+        };
+        if let Some(configs) = configs {
+            if let Err(e) = d.mimo.reconfigure(&configs) {
+                return refuse(e.to_string(), Some(d.config_pb(id)));
+            }
+            d.configs = configs;
+        }
+        if let Some((pieces, start)) = reference {
+            d.reference = pieces;
+            d.reference_start = start;
+        }
+        tracing::info!(device = id, "configuration changed");
+        pb::ConfigReply {
+            version: PROTOCOL_VERSION,
+            accepted: true,
+            reason: String::new(),
+            config: Some(d.config_pb(id)),
+        }
+    }
+
+    /// Replace a device's reference (live steering).
+    pub fn set_reference(&mut self, id: &str, update: &pb::ReferenceUpdate) -> Result<(), String> {
+        let req = pb::ConfigRequest {
+            version: PROTOCOL_VERSION,
+            channels: Vec::new(),
+            reference: update.reference.clone(),
+        };
+        let reply = self.configure(id, &req);
+        if reply.accepted {
+            Ok(())
+        } else {
+            Err(reply.reason)
+        }
+    }
+
+    /// Status of one device.
+    pub fn device_status(&self, id: &str) -> Option<pb::DeviceStatus> {
+        self.devices.get(id).map(|d| d.status_pb(id))
+    }
+
+    /// Status of the whole service.
+    pub fn service_status(&self, uptime: f64) -> pb::ServiceStatus {
+        pb::ServiceStatus {
+            version: PROTOCOL_VERSION,
+            controller_id: self.controller_id.clone(),
+            devices: self.devices.iter().map(|(id, d)| d.status_pb(id)).collect(),
+            unknown_samples: self.unknown_samples,
+            unknown_devices: self.unknown_devices.iter().cloned().collect(),
+            decode_errors: self.decode_errors,
+            uptime,
+        }
+    }
+}

@@ -1,0 +1,164 @@
+//! The rules for samples, configuration and status, without a network.
+
+use controller_service::registry::Outcome;
+use controller_service::{Registry, ServiceConfig};
+use protocol::convert::channel_to_pb;
+use protocol::{pb, PROTOCOL_VERSION};
+
+const CONFIG: &str = r#"
+controller_id = "c1"
+[[devices]]
+id = "aero-1"
+[[devices.channels]]
+law = { law = "intelligent", params = { kind = "ip", alpha = 1.0, kp = 2.0 }, estimator = { window = 3 } }
+reference = [{ kind = "constant", value = 1.0 }]
+[[devices.channels]]
+law = { law = "pid", params = { kp = 1.0 } }
+
+[[templates]]
+pattern = "sim-$*"
+[[templates.channels]]
+law = { law = "pid", params = { kp = 2.0 } }
+"#;
+
+fn registry() -> Registry {
+    Registry::new(ServiceConfig::parse("test.toml", CONFIG).unwrap()).unwrap()
+}
+
+fn sample(id: &str, seq: u64, t: f64, y: &[f64]) -> pb::Sample {
+    pb::Sample {
+        version: PROTOCOL_VERSION,
+        device_id: id.into(),
+        seq,
+        plant_time: t,
+        outputs: y.to_vec(),
+        run_id: 42,
+        ..Default::default()
+    }
+}
+
+fn command(o: Outcome) -> pb::Command {
+    match o {
+        Outcome::Reply(c) => c,
+        Outcome::Unknown => panic!("unknown"),
+    }
+}
+
+#[test]
+fn answers_every_sample_with_its_sequence() {
+    let mut r = registry();
+    for k in 0..10u64 {
+        let c = command(r.handle_sample("aero-1", &sample("aero-1", k, k as f64 * 0.01, &[0.0, 0.5])));
+        assert_eq!(c.seq, k);
+        assert_eq!(c.mode, pb::Mode::Control as i32);
+        assert_eq!(c.v.len(), 2);
+        assert_eq!(c.controller_id, "c1");
+    }
+    let s = r.device_status("aero-1").unwrap();
+    assert_eq!((s.samples, s.commands, s.lost), (10, 10, 0));
+}
+
+#[test]
+fn duplicates_stale_and_lost() {
+    let mut r = registry();
+    let first = command(r.handle_sample("aero-1", &sample("aero-1", 5, 0.05, &[0.0, 0.0])));
+    // Duplicate: the same command again.
+    let again = command(r.handle_sample("aero-1", &sample("aero-1", 5, 0.05, &[0.0, 0.0])));
+    assert_eq!(protocol::encode(&first), protocol::encode(&again), "byte for byte");
+    // Older: stale, nothing moves.
+    let before = r.device_status("aero-1").unwrap();
+    let stale = command(r.handle_sample("aero-1", &sample("aero-1", 3, 0.03, &[9.0, 9.0])));
+    assert_eq!(stale.mode, pb::Mode::Stale as i32);
+    assert!(stale.v.is_empty());
+    let after = r.device_status("aero-1").unwrap();
+    assert_eq!((after.last_seq, after.plant_time), (before.last_seq, before.plant_time));
+    // A jump: 6..=8 lost.
+    command(r.handle_sample("aero-1", &sample("aero-1", 9, 0.09, &[0.0, 0.0])));
+    let s = r.device_status("aero-1").unwrap();
+    assert_eq!((s.duplicates, s.stale, s.lost), (1, 1, 3));
+}
+
+#[test]
+fn bad_samples_are_rejected_with_a_reason_and_change_nothing() {
+    let mut r = registry();
+    command(r.handle_sample("aero-1", &sample("aero-1", 1, 0.01, &[0.0, 0.0])));
+    let cases = [
+        (sample("aero-1", 2, 0.02, &[f64::NAN, 0.0]), "non-finite"),
+        (sample("aero-1", 2, 0.02, &[0.0]), "expected 2 outputs"),
+        (sample("aero-1", 2, 0.01, &[0.0, 0.0]), "does not advance"),
+        (sample("other", 2, 0.02, &[0.0, 0.0]), "device id"),
+    ];
+    for (s, needle) in cases {
+        let c = command(r.handle_sample("aero-1", &s));
+        assert_eq!(c.mode, pb::Mode::Rejected as i32, "{needle}");
+        assert!(c.error.contains(needle), "{}: {needle}", c.error);
+    }
+    let s = r.device_status("aero-1").unwrap();
+    assert_eq!((s.rejected, s.last_seq, s.commands), (4, 1, 1));
+    // And the device still works.
+    let c = command(r.handle_sample("aero-1", &sample("aero-1", 2, 0.02, &[0.0, 0.0])));
+    assert_eq!(c.mode, pb::Mode::Control as i32);
+}
+
+#[test]
+fn unknown_devices_are_refused_templates_provision() {
+    let mut r = registry();
+    assert_eq!(r.handle_sample("ghost", &sample("ghost", 0, 0.0, &[0.0])), Outcome::Unknown);
+    let c = command(r.handle_sample("sim-7", &sample("sim-7", 0, 0.0, &[0.3])));
+    assert_eq!(c.v.len(), 1);
+    let st = r.service_status(1.0);
+    assert_eq!(st.unknown_samples, 1);
+    assert_eq!(st.unknown_devices, vec!["ghost".to_string()]);
+    assert!(r.device_status("sim-7").unwrap().from_template);
+}
+
+#[test]
+fn a_restarted_plant_resets_its_state() {
+    let mut r = registry();
+    for k in 0..5u64 {
+        command(r.handle_sample("aero-1", &sample("aero-1", 100 + k, 10.0 + k as f64 * 0.01, &[0.0, 0.0])));
+    }
+    let mut s = sample("aero-1", 0, 0.0, &[0.0, 0.0]);
+    s.run_id = 43;
+    let c = command(r.handle_sample("aero-1", &s));
+    assert_eq!((c.seq, c.mode), (0, pb::Mode::Control as i32));
+}
+
+#[test]
+fn configuration_is_all_or_nothing() {
+    let mut r = registry();
+    let before = r.config_of("aero-1").unwrap();
+    let mut good = mfc::ChannelConfig::default();
+    good.law = mfc::LawConfig::Pid { params: mfc::PidParams { kp: 5.0, ..Default::default() } };
+    let mut bad = good;
+    bad.law = mfc::LawConfig::Pid { params: mfc::PidParams { kp: f64::NAN, ..Default::default() } };
+    let req = |a: &mfc::ChannelConfig, b: &mfc::ChannelConfig| pb::ConfigRequest {
+        version: PROTOCOL_VERSION,
+        channels: vec![channel_to_pb(a), channel_to_pb(b)],
+        reference: None,
+    };
+    let reply = r.configure("aero-1", &req(&good, &bad));
+    assert!(!reply.accepted && reply.reason.contains("channels[1]"), "{}", reply.reason);
+    assert_eq!(r.config_of("aero-1").unwrap(), before);
+    let short = pb::ConfigRequest { version: PROTOCOL_VERSION, channels: vec![channel_to_pb(&good)], reference: None };
+    assert!(r.configure("aero-1", &short).reason.contains("2 channels"));
+    assert!(!r.configure("nope", &short).accepted);
+    let reply = r.configure("aero-1", &req(&good, &good));
+    assert!(reply.accepted, "{}", reply.reason);
+    assert_ne!(r.config_of("aero-1").unwrap(), before);
+}
+
+#[test]
+fn bad_config_files_are_refused() {
+    for (text, needle) in [
+        ("controller_id = \"a/b\"", "controller_id"),
+        ("[[devices]]\nid = \"x\"\nchannels = []", "devices[0].channels"),
+        ("[[devices]]\nid = \"x\"\nchanels = []", "chanels"),
+        ("[[devices]]\nid = \"x\"\n[[devices.channels]]\nlaw = { law = \"intelligent\", params = { alpha = 0.0 } }", "devices[0].channels[0]"),
+        ("[[templates]]\npattern = \"a//b\"\n[[templates.channels]]", "templates[0].pattern"),
+        ("[[devices]]\nid = \"x\"\n[[devices.channels]]\n[[devices]]\nid = \"x\"\n[[devices.channels]]", "duplicate"),
+    ] {
+        let e = ServiceConfig::parse("svc.toml", text).unwrap_err().to_string();
+        assert!(e.contains("svc.toml") && e.contains(needle), "{needle}: {e}");
+    }
+}

@@ -1,0 +1,375 @@
+//! Conversions between the wire configuration and the control core's types.
+//!
+//! `*_from_pb` checks everything a peer could get wrong and returns a typed error naming the
+//! field; the result is then checked again by the core when a controller is built from it.
+
+use mfc::trajectory::Piece;
+use mfc::{
+    AdrcParams, ChannelConfig, ControllerKind, EstimatorConfig, EstimatorKind, IntelligentParams,
+    LawConfig, Order, OutputMapConfig, PidParams,
+};
+
+use crate::pb;
+
+/// A wire configuration the core cannot represent.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{field}: {reason}")]
+pub struct ConvertError {
+    /// Field path.
+    pub field: String,
+    /// What is wrong.
+    pub reason: String,
+}
+
+fn err(field: impl Into<String>, reason: impl Into<String>) -> ConvertError {
+    ConvertError {
+        field: field.into(),
+        reason: reason.into(),
+    }
+}
+
+fn order_from(n: u32, field: &str) -> Result<Order, ConvertError> {
+    match n {
+        1 => Ok(Order::One),
+        2 => Ok(Order::Two),
+        _ => Err(err(field, format!("order must be 1 or 2, got {n}"))),
+    }
+}
+
+fn order_to(o: Order) -> u32 {
+    u32::from(o.n())
+}
+
+/// Core channel configuration to wire.
+pub fn channel_to_pb(c: &ChannelConfig) -> pb::ChannelConfig {
+    use pb::channel_config::Law;
+    let law = match c.law {
+        LawConfig::Intelligent { params, estimator } => Law::Intelligent(pb::Intelligent {
+            kind: match params.kind {
+                ControllerKind::P => pb::IntelligentKind::Ip,
+                ControllerKind::PI => pb::IntelligentKind::Ipi,
+                ControllerKind::PD => pb::IntelligentKind::Ipd,
+                ControllerKind::PID => pb::IntelligentKind::Ipid,
+            } as i32,
+            order: order_to(params.order),
+            alpha: params.alpha,
+            kp: params.kp,
+            ki: params.ki,
+            kd: params.kd,
+            derivative_filter: params.derivative_filter,
+            bumpless_time_constant: params.bumpless_time_constant,
+            estimator: Some(pb::Estimator {
+                kind: match estimator.kind {
+                    EstimatorKind::Algebraic => pb::estimator::Kind::Algebraic,
+                    EstimatorKind::ClosedLoop => pb::estimator::Kind::ClosedLoop,
+                    EstimatorKind::LowPass { .. } => pb::estimator::Kind::LowPass,
+                } as i32,
+                window: u32::try_from(estimator.window).unwrap_or(u32::MAX),
+                time_constant: match estimator.kind {
+                    EstimatorKind::LowPass { time_constant } => time_constant,
+                    _ => 0.0,
+                },
+                max_interval: if estimator.max_interval.is_finite() {
+                    estimator.max_interval
+                } else {
+                    0.0
+                },
+            }),
+        }),
+        LawConfig::Pid { params } => Law::Pid(pb::Pid {
+            kp: params.kp,
+            ki: params.ki,
+            kd: params.kd,
+            derivative_filter: params.derivative_filter,
+            setpoint_weight: params.setpoint_weight,
+            tracking_gain: params.tracking_gain,
+            out_min: params.out_min.is_finite().then_some(params.out_min),
+            out_max: params.out_max.is_finite().then_some(params.out_max),
+        }),
+        LawConfig::Adrc { params } => Law::Adrc(pb::Adrc {
+            order: order_to(params.order),
+            b0: params.b0,
+            wc: params.wc,
+            wo: params.wo,
+        }),
+    };
+    let o = c.output;
+    pb::ChannelConfig {
+        law: Some(law),
+        output: Some(pb::OutputMap {
+            dead_zone: o.dead_zone,
+            min: o.min.is_finite().then_some(o.min),
+            max: o.max.is_finite().then_some(o.max),
+            rate_limit: o.rate_limit,
+        }),
+    }
+}
+
+/// Wire channel configuration to core (checked by the core as well).
+pub fn channel_from_pb(c: &pb::ChannelConfig) -> Result<ChannelConfig, ConvertError> {
+    use pb::channel_config::Law;
+    let law = match &c.law {
+        None => return Err(err("law", "missing")),
+        Some(Law::Intelligent(i)) => {
+            let kind = match pb::IntelligentKind::try_from(i.kind) {
+                Ok(pb::IntelligentKind::Ip) => ControllerKind::P,
+                Ok(pb::IntelligentKind::Ipi) => ControllerKind::PI,
+                Ok(pb::IntelligentKind::Ipd) => ControllerKind::PD,
+                Ok(pb::IntelligentKind::Ipid) => ControllerKind::PID,
+                _ => return Err(err("intelligent.kind", format!("unknown kind {}", i.kind))),
+            };
+            let e = i.estimator.clone().unwrap_or_default();
+            let est_kind = match pb::estimator::Kind::try_from(e.kind) {
+                Ok(pb::estimator::Kind::Algebraic) => EstimatorKind::Algebraic,
+                Ok(pb::estimator::Kind::ClosedLoop) => EstimatorKind::ClosedLoop,
+                Ok(pb::estimator::Kind::LowPass) => EstimatorKind::LowPass {
+                    time_constant: e.time_constant,
+                },
+                Err(_) => {
+                    return Err(err(
+                        "intelligent.estimator.kind",
+                        format!("unknown kind {}", e.kind),
+                    ))
+                }
+            };
+            LawConfig::Intelligent {
+                params: IntelligentParams {
+                    kind,
+                    order: order_from(i.order, "intelligent.order")?,
+                    alpha: i.alpha,
+                    kp: i.kp,
+                    ki: i.ki,
+                    kd: i.kd,
+                    derivative_filter: i.derivative_filter,
+                    bumpless_time_constant: i.bumpless_time_constant,
+                },
+                estimator: EstimatorConfig {
+                    kind: est_kind,
+                    window: e.window as usize,
+                    max_interval: if e.max_interval == 0.0 {
+                        f64::INFINITY
+                    } else {
+                        e.max_interval
+                    },
+                },
+            }
+        }
+        Some(Law::Pid(p)) => LawConfig::Pid {
+            params: PidParams {
+                kp: p.kp,
+                ki: p.ki,
+                kd: p.kd,
+                derivative_filter: p.derivative_filter,
+                setpoint_weight: p.setpoint_weight,
+                tracking_gain: p.tracking_gain,
+                out_min: p.out_min.unwrap_or(f64::NEG_INFINITY),
+                out_max: p.out_max.unwrap_or(f64::INFINITY),
+            },
+        },
+        Some(Law::Adrc(a)) => LawConfig::Adrc {
+            params: AdrcParams {
+                order: order_from(a.order, "adrc.order")?,
+                b0: a.b0,
+                wc: a.wc,
+                wo: a.wo,
+            },
+        },
+    };
+    let o = c.output.clone().unwrap_or_default();
+    let output = OutputMapConfig {
+        dead_zone: o.dead_zone,
+        min: o.min.unwrap_or(f64::NEG_INFINITY),
+        max: o.max.unwrap_or(f64::INFINITY),
+        rate_limit: o.rate_limit,
+    };
+    let cfg = ChannelConfig { law, output };
+    // Let the core say what is out of range.
+    mfc::Channel::<{ mfc::DEFAULT_CAPACITY }>::new(&cfg).map_err(|e| err("channel", e.to_string()))?;
+    Ok(cfg)
+}
+
+/// Core piece to wire.
+pub fn piece_to_pb(p: &Piece) -> pb::Piece {
+    use pb::piece::Shape;
+    let shape = match *p {
+        Piece::Constant { value } => Shape::Constant(pb::Constant { value }),
+        Piece::Ramp { start, end, slope } => Shape::Ramp(pb::Ramp { start, end, slope }),
+        Piece::SmoothStep {
+            start,
+            duration,
+            height,
+        } => Shape::SmoothStep(pb::SmoothStep {
+            start,
+            duration,
+            height,
+        }),
+        Piece::Sine {
+            amplitude,
+            period,
+            phase,
+            start,
+            end,
+            fade,
+        } => Shape::Sine(pb::Sine {
+            amplitude,
+            period,
+            phase,
+            start,
+            end: end.is_finite().then_some(end),
+            fade,
+        }),
+    };
+    pb::Piece { shape: Some(shape) }
+}
+
+/// Wire piece to core, checked.
+pub fn piece_from_pb(p: &pb::Piece) -> Result<Piece, ConvertError> {
+    use pb::piece::Shape;
+    let piece = match &p.shape {
+        None => return Err(err("piece", "missing shape")),
+        Some(Shape::Constant(c)) => Piece::Constant { value: c.value },
+        Some(Shape::Ramp(r)) => Piece::Ramp {
+            start: r.start,
+            end: r.end,
+            slope: r.slope,
+        },
+        Some(Shape::SmoothStep(s)) => Piece::SmoothStep {
+            start: s.start,
+            duration: s.duration,
+            height: s.height,
+        },
+        Some(Shape::Sine(s)) => Piece::Sine {
+            amplitude: s.amplitude,
+            period: s.period,
+            phase: s.phase,
+            start: s.start,
+            end: s.end.unwrap_or(f64::INFINITY),
+            fade: s.fade,
+        },
+    };
+    piece
+        .validate()
+        .map_err(|(field, reason)| err(format!("piece.{field}"), reason))?;
+    Ok(piece)
+}
+
+/// Per-channel pieces and a start time to wire.
+pub fn reference_to_pb(channels: &[Vec<Piece>], start_time: f64) -> pb::Reference {
+    pb::Reference {
+        channels: channels
+            .iter()
+            .map(|pieces| pb::ChannelReference {
+                pieces: pieces.iter().map(piece_to_pb).collect(),
+            })
+            .collect(),
+        start_time,
+    }
+}
+
+/// Wire reference to per-channel pieces and start time, checked.
+pub fn reference_from_pb(r: &pb::Reference) -> Result<(Vec<Vec<Piece>>, f64), ConvertError> {
+    if !r.start_time.is_finite() {
+        return Err(err("reference.start_time", "must be finite"));
+    }
+    let channels = r
+        .channels
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            c.pieces
+                .iter()
+                .map(piece_from_pb)
+                .collect::<Result<Vec<_>, _>>()
+                .map_err(|e| err(format!("reference.channels[{i}].{}", e.field), e.reason))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok((channels, r.start_time))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_trips() {
+        let configs = [
+            ChannelConfig::default(),
+            ChannelConfig {
+                law: LawConfig::intelligent(ControllerKind::PD, Order::Two, 0.1, [9.0, 0.0, 3.0], 20),
+                output: OutputMapConfig::AERO,
+            },
+            ChannelConfig {
+                law: LawConfig::Pid {
+                    params: PidParams {
+                        kp: 3.0,
+                        ki: 1.0,
+                        out_min: -5.0,
+                        out_max: 5.0,
+                        ..Default::default()
+                    },
+                },
+                output: OutputMapConfig {
+                    rate_limit: Some(100.0),
+                    ..Default::default()
+                },
+            },
+            ChannelConfig {
+                law: LawConfig::Adrc {
+                    params: AdrcParams::default(),
+                },
+                output: OutputMapConfig::default(),
+            },
+        ];
+        for c in configs {
+            assert_eq!(channel_from_pb(&channel_to_pb(&c)).unwrap(), c);
+        }
+        let pieces = vec![
+            vec![
+                Piece::Constant { value: 1.0 },
+                Piece::Sine {
+                    amplitude: 0.1,
+                    period: 2.0,
+                    phase: 0.0,
+                    start: 0.0,
+                    end: f64::INFINITY,
+                    fade: 0.0,
+                },
+            ],
+            vec![Piece::SmoothStep {
+                start: 1.0,
+                duration: 2.0,
+                height: 0.3,
+            }],
+        ];
+        assert_eq!(
+            reference_from_pb(&reference_to_pb(&pieces, 4.0)).unwrap(),
+            (pieces, 4.0)
+        );
+    }
+
+    #[test]
+    fn bad_wire_configs_are_refused_with_the_field() {
+        let mut c = channel_to_pb(&ChannelConfig::default());
+        if let Some(pb::channel_config::Law::Intelligent(i)) = &mut c.law {
+            i.alpha = 0.0;
+        }
+        assert!(channel_from_pb(&c).unwrap_err().reason.contains("alpha"));
+        let mut c = channel_to_pb(&ChannelConfig::default());
+        if let Some(pb::channel_config::Law::Intelligent(i)) = &mut c.law {
+            i.order = 3;
+        }
+        assert_eq!(channel_from_pb(&c).unwrap_err().field, "intelligent.order");
+        assert_eq!(
+            channel_from_pb(&pb::ChannelConfig::default()).unwrap_err().field,
+            "law"
+        );
+        let bad = pb::Piece {
+            shape: Some(pb::piece::Shape::SmoothStep(pb::SmoothStep {
+                start: 0.0,
+                duration: -1.0,
+                height: 1.0,
+            })),
+        };
+        assert_eq!(piece_from_pb(&bad).unwrap_err().field, "piece.duration");
+    }
+}

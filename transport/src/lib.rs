@@ -1,0 +1,164 @@
+//! Zenoh sessions for the controller service and the plant agent.
+//!
+//! One place decides how a session is configured (a json5 file, then the usual flags on
+//! top, as zenoh's own tools do) and how control traffic is published: samples and commands
+//! go out `express` (no batching), at `RealTime` priority, with `Drop` congestion control:
+//! in a control loop a stale message is worse than a lost one, and a blocked publisher must
+//! never stall the loop.
+
+use std::path::PathBuf;
+
+use zenoh::qos::{CongestionControl, Priority};
+use zenoh::{Config, Session};
+
+/// Why a session could not be configured or opened.
+#[derive(Debug, thiserror::Error)]
+pub enum TransportError {
+    /// The json5 file or a flag was refused by zenoh.
+    #[error("zenoh configuration: {0}")]
+    Config(String),
+    /// The session did not open.
+    #[error("opening the zenoh session: {0}")]
+    Open(String),
+    /// A declaration (publisher, subscriber, queryable, token) failed.
+    #[error("declaring {what}: {reason}")]
+    Declare {
+        /// What was declared.
+        what: String,
+        /// zenoh's reason.
+        reason: String,
+    },
+}
+
+/// The Zenoh flags shared by every binary of the project (`--zenoh-config`, `--mode`,
+/// `--listen`, `--connect`, `--no-multicast-scouting`).
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct ZenohArgs {
+    /// A zenoh json5 configuration file; the flags below override it.
+    #[arg(long = "zenoh-config", value_name = "FILE")]
+    pub config: Option<PathBuf>,
+    /// Session mode: peer, client or router.
+    #[arg(long, value_parser = ["peer", "client", "router"])]
+    pub mode: Option<String>,
+    /// Endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable).
+    #[arg(long = "listen", short = 'l', value_name = "ENDPOINT")]
+    pub listen: Vec<String>,
+    /// Endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable).
+    #[arg(long = "connect", short = 'e', value_name = "ENDPOINT")]
+    pub connect: Vec<String>,
+    /// Disable multicast scouting (recommended with explicit endpoints).
+    #[arg(long)]
+    pub no_multicast_scouting: bool,
+}
+
+fn insert(config: &mut Config, key: &str, value: &str) -> Result<(), TransportError> {
+    config
+        .insert_json5(key, value)
+        .map_err(|e| TransportError::Config(format!("{key} = {value}: {e}")))
+}
+
+fn json_list(items: &[String]) -> String {
+    serde_json::to_string(items).unwrap_or_else(|_| "[]".into())
+}
+
+impl ZenohArgs {
+    /// A peer on loopback: listen on `listen` (if any), connect to `connect`, no multicast
+    /// scouting. What the tests and the demo use.
+    pub fn loopback(listen: Option<String>, connect: Vec<String>) -> Self {
+        Self {
+            config: None,
+            mode: Some("peer".into()),
+            listen: listen.into_iter().collect(),
+            connect,
+            no_multicast_scouting: true,
+        }
+    }
+
+    /// Build the zenoh configuration: the file (or zenoh's defaults), then the flags.
+    pub fn to_config(&self) -> Result<Config, TransportError> {
+        let mut config = match &self.config {
+            Some(path) => Config::from_file(path)
+                .map_err(|e| TransportError::Config(format!("{}: {e}", path.display())))?,
+            None => Config::default(),
+        };
+        if let Some(mode) = &self.mode {
+            insert(&mut config, "mode", &format!("{mode:?}"))?;
+        }
+        if !self.listen.is_empty() {
+            insert(&mut config, "listen/endpoints", &json_list(&self.listen))?;
+        }
+        if !self.connect.is_empty() {
+            insert(&mut config, "connect/endpoints", &json_list(&self.connect))?;
+        }
+        if self.no_multicast_scouting {
+            insert(&mut config, "scouting/multicast/enabled", "false")?;
+        }
+        Ok(config)
+    }
+
+    /// Open a session with this configuration.
+    pub async fn open(&self) -> Result<Session, TransportError> {
+        let config = self.to_config()?;
+        zenoh::open(config)
+            .await
+            .map_err(|e| TransportError::Open(e.to_string()))
+    }
+}
+
+/// Declare a publisher for control traffic: express, real-time priority, drop on congestion.
+pub async fn control_publisher(
+    session: &Session,
+    key: String,
+) -> Result<zenoh::pubsub::Publisher<'static>, TransportError> {
+    session
+        .declare_publisher(key.clone())
+        .congestion_control(CongestionControl::Drop)
+        .priority(Priority::RealTime)
+        .express(true)
+        .await
+        .map_err(|e| TransportError::Declare {
+            what: format!("publisher {key}"),
+            reason: e.to_string(),
+        })
+}
+
+/// A free TCP port on 127.0.0.1 (bind to port 0, read it, release it), for tests and demos.
+pub fn free_local_port() -> std::io::Result<u16> {
+    let l = std::net::TcpListener::bind("127.0.0.1:0")?;
+    Ok(l.local_addr()?.port())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn flags_override_the_file() {
+        let dir = std::env::temp_dir().join(format!("zcfg-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("z.json5");
+        std::fs::write(&file, "{ mode: \"client\", connect: { endpoints: [\"tcp/127.0.0.1:1\"] } }").unwrap();
+        let args = ZenohArgs {
+            config: Some(file),
+            mode: Some("peer".into()),
+            listen: vec!["tcp/127.0.0.1:7999".into()],
+            connect: vec![],
+            no_multicast_scouting: true,
+        };
+        let c = args.to_config().unwrap();
+        assert_eq!(c.get_json("mode").unwrap(), "\"peer\"");
+        assert!(c.get_json("listen/endpoints").unwrap().contains("7999"));
+        assert!(c.get_json("connect/endpoints").unwrap().contains("127.0.0.1:1"));
+        assert_eq!(c.get_json("scouting/multicast/enabled").unwrap(), "false");
+        let bad = ZenohArgs {
+            listen: vec!["nonsense".into()],
+            ..ZenohArgs::default()
+        };
+        assert!(bad.to_config().is_err());
+        let missing = ZenohArgs {
+            config: Some("/nonexistent.json5".into()),
+            ..ZenohArgs::default()
+        };
+        assert!(matches!(missing.to_config(), Err(TransportError::Config(m)) if m.contains("nonexistent")));
+    }
+}
