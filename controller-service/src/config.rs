@@ -139,7 +139,10 @@ fn check_channels(file: &str, at: &str, channels: &[ChannelSpec]) -> Result<(), 
         reason,
     };
     if channels.is_empty() {
-        return Err(invalid(format!("{at}.channels"), "at least one channel".into()));
+        return Err(invalid(
+            format!("{at}.channels"),
+            "at least one channel".into(),
+        ));
     }
     for (i, c) in channels.iter().enumerate() {
         mfc::Channel::<{ mfc::DEFAULT_CAPACITY }>::new(&c.channel())
@@ -188,7 +191,10 @@ impl ServiceConfig {
             protocol::keys::check_id(&d.id)
                 .map_err(|e| invalid(format!("devices[{i}].id"), e.to_string()))?;
             if !seen.insert(d.id.clone()) {
-                return Err(invalid(format!("devices[{i}].id"), format!("duplicate id {:?}", d.id)));
+                return Err(invalid(
+                    format!("devices[{i}].id"),
+                    format!("duplicate id {:?}", d.id),
+                ));
             }
             check_channels(file, &format!("devices[{i}]"), &d.channels)?;
         }

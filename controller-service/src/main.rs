@@ -9,7 +9,11 @@ use controller_service::{service, Registry, ServiceConfig};
 use transport::ZenohArgs;
 
 #[derive(Parser)]
-#[command(name = "controller-service", version, about = "Model-free control as a service over Zenoh")]
+#[command(
+    name = "controller-service",
+    version,
+    about = "Model-free control as a service over Zenoh"
+)]
 struct Cli {
     /// Service configuration (TOML: controller_id, devices, templates).
     #[arg(long, short)]
@@ -25,14 +29,15 @@ async fn shutdown_signal() {
     let ctrl_c = tokio::signal::ctrl_c();
     #[cfg(unix)]
     {
-        let mut term = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(s) => s,
-            Err(e) => {
-                tracing::warn!("cannot listen for SIGTERM: {e}");
-                let _ = ctrl_c.await;
-                return;
-            }
-        };
+        let mut term =
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(s) => s,
+                Err(e) => {
+                    tracing::warn!("cannot listen for SIGTERM: {e}");
+                    let _ = ctrl_c.await;
+                    return;
+                }
+            };
         tokio::select! {
             _ = ctrl_c => {},
             _ = term.recv() => {},
@@ -48,7 +53,8 @@ async fn shutdown_signal() {
 async fn main() -> std::process::ExitCode {
     tracing_subscriber::fmt()
         .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| "info,zenoh=warn".into()),
         )
         .init();
     match run().await {
@@ -71,4 +77,14 @@ async fn run() -> Result<()> {
     let session = cli.zenoh.open().await?;
     service::run(session, registry, shutdown_signal()).await?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    /// clap's own consistency checks (unique ids, valid defaults) on the whole CLI.
+    #[test]
+    fn cli_is_consistent() {
+        use clap::CommandFactory;
+        super::Cli::command().debug_assert();
+    }
 }

@@ -111,7 +111,10 @@ impl Device {
             return Err(format!("expected {n} outputs, got {}", s.outputs.len()));
         }
         if !s.applied.is_empty() && s.applied.len() != n {
-            return Err(format!("expected {n} applied values (or none), got {}", s.applied.len()));
+            return Err(format!(
+                "expected {n} applied values (or none), got {}",
+                s.applied.len()
+            ));
         }
         if let Some(bad) = s.outputs.iter().chain(&s.applied).find(|v| !v.is_finite()) {
             return Err(format!("non-finite value {bad}"));
@@ -139,7 +142,11 @@ impl Device {
             version: PROTOCOL_VERSION,
             device_id: id.into(),
             last_seq: self.last_seq.unwrap_or(0),
-            plant_time: if self.last_time.is_finite() { self.last_time } else { 0.0 },
+            plant_time: if self.last_time.is_finite() {
+                self.last_time
+            } else {
+                0.0
+            },
             samples: self.samples,
             commands: self.commands,
             lost: self.lost,
@@ -172,7 +179,13 @@ pub fn latency(rtts: &VecDeque<u32>) -> pb::LatencyStats {
 }
 
 /// A command without control values (refusals and stale answers).
-fn reply(controller_id: &str, id: &str, s: &pb::Sample, mode: pb::Mode, error: String) -> pb::Command {
+fn reply(
+    controller_id: &str,
+    id: &str,
+    s: &pb::Sample,
+    mode: pb::Mode,
+    error: String,
+) -> pb::Command {
     pb::Command {
         version: PROTOCOL_VERSION,
         device_id: id.into(),
@@ -252,7 +265,10 @@ impl Registry {
     pub fn handle_sample(&mut self, key_id: &str, s: &pb::Sample) -> Outcome {
         let controller_id = self.controller_id.clone();
         if s.device_id != key_id {
-            let reason = format!("device id {:?} in a sample on the key of {key_id:?}", s.device_id);
+            let reason = format!(
+                "device id {:?} in a sample on the key of {key_id:?}",
+                s.device_id
+            );
             tracing::warn!(device = key_id, "{reason}");
             if let Some(d) = self.devices.get_mut(key_id) {
                 d.rejected += 1;
@@ -262,8 +278,13 @@ impl Registry {
         }
         if !self.devices.contains_key(key_id) && !self.provision(key_id) {
             self.unknown_samples += 1;
-            if self.unknown_devices.len() < UNKNOWN_KEPT && self.unknown_devices.insert(key_id.into()) {
-                tracing::warn!(device = key_id, "sample from an unknown device (no template matches): refused");
+            if self.unknown_devices.len() < UNKNOWN_KEPT
+                && self.unknown_devices.insert(key_id.into())
+            {
+                tracing::warn!(
+                    device = key_id,
+                    "sample from an unknown device (no template matches): refused"
+                );
             }
             return Outcome::Unknown;
         }
@@ -297,7 +318,13 @@ impl Registry {
             }
             Some(last) if s.seq < last => {
                 d.stale += 1;
-                return Outcome::Reply(reply(&controller_id, key_id, s, pb::Mode::Stale, String::new()));
+                return Outcome::Reply(reply(
+                    &controller_id,
+                    key_id,
+                    s,
+                    pb::Mode::Stale,
+                    String::new(),
+                ));
             }
             _ => {}
         }
@@ -317,10 +344,19 @@ impl Registry {
         for (r, pieces) in d.refs.iter_mut().zip(&d.reference) {
             *r = evaluate(pieces, s.plant_time - d.reference_start);
         }
-        if let Err(e) = d.mimo.step(s.plant_time, &s.outputs, &d.refs, &mut d.outputs) {
+        if let Err(e) = d
+            .mimo
+            .step(s.plant_time, &s.outputs, &d.refs, &mut d.outputs)
+        {
             d.rejected += 1;
             d.last_error = e.to_string();
-            return Outcome::Reply(reply(&controller_id, key_id, s, pb::Mode::Rejected, e.to_string()));
+            return Outcome::Reply(reply(
+                &controller_id,
+                key_id,
+                s,
+                pb::Mode::Rejected,
+                e.to_string(),
+            ));
         }
         d.last_seq = Some(s.seq);
         d.last_time = s.plant_time;
@@ -367,13 +403,23 @@ impl Registry {
         } else {
             if req.channels.len() != n {
                 return refuse(
-                    format!("device has {n} channels, request has {}", req.channels.len()),
+                    format!(
+                        "device has {n} channels, request has {}",
+                        req.channels.len()
+                    ),
                     Some(d.config_pb(id)),
                 );
             }
-            match req.channels.iter().enumerate().map(|(i, c)| {
-                channel_from_pb(c).map_err(|e| format!("channels[{i}].{}: {}", e.field, e.reason))
-            }).collect::<Result<Vec<_>, _>>() {
+            match req
+                .channels
+                .iter()
+                .enumerate()
+                .map(|(i, c)| {
+                    channel_from_pb(c)
+                        .map_err(|e| format!("channels[{i}].{}: {}", e.field, e.reason))
+                })
+                .collect::<Result<Vec<_>, _>>()
+            {
                 Ok(c) => Some(c),
                 Err(reason) => return refuse(reason, Some(d.config_pb(id))),
             }
@@ -388,7 +434,9 @@ impl Registry {
                     )
                 }
                 Ok(r) => Some(r),
-                Err(e) => return refuse(format!("{}: {}", e.field, e.reason), Some(d.config_pb(id))),
+                Err(e) => {
+                    return refuse(format!("{}: {}", e.field, e.reason), Some(d.config_pb(id)))
+                }
             },
         };
         if let Some(configs) = configs {

@@ -69,7 +69,10 @@ pub async fn run(
         session
             .declare_subscriber(keys::all_devices("sample"))
             .callback(move |s| {
-                let msg = Msg::Sample(s.key_expr().as_str().to_string(), s.payload().to_bytes().into_owned());
+                let msg = Msg::Sample(
+                    s.key_expr().as_str().to_string(),
+                    s.payload().to_bytes().into_owned(),
+                );
                 if tx.try_send(msg).is_err() {
                     dropped.fetch_add(1, Ordering::Relaxed);
                 }
@@ -137,7 +140,9 @@ pub async fn run(
         };
         match msg {
             Msg::Sample(key, bytes) => {
-                let Some(dev) = keys::device_of(&key) else { continue };
+                let Some(dev) = keys::device_of(&key) else {
+                    continue;
+                };
                 let sample = match decode::<pb::Sample>(&bytes) {
                     Ok(s) => s,
                     Err(e) => {
@@ -149,13 +154,15 @@ pub async fn run(
                 if let Outcome::Reply(cmd) = registry.handle_sample(dev, &sample) {
                     let publisher = match publishers.get(dev) {
                         Some(p) => p,
-                        None => match transport::control_publisher(&session, keys::command(dev)).await {
-                            Ok(p) => publishers.entry(dev.to_string()).or_insert(p),
-                            Err(e) => {
-                                tracing::error!(device = dev, "{e}");
-                                continue;
+                        None => {
+                            match transport::control_publisher(&session, keys::command(dev)).await {
+                                Ok(p) => publishers.entry(dev.to_string()).or_insert(p),
+                                Err(e) => {
+                                    tracing::error!(device = dev, "{e}");
+                                    continue;
+                                }
                             }
-                        },
+                        }
                     };
                     if let Err(e) = publisher.put(encode(&cmd)).await {
                         tracing::warn!(device = dev, "publishing a command: {e}");
@@ -163,7 +170,9 @@ pub async fn run(
                 }
             }
             Msg::Reference(key, bytes) => {
-                let Some(dev) = keys::device_of(&key) else { continue };
+                let Some(dev) = keys::device_of(&key) else {
+                    continue;
+                };
                 match decode::<pb::ReferenceUpdate>(&bytes) {
                     Ok(u) => {
                         if let Err(reason) = registry.set_reference(dev, &u) {
@@ -225,7 +234,8 @@ pub async fn run(
                     None => {
                         // Wildcard queries get one reply per device; unknown ids get none.
                         if q.key_expr().as_str().contains('*') {
-                            let ids: Vec<String> = registry.device_ids().map(str::to_string).collect();
+                            let ids: Vec<String> =
+                                registry.device_ids().map(str::to_string).collect();
                             for d in ids {
                                 if let Some(s) = registry.device_status(&d) {
                                     let _ = q.reply(keys::status(&d), encode(&s)).await;

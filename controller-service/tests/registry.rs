@@ -48,7 +48,8 @@ fn command(o: Outcome) -> pb::Command {
 fn answers_every_sample_with_its_sequence() {
     let mut r = registry();
     for k in 0..10u64 {
-        let c = command(r.handle_sample("aero-1", &sample("aero-1", k, k as f64 * 0.01, &[0.0, 0.5])));
+        let c =
+            command(r.handle_sample("aero-1", &sample("aero-1", k, k as f64 * 0.01, &[0.0, 0.5])));
         assert_eq!(c.seq, k);
         assert_eq!(c.mode, pb::Mode::Control as i32);
         assert_eq!(c.v.len(), 2);
@@ -64,14 +65,21 @@ fn duplicates_stale_and_lost() {
     let first = command(r.handle_sample("aero-1", &sample("aero-1", 5, 0.05, &[0.0, 0.0])));
     // Duplicate: the same command again.
     let again = command(r.handle_sample("aero-1", &sample("aero-1", 5, 0.05, &[0.0, 0.0])));
-    assert_eq!(protocol::encode(&first), protocol::encode(&again), "byte for byte");
+    assert_eq!(
+        protocol::encode(&first),
+        protocol::encode(&again),
+        "byte for byte"
+    );
     // Older: stale, nothing moves.
     let before = r.device_status("aero-1").unwrap();
     let stale = command(r.handle_sample("aero-1", &sample("aero-1", 3, 0.03, &[9.0, 9.0])));
     assert_eq!(stale.mode, pb::Mode::Stale as i32);
     assert!(stale.v.is_empty());
     let after = r.device_status("aero-1").unwrap();
-    assert_eq!((after.last_seq, after.plant_time), (before.last_seq, before.plant_time));
+    assert_eq!(
+        (after.last_seq, after.plant_time),
+        (before.last_seq, before.plant_time)
+    );
     // A jump: 6..=8 lost.
     command(r.handle_sample("aero-1", &sample("aero-1", 9, 0.09, &[0.0, 0.0])));
     let s = r.device_status("aero-1").unwrap();
@@ -103,7 +111,10 @@ fn bad_samples_are_rejected_with_a_reason_and_change_nothing() {
 #[test]
 fn unknown_devices_are_refused_templates_provision() {
     let mut r = registry();
-    assert_eq!(r.handle_sample("ghost", &sample("ghost", 0, 0.0, &[0.0])), Outcome::Unknown);
+    assert_eq!(
+        r.handle_sample("ghost", &sample("ghost", 0, 0.0, &[0.0])),
+        Outcome::Unknown
+    );
     let c = command(r.handle_sample("sim-7", &sample("sim-7", 0, 0.0, &[0.3])));
     assert_eq!(c.v.len(), 1);
     let st = r.service_status(1.0);
@@ -116,7 +127,10 @@ fn unknown_devices_are_refused_templates_provision() {
 fn a_restarted_plant_resets_its_state() {
     let mut r = registry();
     for k in 0..5u64 {
-        command(r.handle_sample("aero-1", &sample("aero-1", 100 + k, 10.0 + k as f64 * 0.01, &[0.0, 0.0])));
+        command(r.handle_sample(
+            "aero-1",
+            &sample("aero-1", 100 + k, 10.0 + k as f64 * 0.01, &[0.0, 0.0]),
+        ));
     }
     let mut s = sample("aero-1", 0, 0.0, &[0.0, 0.0]);
     s.run_id = 43;
@@ -128,19 +142,33 @@ fn a_restarted_plant_resets_its_state() {
 fn configuration_is_all_or_nothing() {
     let mut r = registry();
     let before = r.config_of("aero-1").unwrap();
-    let mut good = mfc::ChannelConfig::default();
-    good.law = mfc::LawConfig::Pid { params: mfc::PidParams { kp: 5.0, ..Default::default() } };
-    let mut bad = good;
-    bad.law = mfc::LawConfig::Pid { params: mfc::PidParams { kp: f64::NAN, ..Default::default() } };
+    let pid = |kp| mfc::ChannelConfig {
+        law: mfc::LawConfig::Pid {
+            params: mfc::PidParams {
+                kp,
+                ..Default::default()
+            },
+        },
+        ..Default::default()
+    };
+    let (good, bad) = (pid(5.0), pid(f64::NAN));
     let req = |a: &mfc::ChannelConfig, b: &mfc::ChannelConfig| pb::ConfigRequest {
         version: PROTOCOL_VERSION,
         channels: vec![channel_to_pb(a), channel_to_pb(b)],
         reference: None,
     };
     let reply = r.configure("aero-1", &req(&good, &bad));
-    assert!(!reply.accepted && reply.reason.contains("channels[1]"), "{}", reply.reason);
+    assert!(
+        !reply.accepted && reply.reason.contains("channels[1]"),
+        "{}",
+        reply.reason
+    );
     assert_eq!(r.config_of("aero-1").unwrap(), before);
-    let short = pb::ConfigRequest { version: PROTOCOL_VERSION, channels: vec![channel_to_pb(&good)], reference: None };
+    let short = pb::ConfigRequest {
+        version: PROTOCOL_VERSION,
+        channels: vec![channel_to_pb(&good)],
+        reference: None,
+    };
     assert!(r.configure("aero-1", &short).reason.contains("2 channels"));
     assert!(!r.configure("nope", &short).accepted);
     let reply = r.configure("aero-1", &req(&good, &good));

@@ -7,10 +7,13 @@
 //! over them.
 
 pub mod aero;
+pub mod agent;
 pub mod compare;
+pub mod demo;
 pub mod metrics;
 pub mod offline;
 pub mod output;
+pub mod plant;
 pub mod plot;
 pub mod rng;
 pub mod scenario;

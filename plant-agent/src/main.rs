@@ -7,9 +7,12 @@ use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 
+use plant_agent::agent::{run_agent, AgentReport, Fallback};
 use plant_agent::compare::compare;
+use plant_agent::demo::{agent_config, demo, plot_rows, rand_id, DemoOptions};
 use plant_agent::offline::run;
 use plant_agent::output::write_run;
+use plant_agent::plant::{DriverPlant, Plant, SimPlant};
 use plant_agent::scenario::{
     load_controller, load_scenario, shipped_controller, ControllerSet, SHIPPED_CONTROLLERS,
     SHIPPED_SCENARIOS,
@@ -25,6 +28,14 @@ use plant_agent::tune::{starting_point, tune, KINDS};
 struct Cli {
     #[command(subcommand)]
     command: Command,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum PlantKind {
+    /// The simulated Quanser AERO.
+    AeroSim,
+    /// An external driver process (see `plant-agent/DRIVER.md`).
+    Driver,
 }
 
 #[derive(Subcommand)]
@@ -46,6 +57,65 @@ enum Command {
         /// Run every controller on the four shipped scenarios and print the table.
         #[arg(long)]
         compare: bool,
+    },
+    /// Run the main job: a controller service and N simulated AEROs over Zenoh on loopback.
+    Demo {
+        /// Number of simulated plants.
+        #[arg(long, default_value_t = 2)]
+        plants: usize,
+        /// Scenario file, or a shipped one: 1, 2, 3, 4.
+        #[arg(long, default_value = "2")]
+        scenario: String,
+        /// Shipped controller (default: the scenario's).
+        #[arg(long)]
+        controller: Option<String>,
+        /// Periods to hold the last command before falling back.
+        #[arg(long, default_value_t = 5)]
+        hold_periods: u32,
+        /// What to fall back to.
+        #[arg(long, value_enum, default_value = "local")]
+        fallback: Fallback,
+        /// Output directory (per plant: run.csv, summary.json, plots).
+        #[arg(long, default_value = "out/demo")]
+        out: PathBuf,
+    },
+    /// Bridge one plant to a controller service over Zenoh.
+    Run {
+        /// Device id.
+        #[arg(long)]
+        device: String,
+        /// The plant: the simulated AERO, or an external driver process.
+        #[arg(long, value_enum, default_value = "aero-sim")]
+        plant: PlantKind,
+        /// Driver command line (for --plant driver), e.g. "python3 aero_hil.py".
+        #[arg(long)]
+        driver: Option<String>,
+        /// Scenario (references, duration, plant parameters, local controller).
+        #[arg(long, default_value = "2")]
+        scenario: String,
+        /// Shipped controller for the local fallback (default: the scenario's).
+        #[arg(long)]
+        controller: Option<String>,
+        /// Periods to hold the last command before falling back.
+        #[arg(long, default_value_t = 5)]
+        hold_periods: u32,
+        /// What to fall back to.
+        #[arg(long, value_enum, default_value = "local")]
+        fallback: Fallback,
+        /// Where to write the run (run.csv, summary.json, plots).
+        #[arg(long, default_value = "out/run")]
+        out: PathBuf,
+        #[command(flatten)]
+        zenoh: transport::ZenohArgs,
+    },
+    /// Serve the driver protocol on stdin/stdout with a simulated AERO (reference driver).
+    SimDriver {
+        /// Noise seed.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Add the paper's 4 g mass.
+        #[arg(long)]
+        added_mass: bool,
     },
     /// Tune one controller kind on one scenario with a fixed budget of simulated runs.
     Tune {
@@ -80,14 +150,158 @@ fn main() -> std::process::ExitCode {
     }
 }
 
+fn print_reports(reports: &[AgentReport], offline: Option<&plant_agent::metrics::Summary>) {
+    if let Some(first) = reports.first() {
+        print!("| plant |");
+        for c in &first.channels {
+            print!(" {} RMS |", c.name);
+        }
+        println!(" RTT p50 (us) | RTT p99 (us) | missing | late | fallbacks |");
+        println!(
+            "|---|{}---:|---:|---:|---:|---:|",
+            "---:|".repeat(first.channels.len())
+        );
+    }
+    if let Some(o) = offline {
+        print!("| offline (no network) |");
+        for c in &o.channels {
+            print!(" {:.3e} |", c.rms);
+        }
+        println!(" - | - | - | - | - |");
+    }
+    for r in reports {
+        print!("| {} |", r.device_id);
+        for c in &r.channels {
+            print!(" {:.3e} |", c.rms);
+        }
+        println!(
+            " {:.0} | {:.0} | {} | {} | {} |",
+            r.rtt_p50_us, r.rtt_p99_us, r.missing, r.late, r.fallbacks
+        );
+    }
+}
+
 fn real_main() -> Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| "info,zenoh=warn".into()),
         )
         .with_writer(std::io::stderr)
         .init();
     match Cli::parse().command {
+        Command::Demo {
+            plants,
+            scenario,
+            controller,
+            hold_periods,
+            fallback,
+            out,
+        } => {
+            if plants == 0 || plants > 64 {
+                bail!("--plants must be between 1 and 64");
+            }
+            let scenario = load_scenario(&scenario)?;
+            let set = match controller {
+                Some(k) => shipped_controller(&k)?,
+                None => scenario.controller.clone(),
+            };
+            let offline = run(&scenario, &set, false)?.summary;
+            println!(
+                "{}: {} simulated AERO(s) and a controller service over Zenoh on loopback, {:.0} s in real time...",
+                scenario.name, plants, scenario.duration
+            );
+            let runtime = tokio::runtime::Builder::new_multi_thread()
+                .enable_all()
+                .build()?;
+            let reports = runtime.block_on(demo(
+                &scenario,
+                &set,
+                &DemoOptions {
+                    plants,
+                    hold_periods,
+                    fallback,
+                    out: Some(out.clone()),
+                },
+            ))?;
+            print_reports(&reports, Some(&offline));
+            println!(
+                "wrote {}/aero-*/{{run.csv, summary.json, *.png, *.svg}}",
+                out.display()
+            );
+            Ok(())
+        }
+        Command::Run {
+            device,
+            plant,
+            driver,
+            scenario,
+            controller,
+            hold_periods,
+            fallback,
+            out,
+            zenoh,
+        } => {
+            let scenario = load_scenario(&scenario)?;
+            let set = match controller {
+                Some(k) => shipped_controller(&k)?,
+                None => scenario.controller.clone(),
+            };
+            let mut plant: Box<dyn Plant> = match plant {
+                PlantKind::AeroSim => {
+                    Box::new(SimPlant::new(scenario.plant.clone(), scenario.seed)?)
+                }
+                PlantKind::Driver => {
+                    let line = driver.context("--plant driver needs --driver \"COMMAND ARGS\"")?;
+                    let mut words = line.split_whitespace().map(str::to_string);
+                    let program = words.next().context("--driver is empty")?;
+                    let args: Vec<String> = words.collect();
+                    Box::new(DriverPlant::spawn(
+                        &program,
+                        &args,
+                        std::time::Duration::from_secs_f64((scenario.period * 5.0).max(0.5)),
+                    )?)
+                }
+            };
+            let config = agent_config(
+                &scenario,
+                &set,
+                &device,
+                hold_periods,
+                fallback,
+                Some(out.join("run.csv")),
+            );
+            let runtime = tokio::runtime::Builder::new_multi_thread()
+                .enable_all()
+                .build()?;
+            let (report, rows) = runtime.block_on(async {
+                let session = zenoh.open().await?;
+                let r = run_agent(&session, plant.as_mut(), &config, rand_id(0)).await;
+                let _ = session.close().await;
+                anyhow::Ok(r?)
+            })?;
+            plot_rows(&out, &scenario, &report, &rows)?;
+            print_reports(std::slice::from_ref(&report), None);
+            println!(
+                "wrote {}/{{run.csv, summary.json, *.png, *.svg}}",
+                out.display()
+            );
+            Ok(())
+        }
+        Command::SimDriver { seed, added_mass } => {
+            let mut params = plant_agent::aero::AeroParams::default();
+            if added_mass {
+                params.added_mass = plant_agent::aero::PAPER_ADDED_MASS;
+            }
+            let stdin = std::io::stdin();
+            plant_agent::plant::serve_sim_driver(
+                params,
+                seed,
+                stdin.lock(),
+                std::io::stdout().lock(),
+            )?;
+            Ok(())
+        }
         Command::Sim {
             scenario,
             controller,
@@ -225,4 +439,14 @@ fn sim_compare(out: &std::path::Path) -> Result<()> {
         out.display()
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    /// clap's own consistency checks (unique ids, valid defaults) on the whole CLI.
+    #[test]
+    fn cli_is_consistent() {
+        use clap::CommandFactory;
+        super::Cli::command().debug_assert();
+    }
 }

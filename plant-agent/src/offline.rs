@@ -9,8 +9,8 @@ use mfc::{ChannelOutput, MimoController, Reference};
 
 use crate::aero::{AeroSim, CHANNELS};
 use crate::metrics::{Accumulator, Summary};
-use mfc::trajectory::evaluate;
 use crate::scenario::{ControllerSet, Scenario};
+use mfc::trajectory::evaluate;
 
 /// Why a run could not be done.
 #[derive(Debug, thiserror::Error)]

@@ -19,9 +19,9 @@
 use mfc::{AdrcParams, ControllerKind, LawConfig, Order, PidParams};
 
 use crate::offline::{run, RunError};
-use mfc::trajectory::evaluate;
 use crate::rng::Rng;
 use crate::scenario::{ControllerSet, Scenario};
+use mfc::trajectory::evaluate;
 
 /// Controller kinds the tuner and `sim --controller` know.
 pub const KINDS: [&str; 5] = ["ip", "ipi", "ipd", "pid", "adrc"];

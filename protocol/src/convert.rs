@@ -118,7 +118,7 @@ pub fn channel_from_pb(c: &pb::ChannelConfig) -> Result<ChannelConfig, ConvertEr
                 Ok(pb::IntelligentKind::Ipid) => ControllerKind::PID,
                 _ => return Err(err("intelligent.kind", format!("unknown kind {}", i.kind))),
             };
-            let e = i.estimator.clone().unwrap_or_default();
+            let e = i.estimator.unwrap_or_default();
             let est_kind = match pb::estimator::Kind::try_from(e.kind) {
                 Ok(pb::estimator::Kind::Algebraic) => EstimatorKind::Algebraic,
                 Ok(pb::estimator::Kind::ClosedLoop) => EstimatorKind::ClosedLoop,
@@ -175,7 +175,7 @@ pub fn channel_from_pb(c: &pb::ChannelConfig) -> Result<ChannelConfig, ConvertEr
             },
         },
     };
-    let o = c.output.clone().unwrap_or_default();
+    let o = c.output.unwrap_or_default();
     let output = OutputMapConfig {
         dead_zone: o.dead_zone,
         min: o.min.unwrap_or(f64::NEG_INFINITY),
@@ -184,7 +184,8 @@ pub fn channel_from_pb(c: &pb::ChannelConfig) -> Result<ChannelConfig, ConvertEr
     };
     let cfg = ChannelConfig { law, output };
     // Let the core say what is out of range.
-    mfc::Channel::<{ mfc::DEFAULT_CAPACITY }>::new(&cfg).map_err(|e| err("channel", e.to_string()))?;
+    mfc::Channel::<{ mfc::DEFAULT_CAPACITY }>::new(&cfg)
+        .map_err(|e| err("channel", e.to_string()))?;
     Ok(cfg)
 }
 
@@ -295,7 +296,13 @@ mod tests {
         let configs = [
             ChannelConfig::default(),
             ChannelConfig {
-                law: LawConfig::intelligent(ControllerKind::PD, Order::Two, 0.1, [9.0, 0.0, 3.0], 20),
+                law: LawConfig::intelligent(
+                    ControllerKind::PD,
+                    Order::Two,
+                    0.1,
+                    [9.0, 0.0, 3.0],
+                    20,
+                ),
                 output: OutputMapConfig::AERO,
             },
             ChannelConfig {
@@ -360,7 +367,9 @@ mod tests {
         }
         assert_eq!(channel_from_pb(&c).unwrap_err().field, "intelligent.order");
         assert_eq!(
-            channel_from_pb(&pb::ChannelConfig::default()).unwrap_err().field,
+            channel_from_pb(&pb::ChannelConfig::default())
+                .unwrap_err()
+                .field,
             "law"
         );
         let bad = pb::Piece {

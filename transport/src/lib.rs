@@ -36,7 +36,7 @@ pub enum TransportError {
 pub struct ZenohArgs {
     /// A zenoh json5 configuration file; the flags below override it.
     #[arg(long = "zenoh-config", value_name = "FILE")]
-    pub config: Option<PathBuf>,
+    pub zenoh_config: Option<PathBuf>,
     /// Session mode: peer, client or router.
     #[arg(long, value_parser = ["peer", "client", "router"])]
     pub mode: Option<String>,
@@ -66,7 +66,7 @@ impl ZenohArgs {
     /// scouting. What the tests and the demo use.
     pub fn loopback(listen: Option<String>, connect: Vec<String>) -> Self {
         Self {
-            config: None,
+            zenoh_config: None,
             mode: Some("peer".into()),
             listen: listen.into_iter().collect(),
             connect,
@@ -76,7 +76,7 @@ impl ZenohArgs {
 
     /// Build the zenoh configuration: the file (or zenoh's defaults), then the flags.
     pub fn to_config(&self) -> Result<Config, TransportError> {
-        let mut config = match &self.config {
+        let mut config = match &self.zenoh_config {
             Some(path) => Config::from_file(path)
                 .map_err(|e| TransportError::Config(format!("{}: {e}", path.display())))?,
             None => Config::default(),
@@ -137,9 +137,13 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("zcfg-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let file = dir.join("z.json5");
-        std::fs::write(&file, "{ mode: \"client\", connect: { endpoints: [\"tcp/127.0.0.1:1\"] } }").unwrap();
+        std::fs::write(
+            &file,
+            "{ mode: \"client\", connect: { endpoints: [\"tcp/127.0.0.1:1\"] } }",
+        )
+        .unwrap();
         let args = ZenohArgs {
-            config: Some(file),
+            zenoh_config: Some(file),
             mode: Some("peer".into()),
             listen: vec!["tcp/127.0.0.1:7999".into()],
             connect: vec![],
@@ -148,7 +152,10 @@ mod tests {
         let c = args.to_config().unwrap();
         assert_eq!(c.get_json("mode").unwrap(), "\"peer\"");
         assert!(c.get_json("listen/endpoints").unwrap().contains("7999"));
-        assert!(c.get_json("connect/endpoints").unwrap().contains("127.0.0.1:1"));
+        assert!(c
+            .get_json("connect/endpoints")
+            .unwrap()
+            .contains("127.0.0.1:1"));
         assert_eq!(c.get_json("scouting/multicast/enabled").unwrap(), "false");
         let bad = ZenohArgs {
             listen: vec!["nonsense".into()],
@@ -156,9 +163,11 @@ mod tests {
         };
         assert!(bad.to_config().is_err());
         let missing = ZenohArgs {
-            config: Some("/nonexistent.json5".into()),
+            zenoh_config: Some("/nonexistent.json5".into()),
             ..ZenohArgs::default()
         };
-        assert!(matches!(missing.to_config(), Err(TransportError::Config(m)) if m.contains("nonexistent")));
+        assert!(
+            matches!(missing.to_config(), Err(TransportError::Config(m)) if m.contains("nonexistent"))
+        );
     }
 }

@@ -1,0 +1,112 @@
+//! Sample-to-command round trip of the service at 100 Hz on loopback, measured beside a
+//! plain Zenoh publish/echo between two sessions in the same run.
+//!
+//! `cargo bench -p system-tests --bench latency [-- SECONDS]` (default 20 s each). Both use
+//! the same plumbing (express, real-time priority, drop on congestion; the echo side's
+//! callback hands the payload to a task that publishes it back, as the service does), so
+//! the ratio isolates what the service adds: decoding, the control step, encoding.
+
+use std::time::Duration;
+
+use plant_agent::agent::Fallback;
+use plant_agent::demo::{agent_config, service_config};
+use plant_agent::scenario::{load_scenario, shipped_controller};
+use system_tests::{run_plant, Service};
+use tokio::time::Instant;
+use transport::ZenohArgs;
+
+fn pct(sorted: &[f64], q: f64) -> f64 {
+    sorted[((sorted.len() - 1) as f64 * q).round() as usize]
+}
+
+async fn echo(seconds: f64) -> anyhow::Result<Vec<f64>> {
+    let port = transport::free_local_port()?;
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let a = ZenohArgs::loopback(Some(endpoint.clone()), vec![])
+        .open()
+        .await?;
+    let b = ZenohArgs::loopback(None, vec![endpoint]).open().await?;
+    let pong = transport::control_publisher(&b, "bench/pong".into()).await?;
+    let (tx, mut rx) = tokio::sync::mpsc::channel::<Vec<u8>>(256);
+    let _ping_sub = b
+        .declare_subscriber("bench/ping")
+        .callback(move |s| {
+            let _ = tx.try_send(s.payload().to_bytes().into_owned());
+        })
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    tokio::spawn(async move {
+        while let Some(p) = rx.recv().await {
+            let _ = pong.put(p).await;
+        }
+    });
+    let (rtx, mut rrx) = tokio::sync::mpsc::channel::<Instant>(256);
+    let _pong_sub = a
+        .declare_subscriber("bench/pong")
+        .callback(move |_| {
+            let _ = rtx.try_send(Instant::now());
+        })
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let ping = transport::control_publisher(&a, "bench/ping".into()).await?;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let payload = vec![0x5au8; 70]; // the size of an encoded AERO sample
+    let period = Duration::from_millis(10);
+    let start = Instant::now();
+    let mut rtts = Vec::new();
+    for k in 0..(seconds * 100.0) as u32 {
+        let deadline = start + period * k;
+        tokio::time::sleep_until(deadline).await;
+        let sent = Instant::now();
+        ping.put(payload.clone())
+            .await
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        if let Ok(Some(at)) = tokio::time::timeout_at(deadline + period, rrx.recv()).await {
+            rtts.push((at - sent).as_secs_f64() * 1e6);
+        }
+    }
+    let _ = a.close().await;
+    let _ = b.close().await;
+    Ok(rtts)
+}
+
+#[tokio::main(flavor = "multi_thread")]
+async fn main() -> anyhow::Result<()> {
+    let seconds: f64 = std::env::args()
+        .skip(1)
+        .find_map(|a| a.parse().ok())
+        .unwrap_or(20.0);
+    let mut e = echo(seconds).await?;
+    e.sort_by(f64::total_cmp);
+
+    let mut s = load_scenario("2")?;
+    s.duration = seconds;
+    let c = shipped_controller("ipd")?;
+    let service = Service::start(service_config(&s, &c, &["bench".into()])).await?;
+    let cfg = agent_config(&s, &c, "bench", 5, Fallback::Local, None);
+    let (report, _) = run_plant(service.endpoint.clone(), s.plant.clone(), s.seed, cfg).await?;
+    service.stop().await?;
+    let (e50, e99) = (pct(&e, 0.5), pct(&e, 0.99));
+    let (l50, l99) = (report.rtt_p50_us, report.rtt_p99_us);
+    println!("round trip at 100 Hz on loopback, {seconds:.0} s each, one run:");
+    println!("| path | samples | p50 (us) | p99 (us) |");
+    println!("|---|---:|---:|---:|");
+    println!(
+        "| plain zenoh publish/echo | {} | {e50:.0} | {e99:.0} |",
+        e.len()
+    );
+    println!(
+        "| sample -> controller service -> command | {} | {l50:.0} | {l99:.0} |",
+        report.commands
+    );
+    println!(
+        "| ratio service / echo | | {:.2} | {:.2} |",
+        l50 / e50,
+        l99 / e99
+    );
+    println!(
+        "missing commands: {} of {} periods",
+        report.missing, report.periods
+    );
+    Ok(())
+}

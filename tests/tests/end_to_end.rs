@@ -1,0 +1,396 @@
+//! End to end over real Zenoh sessions on loopback: a controller service and simulated
+//! AEROs, each in its own session, in real time.
+
+use std::time::Duration;
+
+use controller_service::config::ServiceConfig;
+use plant_agent::agent::{Fallback, LoopMode};
+use plant_agent::demo::{agent_config, service_config};
+use plant_agent::offline::run;
+use plant_agent::scenario::{load_scenario, shipped_controller, Scenario};
+use protocol::convert::channel_to_pb;
+use protocol::{decode, encode, keys, pb, PROTOCOL_VERSION};
+use system_tests::{run_plant, Service, SERIAL};
+
+fn shortened(name: &str, duration: f64) -> Scenario {
+    let mut s = load_scenario(name).unwrap();
+    s.duration = duration;
+    s
+}
+
+/// One AERO tracks scenario 2 through the service within 1.2x of the offline RMS.
+#[tokio::test(flavor = "multi_thread")]
+async fn one_aero_tracks_scenario_2_through_the_service() {
+    let _serial = SERIAL.lock().await;
+    let s = load_scenario("2").unwrap();
+    let c = shipped_controller("ipd").unwrap();
+    let offline = run(&s, &c, false).unwrap().summary;
+    let service = Service::start(service_config(&s, &c, &["aero-1".into()]))
+        .await
+        .unwrap();
+    let cfg = agent_config(&s, &c, "aero-1", 5, Fallback::Local, None);
+    let (report, _) = run_plant(service.endpoint.clone(), s.plant.clone(), s.seed, cfg)
+        .await
+        .unwrap();
+    service.stop().await.unwrap();
+    eprintln!("{report:?}");
+    assert!(report.completed);
+    for (net, off) in report.channels.iter().zip(&offline.channels) {
+        let ratio = net.rms / off.rms;
+        eprintln!(
+            "{}: networked {:.3e}, offline {:.3e}, ratio {ratio:.3}",
+            net.name, net.rms, off.rms
+        );
+        assert!(ratio < 1.2, "{}: ratio {ratio}", net.name);
+    }
+    // Nearly every sample was answered in time on loopback.
+    assert!(
+        report.commands as f64 >= 0.98 * report.periods as f64,
+        "{report:?}"
+    );
+}
+
+/// Three plants with different configurations and references on one service each track
+/// their own reference; a fourth that joins late and leaves early disturbs none of them.
+#[tokio::test(flavor = "multi_thread")]
+async fn several_plants_late_join_and_leave() {
+    let _serial = SERIAL.lock().await;
+    let duration = 12.0;
+    let plants = [("a", "1", "ipd"), ("b", "2", "pid"), ("c", "3", "adrc")];
+    let mut config = ServiceConfig::default();
+    let mut runs = Vec::new();
+    for (id, sc, ctrl) in plants {
+        let s = shortened(sc, duration);
+        let c = shipped_controller(ctrl).unwrap();
+        config
+            .devices
+            .extend(service_config(&s, &c, &[id.to_string()]).devices);
+        runs.push((id, s, c));
+    }
+    let late = shortened("4", 4.0);
+    let late_c = shipped_controller("ipd").unwrap();
+    config
+        .devices
+        .extend(service_config(&late, &late_c, &["late".to_string()]).devices);
+    let service = Service::start(config).await.unwrap();
+
+    let mut tasks = Vec::new();
+    for (id, s, c) in &runs {
+        let cfg = agent_config(s, c, id, 5, Fallback::Local, None);
+        tasks.push(tokio::spawn(run_plant(
+            service.endpoint.clone(),
+            s.plant.clone(),
+            s.seed,
+            cfg,
+        )));
+    }
+    tokio::time::sleep(Duration::from_secs(4)).await;
+    let late_cfg = agent_config(&late, &late_c, "late", 5, Fallback::Local, None);
+    let (late_report, _) = run_plant(
+        service.endpoint.clone(),
+        late.plant.clone(),
+        late.seed,
+        late_cfg,
+    )
+    .await
+    .unwrap();
+    assert!(
+        late_report.commands as f64 >= 0.95 * late_report.periods as f64,
+        "{late_report:?}"
+    );
+    for ((id, s, c), task) in runs.iter().zip(tasks) {
+        let (report, _) = task.await.unwrap().unwrap();
+        let offline = run(s, c, false).unwrap().summary;
+        for (net, off) in report.channels.iter().zip(&offline.channels) {
+            let ratio = net.rms / off.rms;
+            eprintln!(
+                "{id} {}: ratio {ratio:.3} (missing {})",
+                net.name, report.missing
+            );
+            assert!(ratio < 1.2, "{id} {}: ratio {ratio}", net.name);
+        }
+        assert_eq!(report.fallbacks, 0, "{id}: {report:?}");
+    }
+    service.stop().await.unwrap();
+}
+
+/// A reconfiguration at run time takes effect without a bump in the applied voltage.
+#[tokio::test(flavor = "multi_thread")]
+async fn reconfiguration_at_run_time_is_bumpless() {
+    let _serial = SERIAL.lock().await;
+    let s = shortened("1", 8.0);
+    let c = shipped_controller("ipd").unwrap();
+    let service = Service::start(service_config(&s, &c, &["aero-1".into()]))
+        .await
+        .unwrap();
+    let client = service.client().await.unwrap();
+    let mut cfg = agent_config(&s, &c, "aero-1", 5, Fallback::Local, None);
+    cfg.record = Some(std::env::temp_dir().join(format!("reconf-{}.csv", std::process::id())));
+    let task = tokio::spawn(run_plant(
+        service.endpoint.clone(),
+        s.plant.clone(),
+        s.seed,
+        cfg,
+    ));
+    tokio::time::sleep(Duration::from_secs(5)).await;
+
+    // Double the azimuth loop's alpha and Kp: without bumpless transfer its u would halve
+    // at once (several volts).
+    let mut channels = s.channel_configs(&c);
+    if let mfc::LawConfig::Intelligent { params, .. } = &mut channels[0].law {
+        params.alpha *= 2.0;
+        params.kp *= 2.0;
+    }
+    let request = pb::ConfigRequest {
+        version: PROTOCOL_VERSION,
+        channels: channels.iter().map(channel_to_pb).collect(),
+        reference: None,
+    };
+    let replies = client
+        .get(keys::config("aero-1"))
+        .payload(encode(&request))
+        .await
+        .unwrap();
+    let reply = replies.recv_async().await.unwrap();
+    let reply: pb::ConfigReply = decode(&reply.result().unwrap().payload().to_bytes()).unwrap();
+    assert!(reply.accepted, "{}", reply.reason);
+    let in_force =
+        protocol::convert::channel_from_pb(&reply.config.as_ref().unwrap().channels[0]).unwrap();
+    assert_eq!(in_force, channels[0]);
+
+    // An invalid change is refused with a reason and changes nothing.
+    let mut bad = channels.clone();
+    if let mfc::LawConfig::Intelligent { params, .. } = &mut bad[1].law {
+        params.kp = f64::NAN;
+    }
+    let bad_req = pb::ConfigRequest {
+        version: PROTOCOL_VERSION,
+        channels: bad.iter().map(channel_to_pb).collect(),
+        reference: None,
+    };
+    let replies = client
+        .get(keys::config("aero-1"))
+        .payload(encode(&bad_req))
+        .await
+        .unwrap();
+    let r: pb::ConfigReply = decode(
+        &replies
+            .recv_async()
+            .await
+            .unwrap()
+            .result()
+            .unwrap()
+            .payload()
+            .to_bytes(),
+    )
+    .unwrap();
+    assert!(
+        !r.accepted && r.reason.contains("channels[1]"),
+        "{}",
+        r.reason
+    );
+    assert_eq!(r.config, reply.config, "the refused change changed nothing");
+
+    let (report, rows) = task.await.unwrap().unwrap();
+    assert!(report.completed && report.fallbacks == 0);
+    // The change lands at about t = 5.1 s (plus the query's round trip).
+    // Steps of the applied u (the voltage less the dead-zone compensation, whose ±10 V
+    // jumps at u = 0 are not bumps).
+    let map = mfc::OutputMap::new(mfc::OutputMapConfig::AERO).unwrap();
+    let steps: Vec<(f64, f64)> = rows
+        .windows(2)
+        .map(|w| {
+            (
+                w[1].t,
+                (map.inverse(w[1].v[0]) - map.inverse(w[0].v[0])).abs(),
+            )
+        })
+        .collect();
+    let u_level = rows
+        .iter()
+        .filter(|r| (4.0..5.0).contains(&r.t))
+        .map(|r| map.inverse(r.v[0]).abs())
+        .fold(0.0, f64::max);
+    eprintln!("largest |u| just before the change: {u_level:.3} V (halving it would be the bump)");
+    let before = steps
+        .iter()
+        .filter(|(t, _)| (2.0..4.9).contains(t))
+        .map(|x| x.1)
+        .fold(0.0, f64::max);
+    let around = steps
+        .iter()
+        .filter(|(t, _)| (4.9..6.0).contains(t))
+        .map(|x| x.1)
+        .fold(0.0, f64::max);
+    eprintln!("largest azimuth u step: before {before:.3} V, around the change {around:.3} V");
+    assert!(
+        around <= 1.5 * before.max(0.5),
+        "bump: {around} vs {before}"
+    );
+    let _ = client.close().await;
+    service.stop().await.unwrap();
+}
+
+/// Bad input over the network: garbage, unknown devices, NaN, out-of-range gains. Each gets
+/// its error (log, status counter, reply) and the service keeps serving a good device.
+#[tokio::test(flavor = "multi_thread")]
+async fn bad_network_input_is_refused_and_counted() {
+    let _serial = SERIAL.lock().await;
+    let s = shortened("2", 6.0);
+    let c = shipped_controller("ipd").unwrap();
+    let mut config = service_config(&s, &c, &["good".into(), "victim".into()]);
+    config.controller_id = "c-bad".into();
+    let service = Service::start(config).await.unwrap();
+    let client = service.client().await.unwrap();
+    let good = tokio::spawn(run_plant(
+        service.endpoint.clone(),
+        s.plant.clone(),
+        s.seed,
+        agent_config(&s, &c, "good", 5, Fallback::Local, None),
+    ));
+    // Replies to our bad samples come on the victim's command key.
+    let replies = client
+        .declare_subscriber(keys::command("victim"))
+        .await
+        .unwrap();
+    tokio::time::sleep(Duration::from_millis(500)).await;
+
+    for garbage in [vec![], vec![0xff; 7], b"not protobuf at all".to_vec()] {
+        client.put(keys::sample("victim"), garbage).await.unwrap();
+    }
+    let sample = |seq: u64, t: f64, y: Vec<f64>| pb::Sample {
+        version: PROTOCOL_VERSION,
+        device_id: "victim".into(),
+        seq,
+        plant_time: t,
+        outputs: y,
+        run_id: 1,
+        ..Default::default()
+    };
+    client
+        .put(
+            keys::sample("victim"),
+            encode(&sample(0, 0.0, vec![f64::NAN, 0.0])),
+        )
+        .await
+        .unwrap();
+    client
+        .put(keys::sample("victim"), encode(&sample(1, 0.01, vec![0.0])))
+        .await
+        .unwrap();
+    let mut unknown = sample(0, 0.0, vec![0.0, 0.0]);
+    unknown.device_id = "stranger".into();
+    client
+        .put(keys::sample("stranger"), encode(&unknown))
+        .await
+        .unwrap();
+    // Out-of-range gains over the config queryable.
+    let mut channels = s.channel_configs(&c);
+    if let mfc::LawConfig::Intelligent { params, .. } = &mut channels[0].law {
+        params.alpha = 0.0;
+    }
+    let req = pb::ConfigRequest {
+        version: PROTOCOL_VERSION,
+        channels: channels.iter().map(channel_to_pb).collect(),
+        reference: None,
+    };
+    let r = client
+        .get(keys::config("victim"))
+        .payload(encode(&req))
+        .await
+        .unwrap();
+    let r: pb::ConfigReply = decode(
+        &r.recv_async()
+            .await
+            .unwrap()
+            .result()
+            .unwrap()
+            .payload()
+            .to_bytes(),
+    )
+    .unwrap();
+    assert!(!r.accepted && r.reason.contains("alpha"), "{}", r.reason);
+    // Garbage on the config queryable.
+    let r = client
+        .get(keys::config("victim"))
+        .payload(vec![1u8, 2, 3])
+        .await
+        .unwrap();
+    let r: pb::ConfigReply = decode(
+        &r.recv_async()
+            .await
+            .unwrap()
+            .result()
+            .unwrap()
+            .payload()
+            .to_bytes(),
+    )
+    .unwrap();
+    assert!(!r.accepted);
+
+    // The two refused samples were answered REJECTED with reasons.
+    let mut reasons = Vec::new();
+    while reasons.len() < 2 {
+        let s = tokio::time::timeout(Duration::from_secs(3), replies.recv_async())
+            .await
+            .unwrap()
+            .unwrap();
+        let cmd: pb::Command = decode(&s.payload().to_bytes()).unwrap();
+        assert_eq!(cmd.mode, pb::Mode::Rejected as i32);
+        reasons.push(cmd.error);
+    }
+    assert!(
+        reasons[0].contains("non-finite") && reasons[1].contains("expected 2 outputs"),
+        "{reasons:?}"
+    );
+
+    let st = client.get(keys::service_status("c-bad")).await.unwrap();
+    let st: pb::ServiceStatus = decode(
+        &st.recv_async()
+            .await
+            .unwrap()
+            .result()
+            .unwrap()
+            .payload()
+            .to_bytes(),
+    )
+    .unwrap();
+    assert!(st.decode_errors >= 4, "{st:?}");
+    assert_eq!(st.unknown_samples, 1);
+    assert_eq!(st.unknown_devices, vec!["stranger".to_string()]);
+    let victim = st.devices.iter().find(|d| d.device_id == "victim").unwrap();
+    assert_eq!(victim.rejected, 2);
+
+    let (report, _) = good.await.unwrap().unwrap();
+    assert!(
+        report.commands as f64 >= 0.98 * report.periods as f64,
+        "{report:?}"
+    );
+    assert_eq!(report.fallbacks, 0);
+    let _ = client.close().await;
+    service.stop().await.unwrap();
+}
+
+/// With no controller at all, the agent holds, then falls back to its local controller,
+/// and keeps the rig inside its bounds.
+#[tokio::test(flavor = "multi_thread")]
+async fn no_controller_means_local_fallback() {
+    let _serial = SERIAL.lock().await;
+    let s = shortened("2", 3.0);
+    let c = shipped_controller("ipd").unwrap();
+    let service = Service::start(ServiceConfig::default()).await.unwrap(); // serves nobody
+    let mut cfg = agent_config(&s, &c, "orphan", 5, Fallback::Local, None);
+    cfg.record = Some(std::env::temp_dir().join(format!("orphan-{}.csv", std::process::id())));
+    let (report, rows) = run_plant(service.endpoint.clone(), s.plant.clone(), s.seed, cfg)
+        .await
+        .unwrap();
+    assert_eq!(report.commands, 0);
+    assert_eq!(report.fallbacks, 1);
+    assert_eq!(report.holding_periods, 5);
+    assert!(rows.iter().skip(6).all(|r| r.mode == LoopMode::Fallback));
+    let offline = run(&s, &c, false).unwrap().summary;
+    for (a, b) in report.channels.iter().zip(&offline.channels) {
+        assert!(a.rms < 1.5 * b.rms, "{}: {} vs {}", a.name, a.rms, b.rms);
+    }
+    service.stop().await.unwrap();
+}
