@@ -32,7 +32,7 @@ pub fn service_config(
     ids: &[String],
 ) -> ServiceConfig {
     ServiceConfig {
-        controller_id: "demo-controller".into(),
+        controller_id: "controller-1".into(),
         devices: ids
             .iter()
             .map(|id| DeviceSpec {

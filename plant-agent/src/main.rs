@@ -108,6 +108,18 @@ enum Command {
         #[command(flatten)]
         zenoh: transport::ZenohArgs,
     },
+    /// Print a controller-service configuration that serves these devices on a scenario.
+    ServiceConfig {
+        /// Device ids, comma-separated.
+        #[arg(long, value_delimiter = ',', required = true)]
+        devices: Vec<String>,
+        /// Scenario whose references and output maps to use.
+        #[arg(long, default_value = "2")]
+        scenario: String,
+        /// Shipped controller (default: the scenario's).
+        #[arg(long)]
+        controller: Option<String>,
+    },
     /// Serve the driver protocol on stdin/stdout with a simulated AERO (reference driver).
     SimDriver {
         /// Noise seed.
@@ -285,6 +297,27 @@ fn real_main() -> Result<()> {
             println!(
                 "wrote {}/{{run.csv, summary.json, *.png, *.svg}}",
                 out.display()
+            );
+            Ok(())
+        }
+        Command::ServiceConfig {
+            devices,
+            scenario,
+            controller,
+        } => {
+            let scenario = load_scenario(&scenario)?;
+            let set = match controller {
+                Some(k) => shipped_controller(&k)?,
+                None => scenario.controller.clone(),
+            };
+            let config = plant_agent::demo::service_config(&scenario, &set, &devices);
+            config.check("(generated)")?;
+            println!(
+                "# controller-service configuration: {} on {} for {}\n{}",
+                set.name,
+                scenario.name,
+                devices.join(", "),
+                toml::to_string_pretty(&config)?
             );
             Ok(())
         }
