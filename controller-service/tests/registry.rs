@@ -190,3 +190,35 @@ fn bad_config_files_are_refused() {
         assert!(e.contains("svc.toml") && e.contains(needle), "{needle}: {e}");
     }
 }
+
+#[test]
+fn the_reference_can_be_steered_live() {
+    use mfc::trajectory::Piece;
+    let mut r = registry();
+    command(r.handle_sample("aero-1", &sample("aero-1", 0, 0.0, &[0.0, 0.0])));
+    let pieces = vec![
+        vec![Piece::Constant { value: 3.0 }],
+        vec![Piece::Constant { value: -1.0 }],
+    ];
+    let update = pb::ReferenceUpdate {
+        version: PROTOCOL_VERSION,
+        reference: Some(protocol::convert::reference_to_pb(&pieces, 0.0)),
+    };
+    r.set_reference("aero-1", &update).unwrap();
+    let cfg = r.config_of("aero-1").unwrap();
+    assert_eq!(
+        protocol::convert::reference_from_pb(cfg.reference.as_ref().unwrap())
+            .unwrap()
+            .0,
+        pieces
+    );
+    // A reference for the wrong number of channels is refused.
+    let bad = pb::ReferenceUpdate {
+        version: PROTOCOL_VERSION,
+        reference: Some(protocol::convert::reference_to_pb(&pieces[..1], 0.0)),
+    };
+    assert!(r
+        .set_reference("aero-1", &bad)
+        .unwrap_err()
+        .contains("2 channels"));
+}
