@@ -1,0 +1,374 @@
+//! The impairment relay: a user-space forwarder between Zenoh endpoints that loses, delays,
+//! jitters, reorders, duplicates, rate-limits and cuts traffic, per direction, from a
+//! seeded generator. This kernel has no netem; the relay needs no privileges and runs
+//! anywhere.
+//!
+//! Plants connect to the relay's address instead of the controller's; the relay forwards
+//! to the controller. "Up" is plant -> controller (samples), "down" is controller -> plant
+//! (commands).
+
+use std::collections::{BinaryHeap, HashMap};
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use plant_agent::rng::Rng;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpListener, TcpStream, UdpSocket};
+use tokio::sync::mpsc;
+use tokio::task::JoinHandle;
+use tokio::time::Instant;
+
+use crate::profile::{Impairment, Profile};
+
+/// Which transport the relay forwards.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum Link {
+    /// Datagrams: each packet is impaired on its own.
+    Udp,
+    /// A byte stream: loss becomes retransmission delay, order is kept.
+    Tcp,
+}
+
+impl Link {
+    /// The zenoh endpoint prefix.
+    pub fn scheme(self) -> &'static str {
+        match self {
+            Link::Udp => "udp",
+            Link::Tcp => "tcp",
+        }
+    }
+}
+
+/// Counters of one direction.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct DirectionStats {
+    /// Packets (UDP) or chunks (TCP) received.
+    pub received: u64,
+    /// Dropped by loss (UDP) or held back by a retransmission timeout (TCP).
+    pub lost: u64,
+    /// Dropped (UDP) or held (TCP) by an outage.
+    pub outage: u64,
+    /// Sent twice.
+    pub duplicated: u64,
+    /// Held back to be overtaken.
+    pub reordered: u64,
+    /// Bytes forwarded.
+    pub bytes: u64,
+}
+
+/// Counters of both directions.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct RelayStats {
+    /// Plant -> controller.
+    pub up: DirectionStats,
+    /// Controller -> plant.
+    pub down: DirectionStats,
+}
+
+/// The fate of one packet.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Fate {
+    /// Dropped.
+    Drop,
+    /// Sent at these instants (two for a duplicate).
+    Send(Vec<Instant>),
+}
+
+/// The impairment state of one direction.
+#[derive(Debug)]
+pub struct Shaper {
+    imp: Impairment,
+    rng: Rng,
+    bad: bool,
+    start: Instant,
+    link_free: Instant,
+    last_release: Instant,
+    stats: Arc<Mutex<DirectionStats>>,
+}
+
+impl Shaper {
+    /// A shaper for `imp`, seeded, with the outage clock starting at `start`.
+    pub fn new(imp: Impairment, seed: u64, start: Instant, stats: Arc<Mutex<DirectionStats>>) -> Self {
+        Self {
+            imp,
+            rng: Rng::new(seed),
+            bad: false,
+            start,
+            link_free: start,
+            last_release: start,
+            stats,
+        }
+    }
+
+    fn in_outage(&self, now: Instant) -> Option<Instant> {
+        let t = (now - self.start).as_secs_f64();
+        self.imp
+            .outages
+            .iter()
+            .find(|o| t >= o.start_s && t < o.start_s + o.duration_s)
+            .map(|o| self.start + Duration::from_secs_f64(o.start_s + o.duration_s))
+    }
+
+    fn lost(&mut self) -> bool {
+        match self.imp.burst {
+            Some(ge) => {
+                let flip = self.rng.uniform();
+                self.bad = if self.bad { flip >= ge.p_bad_good } else { flip < ge.p_good_bad };
+                let p = if self.bad { ge.loss_bad } else { ge.loss_good };
+                self.rng.uniform() < p
+            }
+            None => self.imp.loss > 0.0 && self.rng.uniform() < self.imp.loss,
+        }
+    }
+
+    fn delay(&mut self) -> Duration {
+        let j = self.imp.jitter_ms;
+        let jitter = if j > 0.0 { (self.rng.uniform() * 2.0 - 1.0) * j } else { 0.0 };
+        Duration::from_secs_f64(((self.imp.delay_ms + jitter) / 1000.0).max(0.0))
+    }
+
+    fn rate(&mut self, now: Instant, len: usize) -> Instant {
+        match self.imp.rate_kbps {
+            Some(kbps) => {
+                let at = self.link_free.max(now);
+                self.link_free = at + Duration::from_secs_f64(len as f64 * 8.0 / (kbps * 1000.0));
+                at
+            }
+            None => now,
+        }
+    }
+
+    /// What happens to a datagram of `len` bytes received `now`.
+    pub fn datagram(&mut self, now: Instant, len: usize) -> Fate {
+        let mut st = self.stats.lock().unwrap_or_else(|e| e.into_inner());
+        st.received += 1;
+        if self.in_outage(now).is_some() {
+            st.outage += 1;
+            return Fate::Drop;
+        }
+        drop(st);
+        if self.lost() {
+            self.stats.lock().unwrap_or_else(|e| e.into_inner()).lost += 1;
+            return Fate::Drop;
+        }
+        let mut at = self.rate(now, len) + self.delay();
+        let mut st = self.stats.lock().unwrap_or_else(|e| e.into_inner());
+        if self.imp.reorder > 0.0 && self.rng.uniform() < self.imp.reorder {
+            at += Duration::from_secs_f64(self.imp.reorder_ms / 1000.0);
+            st.reordered += 1;
+        }
+        st.bytes += len as u64;
+        if self.imp.duplicate > 0.0 && self.rng.uniform() < self.imp.duplicate {
+            st.duplicated += 1;
+            return Fate::Send(vec![at, at + Duration::from_micros(500)]);
+        }
+        Fate::Send(vec![at])
+    }
+
+    /// When a stream chunk of `len` bytes received `now` may be written: in order, after the
+    /// delay, after a retransmission timeout if "lost", after the end of an outage.
+    pub fn chunk(&mut self, now: Instant, len: usize) -> Instant {
+        let mut at = self.rate(now, len) + self.delay();
+        let after_outage = self.delay();
+        let stats = self.stats.clone();
+        let mut st = stats.lock().unwrap_or_else(|e| e.into_inner());
+        st.received += 1;
+        st.bytes += len as u64;
+        if let Some(end) = self.in_outage(now) {
+            st.outage += 1;
+            at = at.max(end + after_outage);
+        }
+        drop(st);
+        if self.lost() {
+            self.stats.lock().unwrap_or_else(|e| e.into_inner()).lost += 1;
+            at += Duration::from_secs_f64(self.imp.tcp_rto_ms / 1000.0);
+        }
+        at = at.max(self.last_release);
+        self.last_release = at;
+        at
+    }
+}
+
+/// A running relay; stops when dropped.
+pub struct Relay {
+    /// Address the plants connect to.
+    pub listen: SocketAddr,
+    stats: Arc<Mutex<DirectionStats>>,
+    stats_down: Arc<Mutex<DirectionStats>>,
+    task: JoinHandle<()>,
+}
+
+impl Drop for Relay {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
+
+impl Relay {
+    /// Start relaying `link` traffic from `listen` to `target` under `profile`.
+    pub async fn start(link: Link, listen: SocketAddr, target: SocketAddr, profile: &Profile) -> std::io::Result<Self> {
+        let up_stats = Arc::new(Mutex::new(DirectionStats::default()));
+        let down_stats = Arc::new(Mutex::new(DirectionStats::default()));
+        let start = Instant::now();
+        let up = Shaper::new(profile.up().clone(), profile.seed, start, up_stats.clone());
+        let down = Shaper::new(
+            profile.down().clone(),
+            profile.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(1),
+            start,
+            down_stats.clone(),
+        );
+        let (listen, task) = match link {
+            Link::Udp => {
+                let front = UdpSocket::bind(listen).await?;
+                let addr = front.local_addr()?;
+                (addr, tokio::spawn(udp_relay(front, target, up, down)))
+            }
+            Link::Tcp => {
+                let listener = TcpListener::bind(listen).await?;
+                let addr = listener.local_addr()?;
+                (addr, tokio::spawn(tcp_relay(listener, target, up, down)))
+            }
+        };
+        Ok(Self {
+            listen,
+            stats: up_stats,
+            stats_down: down_stats,
+            task,
+        })
+    }
+
+    /// The counters so far.
+    pub fn stats(&self) -> RelayStats {
+        RelayStats {
+            up: self.stats.lock().unwrap_or_else(|e| e.into_inner()).clone(),
+            down: self.stats_down.lock().unwrap_or_else(|e| e.into_inner()).clone(),
+        }
+    }
+}
+
+#[derive(Debug, PartialEq, Eq)]
+struct Pending {
+    at: Instant,
+    order: u64,
+    to_server: bool,
+    client: SocketAddr,
+    bytes: Vec<u8>,
+}
+
+impl Ord for Pending {
+    fn cmp(&self, other: &Self) -> std::cmp::Ordering {
+        // Earliest first in a max-heap.
+        other.at.cmp(&self.at).then(other.order.cmp(&self.order))
+    }
+}
+impl PartialOrd for Pending {
+    fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(other))
+    }
+}
+
+async fn udp_relay(front: UdpSocket, target: SocketAddr, mut up: Shaper, mut down: Shaper) {
+    let front = Arc::new(front);
+    let mut uplinks: HashMap<SocketAddr, Arc<UdpSocket>> = HashMap::new();
+    let (back_tx, mut back_rx) = mpsc::channel::<(SocketAddr, Vec<u8>)>(4096);
+    let mut heap: BinaryHeap<Pending> = BinaryHeap::new();
+    let mut order = 0u64;
+    let mut buf = vec![0u8; 65536];
+    loop {
+        let next = heap.peek().map(|p| p.at);
+        tokio::select! {
+            r = front.recv_from(&mut buf) => {
+                let Ok((len, client)) = r else { continue };
+                if !uplinks.contains_key(&client) {
+                    let Ok(sock) = UdpSocket::bind("127.0.0.1:0").await else { continue };
+                    if sock.connect(target).await.is_err() { continue; }
+                    let sock = Arc::new(sock);
+                    let (reader, tx) = (sock.clone(), back_tx.clone());
+                    tokio::spawn(async move {
+                        let mut b = vec![0u8; 65536];
+                        while let Ok(n) = reader.recv(&mut b).await {
+                            if tx.send((client, b[..n].to_vec())).await.is_err() { break; }
+                        }
+                    });
+                    uplinks.insert(client, sock);
+                }
+                if let Fate::Send(times) = up.datagram(Instant::now(), len) {
+                    for at in times {
+                        order += 1;
+                        heap.push(Pending { at, order, to_server: true, client, bytes: buf[..len].to_vec() });
+                    }
+                }
+            }
+            Some((client, bytes)) = back_rx.recv() => {
+                if let Fate::Send(times) = down.datagram(Instant::now(), bytes.len()) {
+                    for at in times {
+                        order += 1;
+                        heap.push(Pending { at, order, to_server: false, client, bytes: bytes.clone() });
+                    }
+                }
+            }
+            () = async { match next { Some(at) => tokio::time::sleep_until(at).await, None => std::future::pending().await } } => {
+                let now = Instant::now();
+                while heap.peek().is_some_and(|p| p.at <= now) {
+                    let Some(p) = heap.pop() else { break };
+                    if p.to_server {
+                        if let Some(s) = uplinks.get(&p.client) {
+                            let _ = s.send(&p.bytes).await;
+                        }
+                    } else {
+                        let _ = front.send_to(&p.bytes, p.client).await;
+                    }
+                }
+            }
+        }
+    }
+}
+
+async fn tcp_relay(listener: TcpListener, target: SocketAddr, up: Shaper, down: Shaper) {
+    // All connections share one shaper per direction (one link).
+    let up = Arc::new(tokio::sync::Mutex::new(up));
+    let down = Arc::new(tokio::sync::Mutex::new(down));
+    loop {
+        let Ok((client, _)) = listener.accept().await else { continue };
+        let Ok(server) = TcpStream::connect(target).await else { continue };
+        let _ = client.set_nodelay(true);
+        let _ = server.set_nodelay(true);
+        let (cr, cw) = client.into_split();
+        let (sr, sw) = server.into_split();
+        tokio::spawn(pump(cr, sw, up.clone()));
+        tokio::spawn(pump(sr, cw, down.clone()));
+    }
+}
+
+async fn pump(
+    mut from: tokio::net::tcp::OwnedReadHalf,
+    mut to: tokio::net::tcp::OwnedWriteHalf,
+    shaper: Arc<tokio::sync::Mutex<Shaper>>,
+) {
+    let (tx, mut rx) = mpsc::unbounded_channel::<(Instant, Vec<u8>)>();
+    let writer = tokio::spawn(async move {
+        while let Some((at, bytes)) = rx.recv().await {
+            tokio::time::sleep_until(at).await;
+            if to.write_all(&bytes).await.is_err() {
+                break;
+            }
+        }
+        let _ = to.shutdown().await;
+    });
+    let mut buf = vec![0u8; 65536];
+    loop {
+        match from.read(&mut buf).await {
+            Ok(0) | Err(_) => break,
+            Ok(n) => {
+                let at = shaper.lock().await.chunk(Instant::now(), n);
+                if tx.send((at, buf[..n].to_vec())).is_err() {
+                    break;
+                }
+            }
+        }
+    }
+    drop(tx);
+    let _ = writer.await;
+}
