@@ -102,6 +102,43 @@ pub struct TemplateSpec {
     pub channels: Vec<ChannelSpec>,
 }
 
+/// Hot standby: several services of one group serve the same devices; one is active.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StandbySpec {
+    /// Group name (key chunk).
+    pub group: String,
+    /// Role at start. An `active` member that hears another active one at start becomes
+    /// standby. Default: standby.
+    #[serde(default)]
+    pub role: Role,
+    /// Heartbeat period of the active member (ms). Default 10 (one control period).
+    #[serde(default = "heartbeat_ms")]
+    pub heartbeat_ms: u64,
+    /// Silence after which a standby takes over (ms). Default 30: three heartbeats, so a
+    /// takeover lands within five control periods.
+    #[serde(default = "takeover_ms")]
+    pub takeover_ms: u64,
+}
+
+fn heartbeat_ms() -> u64 {
+    10
+}
+fn takeover_ms() -> u64 {
+    30
+}
+
+/// A member's role.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Role {
+    /// Answers samples and sends heartbeats.
+    Active,
+    /// Follows every sample (warm state) and publishes nothing.
+    #[default]
+    Standby,
+}
+
 /// The whole file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -116,6 +153,9 @@ pub struct ServiceConfig {
     /// Templates for devices provisioned on first sample, tried in order.
     #[serde(default)]
     pub templates: Vec<TemplateSpec>,
+    /// Hot standby group, if any (absent: this service is always active).
+    #[serde(default)]
+    pub standby: Option<StandbySpec>,
 }
 
 fn default_id() -> String {
@@ -128,6 +168,7 @@ impl Default for ServiceConfig {
             controller_id: default_id(),
             devices: Vec::new(),
             templates: Vec::new(),
+            standby: None,
         }
     }
 }
@@ -197,6 +238,16 @@ impl ServiceConfig {
                 ));
             }
             check_channels(file, &format!("devices[{i}]"), &d.channels)?;
+        }
+        if let Some(sb) = &self.standby {
+            protocol::keys::check_id(&sb.group)
+                .map_err(|e| invalid("standby.group".into(), e.to_string()))?;
+            if sb.heartbeat_ms == 0 || sb.takeover_ms <= sb.heartbeat_ms {
+                return Err(invalid(
+                    "standby.takeover_ms".into(),
+                    "heartbeat_ms must be > 0 and takeover_ms longer than heartbeat_ms".into(),
+                ));
+            }
         }
         for (i, t) in self.templates.iter().enumerate() {
             zenoh::key_expr::KeyExpr::try_from(t.pattern.as_str())

@@ -4,8 +4,10 @@
 //! * [`config`]: the TOML file (declared devices, templates);
 //! * [`registry`]: the per-device state and the rules for samples, configuration and status,
 //!   without I/O;
-//! * [`service`]: the Zenoh wiring and the worker task.
+//! * [`service`]: the Zenoh wiring and the worker task;
+//! * [`cli`]: the command line (the binary is a one-line `main`).
 
+pub mod cli;
 pub mod config;
 pub mod registry;
 pub mod service;

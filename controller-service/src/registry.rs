@@ -227,6 +227,11 @@ impl Registry {
         })
     }
 
+    /// The hot-standby settings, if any.
+    pub fn standby(&self) -> Option<&crate::config::StandbySpec> {
+        self.config.standby.as_ref()
+    }
+
     /// This controller's id.
     pub fn controller_id(&self) -> &str {
         &self.controller_id
@@ -488,6 +493,8 @@ impl Registry {
             unknown_devices: self.unknown_devices.iter().cloned().collect(),
             decode_errors: self.decode_errors,
             uptime,
+            active: true,
+            term: 0,
         }
     }
 }

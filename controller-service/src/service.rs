@@ -22,6 +22,7 @@ use crate::registry::{Outcome, Registry};
 /// Messages from zenoh's callbacks to the worker.
 enum Msg {
     Sample(String, Vec<u8>),
+    Heartbeat(Vec<u8>),
     Reference(String, Vec<u8>),
     Config(Query),
     Status(Query),
@@ -123,6 +124,35 @@ pub async fn run(
             .await
             .map_err(declare_err("service status queryable"))?
     };
+    // Hot standby: heartbeats of the group.
+    let standby = registry.standby().cloned();
+    let hb_sub = match &standby {
+        Some(sb) => {
+            let tx = tx.clone();
+            Some(
+                session
+                    .declare_subscriber(keys::heartbeat(&sb.group))
+                    .callback(move |s| {
+                        let _ = tx.try_send(Msg::Heartbeat(s.payload().to_bytes().into_owned()));
+                    })
+                    .await
+                    .map_err(declare_err("heartbeat subscriber"))?,
+            )
+        }
+        None => None,
+    };
+    let hb_pub = match &standby {
+        Some(sb) => Some(
+            transport::control_publisher(&session, keys::heartbeat(&sb.group))
+                .await
+                .map_err(|e| ServiceError::Declare {
+                    what: "heartbeat publisher".into(),
+                    reason: e.to_string(),
+                })?,
+        ),
+        None => None,
+    };
+    let mut ha = HotStandby::new(standby.as_ref());
     drop(tx);
     let token = session
         .liveliness()
@@ -132,13 +162,32 @@ pub async fn run(
     tracing::info!(controller = %id, devices = registry.device_ids().count(), "serving");
 
     let mut publishers: HashMap<String, Publisher<'static>> = HashMap::new();
+    let mut tick = tokio::time::interval(ha.heartbeat);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     tokio::pin!(shutdown);
     loop {
         let msg = tokio::select! {
             m = rx.recv() => match m { Some(m) => m, None => break },
+            _ = tick.tick(), if hb_pub.is_some() => {
+                if ha.on_tick(&id) {
+                    tracing::warn!(controller = %id, term = ha.term, "no heartbeat from the active member: taking over");
+                }
+                if let (true, Some(p)) = (ha.active, &hb_pub) {
+                    let hb = pb::Heartbeat { version: protocol::PROTOCOL_VERSION, controller_id: id.clone(), term: ha.term };
+                    let _ = p.put(encode(&hb)).await;
+                }
+                continue;
+            }
             () = &mut shutdown => break,
         };
         match msg {
+            Msg::Heartbeat(bytes) => {
+                if let Ok(hb) = decode::<pb::Heartbeat>(&bytes) {
+                    if ha.on_heartbeat(&id, &hb) {
+                        tracing::warn!(controller = %id, other = %hb.controller_id, "another member is active: standing by");
+                    }
+                }
+            }
             Msg::Sample(key, bytes) => {
                 let Some(dev) = keys::device_of(&key) else {
                     continue;
@@ -151,7 +200,13 @@ pub async fn run(
                         continue;
                     }
                 };
-                if let Outcome::Reply(cmd) = registry.handle_sample(dev, &sample) {
+                // Every member follows every sample (a standby stays warm); only the active
+                // one answers.
+                let outcome = registry.handle_sample(dev, &sample);
+                if !ha.active {
+                    continue;
+                }
+                if let Outcome::Reply(cmd) = outcome {
                     let publisher = match publishers.get(dev) {
                         Some(p) => p,
                         None => {
@@ -248,6 +303,8 @@ pub async fn run(
             Msg::ServiceStatus(q) => {
                 let mut s = registry.service_status(started.elapsed().as_secs_f64());
                 s.decode_errors += dropped.load(Ordering::Relaxed);
+                s.active = ha.active;
+                s.term = ha.term;
                 let key = q.key_expr().clone();
                 let _ = q.reply(key, encode(&s)).await;
             }
@@ -255,6 +312,8 @@ pub async fn run(
     }
     tracing::info!(controller = %id, "shutting down");
     drop(token);
+    drop(hb_sub);
+    drop(hb_pub);
     drop(sub);
     drop(ref_sub);
     drop(q_config);
@@ -263,4 +322,76 @@ pub async fn run(
     drop(publishers);
     let _ = session.close().await;
     Ok(())
+}
+
+/// The hot-standby state machine (no I/O).
+#[derive(Debug)]
+pub struct HotStandby {
+    /// Whether this member answers samples.
+    pub active: bool,
+    /// Its term (raised at every takeover).
+    pub term: u64,
+    /// Heartbeat period.
+    pub heartbeat: std::time::Duration,
+    takeover: std::time::Duration,
+    last_heard: Instant,
+    peer_term: u64,
+}
+
+impl HotStandby {
+    /// Without a group the service is simply active; with one it starts silent and takes
+    /// over after the takeover time (an `active` member at once if nobody speaks, a
+    /// `standby` member after a grace of one second, so that it does not race the active
+    /// one at start-up).
+    pub fn new(spec: Option<&crate::config::StandbySpec>) -> Self {
+        let now = Instant::now();
+        match spec {
+            None => Self {
+                active: true,
+                term: 0,
+                heartbeat: std::time::Duration::from_millis(10),
+                takeover: std::time::Duration::MAX,
+                last_heard: now,
+                peer_term: 0,
+            },
+            Some(sb) => Self {
+                active: false,
+                term: 0,
+                heartbeat: std::time::Duration::from_millis(sb.heartbeat_ms),
+                takeover: std::time::Duration::from_millis(sb.takeover_ms),
+                last_heard: match sb.role {
+                    crate::config::Role::Active => now,
+                    crate::config::Role::Standby => now + std::time::Duration::from_secs(1),
+                },
+                peer_term: 0,
+            },
+        }
+    }
+
+    /// A heartbeat period passed; returns true if this member just took over.
+    pub fn on_tick(&mut self, _me: &str) -> bool {
+        let now = Instant::now();
+        if !self.active && now > self.last_heard && now - self.last_heard > self.takeover {
+            self.active = true;
+            self.term = self.peer_term.max(self.term) + 1;
+            return true;
+        }
+        false
+    }
+
+    /// A heartbeat from the group; returns true if this member just stepped down.
+    pub fn on_heartbeat(&mut self, me: &str, hb: &pb::Heartbeat) -> bool {
+        if hb.controller_id == me {
+            return false;
+        }
+        self.last_heard = self.last_heard.max(Instant::now());
+        self.peer_term = self.peer_term.max(hb.term);
+        let they_win =
+            hb.term > self.term || (hb.term == self.term && hb.controller_id.as_str() > me);
+        if self.active && they_win {
+            self.active = false;
+            return true;
+        }
+        false
+    }
 }

@@ -197,7 +197,10 @@ impl Impairment {
             return Err(("duplicate", "must be in [0, 1]"));
         }
         if let Some(b) = &self.burst {
-            if ![b.p_good_bad, b.p_bad_good, b.loss_good, b.loss_bad].into_iter().all(prob) {
+            if ![b.p_good_bad, b.p_bad_good, b.loss_good, b.loss_bad]
+                .into_iter()
+                .all(prob)
+            {
                 return Err(("burst", "probabilities must be in [0, 1]"));
             }
         }
@@ -233,14 +236,19 @@ impl ProfileSet {
             message: e.to_string().trim_end().into(),
         })?;
         for p in &set.profiles {
-            for (dir, imp) in [("both", Some(&p.both)), ("up", p.up.as_ref()), ("down", p.down.as_ref())] {
+            for (dir, imp) in [
+                ("both", Some(&p.both)),
+                ("up", p.up.as_ref()),
+                ("down", p.down.as_ref()),
+            ] {
                 if let Some(imp) = imp {
-                    imp.check().map_err(|(field, reason)| ProfileError::Invalid {
-                        file: file.into(),
-                        profile: p.name.clone(),
-                        field: format!("{dir}.{field}"),
-                        reason: reason.into(),
-                    })?;
+                    imp.check()
+                        .map_err(|(field, reason)| ProfileError::Invalid {
+                            file: file.into(),
+                            profile: p.name.clone(),
+                            field: format!("{dir}.{field}"),
+                            reason: reason.into(),
+                        })?;
                 }
             }
         }

@@ -22,7 +22,9 @@ use tokio::time::Instant;
 use crate::profile::{Impairment, Profile};
 
 /// Which transport the relay forwards.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum,
+)]
 #[serde(rename_all = "lowercase")]
 pub enum Link {
     /// Datagrams: each packet is impaired on its own.
@@ -79,6 +81,9 @@ pub enum Fate {
 /// The impairment state of one direction.
 #[derive(Debug)]
 pub struct Shaper {
+    /// Until armed, traffic passes untouched (so sessions can establish; zenoh does not
+    /// retransmit declarations lost on a UDP link). Arming starts the outage clock.
+    armed: Arc<Mutex<Option<Instant>>>,
     imp: Impairment,
     rng: Rng,
     bad: bool,
@@ -90,8 +95,14 @@ pub struct Shaper {
 
 impl Shaper {
     /// A shaper for `imp`, seeded, with the outage clock starting at `start`.
-    pub fn new(imp: Impairment, seed: u64, start: Instant, stats: Arc<Mutex<DirectionStats>>) -> Self {
+    pub fn new(
+        imp: Impairment,
+        seed: u64,
+        start: Instant,
+        stats: Arc<Mutex<DirectionStats>>,
+    ) -> Self {
         Self {
+            armed: Arc::new(Mutex::new(Some(start))),
             imp,
             rng: Rng::new(seed),
             bad: false,
@@ -102,20 +113,36 @@ impl Shaper {
         }
     }
 
+    /// Share an arming switch (None: not armed yet; Some(t): armed at t).
+    pub fn with_arming(mut self, armed: Arc<Mutex<Option<Instant>>>) -> Self {
+        self.armed = armed;
+        self
+    }
+
+    fn armed_at(&self) -> Option<Instant> {
+        *self.armed.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
     fn in_outage(&self, now: Instant) -> Option<Instant> {
-        let t = (now - self.start).as_secs_f64();
+        let start = self.armed_at().unwrap_or(self.start);
+        let t = now.saturating_duration_since(start).as_secs_f64();
+        let _ = self.start;
         self.imp
             .outages
             .iter()
             .find(|o| t >= o.start_s && t < o.start_s + o.duration_s)
-            .map(|o| self.start + Duration::from_secs_f64(o.start_s + o.duration_s))
+            .map(|o| start + Duration::from_secs_f64(o.start_s + o.duration_s))
     }
 
     fn lost(&mut self) -> bool {
         match self.imp.burst {
             Some(ge) => {
                 let flip = self.rng.uniform();
-                self.bad = if self.bad { flip >= ge.p_bad_good } else { flip < ge.p_good_bad };
+                self.bad = if self.bad {
+                    flip >= ge.p_bad_good
+                } else {
+                    flip < ge.p_good_bad
+                };
                 let p = if self.bad { ge.loss_bad } else { ge.loss_good };
                 self.rng.uniform() < p
             }
@@ -125,7 +152,11 @@ impl Shaper {
 
     fn delay(&mut self) -> Duration {
         let j = self.imp.jitter_ms;
-        let jitter = if j > 0.0 { (self.rng.uniform() * 2.0 - 1.0) * j } else { 0.0 };
+        let jitter = if j > 0.0 {
+            (self.rng.uniform() * 2.0 - 1.0) * j
+        } else {
+            0.0
+        };
         Duration::from_secs_f64(((self.imp.delay_ms + jitter) / 1000.0).max(0.0))
     }
 
@@ -144,6 +175,10 @@ impl Shaper {
     pub fn datagram(&mut self, now: Instant, len: usize) -> Fate {
         let mut st = self.stats.lock().unwrap_or_else(|e| e.into_inner());
         st.received += 1;
+        if self.armed_at().is_none() {
+            st.bytes += len as u64;
+            return Fate::Send(vec![now]);
+        }
         if self.in_outage(now).is_some() {
             st.outage += 1;
             return Fate::Drop;
@@ -170,6 +205,14 @@ impl Shaper {
     /// When a stream chunk of `len` bytes received `now` may be written: in order, after the
     /// delay, after a retransmission timeout if "lost", after the end of an outage.
     pub fn chunk(&mut self, now: Instant, len: usize) -> Instant {
+        if self.armed_at().is_none() {
+            let at = now.max(self.last_release);
+            self.last_release = at;
+            let mut st = self.stats.lock().unwrap_or_else(|e| e.into_inner());
+            st.received += 1;
+            st.bytes += len as u64;
+            return at;
+        }
         let mut at = self.rate(now, len) + self.delay();
         let after_outage = self.delay();
         let stats = self.stats.clone();
@@ -195,6 +238,7 @@ impl Shaper {
 pub struct Relay {
     /// Address the plants connect to.
     pub listen: SocketAddr,
+    armed: Arc<Mutex<Option<Instant>>>,
     stats: Arc<Mutex<DirectionStats>>,
     stats_down: Arc<Mutex<DirectionStats>>,
     task: JoinHandle<()>,
@@ -207,18 +251,31 @@ impl Drop for Relay {
 }
 
 impl Relay {
-    /// Start relaying `link` traffic from `listen` to `target` under `profile`.
-    pub async fn start(link: Link, listen: SocketAddr, target: SocketAddr, profile: &Profile) -> std::io::Result<Self> {
+    /// Start relaying `link` traffic from `listen` to `target` under `profile`, impairing
+    /// at once if `armed`, else only after [`Relay::arm`].
+    pub async fn start(
+        link: Link,
+        listen: SocketAddr,
+        target: SocketAddr,
+        profile: &Profile,
+        armed: bool,
+    ) -> std::io::Result<Self> {
         let up_stats = Arc::new(Mutex::new(DirectionStats::default()));
         let down_stats = Arc::new(Mutex::new(DirectionStats::default()));
         let start = Instant::now();
-        let up = Shaper::new(profile.up().clone(), profile.seed, start, up_stats.clone());
+        let arming = Arc::new(Mutex::new(armed.then_some(start)));
+        let up = Shaper::new(profile.up().clone(), profile.seed, start, up_stats.clone())
+            .with_arming(arming.clone());
         let down = Shaper::new(
             profile.down().clone(),
-            profile.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(1),
+            profile
+                .seed
+                .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+                .wrapping_add(1),
             start,
             down_stats.clone(),
-        );
+        )
+        .with_arming(arming.clone());
         let (listen, task) = match link {
             Link::Udp => {
                 let front = UdpSocket::bind(listen).await?;
@@ -233,17 +290,30 @@ impl Relay {
         };
         Ok(Self {
             listen,
+            armed: arming,
             stats: up_stats,
             stats_down: down_stats,
             task,
         })
     }
 
+    /// Start impairing now (outage times count from here).
+    pub fn arm(&self) {
+        let mut a = self.armed.lock().unwrap_or_else(|e| e.into_inner());
+        if a.is_none() {
+            *a = Some(Instant::now());
+        }
+    }
+
     /// The counters so far.
     pub fn stats(&self) -> RelayStats {
         RelayStats {
             up: self.stats.lock().unwrap_or_else(|e| e.into_inner()).clone(),
-            down: self.stats_down.lock().unwrap_or_else(|e| e.into_inner()).clone(),
+            down: self
+                .stats_down
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .clone(),
         }
     }
 }
@@ -281,7 +351,7 @@ async fn udp_relay(front: UdpSocket, target: SocketAddr, mut up: Shaper, mut dow
         tokio::select! {
             r = front.recv_from(&mut buf) => {
                 let Ok((len, client)) = r else { continue };
-                if !uplinks.contains_key(&client) {
+                if let std::collections::hash_map::Entry::Vacant(slot) = uplinks.entry(client) {
                     let Ok(sock) = UdpSocket::bind("127.0.0.1:0").await else { continue };
                     if sock.connect(target).await.is_err() { continue; }
                     let sock = Arc::new(sock);
@@ -292,18 +362,31 @@ async fn udp_relay(front: UdpSocket, target: SocketAddr, mut up: Shaper, mut dow
                             if tx.send((client, b[..n].to_vec())).await.is_err() { break; }
                         }
                     });
-                    uplinks.insert(client, sock);
+                    slot.insert(sock);
                 }
-                if let Fate::Send(times) = up.datagram(Instant::now(), len) {
+                let now = Instant::now();
+                if let Fate::Send(times) = up.datagram(now, len) {
                     for at in times {
+                        if at <= now {
+                            // No delay: forward at once (a timer would add a millisecond).
+                            if let Some(s) = uplinks.get(&client) {
+                                let _ = s.send(&buf[..len]).await;
+                            }
+                            continue;
+                        }
                         order += 1;
                         heap.push(Pending { at, order, to_server: true, client, bytes: buf[..len].to_vec() });
                     }
                 }
             }
             Some((client, bytes)) = back_rx.recv() => {
-                if let Fate::Send(times) = down.datagram(Instant::now(), bytes.len()) {
+                let now = Instant::now();
+                if let Fate::Send(times) = down.datagram(now, bytes.len()) {
                     for at in times {
+                        if at <= now {
+                            let _ = front.send_to(&bytes, client).await;
+                            continue;
+                        }
                         order += 1;
                         heap.push(Pending { at, order, to_server: false, client, bytes: bytes.clone() });
                     }
@@ -331,8 +414,12 @@ async fn tcp_relay(listener: TcpListener, target: SocketAddr, up: Shaper, down: 
     let up = Arc::new(tokio::sync::Mutex::new(up));
     let down = Arc::new(tokio::sync::Mutex::new(down));
     loop {
-        let Ok((client, _)) = listener.accept().await else { continue };
-        let Ok(server) = TcpStream::connect(target).await else { continue };
+        let Ok((client, _)) = listener.accept().await else {
+            continue;
+        };
+        let Ok(server) = TcpStream::connect(target).await else {
+            continue;
+        };
         let _ = client.set_nodelay(true);
         let _ = server.set_nodelay(true);
         let (cr, cw) = client.into_split();
@@ -350,7 +437,9 @@ async fn pump(
     let (tx, mut rx) = mpsc::unbounded_channel::<(Instant, Vec<u8>)>();
     let writer = tokio::spawn(async move {
         while let Some((at, bytes)) = rx.recv().await {
-            tokio::time::sleep_until(at).await;
+            if at > Instant::now() {
+                tokio::time::sleep_until(at).await;
+            }
             if to.write_all(&bytes).await.is_err() {
                 break;
             }

@@ -12,20 +12,36 @@ use tokio::time::Instant;
 
 fn shaper(imp: Impairment, seed: u64) -> (Shaper, Instant) {
     let start = Instant::now();
-    (Shaper::new(imp, seed, start, Arc::new(Mutex::new(DirectionStats::default()))), start)
+    (
+        Shaper::new(
+            imp,
+            seed,
+            start,
+            Arc::new(Mutex::new(DirectionStats::default())),
+        ),
+        start,
+    )
 }
 
 /// Which of `n` packets, one per millisecond, get through.
 fn pattern(imp: &Impairment, seed: u64, n: u32) -> Vec<bool> {
     let (mut s, start) = shaper(imp.clone(), seed);
     (0..n)
-        .map(|k| matches!(s.datagram(start + Duration::from_millis(u64::from(k)), 100), Fate::Send(_)))
+        .map(|k| {
+            matches!(
+                s.datagram(start + Duration::from_millis(u64::from(k)), 100),
+                Fate::Send(_)
+            )
+        })
         .collect()
 }
 
 #[test]
 fn random_loss_rate_and_replay() {
-    let imp = Impairment { loss: 0.3, ..Default::default() };
+    let imp = Impairment {
+        loss: 0.3,
+        ..Default::default()
+    };
     let a = pattern(&imp, 7, 20_000);
     let passed = a.iter().filter(|x| **x).count() as f64 / 20_000.0;
     assert!((passed - 0.7).abs() < 0.015, "{passed}");
@@ -35,11 +51,23 @@ fn random_loss_rate_and_replay() {
 
 #[test]
 fn gilbert_elliott_loss_is_bursty_with_the_right_mean() {
-    let ge = GilbertElliott { p_good_bad: 0.107, p_bad_good: 0.25, loss_good: 0.0, loss_bad: 1.0 };
-    let imp = Impairment { burst: Some(ge), ..Default::default() };
+    let ge = GilbertElliott {
+        p_good_bad: 0.107,
+        p_bad_good: 0.25,
+        loss_good: 0.0,
+        loss_bad: 1.0,
+    };
+    let imp = Impairment {
+        burst: Some(ge),
+        ..Default::default()
+    };
     let a = pattern(&imp, 3, 50_000);
     let lost = a.iter().filter(|x| !**x).count() as f64 / 50_000.0;
-    assert!((lost - ge.mean_loss()).abs() < 0.02, "{lost} vs {}", ge.mean_loss());
+    assert!(
+        (lost - ge.mean_loss()).abs() < 0.02,
+        "{lost} vs {}",
+        ge.mean_loss()
+    );
     // Mean length of a run of losses: 1 / p_bad_good = 4 (random loss would give 1.4).
     let mut runs = Vec::new();
     let mut run = 0;
@@ -65,7 +93,10 @@ fn delay_jitter_reorder_duplicate_outage() {
         reorder: 0.1,
         reorder_ms: 15.0,
         duplicate: 0.05,
-        outages: vec![Outage { start_s: 1.0, duration_s: 0.5 }],
+        outages: vec![Outage {
+            start_s: 1.0,
+            duration_s: 0.5,
+        }],
         ..Default::default()
     };
     let (mut s, start) = shaper(imp, 11);
@@ -75,7 +106,10 @@ fn delay_jitter_reorder_duplicate_outage() {
         match s.datagram(now, 100) {
             Fate::Drop => {
                 dropped += 1;
-                assert!((1000..1500).contains(&k), "dropped outside the outage at {k} ms");
+                assert!(
+                    (1000..1500).contains(&k),
+                    "dropped outside the outage at {k} ms"
+                );
             }
             Fate::Send(times) => {
                 let d = (times[0] - now).as_secs_f64() * 1000.0;
@@ -96,7 +130,12 @@ fn delay_jitter_reorder_duplicate_outage() {
 
 #[test]
 fn tcp_chunks_stay_in_order_and_loss_costs_a_retransmission() {
-    let imp = Impairment { loss: 0.2, delay_ms: 5.0, jitter_ms: 4.0, ..Default::default() };
+    let imp = Impairment {
+        loss: 0.2,
+        delay_ms: 5.0,
+        jitter_ms: 4.0,
+        ..Default::default()
+    };
     let (mut s, start) = shaper(imp, 5);
     let mut last = start;
     let mut stalls = 0;
@@ -117,14 +156,28 @@ fn profiles_parse_and_bad_ones_name_the_field() {
     let set = ProfileSet::load("default").unwrap();
     assert!(set.profiles.len() >= 10);
     assert!(set.profiles.iter().any(|p| !p.both.outages.is_empty()));
-    let e = ProfileSet::parse("p.toml", "[[profiles]]\nname = \"x\"\nboth = { loss = 1.5 }").unwrap_err();
-    assert!(e.to_string().contains("p.toml") && e.to_string().contains("both.loss"), "{e}");
-    let e = ProfileSet::parse("p.toml", "[[profiles]]\nname = \"x\"\nboth = { los = 0.1 }").unwrap_err();
+    let e = ProfileSet::parse(
+        "p.toml",
+        "[[profiles]]\nname = \"x\"\nboth = { loss = 1.5 }",
+    )
+    .unwrap_err();
+    assert!(
+        e.to_string().contains("p.toml") && e.to_string().contains("both.loss"),
+        "{e}"
+    );
+    let e = ProfileSet::parse("p.toml", "[[profiles]]\nname = \"x\"\nboth = { los = 0.1 }")
+        .unwrap_err();
     assert!(e.to_string().contains("los"), "{e}");
 }
 
 fn profile(imp: Impairment) -> Profile {
-    Profile { name: "t".into(), seed: 1, both: imp, up: None, down: None }
+    Profile {
+        name: "t".into(),
+        seed: 1,
+        both: imp,
+        up: None,
+        down: None,
+    }
 }
 
 #[tokio::test(flavor = "multi_thread")]
@@ -135,7 +188,12 @@ async fn udp_through_the_relay() {
         Link::Udp,
         "127.0.0.1:0".parse().unwrap(),
         target,
-        &profile(Impairment { loss: 0.25, delay_ms: 10.0, ..Default::default() }),
+        &profile(Impairment {
+            loss: 0.25,
+            delay_ms: 10.0,
+            ..Default::default()
+        }),
+        true,
     )
     .await
     .unwrap();
@@ -154,7 +212,9 @@ async fn udp_through_the_relay() {
         let sent = Instant::now();
         client.send(&k.to_be_bytes()).await.unwrap();
         let mut b = [0u8; 16];
-        if let Ok(Ok(n)) = tokio::time::timeout(Duration::from_millis(40), client.recv(&mut b)).await {
+        if let Ok(Ok(n)) =
+            tokio::time::timeout(Duration::from_millis(40), client.recv(&mut b)).await
+        {
             assert_eq!(&b[..n], &k.to_be_bytes(), "payload intact");
             got += 1;
             rtts.push(sent.elapsed());
@@ -163,7 +223,10 @@ async fn udp_through_the_relay() {
     // A round trip survives both directions: 0.75^2 = 0.56.
     let rate = f64::from(got) / 200.0;
     assert!((0.45..0.67).contains(&rate), "{rate}");
-    assert!(rtts.iter().all(|d| *d >= Duration::from_millis(20)), "two 10 ms delays");
+    assert!(
+        rtts.iter().all(|d| *d >= Duration::from_millis(20)),
+        "two 10 ms delays"
+    );
     let st = relay.stats();
     assert_eq!(st.up.received, 200);
     assert!(st.up.lost > 25 && st.down.lost > 10, "{st:?}");
@@ -180,9 +243,13 @@ async fn tcp_through_the_relay_survives_loss_and_an_outage_intact() {
         &profile(Impairment {
             loss: 0.1,
             delay_ms: 5.0,
-            outages: vec![Outage { start_s: 0.3, duration_s: 0.4 }],
+            outages: vec![Outage {
+                start_s: 0.3,
+                duration_s: 0.4,
+            }],
             ..Default::default()
         }),
+        true,
     )
     .await
     .unwrap();
@@ -202,7 +269,10 @@ async fn tcp_through_the_relay_survives_loss_and_an_outage_intact() {
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
     c.shutdown().await.unwrap();
-    let got = tokio::time::timeout(Duration::from_secs(10), server).await.unwrap().unwrap();
+    let got = tokio::time::timeout(Duration::from_secs(10), server)
+        .await
+        .unwrap()
+        .unwrap();
     assert_eq!(got, sent, "every byte, in order");
     assert!(start.elapsed() >= Duration::from_millis(1000));
     assert!(relay.stats().up.outage > 0);

@@ -8,8 +8,10 @@
 //!    warm and bumpless when it has to take over);
 //! 3. if commands have been missing for more than `hold_periods`, apply the fallback at once
 //!    (local controller, or a safe stop);
-//! 4. wait for command `k` until `t_{k+1}`; apply it the moment it arrives. Commands for
-//!    older samples are late: dropped and counted (a stale command is worse than none).
+//! 4. until `t_{k+1}`, apply each command the moment it arrives if it is newer than the last
+//!    one applied and at most `max_age` periods old (normally command `k` itself; on a slow
+//!    link an older one is still the best there is); older ones are stale: dropped and
+//!    counted (a stale command is worse than none).
 //!
 //! With a simulated plant the simulator integrates exactly the time that passes: from `t_k`
 //! to the command's arrival with the old voltages, then to `t_{k+1}` with the new ones, so
@@ -49,6 +51,10 @@ pub struct AgentConfig {
     pub period: f64,
     /// Number of periods to run.
     pub steps: usize,
+    /// Oldest command still worth applying, in periods (a command for sample `k - a` may be
+    /// applied during period `k` if `a <= max_age`): on a slow link the newest command is
+    /// still the best one; beyond this age it is stale and dropped.
+    pub max_age: u32,
     /// Periods to hold the last command before falling back: the fallback engages at the
     /// start of the period after `hold_periods` consecutive periods without a command.
     pub hold_periods: u32,
@@ -110,8 +116,12 @@ pub struct AgentReport {
     pub commands: u64,
     /// Periods with no usable command in time.
     pub missing: u64,
-    /// Commands that came after their period (dropped).
+    /// Commands applied after their own period (at most `max_age` periods late).
     pub late: u64,
+    /// Commands dropped as too old, or older than one already applied.
+    pub stale: u64,
+    /// Second commands for a sample already answered (two controllers answering).
+    pub duplicate_commands: u64,
     /// Commands refused by the controller (`REJECTED`).
     pub rejected: u64,
     /// Times the fallback engaged.
@@ -207,6 +217,11 @@ pub async fn run_agent(
     let h = config.period;
     let period = Duration::from_secs_f64(h);
     let mut applied = plant.write(&vec![0.0; n])?;
+    // Time-weighted mean of what was applied over the last period: a command that lands
+    // mid-period was applied for only part of it, and the estimator integrates exactly
+    // that.
+    let mut interval_mean = vec![0.0; n];
+    let mut interval_acc = vec![0.0; n];
     let mut refs = vec![Reference::default(); n];
     let mut local_out = vec![ChannelOutput::default(); n];
     let mut acc = vec![Accumulator::default(); n];
@@ -223,6 +238,8 @@ pub async fn run_agent(
         commands: 0,
         missing: 0,
         late: 0,
+        stale: 0,
+        duplicate_commands: 0,
         rejected: 0,
         fallbacks: 0,
         holding_periods: 0,
@@ -234,6 +251,8 @@ pub async fn run_agent(
         completed: false,
     };
     let mut missing_streak: u32 = 0;
+    let mut last_applied: Option<u64> = None;
+    let mut sent_at: std::collections::VecDeque<(u64, Instant)> = std::collections::VecDeque::new();
     let mut last_rtt_us: u32 = 0;
     let mut mode = LoopMode::Remote;
     // Give the subscriptions a moment to propagate before the first sample.
@@ -261,13 +280,16 @@ pub async fn run_agent(
             seq: k as u64,
             plant_time: t,
             outputs: y.clone(),
-            applied: applied.clone(),
+            applied: interval_mean.clone(),
             flags,
             sent_unix_ns: protocol::unix_ns(),
             last_rtt_us,
             run_id,
         };
-        let sent = Instant::now();
+        sent_at.push_back((k as u64, Instant::now()));
+        if sent_at.len() > config.max_age as usize + 2 {
+            sent_at.pop_front();
+        }
         if let Err(e) = publisher.put(encode(&sample)).await {
             tracing::warn!(device = id, "publishing sample {k}: {e}");
         }
@@ -276,7 +298,7 @@ pub async fn run_agent(
             *r = evaluate(pieces, t);
         }
         if k > 0 {
-            let _ = local.report_applied(&applied);
+            let _ = local.report_applied(&interval_mean);
         }
         let local_ok = local.step(t, &y, &refs, &mut local_out).is_ok();
         let mut period_mode = mode;
@@ -304,7 +326,11 @@ pub async fn run_agent(
             applied = plant.write(&v)?;
         }
 
-        // Wait for command k until the next deadline.
+        let mut seg_start = 0.0;
+        interval_acc.iter_mut().for_each(|a| *a = 0.0);
+        // Apply the newest acceptable command as soon as it arrives, until the next
+        // deadline: normally command k; on a slow link an older one, up to `max_age`
+        // periods old. Anything older, or not newer than the last applied, is dropped.
         let mut elapsed_in_period = 0.0;
         let mut got = false;
         let mut rtt_us = 0;
@@ -319,11 +345,16 @@ pub async fn run_agent(
                     continue;
                 }
             };
-            if cmd.seq < k as u64 {
-                report.late += 1;
+            let s = cmd.seq;
+            if cmd.device_id != id || s > k as u64 {
                 continue;
             }
-            if cmd.seq > k as u64 || cmd.device_id != id {
+            if last_applied == Some(s) {
+                report.duplicate_commands += 1;
+                continue;
+            }
+            if last_applied.is_some_and(|l| s < l) || k as u64 - s > u64::from(config.max_age) {
+                report.stale += 1;
                 continue;
             }
             match pb::Mode::try_from(cmd.mode) {
@@ -333,10 +364,19 @@ pub async fn run_agent(
                     let at = (arrival - deadline).as_secs_f64().clamp(0.0, h);
                     plant.advance(at - elapsed_in_period)?;
                     elapsed_in_period = at;
+                    for (a, v) in interval_acc.iter_mut().zip(&applied) {
+                        *a += v * (at - seg_start);
+                    }
+                    seg_start = at;
                     applied = plant.write(&cmd.v)?;
-                    rtt_us = u32::try_from((arrival - sent).as_micros()).unwrap_or(u32::MAX);
-                    rtts.push(rtt_us);
+                    if let Some((_, sent)) = sent_at.iter().find(|(q, _)| *q == s) {
+                        rtt_us = u32::try_from((arrival - *sent).as_micros()).unwrap_or(u32::MAX);
+                        rtts.push(rtt_us);
+                    }
                     report.commands += 1;
+                    if s < k as u64 {
+                        report.late += 1;
+                    }
                     if matches!(mode, LoopMode::Fallback | LoopMode::SafeStop) {
                         tracing::info!(
                             device = id,
@@ -344,20 +384,25 @@ pub async fn run_agent(
                             "commands are back: remote control resumes"
                         );
                     }
+                    last_applied = Some(s);
                     mode = LoopMode::Remote;
                     missing_streak = 0;
                     got = true;
-                    break;
+                    if s == k as u64 {
+                        break;
+                    }
                 }
                 Ok(pb::Mode::Rejected) => {
                     report.rejected += 1;
                     tracing::warn!(
                         device = id,
-                        seq = k,
+                        seq = s,
                         "sample refused by the controller: {}",
                         cmd.error
                     );
-                    break;
+                    if s == k as u64 {
+                        break;
+                    }
                 }
                 _ => {}
             }
@@ -379,6 +424,9 @@ pub async fn run_agent(
             LoopMode::Remote => {}
         }
         plant.advance(h - elapsed_in_period)?;
+        for ((m, a), v) in interval_mean.iter_mut().zip(&interval_acc).zip(&applied) {
+            *m = (a + v * (h - seg_start)) / h;
+        }
         last_rtt_us = rtt_us;
         for i in 0..n {
             acc[i].add(

@@ -12,6 +12,9 @@ use crate::offline::Trace;
 use crate::plant::SimPlant;
 use crate::scenario::{ControllerSet, Scenario};
 
+/// Default oldest command worth applying, in periods (100 ms at 10 ms).
+pub const DEFAULT_MAX_AGE: u32 = 10;
+
 /// Options of a demo run.
 #[derive(Debug, Clone)]
 pub struct DemoOptions {
@@ -50,6 +53,7 @@ pub fn service_config(
             })
             .collect(),
         templates: Vec::new(),
+        standby: None,
     }
 }
 
@@ -66,6 +70,7 @@ pub fn agent_config(
         device_id: id.into(),
         period: scenario.period,
         steps: scenario.steps(),
+        max_age: DEFAULT_MAX_AGE,
         hold_periods,
         fallback,
         channels: scenario.channel_configs(controller),

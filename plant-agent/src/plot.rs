@@ -13,7 +13,12 @@ use crate::offline::Trace;
 
 static FONT: Once = Once::new();
 
-/// The bitmap backend draws text with an embedded font (no system fonts needed).
+/// The bitmap backend draws text with an embedded font (no system fonts needed); call
+/// before drawing any PNG.
+pub fn ensure_font() {
+    register_font();
+}
+
 fn register_font() {
     FONT.call_once(|| {
         let _ = plotters::style::register_font(

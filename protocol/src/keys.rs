@@ -8,6 +8,7 @@
 //! | `mfc/v1/device/{id}/status` | queryable on the controller | [`DeviceStatus`](crate::pb::DeviceStatus) |
 //! | `mfc/v1/device/{id}/reference` | operator → controller, pub/sub | [`ReferenceUpdate`](crate::pb::ReferenceUpdate), steer the reference live |
 //! | `mfc/v1/service/{controller}/status` | queryable on the controller | [`ServiceStatus`](crate::pb::ServiceStatus) |
+//! | `mfc/v1/group/{group}/heartbeat` | active controller → its group | [`Heartbeat`](crate::pb::Heartbeat), hot standby |
 //! | `mfc/v1/alive/controller/{controller}` | liveliness token | a controller is up |
 //! | `mfc/v1/alive/plant/{id}` | liveliness token | a plant agent is up |
 //!
@@ -62,6 +63,10 @@ pub fn reference(id: &str) -> String {
 /// `mfc/v1/service/{controller}/status`.
 pub fn service_status(controller: &str) -> String {
     format!("{PREFIX}/service/{controller}/status")
+}
+/// `mfc/v1/group/{group}/heartbeat`.
+pub fn heartbeat(group: &str) -> String {
+    format!("{PREFIX}/group/{group}/heartbeat")
 }
 /// `mfc/v1/alive/controller/{controller}`.
 pub fn alive_controller(controller: &str) -> String {

@@ -65,7 +65,8 @@ versioned!(
     ConfigReply,
     ReferenceUpdate,
     DeviceStatus,
-    ServiceStatus
+    ServiceStatus,
+    Heartbeat
 );
 
 /// Decode a versioned message; never panics, whatever the bytes.
@@ -114,6 +115,7 @@ mod tests {
             let _ = decode::<pb::ReferenceUpdate>(&bytes);
             let _ = decode::<pb::DeviceStatus>(&bytes);
             let _ = decode::<pb::ServiceStatus>(&bytes);
+            let _ = decode::<pb::Heartbeat>(&bytes);
         }
 
         /// Mutations of a valid sample decode or fail, never panic, and a decoded config

@@ -122,6 +122,12 @@ pub async fn control_publisher(
         })
 }
 
+/// A free UDP port on 127.0.0.1 (as [`free_local_port`], for UDP endpoints).
+pub fn free_udp_port() -> std::io::Result<u16> {
+    let s = std::net::UdpSocket::bind("127.0.0.1:0")?;
+    Ok(s.local_addr()?.port())
+}
+
 /// A free TCP port on 127.0.0.1 (bind to port 0, read it, release it), for tests and demos.
 pub fn free_local_port() -> std::io::Result<u16> {
     let l = std::net::TcpListener::bind("127.0.0.1:0")?;

@@ -1,0 +1,111 @@
+//! The command line of the service, in the library so that other tools (the fault-injection
+//! tests) can run the very same service in a process of their own.
+
+use std::path::PathBuf;
+
+use crate::{service, Registry, ServiceConfig};
+use anyhow::{Context, Result};
+use clap::Parser;
+use transport::ZenohArgs;
+
+#[derive(Parser)]
+#[command(
+    name = "controller-service",
+    version,
+    about = "Model-free control as a service over Zenoh"
+)]
+pub struct Cli {
+    /// Service configuration (TOML: controller_id, devices, templates).
+    #[arg(long, short)]
+    pub config: PathBuf,
+    /// Override the controller id of the file.
+    #[arg(long)]
+    pub controller_id: Option<String>,
+    #[command(flatten)]
+    pub zenoh: ZenohArgs,
+}
+
+/// Resolves on SIGINT or SIGTERM.
+pub async fn shutdown_signal() {
+    let ctrl_c = tokio::signal::ctrl_c();
+    #[cfg(unix)]
+    {
+        let mut term =
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(s) => s,
+                Err(e) => {
+                    tracing::warn!("cannot listen for SIGTERM: {e}");
+                    let _ = ctrl_c.await;
+                    return;
+                }
+            };
+        tokio::select! {
+            _ = ctrl_c => {},
+            _ = term.recv() => {},
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = ctrl_c.await;
+    }
+}
+
+/// Parse `args` (the first is the program name), log to stderr, serve until SIGINT or
+/// SIGTERM; returns the process's exit code.
+pub fn main_with_args<I, T>(args: I) -> std::process::ExitCode
+where
+    I: IntoIterator<Item = T>,
+    T: Into<std::ffi::OsString> + Clone,
+{
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| "info,zenoh=warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .try_init();
+    let cli = match Cli::try_parse_from(args) {
+        Ok(c) => c,
+        Err(e) => e.exit(),
+    };
+    let runtime = match tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return std::process::ExitCode::FAILURE;
+        }
+    };
+    match runtime.block_on(run(cli)) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+/// Run the service described by `cli` until SIGINT or SIGTERM.
+pub async fn run(cli: Cli) -> Result<()> {
+    let mut config = ServiceConfig::load(&cli.config)?;
+    if let Some(id) = cli.controller_id {
+        config.controller_id = id;
+        config.check(&cli.config.display().to_string())?;
+    }
+    let registry = Registry::new(config).context("building the devices")?;
+    let session = cli.zenoh.open().await?;
+    service::run(session, registry, shutdown_signal()).await?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    /// clap's own consistency checks (unique ids, valid defaults) on the whole CLI.
+    #[test]
+    fn cli_is_consistent() {
+        use clap::CommandFactory;
+        super::Cli::command().debug_assert();
+    }
+}
