@@ -139,6 +139,21 @@ pub enum Role {
     Standby,
 }
 
+/// Per-device state snapshots, so that a restarted service carries on where it stopped.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SnapshotSpec {
+    /// Directory of the snapshot files (one per device, `{id}.snap`), created if missing.
+    pub dir: std::path::PathBuf,
+    /// How often to write them (ms). Default 1000. They are also written on shutdown.
+    #[serde(default = "snapshot_ms")]
+    pub interval_ms: u64,
+}
+
+fn snapshot_ms() -> u64 {
+    1000
+}
+
 /// The whole file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -156,6 +171,9 @@ pub struct ServiceConfig {
     /// Hot standby group, if any (absent: this service is always active).
     #[serde(default)]
     pub standby: Option<StandbySpec>,
+    /// State snapshots, if any.
+    #[serde(default)]
+    pub snapshots: Option<SnapshotSpec>,
 }
 
 fn default_id() -> String {
@@ -169,6 +187,7 @@ impl Default for ServiceConfig {
             devices: Vec::new(),
             templates: Vec::new(),
             standby: None,
+            snapshots: None,
         }
     }
 }
@@ -246,6 +265,14 @@ impl ServiceConfig {
                 return Err(invalid(
                     "standby.takeover_ms".into(),
                     "heartbeat_ms must be > 0 and takeover_ms longer than heartbeat_ms".into(),
+                ));
+            }
+        }
+        if let Some(sn) = &self.snapshots {
+            if sn.interval_ms == 0 {
+                return Err(invalid(
+                    "snapshots.interval_ms".into(),
+                    "must be > 0".into(),
                 ));
             }
         }

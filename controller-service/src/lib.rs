@@ -11,6 +11,7 @@ pub mod cli;
 pub mod config;
 pub mod registry;
 pub mod service;
+pub mod snapshot;
 
 pub use config::ServiceConfig;
 pub use registry::Registry;

@@ -23,6 +23,9 @@ use protocol::{pb, PROTOCOL_VERSION};
 
 use crate::config::{ChannelSpec, ServiceConfig};
 
+/// A gap longer than this (s) between a snapshot and the next sample makes the restored
+/// estimators start a fresh window.
+const RESUME_GAP: f64 = 0.1;
 /// Round trips kept per device for the status percentiles.
 const RTT_WINDOW: usize = 1000;
 /// Unknown device ids remembered for the status.
@@ -39,6 +42,9 @@ pub enum Outcome {
 
 #[derive(Debug, Clone)]
 struct Device {
+    /// Restored from a snapshot and not yet resumed: the first sample decides whether the
+    /// data history still holds (no gap) or must be forgotten.
+    restored: bool,
     from_template: bool,
     configs: Vec<ChannelConfig>,
     mimo: MimoController,
@@ -67,6 +73,7 @@ impl Device {
         let configs: Vec<ChannelConfig> = channels.iter().map(ChannelSpec::channel).collect();
         let n = configs.len();
         Ok(Self {
+            restored: false,
             from_template,
             mimo: MimoController::new(&configs)?,
             configs,
@@ -227,6 +234,11 @@ impl Registry {
         })
     }
 
+    /// The snapshot settings, if any.
+    pub fn snapshot_spec(&self) -> Option<&crate::config::SnapshotSpec> {
+        self.config.snapshots.as_ref()
+    }
+
     /// The hot-standby settings, if any.
     pub fn standby(&self) -> Option<&crate::config::StandbySpec> {
         self.config.standby.as_ref()
@@ -341,6 +353,11 @@ impl Registry {
         }
         if let Some(last) = d.last_seq {
             d.lost += s.seq.saturating_sub(last + 1);
+        }
+        if std::mem::take(&mut d.restored) && s.plant_time - d.last_time > RESUME_GAP {
+            // Restarted from a snapshot after a gap: the estimators' history does not reach
+            // across it; keep gains, integrals and the reference phase.
+            d.mimo.forget_windows();
         }
         if d.last_seq.is_some() && !s.applied.is_empty() {
             // Checked finite above, so this cannot fail.
@@ -496,5 +513,138 @@ impl Registry {
             active: true,
             term: 0,
         }
+    }
+}
+
+impl Registry {
+    /// Snapshots of every device (for [`crate::snapshot`]).
+    pub fn snapshots(&self) -> Vec<crate::snapshot::DeviceSnapshot> {
+        self.devices
+            .iter()
+            .filter_map(|(id, d)| {
+                Some(crate::snapshot::DeviceSnapshot {
+                    version: crate::snapshot::SNAPSHOT_VERSION,
+                    id: id.clone(),
+                    mimo: mfc::snapshot::to_bytes(&d.mimo).ok()?,
+                    reference: d.reference.clone(),
+                    reference_start: d.reference_start,
+                    run_id: d.run_id,
+                    last_seq: d.last_seq,
+                    last_time: d.last_time,
+                    counters: [
+                        d.samples,
+                        d.commands,
+                        d.lost,
+                        d.duplicates,
+                        d.stale,
+                        d.rejected,
+                        d.plant_fallbacks,
+                    ],
+                    from_template: d.from_template,
+                })
+            })
+            .collect()
+    }
+
+    /// Restore a device from its snapshot. Refused (and the device left as configured) if
+    /// the snapshot's laws differ from the configuration in force: a changed configuration
+    /// wins over an old state.
+    pub fn restore(&mut self, snap: &crate::snapshot::DeviceSnapshot) -> Result<(), String> {
+        let mimo: MimoController =
+            mfc::snapshot::from_bytes(&snap.mimo).map_err(|e| e.to_string())?;
+        let configs: Vec<ChannelConfig> = mimo.channels().iter().map(|c| *c.config()).collect();
+        let d = match self.devices.get_mut(&snap.id) {
+            Some(d) => d,
+            None if snap.from_template => {
+                let specs: Vec<ChannelSpec> = configs
+                    .iter()
+                    .map(|c| ChannelSpec {
+                        law: c.law,
+                        output: c.output,
+                        reference: Vec::new(),
+                    })
+                    .collect();
+                let d = Device::new(&specs, true).map_err(|e| e.to_string())?;
+                self.devices.entry(snap.id.clone()).or_insert(d)
+            }
+            None => return Err(format!("device {:?} is no longer configured", snap.id)),
+        };
+        if !snap.from_template && configs != d.configs {
+            return Err(format!(
+                "device {:?}: configuration changed since the snapshot",
+                snap.id
+            ));
+        }
+        if snap.reference.len() != configs.len() {
+            return Err(format!(
+                "device {:?}: reference has the wrong number of channels",
+                snap.id
+            ));
+        }
+        d.outputs = vec![ChannelOutput::default(); configs.len()];
+        d.refs = vec![Reference::default(); configs.len()];
+        d.f_est = vec![f64::NAN; configs.len()];
+        d.configs = configs;
+        d.mimo = mimo;
+        d.reference = snap.reference.clone();
+        d.reference_start = snap.reference_start;
+        d.run_id = snap.run_id;
+        d.last_seq = snap.last_seq;
+        d.last_time = snap.last_time;
+        [
+            d.samples,
+            d.commands,
+            d.lost,
+            d.duplicates,
+            d.stale,
+            d.rejected,
+            d.plant_fallbacks,
+        ] = snap.counters;
+        d.last_command = None;
+        d.restored = true;
+        Ok(())
+    }
+
+    /// Write every device's snapshot into `dir` (write to a temporary file, then rename:
+    /// a crash mid-write never leaves a torn snapshot).
+    pub fn save_snapshots(&self, dir: &std::path::Path) -> std::io::Result<usize> {
+        std::fs::create_dir_all(dir)?;
+        let mut n = 0;
+        for s in self.snapshots() {
+            let Ok(bytes) = crate::snapshot::encode(&s) else {
+                continue;
+            };
+            let tmp = dir.join(format!(".{}.snap.tmp", s.id));
+            std::fs::write(&tmp, bytes)?;
+            std::fs::rename(&tmp, dir.join(format!("{}.snap", s.id)))?;
+            n += 1;
+        }
+        Ok(n)
+    }
+
+    /// Restore every device that has a snapshot in `dir`; returns (restored, refused).
+    pub fn load_snapshots(&mut self, dir: &std::path::Path) -> (usize, usize) {
+        let Ok(entries) = std::fs::read_dir(dir) else {
+            return (0, 0);
+        };
+        let (mut ok, mut refused) = (0, 0);
+        for e in entries.flatten() {
+            let path = e.path();
+            if path.extension().is_none_or(|x| x != "snap") {
+                continue;
+            }
+            let result = std::fs::read(&path)
+                .map_err(|e| e.to_string())
+                .and_then(|b| crate::snapshot::decode(&b).map_err(|e| e.to_string()))
+                .and_then(|s| self.restore(&s));
+            match result {
+                Ok(()) => ok += 1,
+                Err(reason) => {
+                    refused += 1;
+                    tracing::warn!(file = %path.display(), "snapshot not restored: {reason}");
+                }
+            }
+        }
+        (ok, refused)
     }
 }

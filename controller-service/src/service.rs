@@ -62,6 +62,11 @@ pub async fn run(
 ) -> Result<(), ServiceError> {
     let started = Instant::now();
     let id = registry.controller_id().to_string();
+    let snapshots = registry.snapshot_spec().cloned();
+    if let Some(sn) = &snapshots {
+        let (ok, refused) = registry.load_snapshots(&sn.dir);
+        tracing::info!(dir = %sn.dir.display(), restored = ok, refused, "snapshots");
+    }
     let (tx, mut rx) = mpsc::channel::<Msg>(QUEUE);
     let dropped = Arc::new(AtomicU64::new(0));
 
@@ -164,6 +169,10 @@ pub async fn run(
     let mut publishers: HashMap<String, Publisher<'static>> = HashMap::new();
     let mut tick = tokio::time::interval(ha.heartbeat);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut snap_tick = tokio::time::interval(std::time::Duration::from_millis(
+        snapshots.as_ref().map_or(3_600_000, |s| s.interval_ms),
+    ));
+    snap_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     tokio::pin!(shutdown);
     loop {
         let msg = tokio::select! {
@@ -175,6 +184,15 @@ pub async fn run(
                 if let (true, Some(p)) = (ha.active, &hb_pub) {
                     let hb = pb::Heartbeat { version: protocol::PROTOCOL_VERSION, controller_id: id.clone(), term: ha.term };
                     let _ = p.put(encode(&hb)).await;
+                }
+                continue;
+            }
+            _ = snap_tick.tick(), if snapshots.is_some() => {
+                if let Some(sn) = &snapshots {
+                    let saved = tokio::task::block_in_place(|| registry.save_snapshots(&sn.dir));
+                    if let Err(e) = saved {
+                        tracing::warn!(dir = %sn.dir.display(), "writing snapshots: {e}");
+                    }
                 }
                 continue;
             }
@@ -311,6 +329,11 @@ pub async fn run(
         }
     }
     tracing::info!(controller = %id, "shutting down");
+    if let Some(sn) = &snapshots {
+        if let Err(e) = registry.save_snapshots(&sn.dir) {
+            tracing::warn!(dir = %sn.dir.display(), "writing snapshots: {e}");
+        }
+    }
     drop(token);
     drop(hb_sub);
     drop(hb_pub);

@@ -253,8 +253,9 @@ fn start_service(config: &std::path::Path, endpoint: &str) -> Child {
 }
 
 /// kill -9 the controller service mid-run: the agent notices within its command deadline
-/// (not zenoh's 10 s lease), holds, falls back, stays in bounds; a restarted service picks
-/// the device up and remote control resumes.
+/// (not zenoh's 10 s lease), holds, falls back, stays in bounds; a restarted service
+/// restores the device from its last snapshot (state, counters, reference phase) and
+/// remote control resumes.
 #[tokio::test(flavor = "multi_thread")]
 async fn controller_crash_and_restart() {
     let _s = SERIAL.lock().await;
@@ -263,11 +264,12 @@ async fn controller_crash_and_restart() {
     let dir = std::env::temp_dir().join(format!("crash-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let cfg_file = dir.join("service.toml");
-    std::fs::write(
-        &cfg_file,
-        toml::to_string(&service_config(&s, &c, &["aero-1".into()])).unwrap(),
-    )
-    .unwrap();
+    let mut svc = service_config(&s, &c, &["aero-1".into()]);
+    svc.snapshots = Some(controller_service::config::SnapshotSpec {
+        dir: dir.join("snapshots"),
+        interval_ms: 200,
+    });
+    std::fs::write(&cfg_file, toml::to_string(&svc).unwrap()).unwrap();
     let port = transport::free_local_port().unwrap();
     let endpoint = format!("tcp/127.0.0.1:{port}");
     let mut service = start_service(&cfg_file, &endpoint);
@@ -300,8 +302,41 @@ async fn controller_crash_and_restart() {
     tokio::time::sleep(Duration::from_secs(2)).await;
     let mut restarted = start_service(&cfg_file, &endpoint);
     let (report, rows) = run.await.unwrap().unwrap();
+    // The restarted service counts every sample since the start: it resumed from the
+    // snapshot (about 380 samples before the kill) rather than from zero.
+    let client = transport::ZenohArgs::loopback(None, vec![endpoint.clone()])
+        .open()
+        .await
+        .unwrap();
+    let replies = client.get(protocol::keys::status("aero-1")).await.unwrap();
+    let status: protocol::pb::DeviceStatus = protocol::decode(
+        &replies
+            .recv_async()
+            .await
+            .unwrap()
+            .result()
+            .unwrap()
+            .payload()
+            .to_bytes(),
+    )
+    .unwrap();
+    let _ = client.close().await;
     let _ = restarted.kill();
     let _ = restarted.wait();
+    // Without the snapshot it could have seen at most the 600 periods after the restart.
+    let after_restart = rows.iter().filter(|r| r.t > 6.0).count() as u64;
+    eprintln!(
+        "status after restart: {} samples, {} lost; {after_restart} periods since the restart",
+        status.samples, status.lost
+    );
+    assert!(
+        status.samples > after_restart + 100,
+        "restored counters: {status:?}"
+    );
+    assert!(
+        status.lost > 100,
+        "the seq gap of the outage is counted: {status:?}"
+    );
 
     eprintln!("{report:?}");
     assert_eq!(report.fallbacks, 1);

@@ -22,6 +22,7 @@ use crate::{Order, Reference};
 #[derive(Debug, Clone, Copy, PartialEq)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 #[cfg_attr(feature = "serde", serde(default, deny_unknown_fields))]
+#[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
 pub struct AdrcParams {
     /// Order of the model. Default: 1.
     pub order: Order,
@@ -56,6 +57,7 @@ impl AdrcParams {
 
 /// A linear ADRC controller.
 #[derive(Debug, Clone)]
+#[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
 pub struct Adrc {
     params: AdrcParams,
     pending: Option<AdrcParams>,
@@ -112,6 +114,13 @@ impl Adrc {
         self.start_from = Some(u0);
         self.applied = u0;
         Ok(())
+    }
+
+    /// After a gap in the data: restart the observer from the next measurement, with the
+    /// disturbance estimate that keeps the input being applied (bumpless).
+    pub fn forget_window(&mut self) {
+        self.last_t = None;
+        self.start_from = Some(self.applied);
     }
 
     /// The input the plant actually received since the last step.

@@ -20,6 +20,7 @@ use crate::{ControllerKind, Order, Reference};
     feature = "serde",
     serde(tag = "law", rename_all = "snake_case", deny_unknown_fields)
 )]
+#[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
 pub enum LawConfig {
     /// iP, iPI, iPD or iPID on an ultra-local model.
     Intelligent {
@@ -86,6 +87,7 @@ impl Default for LawConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 #[cfg_attr(feature = "serde", serde(default, deny_unknown_fields))]
+#[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
 pub struct ChannelConfig {
     /// The control law. Default: iP with `α = 1`, `Kp = 1`, a 10-interval algebraic window.
     pub law: LawConfig,
@@ -99,7 +101,7 @@ pub struct ChannelConfig {
 /// no allocator); boxing it would cost an allocation and `alloc` for the common case.
 #[derive(Debug, Clone)]
 #[allow(clippy::large_enum_variant)]
-enum Law<const CAP: usize> {
+pub(crate) enum Law<const CAP: usize> {
     Intelligent(IntelligentController<CAP>),
     Pid(Pid),
     Adrc(Adrc),
@@ -157,11 +159,11 @@ pub struct ChannelOutput {
 /// A control law and its output map: one output of the plant.
 #[derive(Debug, Clone)]
 pub struct Channel<const CAP: usize = DEFAULT_CAPACITY> {
-    law: Law<CAP>,
-    config: ChannelConfig,
-    map: OutputMap,
-    last_t: Option<f64>,
-    last_v: f64,
+    pub(crate) law: Law<CAP>,
+    pub(crate) config: ChannelConfig,
+    pub(crate) map: OutputMap,
+    pub(crate) last_t: Option<f64>,
+    pub(crate) last_v: f64,
 }
 
 impl<const CAP: usize> Channel<CAP> {
@@ -234,6 +236,17 @@ impl<const CAP: usize> Channel<CAP> {
         }
         self.last_v = v;
         Ok(())
+    }
+
+    /// Forget the data history after a gap (see the laws' `forget_window`), keeping
+    /// parameters, integrals and the output being applied.
+    pub fn forget_window(&mut self) {
+        match &mut self.law {
+            Law::Intelligent(c) => c.forget_window(),
+            Law::Pid(c) => c.forget_window(),
+            Law::Adrc(c) => c.forget_window(),
+        }
+        self.last_t = None;
     }
 
     /// Change the law while running, bumplessly. Same law with new parameters: the state is

@@ -59,6 +59,7 @@ pub const DEFAULT_CAPACITY: usize = 256;
     feature = "serde",
     serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)
 )]
+#[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
 pub enum EstimatorKind {
     /// The algebraic kernel over a sliding window (the default).
     Algebraic,
@@ -75,6 +76,7 @@ pub enum EstimatorKind {
 #[derive(Debug, Clone, Copy, PartialEq)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 #[cfg_attr(feature = "serde", serde(default, deny_unknown_fields))]
+#[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
 pub struct EstimatorConfig {
     /// Estimator form. Default: algebraic.
     pub kind: EstimatorKind,
@@ -153,6 +155,7 @@ impl EstimatorConfig {
 /// Keeping the two parts apart lets a controller evaluate `F` for a new `alpha` on the same
 /// data, which is what makes a change of `alpha` bumpless.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
 pub struct LinearEstimate {
     /// Part of `F_est` that comes from the output `y`.
     pub base: f64,
@@ -171,7 +174,8 @@ impl LinearEstimate {
 /// One zero-order-hold interval `[a, b]`: output samples at both ends and the input the
 /// plant actually received in between.
 #[derive(Debug, Clone, Copy, Default)]
-struct Interval {
+#[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
+pub(crate) struct Interval {
     a: f64,
     b: f64,
     ya: f64,
@@ -181,7 +185,8 @@ struct Interval {
 
 /// Moments of one or more intervals about an anchor time `c` (`s = t - c`).
 #[derive(Debug, Clone, Copy, Default)]
-struct Moments {
+#[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
+pub(crate) struct Moments {
     /// `∫ s^j y(t) dt`, y linearly interpolated, j = 0..2.
     y: [f64; 3],
     /// `∫ s^j u(t) dt`, j = 0..4.
@@ -280,7 +285,8 @@ impl Moments {
 
 /// A running sum of moments about a fixed anchor, covering intervals from index `first` on.
 #[derive(Debug, Clone, Copy, Default)]
-struct Accumulator {
+#[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
+pub(crate) struct Accumulator {
     anchor: f64,
     first: u64,
     active: bool,
@@ -306,16 +312,16 @@ impl Accumulator {
 /// allocation; `push` and `estimate` cost the same whatever the window length.
 #[derive(Debug, Clone)]
 pub struct Estimator<const CAP: usize = DEFAULT_CAPACITY> {
-    config: EstimatorConfig,
-    ring: [Interval; CAP],
-    head: usize,
-    len: usize,
-    next_index: u64,
-    last: Option<(f64, f64)>,
-    primary: Accumulator,
-    shadow: Accumulator,
+    pub(crate) config: EstimatorConfig,
+    pub(crate) ring: [Interval; CAP],
+    pub(crate) head: usize,
+    pub(crate) len: usize,
+    pub(crate) next_index: u64,
+    pub(crate) last: Option<(f64, f64)>,
+    pub(crate) primary: Accumulator,
+    pub(crate) shadow: Accumulator,
     /// Low-pass states for n = 1 and n = 2 (both kept so the order can change live).
-    lowpass: [Option<LinearEstimate>; 2],
+    pub(crate) lowpass: [Option<LinearEstimate>; 2],
 }
 
 impl<const CAP: usize> Estimator<CAP> {

@@ -3,6 +3,7 @@
 /// Filtered derivative `s / (τ s + 1)`, discretised by backward Euler so that it follows
 /// the real (possibly irregular) sample times and stays stable for any `τ >= 0`.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
 pub struct DerivativeFilter {
     last: Option<(f64, f64)>,
     value: f64,

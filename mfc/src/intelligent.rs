@@ -26,6 +26,7 @@ use crate::{ControllerKind, Order, Reference};
 #[derive(Debug, Clone, Copy, PartialEq)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 #[cfg_attr(feature = "serde", serde(default, deny_unknown_fields))]
+#[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
 pub struct IntelligentParams {
     /// iP, iPI, iPD or iPID. Default: iP.
     pub kind: ControllerKind,
@@ -110,21 +111,21 @@ pub struct IntelligentOutput {
 /// One intelligent controller (one output of the plant).
 #[derive(Debug, Clone)]
 pub struct IntelligentController<const CAP: usize = DEFAULT_CAPACITY> {
-    params: IntelligentParams,
-    pending: Option<IntelligentParams>,
-    estimator: Estimator<CAP>,
-    integral: f64,
-    derivative: DerivativeFilter,
-    last_t: Option<f64>,
+    pub(crate) params: IntelligentParams,
+    pub(crate) pending: Option<IntelligentParams>,
+    pub(crate) estimator: Estimator<CAP>,
+    pub(crate) integral: f64,
+    pub(crate) derivative: DerivativeFilter,
+    pub(crate) last_t: Option<f64>,
     /// Input applied over the interval that started at `last_t`.
-    applied: f64,
+    pub(crate) applied: f64,
     /// Last computed output.
-    last_u: f64,
+    pub(crate) last_u: f64,
     /// Output while the window fills.
-    hold: f64,
+    pub(crate) hold: f64,
     /// Fade-out offset left by a change (or a bumpless start).
-    bump: f64,
-    bumpless_start: bool,
+    pub(crate) bump: f64,
+    pub(crate) bumpless_start: bool,
 }
 
 impl<const CAP: usize> IntelligentController<CAP> {
@@ -201,6 +202,19 @@ impl<const CAP: usize> IntelligentController<CAP> {
         self.derivative = DerivativeFilter::default();
         self.last_t = None;
         self.bump = 0.0;
+    }
+
+    /// Forget the estimation window and the derivative (after a gap in the data, such as a
+    /// controller restart), keeping the parameters and the integral: the output holds the
+    /// input being applied until the window has refilled, then the difference fades.
+    pub fn forget_window(&mut self) {
+        self.estimator.reset();
+        self.derivative = DerivativeFilter::default();
+        self.last_t = None;
+        self.hold = self.applied;
+        self.last_u = self.applied;
+        self.bump = 0.0;
+        self.bumpless_start = true;
     }
 
     /// Check a step's inputs without changing anything.

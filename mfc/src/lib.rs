@@ -88,6 +88,8 @@ pub mod intelligent;
 pub mod mimo;
 pub mod output_map;
 pub mod pid;
+#[cfg(feature = "snapshot")]
+pub mod snapshot;
 pub mod trajectory;
 
 pub use adrc::{Adrc, AdrcParams};
@@ -104,6 +106,7 @@ pub use pid::{Pid, PidParams};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 #[cfg_attr(feature = "serde", serde(rename_all = "snake_case"))]
+#[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
 pub enum Order {
     /// `y' = F + α u`: the usual choice, even for mechanical systems.
     #[default]
@@ -134,6 +137,7 @@ impl Order {
 /// Which intelligent controller: the terms added to the cancellation of `F`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
 pub enum ControllerKind {
     /// iP (n = 1): `u = -(F - y*' + Kp e)/α`. Written `"ip"` in files.
     #[default]
@@ -178,6 +182,7 @@ impl ControllerKind {
 /// them exactly, so the controller never differentiates the reference numerically.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
 pub struct Reference {
     /// `y*`.
     pub y: f64,

@@ -11,7 +11,7 @@ use crate::Reference;
 /// A controller of `m` independent channels, stepped together.
 #[derive(Debug, Clone)]
 pub struct MimoController<const CAP: usize = DEFAULT_CAPACITY> {
-    channels: Vec<Channel<CAP>>,
+    pub(crate) channels: Vec<Channel<CAP>>,
 }
 
 impl<const CAP: usize> MimoController<CAP> {
@@ -86,6 +86,13 @@ impl<const CAP: usize> MimoController<CAP> {
             c.report_applied(*v)?;
         }
         Ok(())
+    }
+
+    /// Forget every channel's data history after a gap (a restart from a snapshot).
+    pub fn forget_windows(&mut self) {
+        for c in &mut self.channels {
+            c.forget_window();
+        }
     }
 
     /// Reconfigure every channel; all or nothing.

@@ -16,6 +16,7 @@ use crate::error::{finite, non_negative, positive, MfcError, Result};
 #[derive(Debug, Clone, Copy, PartialEq)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 #[cfg_attr(feature = "serde", serde(default, deny_unknown_fields))]
+#[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
 pub struct OutputMapConfig {
     /// Dead-zone compensation offset added in the direction of `u` (AERO: 10 V). Default 0.
     pub dead_zone: f64,
@@ -67,6 +68,7 @@ impl OutputMapConfig {
 /// Dead-zone compensation, saturation and rate limit of one channel (stateful only through
 /// the rate limit).
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
 pub struct OutputMap {
     config: OutputMapConfig,
     last: Option<(f64, f64)>,

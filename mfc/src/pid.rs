@@ -22,6 +22,7 @@ use crate::Reference;
 #[derive(Debug, Clone, Copy, PartialEq)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 #[cfg_attr(feature = "serde", serde(default, deny_unknown_fields))]
+#[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
 pub struct PidParams {
     /// Proportional gain. Default: 1.
     pub kp: f64,
@@ -97,6 +98,7 @@ impl PidParams {
 
 /// A PID controller.
 #[derive(Debug, Clone)]
+#[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
 pub struct Pid {
     params: PidParams,
     pending: Option<PidParams>,
@@ -143,6 +145,12 @@ impl Pid {
         self.last_u = u0;
         self.applied = u0;
         Ok(())
+    }
+
+    /// Forget the derivative and the time base after a gap in the data; keep the integral.
+    pub fn forget_window(&mut self) {
+        self.derivative = DerivativeFilter::default();
+        self.last_t = None;
     }
 
     /// The input the plant actually received since the last step.

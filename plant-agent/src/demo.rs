@@ -54,6 +54,7 @@ pub fn service_config(
             .collect(),
         templates: Vec::new(),
         standby: None,
+        snapshots: None,
     }
 }
 
