@@ -354,14 +354,15 @@ impl Registry {
         if let Some(last) = d.last_seq {
             d.lost += s.seq.saturating_sub(last + 1);
         }
-        if std::mem::take(&mut d.restored) && s.plant_time - d.last_time > RESUME_GAP {
-            // Restarted from a snapshot after a gap: the estimators' history does not reach
-            // across it; keep gains, integrals and the reference phase.
-            d.mimo.forget_windows();
-        }
         if d.last_seq.is_some() && !s.applied.is_empty() {
             // Checked finite above, so this cannot fail.
             let _ = d.mimo.report_applied(&s.applied);
+        }
+        if std::mem::take(&mut d.restored) && s.plant_time - d.last_time > RESUME_GAP {
+            // Restarted from a snapshot after a gap: the estimators' history does not reach
+            // across it. Keep gains and the reference phase, and start bumplessly from what
+            // the plant applies now (its local fallback's output, reported above).
+            d.mimo.forget_windows();
         }
         for (r, pieces) in d.refs.iter_mut().zip(&d.reference) {
             *r = evaluate(pieces, s.plant_time - d.reference_start);
@@ -393,7 +394,11 @@ impl Registry {
             v: d.outputs.iter().map(|o| o.v).collect(),
             controller_unix_ns: protocol::unix_ns(),
             f_est: d.f_est.clone(),
-            mode: pb::Mode::Control as i32,
+            mode: if d.outputs.iter().any(|o| o.warming_up) {
+                pb::Mode::WarmingUp
+            } else {
+                pb::Mode::Control
+            } as i32,
             sample_sent_unix_ns: s.sent_unix_ns,
             controller_id,
             error: String::new(),

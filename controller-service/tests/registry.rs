@@ -51,7 +51,9 @@ fn answers_every_sample_with_its_sequence() {
         let c =
             command(r.handle_sample("aero-1", &sample("aero-1", k, k as f64 * 0.01, &[0.0, 0.5])));
         assert_eq!(c.seq, k);
-        assert_eq!(c.mode, pb::Mode::Control as i32);
+        // The iP channel's window is 3 intervals: it warms up on the first 3 samples.
+        let expected = if k < 3 { pb::Mode::WarmingUp } else { pb::Mode::Control };
+        assert_eq!(c.mode, expected as i32, "seq {k}");
         assert_eq!(c.v.len(), 2);
         assert_eq!(c.controller_id, "c1");
     }
@@ -103,9 +105,10 @@ fn bad_samples_are_rejected_with_a_reason_and_change_nothing() {
     }
     let s = r.device_status("aero-1").unwrap();
     assert_eq!((s.rejected, s.last_seq, s.commands), (4, 1, 1));
-    // And the device still works.
+    // And the device still works (still warming up its 3-interval window).
     let c = command(r.handle_sample("aero-1", &sample("aero-1", 2, 0.02, &[0.0, 0.0])));
-    assert_eq!(c.mode, pb::Mode::Control as i32);
+    assert_eq!(c.mode, pb::Mode::WarmingUp as i32);
+    assert_eq!(c.seq, 2);
 }
 
 #[test]
@@ -135,7 +138,8 @@ fn a_restarted_plant_resets_its_state() {
     let mut s = sample("aero-1", 0, 0.0, &[0.0, 0.0]);
     s.run_id = 43;
     let c = command(r.handle_sample("aero-1", &s));
-    assert_eq!((c.seq, c.mode), (0, pb::Mode::Control as i32));
+    // Answered, and warming up again: the state was reset for the new run.
+    assert_eq!((c.seq, c.mode), (0, pb::Mode::WarmingUp as i32));
 }
 
 #[test]

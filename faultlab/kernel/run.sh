@@ -50,7 +50,7 @@ sed -e 's/duration = 40.0/duration = 10.0/' plant-agent/scenarios/2-complex.toml
 ip netns exec mfc-ctl "$BIN/controller-service" --config "$WORK/service.toml" \
   --listen udp/10.77.0.1:7447 --no-multicast-scouting >"$WORK/service.log" 2>&1 &
 SVC=$!
-sleep 1
+for _ in $(seq 50); do grep -q serving "$WORK/service.log" && break; sleep 0.1; done
 ip netns exec mfc-plant "$BIN/plant-agent" run --device aero-k --scenario "$WORK/scenario.toml" \
   --connect udp/10.77.0.1:7447 --no-multicast-scouting --out "$WORK/run" >"$WORK/agent.out" 2>"$WORK/agent.log" &
 AGENT=$!

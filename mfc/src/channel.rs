@@ -154,6 +154,8 @@ pub struct ChannelOutput {
     pub f_est: Option<f64>,
     /// Tracking error `y - y*`.
     pub error: f64,
+    /// The law is still filling its estimation window (its output is a hold value).
+    pub warming_up: bool,
 }
 
 /// A control law and its output map: one output of the plant.
@@ -206,15 +208,15 @@ impl<const CAP: usize> Channel<CAP> {
     /// One step: compute `u`, map it to `v`, and remember that `v` is being applied.
     pub fn step(&mut self, t: f64, y: f64, r: &Reference) -> Result<ChannelOutput> {
         self.check(t, y, r)?;
-        let (u, f_est, error) = match &mut self.law {
+        let (u, f_est, error, warming_up) = match &mut self.law {
             Law::Intelligent(c) => {
                 let o = c.step(t, y, r)?;
-                (o.u, o.f_est, o.error)
+                (o.u, o.f_est, o.error, o.f_est.is_none())
             }
-            Law::Pid(c) => (c.step(t, y, r)?, None, y - r.y),
+            Law::Pid(c) => (c.step(t, y, r)?, None, y - r.y, false),
             Law::Adrc(c) => {
                 let u = c.step(t, y, r)?;
-                (u, Some(c.disturbance()), y - r.y)
+                (u, Some(c.disturbance()), y - r.y, false)
             }
         };
         // A non-finite u can only come from extreme (finite) data; never send it.
@@ -223,7 +225,13 @@ impl<const CAP: usize> Channel<CAP> {
         self.law.set_applied(self.map.inverse(v))?;
         self.last_t = Some(t);
         self.last_v = v;
-        Ok(ChannelOutput { u, v, f_est, error })
+        Ok(ChannelOutput {
+            u,
+            v,
+            f_est,
+            error,
+            warming_up,
+        })
     }
 
     /// The plant reports that it applied `v` since the last step (not the commanded value):

@@ -147,10 +147,12 @@ impl Pid {
         Ok(())
     }
 
-    /// Forget the derivative and the time base after a gap in the data; keep the integral.
+    /// Forget the derivative and the time base after a gap in the data, and restart
+    /// bumplessly from the input being applied (the integral is re-initialised to it).
     pub fn forget_window(&mut self) {
         self.derivative = DerivativeFilter::default();
         self.last_t = None;
+        self.start_from = Some(self.applied);
     }
 
     /// The input the plant actually received since the last step.

@@ -122,6 +122,8 @@ pub struct AgentReport {
     pub stale: u64,
     /// Second commands for a sample already answered (two controllers answering).
     pub duplicate_commands: u64,
+    /// Answers saying the controller is still filling its estimation window.
+    pub warming_up: u64,
     /// Commands refused by the controller (`REJECTED`).
     pub rejected: u64,
     /// Times the fallback engaged.
@@ -240,6 +242,7 @@ pub async fn run_agent(
         late: 0,
         stale: 0,
         duplicate_commands: 0,
+        warming_up: 0,
         rejected: 0,
         fallbacks: 0,
         holding_periods: 0,
@@ -302,7 +305,8 @@ pub async fn run_agent(
         }
         let local_ok = local.step(t, &y, &refs, &mut local_out).is_ok();
         let mut period_mode = mode;
-        if missing_streak > 0 && missing_streak >= config.hold_periods {
+        let in_fallback = matches!(mode, LoopMode::Fallback | LoopMode::SafeStop);
+        if in_fallback || (missing_streak > 0 && missing_streak >= config.hold_periods) {
             // Commands have been missing too long: fall back now, locally, without delay.
             let v: Vec<f64> = match (config.fallback, local_ok) {
                 (Fallback::Local, true) => local_out.iter().map(|o| o.v).collect(),
@@ -333,6 +337,7 @@ pub async fn run_agent(
         // periods old. Anything older, or not newer than the last applied, is dropped.
         let mut elapsed_in_period = 0.0;
         let mut got = false;
+        let mut warming = false;
         let mut rtt_us = 0;
         loop {
             let Ok(Some((arrival, bytes))) = tokio::time::timeout_at(next, rx.recv()).await else {
@@ -392,6 +397,16 @@ pub async fn run_agent(
                         break;
                     }
                 }
+                Ok(pb::Mode::WarmingUp) => {
+                    // The controller is alive but not ready: not a missing command, and
+                    // nothing to apply (keep holding, or keep the local fallback running).
+                    warming = true;
+                    report.warming_up += 1;
+                    missing_streak = 0;
+                    if s == k as u64 {
+                        break;
+                    }
+                }
                 Ok(pb::Mode::Rejected) => {
                     report.rejected += 1;
                     tracing::warn!(
@@ -407,7 +422,7 @@ pub async fn run_agent(
                 _ => {}
             }
         }
-        if !got {
+        if !got && !warming {
             report.missing += 1;
             missing_streak += 1;
             if mode == LoopMode::Remote && missing_streak < config.hold_periods.max(1) {
