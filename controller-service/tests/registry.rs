@@ -52,7 +52,11 @@ fn answers_every_sample_with_its_sequence() {
             command(r.handle_sample("aero-1", &sample("aero-1", k, k as f64 * 0.01, &[0.0, 0.5])));
         assert_eq!(c.seq, k);
         // The iP channel's window is 3 intervals: it warms up on the first 3 samples.
-        let expected = if k < 3 { pb::Mode::WarmingUp } else { pb::Mode::Control };
+        let expected = if k < 3 {
+            pb::Mode::WarmingUp
+        } else {
+            pb::Mode::Control
+        };
         assert_eq!(c.mode, expected as i32, "seq {k}");
         assert_eq!(c.v.len(), 2);
         assert_eq!(c.controller_id, "c1");

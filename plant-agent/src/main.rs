@@ -38,6 +38,34 @@ enum PlantKind {
     Driver,
 }
 
+/// What `demo` and `run` share: the scenario, the controller and the safety settings.
+#[derive(clap::Args)]
+struct LoopArgs {
+    /// Scenario file, or a shipped one: 1, 2, 3, 4 (references, duration, plant).
+    #[arg(long, default_value = "2")]
+    scenario: String,
+    /// Shipped controller, also the local fallback (default: the scenario's).
+    #[arg(long)]
+    controller: Option<String>,
+    /// Periods to hold the last command before falling back.
+    #[arg(long, default_value_t = 5)]
+    hold_periods: u32,
+    /// What to fall back to.
+    #[arg(long, value_enum, default_value = "local")]
+    fallback: Fallback,
+}
+
+impl LoopArgs {
+    fn load(&self) -> Result<(plant_agent::scenario::Scenario, ControllerSet)> {
+        let scenario = load_scenario(&self.scenario)?;
+        let set = match &self.controller {
+            Some(k) => shipped_controller(k)?,
+            None => scenario.controller.clone(),
+        };
+        Ok((scenario, set))
+    }
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Run a scenario closed-loop offline (no network), or compare every controller.
@@ -63,18 +91,8 @@ enum Command {
         /// Number of simulated plants.
         #[arg(long, default_value_t = 2)]
         plants: usize,
-        /// Scenario file, or a shipped one: 1, 2, 3, 4.
-        #[arg(long, default_value = "2")]
-        scenario: String,
-        /// Shipped controller (default: the scenario's).
-        #[arg(long)]
-        controller: Option<String>,
-        /// Periods to hold the last command before falling back.
-        #[arg(long, default_value_t = 5)]
-        hold_periods: u32,
-        /// What to fall back to.
-        #[arg(long, value_enum, default_value = "local")]
-        fallback: Fallback,
+        #[command(flatten)]
+        lp: LoopArgs,
         /// Output directory (per plant: run.csv, summary.json, plots).
         #[arg(long, default_value = "out/demo")]
         out: PathBuf,
@@ -90,18 +108,8 @@ enum Command {
         /// Driver command line (for --plant driver), e.g. "python3 aero_hil.py".
         #[arg(long)]
         driver: Option<String>,
-        /// Scenario (references, duration, plant parameters, local controller).
-        #[arg(long, default_value = "2")]
-        scenario: String,
-        /// Shipped controller for the local fallback (default: the scenario's).
-        #[arg(long)]
-        controller: Option<String>,
-        /// Periods to hold the last command before falling back.
-        #[arg(long, default_value_t = 5)]
-        hold_periods: u32,
-        /// What to fall back to.
-        #[arg(long, value_enum, default_value = "local")]
-        fallback: Fallback,
+        #[command(flatten)]
+        lp: LoopArgs,
         /// Where to write the run (run.csv, summary.json, plots).
         #[arg(long, default_value = "out/run")]
         out: PathBuf,
@@ -202,22 +210,12 @@ fn real_main() -> Result<()> {
         .with_writer(std::io::stderr)
         .init();
     match Cli::parse().command {
-        Command::Demo {
-            plants,
-            scenario,
-            controller,
-            hold_periods,
-            fallback,
-            out,
-        } => {
+        Command::Demo { plants, lp, out } => {
             if plants == 0 || plants > 64 {
                 bail!("--plants must be between 1 and 64");
             }
-            let scenario = load_scenario(&scenario)?;
-            let set = match controller {
-                Some(k) => shipped_controller(&k)?,
-                None => scenario.controller.clone(),
-            };
+            let (scenario, set) = lp.load()?;
+            let (hold_periods, fallback) = (lp.hold_periods, lp.fallback);
             let offline = run(&scenario, &set, false)?.summary;
             println!(
                 "{}: {} simulated AERO(s) and a controller service over Zenoh on loopback, {:.0} s in real time...",
@@ -247,18 +245,12 @@ fn real_main() -> Result<()> {
             device,
             plant,
             driver,
-            scenario,
-            controller,
-            hold_periods,
-            fallback,
+            lp,
             out,
             zenoh,
         } => {
-            let scenario = load_scenario(&scenario)?;
-            let set = match controller {
-                Some(k) => shipped_controller(&k)?,
-                None => scenario.controller.clone(),
-            };
+            let (scenario, set) = lp.load()?;
+            let (hold_periods, fallback) = (lp.hold_periods, lp.fallback);
             let mut plant: Box<dyn Plant> = match plant {
                 PlantKind::AeroSim => {
                     Box::new(SimPlant::new(scenario.plant.clone(), scenario.seed)?)

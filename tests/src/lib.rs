@@ -75,3 +75,26 @@ pub async fn run_plant(
     let _ = session.close().await;
     Ok(out?)
 }
+
+/// Send a query on `key` (with `payload`, if any) and decode its first reply.
+pub async fn query<M: protocol::Versioned>(
+    session: &Session,
+    key: String,
+    payload: Option<Vec<u8>>,
+) -> anyhow::Result<M> {
+    let mut get = session.get(key.clone());
+    if let Some(p) = payload {
+        get = get.payload(p);
+    }
+    let replies = get
+        .await
+        .map_err(|e| anyhow::anyhow!("querying {key}: {e}"))?;
+    let reply = replies
+        .recv_async()
+        .await
+        .map_err(|e| anyhow::anyhow!("no reply on {key}: {e}"))?;
+    let sample = reply
+        .result()
+        .map_err(|e| anyhow::anyhow!("error reply on {key}: {e:?}"))?;
+    Ok(protocol::decode(&sample.payload().to_bytes())?)
+}

@@ -10,7 +10,7 @@ use plant_agent::offline::run;
 use plant_agent::scenario::{load_scenario, shipped_controller, Scenario};
 use protocol::convert::channel_to_pb;
 use protocol::{decode, encode, keys, pb, PROTOCOL_VERSION};
-use system_tests::{run_plant, Service, SERIAL};
+use system_tests::{query, run_plant, Service, SERIAL};
 
 fn shortened(name: &str, duration: f64) -> Scenario {
     let mut s = load_scenario(name).unwrap();
@@ -146,13 +146,9 @@ async fn reconfiguration_at_run_time_is_bumpless() {
         channels: channels.iter().map(channel_to_pb).collect(),
         reference: None,
     };
-    let replies = client
-        .get(keys::config("aero-1"))
-        .payload(encode(&request))
+    let reply: pb::ConfigReply = query(&client, keys::config("aero-1"), Some(encode(&request)))
         .await
         .unwrap();
-    let reply = replies.recv_async().await.unwrap();
-    let reply: pb::ConfigReply = decode(&reply.result().unwrap().payload().to_bytes()).unwrap();
     assert!(reply.accepted, "{}", reply.reason);
     let in_force =
         protocol::convert::channel_from_pb(&reply.config.as_ref().unwrap().channels[0]).unwrap();
@@ -168,22 +164,9 @@ async fn reconfiguration_at_run_time_is_bumpless() {
         channels: bad.iter().map(channel_to_pb).collect(),
         reference: None,
     };
-    let replies = client
-        .get(keys::config("aero-1"))
-        .payload(encode(&bad_req))
+    let r: pb::ConfigReply = query(&client, keys::config("aero-1"), Some(encode(&bad_req)))
         .await
         .unwrap();
-    let r: pb::ConfigReply = decode(
-        &replies
-            .recv_async()
-            .await
-            .unwrap()
-            .result()
-            .unwrap()
-            .payload()
-            .to_bytes(),
-    )
-    .unwrap();
     assert!(
         !r.accepted && r.reason.contains("channels[1]"),
         "{}",
@@ -294,38 +277,14 @@ async fn bad_network_input_is_refused_and_counted() {
         channels: channels.iter().map(channel_to_pb).collect(),
         reference: None,
     };
-    let r = client
-        .get(keys::config("victim"))
-        .payload(encode(&req))
+    let r: pb::ConfigReply = query(&client, keys::config("victim"), Some(encode(&req)))
         .await
         .unwrap();
-    let r: pb::ConfigReply = decode(
-        &r.recv_async()
-            .await
-            .unwrap()
-            .result()
-            .unwrap()
-            .payload()
-            .to_bytes(),
-    )
-    .unwrap();
     assert!(!r.accepted && r.reason.contains("alpha"), "{}", r.reason);
     // Garbage on the config queryable.
-    let r = client
-        .get(keys::config("victim"))
-        .payload(vec![1u8, 2, 3])
+    let r: pb::ConfigReply = query(&client, keys::config("victim"), Some(vec![1u8, 2, 3]))
         .await
         .unwrap();
-    let r: pb::ConfigReply = decode(
-        &r.recv_async()
-            .await
-            .unwrap()
-            .result()
-            .unwrap()
-            .payload()
-            .to_bytes(),
-    )
-    .unwrap();
     assert!(!r.accepted);
 
     // The two refused samples were answered REJECTED with reasons.
@@ -344,17 +303,9 @@ async fn bad_network_input_is_refused_and_counted() {
         "{reasons:?}"
     );
 
-    let st = client.get(keys::service_status("c-bad")).await.unwrap();
-    let st: pb::ServiceStatus = decode(
-        &st.recv_async()
-            .await
-            .unwrap()
-            .result()
-            .unwrap()
-            .payload()
-            .to_bytes(),
-    )
-    .unwrap();
+    let st: pb::ServiceStatus = query(&client, keys::service_status("c-bad"), None)
+        .await
+        .unwrap();
     assert!(st.decode_errors >= 4, "{st:?}");
     assert_eq!(st.unknown_samples, 1);
     assert_eq!(st.unknown_devices, vec!["stranger".to_string()]);
