@@ -248,6 +248,9 @@ impl<const CAP: usize> IntelligentController<CAP> {
             Ok(lin) => {
                 let old = p.law(lin.at(p.alpha), r, e, de, self.integral) + self.bump;
                 let old = if self.bumpless_start {
+                    // Start from what the plant is applying now: after a long warm-up (a
+                    // restart), the plant may have moved on from the value held at first.
+                    self.hold = self.applied;
                     self.bumpless_start = false;
                     self.bump = self.hold - (old - self.bump);
                     self.hold
