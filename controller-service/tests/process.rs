@@ -4,7 +4,7 @@
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
-use protocol::{decode, keys, pb};
+use protocol::{keys, pb};
 use transport::ZenohArgs;
 
 #[tokio::test(flavor = "multi_thread")]
@@ -39,30 +39,17 @@ async fn serves_and_stops_cleanly_on_sigterm() {
         .await
         .unwrap();
     // Wait for the service's liveliness token.
-    let mut up = false;
-    for _ in 0..100 {
-        let replies = session
-            .liveliness()
-            .get(keys::alive_controller("proc"))
-            .await
-            .unwrap();
-        if replies.recv_async().await.is_ok() {
-            up = true;
-            break;
-        }
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
+    let up = transport::wait_for_token(
+        &session,
+        &keys::alive_controller("proc"),
+        Duration::from_secs(10),
+    )
+    .await;
     assert!(up, "the service never came up");
-    let replies = session.get(keys::service_status("proc")).await.unwrap();
-    let status: pb::ServiceStatus = decode(
-        &replies
-            .recv_async()
+    let status: pb::ServiceStatus = protocol::decode(
+        &transport::get_first(&session, &keys::service_status("proc"), None)
             .await
-            .unwrap()
-            .result()
-            .unwrap()
-            .payload()
-            .to_bytes(),
+            .unwrap(),
     )
     .unwrap();
     assert_eq!(status.devices.len(), 1);

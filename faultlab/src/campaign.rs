@@ -62,18 +62,12 @@ async fn wait_until_flowing(service_endpoint: &str, ids: &[String]) {
     while tokio::time::Instant::now() < deadline {
         let mut flowing = 0;
         for id in ids {
-            if let Ok(replies) = probe.get(protocol::keys::status(id)).await {
-                if let Ok(r) = replies.recv_async().await {
-                    if let Ok(sample) = r.result() {
-                        if let Ok(st) = protocol::decode::<protocol::pb::DeviceStatus>(
-                            &sample.payload().to_bytes(),
-                        ) {
-                            if st.loop_rtt.is_some_and(|l| l.count >= 5) {
-                                flowing += 1;
-                            }
-                        }
-                    }
-                }
+            let status = transport::get_first(&probe, &protocol::keys::status(id), None)
+                .await
+                .ok()
+                .and_then(|b| protocol::decode::<protocol::pb::DeviceStatus>(&b).ok());
+            if status.is_some_and(|st| st.loop_rtt.is_some_and(|l| l.count >= 5)) {
+                flowing += 1;
             }
         }
         if flowing == ids.len() {

@@ -261,19 +261,14 @@ async fn wait_for_controller(endpoint: &str, id: &str) {
         .open()
         .await
         .unwrap();
-    for _ in 0..200 {
-        let replies = session
-            .liveliness()
-            .get(protocol::keys::alive_controller(id))
-            .await
-            .unwrap();
-        if replies.recv_async().await.is_ok() {
-            let _ = session.close().await;
-            return;
-        }
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
-    panic!("controller {id} at {endpoint} never came up");
+    let up = transport::wait_for_token(
+        &session,
+        &protocol::keys::alive_controller(id),
+        Duration::from_secs(20),
+    )
+    .await;
+    let _ = session.close().await;
+    assert!(up, "controller {id} at {endpoint} never came up");
 }
 
 fn start_service(config: &std::path::Path, endpoint: &str) -> Child {
@@ -348,16 +343,10 @@ async fn controller_crash_and_restart() {
         .open()
         .await
         .unwrap();
-    let replies = client.get(protocol::keys::status("aero-1")).await.unwrap();
     let status: protocol::pb::DeviceStatus = protocol::decode(
-        &replies
-            .recv_async()
+        &transport::get_first(&client, &protocol::keys::status("aero-1"), None)
             .await
-            .unwrap()
-            .result()
-            .unwrap()
-            .payload()
-            .to_bytes(),
+            .unwrap(),
     )
     .unwrap();
     let _ = client.close().await;

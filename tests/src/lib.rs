@@ -82,19 +82,6 @@ pub async fn query<M: protocol::Versioned>(
     key: String,
     payload: Option<Vec<u8>>,
 ) -> anyhow::Result<M> {
-    let mut get = session.get(key.clone());
-    if let Some(p) = payload {
-        get = get.payload(p);
-    }
-    let replies = get
-        .await
-        .map_err(|e| anyhow::anyhow!("querying {key}: {e}"))?;
-    let reply = replies
-        .recv_async()
-        .await
-        .map_err(|e| anyhow::anyhow!("no reply on {key}: {e}"))?;
-    let sample = reply
-        .result()
-        .map_err(|e| anyhow::anyhow!("error reply on {key}: {e:?}"))?;
-    Ok(protocol::decode(&sample.payload().to_bytes())?)
+    let bytes = transport::get_first(session, &key, payload).await?;
+    Ok(protocol::decode(&bytes)?)
 }

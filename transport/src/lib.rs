@@ -122,6 +122,47 @@ pub async fn control_publisher(
         })
 }
 
+/// Query `key` (with `payload`, if any) and return the payload of the first reply: the
+/// request/reply path for configuration and status (never the control path).
+pub async fn get_first(
+    session: &Session,
+    key: &str,
+    payload: Option<Vec<u8>>,
+) -> Result<Vec<u8>, TransportError> {
+    let err = |reason: String| TransportError::Declare {
+        what: format!("query {key}"),
+        reason,
+    };
+    let mut get = session.get(key.to_string());
+    if let Some(p) = payload {
+        get = get.payload(p);
+    }
+    let replies = get.await.map_err(|e| err(e.to_string()))?;
+    let reply = replies
+        .recv_async()
+        .await
+        .map_err(|e| err(format!("no reply: {e}")))?;
+    let sample = reply
+        .result()
+        .map_err(|e| err(format!("error reply: {e:?}")))?;
+    Ok(sample.payload().to_bytes().into_owned())
+}
+
+/// Wait until a liveliness token on `key` exists, polling every 100 ms for at most
+/// `timeout`; true if it appeared.
+pub async fn wait_for_token(session: &Session, key: &str, timeout: std::time::Duration) -> bool {
+    let deadline = std::time::Instant::now() + timeout;
+    while std::time::Instant::now() < deadline {
+        if let Ok(replies) = session.liveliness().get(key.to_string()).await {
+            if replies.recv_async().await.is_ok() {
+                return true;
+            }
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+    }
+    false
+}
+
 /// A free UDP port on 127.0.0.1 (as [`free_local_port`], for UDP endpoints).
 pub fn free_udp_port() -> std::io::Result<u16> {
     let s = std::net::UdpSocket::bind("127.0.0.1:0")?;
