@@ -178,7 +178,7 @@ pub async fn run(
         let msg = tokio::select! {
             m = rx.recv() => match m { Some(m) => m, None => break },
             _ = tick.tick(), if hb_pub.is_some() => {
-                if ha.on_tick(&id) {
+                if ha.on_tick() {
                     tracing::warn!(controller = %id, term = ha.term, "no heartbeat from the active member: taking over");
                 }
                 if let (true, Some(p)) = (ha.active, &hb_pub) {
@@ -392,7 +392,7 @@ impl HotStandby {
     }
 
     /// A heartbeat period passed; returns true if this member just took over.
-    pub fn on_tick(&mut self, _me: &str) -> bool {
+    pub fn on_tick(&mut self) -> bool {
         let now = Instant::now();
         if !self.active && now > self.last_heard && now - self.last_heard > self.takeover {
             self.active = true;

@@ -266,3 +266,40 @@ fn snapshots_restore_state_and_reference_phase() {
     assert_eq!(c.load_snapshots(&dir), (0, 2));
     assert_eq!(c.device_status("aero-1").unwrap().samples, 0);
 }
+
+/// The hot-standby state machine: takeover after silence with a higher term, step-down on
+/// hearing a higher term (so at most one member answers).
+#[test]
+fn hot_standby_state_machine() {
+    use controller_service::config::{Role, StandbySpec};
+    use controller_service::service::HotStandby;
+    let spec = |role| StandbySpec {
+        group: "g".into(),
+        role,
+        heartbeat_ms: 10,
+        takeover_ms: 30,
+    };
+    let mut a = HotStandby::new(Some(&spec(Role::Active)));
+    assert!(!a.active, "silent until it has listened");
+    std::thread::sleep(std::time::Duration::from_millis(40));
+    assert!(
+        a.on_tick() && a.active && a.term == 1,
+        "nobody spoke: takes over"
+    );
+    // A member that heard a term-1 active and then silence takes over with term 2.
+    let mut b = HotStandby::new(Some(&spec(Role::Active)));
+    let hb = |id: &str, term| pb::Heartbeat {
+        version: PROTOCOL_VERSION,
+        controller_id: id.into(),
+        term,
+    };
+    assert!(!b.on_heartbeat("b", &hb("a", 1)));
+    assert!(!b.on_tick(), "heard recently: stays standby");
+    std::thread::sleep(std::time::Duration::from_millis(40));
+    assert!(b.on_tick() && b.term == 2);
+    // The old active hears term 2 and steps down; its own heartbeats are ignored.
+    assert!(!a.on_heartbeat("a", &hb("a", 1)));
+    assert!(a.on_heartbeat("a", &hb("b", 2)) && !a.active);
+    // Without a group the service is simply active.
+    assert!(HotStandby::new(None).active);
+}

@@ -126,7 +126,6 @@ impl Shaper {
     fn in_outage(&self, now: Instant) -> Option<Instant> {
         let start = self.armed_at().unwrap_or(self.start);
         let t = now.saturating_duration_since(start).as_secs_f64();
-        let _ = self.start;
         self.imp
             .outages
             .iter()
