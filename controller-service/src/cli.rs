@@ -1,5 +1,5 @@
-//! The command line of the service, in the library so that other tools (the fault-injection
-//! tests) can run the very same service in a process of their own.
+//! The command line of the service. It lives in the library so that the binary is one
+//! line and the system tests can start the very same service in a process of their own.
 
 use std::path::PathBuf;
 
@@ -23,31 +23,6 @@ pub struct Cli {
     pub controller_id: Option<String>,
     #[command(flatten)]
     pub zenoh: ZenohArgs,
-}
-
-/// Resolves on SIGINT or SIGTERM.
-pub async fn shutdown_signal() {
-    let ctrl_c = tokio::signal::ctrl_c();
-    #[cfg(unix)]
-    {
-        let mut term =
-            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-                Ok(s) => s,
-                Err(e) => {
-                    tracing::warn!("cannot listen for SIGTERM: {e}");
-                    let _ = ctrl_c.await;
-                    return;
-                }
-            };
-        tokio::select! {
-            _ = ctrl_c => {},
-            _ = term.recv() => {},
-        }
-    }
-    #[cfg(not(unix))]
-    {
-        let _ = ctrl_c.await;
-    }
 }
 
 /// Parse `args` (the first is the program name), log to stderr, serve until SIGINT or
@@ -96,7 +71,7 @@ pub async fn run(cli: Cli) -> Result<()> {
     }
     let registry = Registry::new(config).context("building the devices")?;
     let session = cli.zenoh.open().await?;
-    service::run(session, registry, shutdown_signal()).await?;
+    service::run(session, registry, transport::shutdown_signal()).await?;
     Ok(())
 }
 

@@ -59,7 +59,7 @@ pub enum ConfigError {
 /// One channel of a device: its law, its output map and its reference.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct ChannelSpec {
+pub struct DeviceChannel {
     /// Control law. Default: iP, alpha 1, Kp 1.
     #[serde(default)]
     pub law: LawConfig,
@@ -71,7 +71,7 @@ pub struct ChannelSpec {
     pub reference: Vec<Piece>,
 }
 
-impl ChannelSpec {
+impl DeviceChannel {
     /// The core configuration of the channel.
     pub fn channel(&self) -> ChannelConfig {
         ChannelConfig {
@@ -88,7 +88,7 @@ pub struct DeviceSpec {
     /// Device id (letters, digits, `-`, `_`, `.`).
     pub id: String,
     /// One entry per plant output.
-    pub channels: Vec<ChannelSpec>,
+    pub channels: Vec<DeviceChannel>,
 }
 
 /// A template that provisions unknown devices on their first sample.
@@ -99,7 +99,7 @@ pub struct TemplateSpec {
     /// ids that start with `aero-` (zenoh syntax: `$*` inside a chunk).
     pub pattern: String,
     /// Channels given to a matching device.
-    pub channels: Vec<ChannelSpec>,
+    pub channels: Vec<DeviceChannel>,
 }
 
 /// Hot standby: several services of one group serve the same devices; one is active.
@@ -192,7 +192,7 @@ impl Default for ServiceConfig {
     }
 }
 
-fn check_channels(file: &str, at: &str, channels: &[ChannelSpec]) -> Result<(), ConfigError> {
+fn check_channels(file: &str, at: &str, channels: &[DeviceChannel]) -> Result<(), ConfigError> {
     let invalid = |field: String, reason: String| ConfigError::Invalid {
         file: file.into(),
         field,

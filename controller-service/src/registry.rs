@@ -21,7 +21,7 @@ use mfc::{ChannelConfig, ChannelOutput, MimoController, Reference};
 use protocol::convert::{channel_from_pb, channel_to_pb, reference_from_pb, reference_to_pb};
 use protocol::{pb, PROTOCOL_VERSION};
 
-use crate::config::{ChannelSpec, ServiceConfig};
+use crate::config::{DeviceChannel, ServiceConfig};
 
 /// A gap longer than this (s) between a snapshot and the next sample makes the restored
 /// estimators start a fresh window.
@@ -62,15 +62,15 @@ struct Device {
     duplicates: u64,
     stale: u64,
     rejected: u64,
-    plant_fallbacks: u64,
+    samples_off_remote: u64,
     rtts: VecDeque<u32>,
     f_est: Vec<f64>,
     last_error: String,
 }
 
 impl Device {
-    fn new(channels: &[ChannelSpec], from_template: bool) -> Result<Self, mfc::MfcError> {
-        let configs: Vec<ChannelConfig> = channels.iter().map(ChannelSpec::channel).collect();
+    fn new(channels: &[DeviceChannel], from_template: bool) -> Result<Self, mfc::MfcError> {
+        let configs: Vec<ChannelConfig> = channels.iter().map(DeviceChannel::channel).collect();
         let n = configs.len();
         Ok(Self {
             restored: false,
@@ -91,7 +91,7 @@ impl Device {
             duplicates: 0,
             stale: 0,
             rejected: 0,
-            plant_fallbacks: 0,
+            samples_off_remote: 0,
             rtts: VecDeque::with_capacity(RTT_WINDOW),
             f_est: vec![f64::NAN; n],
             last_error: String::new(),
@@ -160,7 +160,7 @@ impl Device {
             duplicates: self.duplicates,
             stale: self.stale,
             rejected: self.rejected,
-            plant_fallbacks: self.plant_fallbacks,
+            samples_off_remote: self.samples_off_remote,
             loop_rtt: Some(latency(&self.rtts)),
             f_est: self.f_est.clone(),
             last_error: self.last_error.clone(),
@@ -324,7 +324,7 @@ impl Registry {
             | pb::SampleFlags::Fallback as u32
             | pb::SampleFlags::SafeStop as u32;
         if s.flags & plant_trouble != 0 {
-            d.plant_fallbacks += 1;
+            d.samples_off_remote += 1;
         }
         match d.last_seq {
             Some(last) if s.seq == last => {
@@ -543,7 +543,7 @@ impl Registry {
                         d.duplicates,
                         d.stale,
                         d.rejected,
-                        d.plant_fallbacks,
+                        d.samples_off_remote,
                     ],
                     from_template: d.from_template,
                 })
@@ -561,9 +561,9 @@ impl Registry {
         let d = match self.devices.get_mut(&snap.id) {
             Some(d) => d,
             None if snap.from_template => {
-                let specs: Vec<ChannelSpec> = configs
+                let specs: Vec<DeviceChannel> = configs
                     .iter()
-                    .map(|c| ChannelSpec {
+                    .map(|c| DeviceChannel {
                         law: c.law,
                         output: c.output,
                         reference: Vec::new(),
@@ -603,7 +603,7 @@ impl Registry {
             d.duplicates,
             d.stale,
             d.rejected,
-            d.plant_fallbacks,
+            d.samples_off_remote,
         ] = snap.counters;
         d.last_command = None;
         d.restored = true;

@@ -12,7 +12,8 @@ use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use plant_agent::rng::Rng;
+use rand_xoshiro::rand_core::{Rng as _, SeedableRng};
+use rand_xoshiro::Xoshiro256StarStar;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream, UdpSocket};
 use tokio::sync::mpsc;
@@ -85,7 +86,7 @@ pub struct Shaper {
     /// retransmit declarations lost on a UDP link). Arming starts the outage clock.
     armed: Arc<Mutex<Option<Instant>>>,
     imp: Impairment,
-    rng: Rng,
+    rng: Uniform,
     bad: bool,
     start: Instant,
     link_free: Instant,
@@ -104,7 +105,7 @@ impl Shaper {
         Self {
             armed: Arc::new(Mutex::new(Some(start))),
             imp,
-            rng: Rng::new(seed),
+            rng: Uniform(Xoshiro256StarStar::seed_from_u64(seed)),
             bad: false,
             start,
             link_free: start,
@@ -459,4 +460,15 @@ async fn pump(
     }
     drop(tx);
     let _ = writer.await;
+}
+
+/// Seeded uniform draws in [0, 1) (xoshiro256**, top 53 bits): every impairment replays
+/// from its profile's seed.
+#[derive(Debug, Clone)]
+struct Uniform(Xoshiro256StarStar);
+
+impl Uniform {
+    fn uniform(&mut self) -> f64 {
+        (self.0.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
+    }
 }

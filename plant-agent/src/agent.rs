@@ -1,204 +1,360 @@
-//! The networked loop of the plant agent: pace the plant on absolute deadlines, publish a
-//! sample every period, apply the command that answers it, and stay safe when commands are
-//! late or lost.
+//! The networked loop of the plant agent: thin wiring around [`crate::safety`].
 //!
-//! Every period `k` (deadline `t_k = start + k h`, never drifting):
-//! 1. read the outputs and publish sample `k` (with what was applied over the last period);
-//! 2. step the local controller (it runs every period, fed what was really applied, so it is
-//!    warm and bumpless when it has to take over);
-//! 3. if commands have been missing for more than `hold_periods`, apply the fallback at once
-//!    (local controller, or a safe stop);
-//! 4. until `t_{k+1}`, apply each command the moment it arrives if it is newer than the last
-//!    one applied and at most `max_age` periods old (normally command `k` itself; on a slow
-//!    link an older one is still the best there is); older ones are stale: dropped and
-//!    counted (a stale command is worse than none).
+//! It owns what the pure core must not: the clock, the plant and the network. Every
+//! period `k` (deadline `t_k = start + k h`, never drifting) it reads the plant, hands the
+//! outputs to the [`Supervisor`], publishes the sample it returns, writes the fallback if
+//! the supervisor says so, then feeds it each command that arrives until the period's own
+//! command is handled or the next deadline comes, doing what each verdict says.
 //!
 //! With a simulated plant the simulator integrates exactly the time that passes: from `t_k`
-//! to the command's arrival with the old voltages, then to `t_{k+1}` with the new ones, so
-//! the network's real delay acts on the simulated rig. Plant time is the nominal schedule
+//! to a command's arrival with the old inputs, then to `t_{k+1}` with the new ones, so the
+//! network's real delay acts on the simulated rig. Plant time is the nominal schedule
 //! `k h`, so a busy machine delays the loop but never distorts the plant's physics.
+//!
+//! Plant I/O runs on a thread of its own ([`PlantThread`]): a driver that thinks for 200 ms
+//! must not stall an async worker that zenoh also needs. Whatever ends the run (its
+//! duration, a stop signal, a plant that fails), the loop ends the same way: the plant
+//! gets its safe stop and the run's record is returned for writing.
 
-use std::path::PathBuf;
+use std::future::Future;
 use std::time::Duration;
 
 use mfc::trajectory::{evaluate, Piece};
-use mfc::{ChannelConfig, ChannelOutput, MimoController, Reference};
+use mfc::{ChannelConfig, Reference};
 use protocol::{decode, encode, keys, pb, PROTOCOL_VERSION};
 use serde::{Deserialize, Serialize};
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, oneshot};
 use tokio::time::Instant;
 use zenoh::Session;
 
-use crate::metrics::{Accumulator, ChannelMetrics};
 use crate::plant::{Plant, PlantError};
+use crate::record::{percentile, Accumulator, ChannelMetrics, Period, Recording};
+use crate::safety::{
+    CommandBody, Counters, IncomingCommand, Mode, SafetyConfig, SafetyError, Supervisor, Verdict,
+};
+use crate::scenario::{ControllerSet, Scenario, ScenarioChannel};
 
-/// What to do when commands stop coming.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "snake_case")]
-pub enum Fallback {
-    /// Run the local controller (the same `mfc` core, the same configuration).
-    Local,
-    /// Apply zero volts.
-    SafeStop,
-}
-
-/// Configuration of the agent loop.
+/// What the loop runs: one device on one scenario, with its local controller and its
+/// safety settings.
 #[derive(Debug, Clone)]
-pub struct AgentConfig {
+pub struct LoopConfig {
     /// Device id (key chunk).
     pub device_id: String,
-    /// Sampling period (s).
-    pub period: f64,
     /// Number of periods to run.
     pub steps: usize,
-    /// Oldest command still worth applying, in periods (a command for sample `k - a` may be
-    /// applied during period `k` if `a <= max_age`): on a slow link the newest command is
-    /// still the best one; beyond this age it is stale and dropped.
-    pub max_age: u32,
-    /// Periods to hold the last command before falling back: the fallback engages at the
-    /// start of the period after `hold_periods` consecutive periods without a command.
-    pub hold_periods: u32,
-    /// What to fall back to.
-    pub fallback: Fallback,
-    /// The local controller's channels (also used for the fallback).
-    pub channels: Vec<ChannelConfig>,
-    /// Reference per channel (for the local controller and the tracking figures).
-    pub reference: Vec<Vec<Piece>>,
-    /// Channel names (CSV, summary).
-    pub names: Vec<String>,
-    /// Saturation voltage, to count saturated samples.
-    pub max_voltage: f64,
-    /// Where to write the run's CSV, if anywhere.
-    pub record: Option<PathBuf>,
+    /// Acceptance, hold and fallback rules.
+    pub safety: SafetyConfig,
+    /// The local controller's channels (law and output map), also the fallback.
+    pub local: Vec<ChannelConfig>,
+    /// Name of the local controller set, for the summary.
+    pub controller: String,
+    /// The plant's channels: names, units, actuator ranges, references.
+    pub channels: Vec<ScenarioChannel>,
+    /// Scenario name, for the summary.
+    pub scenario: String,
+    /// Pause between declaring the subscriptions and the first sample, so that they reach
+    /// the other peers first.
+    pub startup_delay: Duration,
 }
 
-/// Where the agent's loop was, per period.
+impl LoopConfig {
+    /// Run `scenario` as `device_id` with `controller` as the local copy.
+    pub fn new(
+        scenario: &Scenario,
+        controller: &ControllerSet,
+        device_id: &str,
+        safety: SafetyConfig,
+    ) -> Self {
+        Self {
+            device_id: device_id.into(),
+            steps: scenario.steps(),
+            safety,
+            local: scenario.channel_configs(controller),
+            controller: controller.name.clone(),
+            channels: scenario.channels.clone(),
+            scenario: scenario.name.clone(),
+            startup_delay: Duration::from_millis(100),
+        }
+    }
+}
+
+/// How a run ended.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
-pub enum LoopMode {
-    /// Applying the controller's command.
-    Remote,
-    /// Holding the last command.
-    Holding,
-    /// Local fallback controller.
-    Fallback,
-    /// Safe stop.
-    SafeStop,
+pub enum End {
+    /// Ran for its whole duration.
+    Completed,
+    /// Stopped early on request (SIGINT, SIGTERM, the caller's stop future).
+    Interrupted,
+    /// The plant failed (a driver that stopped answering, exited, or broke the protocol).
+    PlantFailed,
 }
 
-/// One recorded period.
-#[derive(Debug, Clone)]
-pub struct Row {
-    /// Plant time.
-    pub t: f64,
-    /// References.
-    pub y_ref: Vec<f64>,
-    /// Outputs.
-    pub y: Vec<f64>,
-    /// Applied at the end of the period.
-    pub v: Vec<f64>,
-    /// Mode during the period.
-    pub mode: LoopMode,
-    /// Round trip of this period's sample/command, µs (0: none).
-    pub rtt_us: u32,
-}
-
-/// What a run of the agent measured.
+/// What a run of the agent measured, and how it ended: `summary.json`.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct AgentReport {
     /// Device id.
     pub device_id: String,
+    /// Scenario name.
+    pub scenario: String,
+    /// The local controller's name.
+    pub controller: String,
+    /// How the run ended.
+    pub end: End,
+    /// Why, when it did not complete normally.
+    pub error: Option<String>,
+    /// Whether the plant acknowledged its safe stop at the end.
+    pub safe_stop_applied: bool,
+    /// Why the safe stop could not be confirmed, if it could not.
+    pub safe_stop_error: Option<String>,
+    /// Whether any controller answered (a command or a warm-up answer) during the run.
+    pub controller_reached: bool,
     /// Tracking per channel.
     pub channels: Vec<ChannelMetrics>,
-    /// Periods run.
-    pub periods: usize,
-    /// Commands applied.
-    pub commands: u64,
-    /// Periods with no usable command in time.
-    pub missing: u64,
-    /// Commands applied after their own period (at most `max_age` periods late).
-    pub late: u64,
-    /// Commands dropped as too old, or older than one already applied.
-    pub stale: u64,
-    /// Second commands for a sample already answered (two controllers answering).
-    pub duplicate_commands: u64,
-    /// Answers saying the controller is still filling its estimation window.
-    pub warming_up: u64,
-    /// Commands refused by the controller (`REJECTED`).
-    pub rejected: u64,
-    /// Times the fallback engaged.
-    pub fallbacks: u64,
-    /// Periods spent holding, in fallback, in safe stop.
-    pub holding_periods: u64,
-    /// Periods in the local fallback.
-    pub fallback_periods: u64,
-    /// Periods in safe stop.
-    pub safe_stop_periods: u64,
-    /// Sample-to-command round trip, µs: median and 99th percentile.
+    /// What the supervisor counted: periods, commands, late, missing, stale, fallbacks...
+    pub counters: Counters,
+    /// Sample-to-command round trip, µs: median.
     pub rtt_p50_us: f64,
     /// 99th percentile.
     pub rtt_p99_us: f64,
     /// Periods whose deadline the loop missed by more than half a period.
     pub overruns: u64,
-    /// Pitch stop hits or other plant-specific safety counts are in the plant's own report.
-    pub completed: bool,
+    /// Plant limit hits (the AERO's pitch stop).
+    pub limit_hits: usize,
 }
 
-/// Why the agent stopped with an error.
+impl AgentReport {
+    /// Whether the run went to its end (neither interrupted nor failed).
+    pub fn completed(&self) -> bool {
+        self.end == End::Completed
+    }
+
+    /// The process exit status this run deserves: 0 when it ran (or was stopped on
+    /// request) with a controller answering and the safe stop applied; 3 when no
+    /// controller ever answered (the plant ran on its fallback all along: a deployment
+    /// problem, not a success); 4 when the plant failed or did not confirm its safe stop.
+    pub fn exit_code(&self) -> u8 {
+        if self.end == End::PlantFailed || !self.safe_stop_applied {
+            4
+        } else if !self.controller_reached {
+            3
+        } else {
+            0
+        }
+    }
+
+    /// One line for a terminal.
+    pub fn headline(&self) -> String {
+        let end = match self.end {
+            End::Completed => "completed".to_string(),
+            End::Interrupted => "interrupted".to_string(),
+            End::PlantFailed => format!(
+                "plant failed: {}",
+                self.error.as_deref().unwrap_or("unknown")
+            ),
+        };
+        let stop = if self.safe_stop_applied {
+            "safe stop applied".to_string()
+        } else {
+            format!(
+                "safe stop NOT confirmed ({})",
+                self.safe_stop_error.as_deref().unwrap_or("unknown")
+            )
+        };
+        let ctl = if self.controller_reached {
+            String::new()
+        } else {
+            "; no controller ever answered".into()
+        };
+        format!(
+            "{}: {end} after {} periods, {stop}{ctl}",
+            self.device_id, self.counters.periods
+        )
+    }
+}
+
+/// A finished run: the report and the record.
+#[derive(Debug, Clone)]
+pub struct AgentRun {
+    /// What the run measured.
+    pub report: AgentReport,
+    /// Period by period.
+    pub recording: Recording,
+}
+
+/// Why the loop could not start. Once it runs, nothing is an error: a failure ends the
+/// run and is reported in [`AgentReport::end`], with the record so far.
 #[derive(Debug, thiserror::Error)]
 pub enum AgentError {
-    /// The plant failed.
+    /// The plant failed before the first period.
     #[error(transparent)]
     Plant(#[from] PlantError),
     /// Zenoh refused a declaration.
     #[error(transparent)]
     Transport(#[from] transport::TransportError),
-    /// The local controller's configuration was refused.
-    #[error("local controller: {0}")]
-    Controller(#[from] mfc::MfcError),
+    /// The safety settings or the local controller were refused.
+    #[error(transparent)]
+    Safety(#[from] SafetyError),
     /// The configuration does not fit the plant.
     #[error("{0}")]
     Config(String),
-    /// Writing the record.
-    #[error("writing {path}: {source}")]
-    Record {
-        /// File.
-        path: PathBuf,
-        /// Cause.
-        source: std::io::Error,
-    },
 }
 
-fn percentile(sorted: &[u32], q: f64) -> f64 {
-    if sorted.is_empty() {
-        return 0.0;
+enum PlantRequest {
+    Read,
+    Write(Vec<f64>),
+    Advance(f64),
+    Stop,
+}
+
+type PlantReply = oneshot::Sender<Result<Vec<f64>, PlantError>>;
+
+/// The plant on a thread of its own, driven by async calls: plant I/O may block (a driver
+/// process, a serial line) and must never block an async worker.
+pub struct PlantThread {
+    tx: std::sync::mpsc::Sender<(PlantRequest, PlantReply)>,
+    channels: usize,
+    limit_hits: std::sync::Arc<std::sync::atomic::AtomicUsize>,
+}
+
+impl PlantThread {
+    /// Move `plant` to a new thread. The thread ends after `stop` or when the handle is
+    /// dropped (dropping a [`crate::plant::DriverPlant`] asks its driver for a safe stop).
+    pub fn spawn(mut plant: Box<dyn Plant>) -> Self {
+        let channels = plant.channels();
+        let (tx, rx) = std::sync::mpsc::channel::<(PlantRequest, PlantReply)>();
+        let limit_hits = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let hits = limit_hits.clone();
+        std::thread::Builder::new()
+            .name("plant-io".into())
+            .spawn(move || {
+                while let Ok((req, reply)) = rx.recv() {
+                    let stop = matches!(req, PlantRequest::Stop);
+                    let r = match req {
+                        PlantRequest::Read => plant.read(),
+                        PlantRequest::Write(v) => plant.write(&v),
+                        PlantRequest::Advance(dt) => plant.advance(dt).map(|()| Vec::new()),
+                        PlantRequest::Stop => plant.stop().map(|()| Vec::new()),
+                    };
+                    hits.store(plant.limit_hits(), std::sync::atomic::Ordering::Relaxed);
+                    let _ = reply.send(r);
+                    if stop {
+                        break;
+                    }
+                }
+            })
+            .expect("spawning a thread");
+        Self {
+            tx,
+            channels,
+            limit_hits,
+        }
     }
-    f64::from(sorted[((sorted.len() - 1) as f64 * q).round() as usize])
+
+    async fn call(&self, req: PlantRequest) -> Result<Vec<f64>, PlantError> {
+        let (reply, answer) = oneshot::channel();
+        self.tx
+            .send((req, reply))
+            .map_err(|_| PlantError::Driver("the plant thread has ended".into()))?;
+        answer
+            .await
+            .map_err(|_| PlantError::Driver("the plant thread has ended".into()))?
+    }
+
+    /// Measure the outputs.
+    pub async fn read(&self) -> Result<Vec<f64>, PlantError> {
+        self.call(PlantRequest::Read).await
+    }
+    /// Apply `v`; returns what was really applied.
+    pub async fn write(&self, v: Vec<f64>) -> Result<Vec<f64>, PlantError> {
+        self.call(PlantRequest::Write(v)).await
+    }
+    /// Let `dt` seconds of plant time pass.
+    pub async fn advance(&self, dt: f64) -> Result<(), PlantError> {
+        self.call(PlantRequest::Advance(dt)).await.map(|_| ())
+    }
+    /// The safe stop; the thread ends after it.
+    pub async fn stop(&self) -> Result<(), PlantError> {
+        self.call(PlantRequest::Stop).await.map(|_| ())
+    }
+    /// Number of channels.
+    pub fn channels(&self) -> usize {
+        self.channels
+    }
+    /// The plant's limit hits so far.
+    pub fn limit_hits(&self) -> usize {
+        self.limit_hits.load(std::sync::atomic::Ordering::Relaxed)
+    }
 }
 
-/// Run the loop for `config.steps` periods on `session`, then stop the plant.
-pub async fn run_agent(
+fn flags(mode: Mode) -> u32 {
+    match mode {
+        Mode::Remote => 0,
+        Mode::Holding => pb::SampleFlags::Holding as u32,
+        Mode::Local => pb::SampleFlags::Fallback as u32,
+        Mode::SafeStop => pb::SampleFlags::SafeStop as u32,
+    }
+}
+
+/// Counts a noisy event and says when to log it: the first few, then every thousandth,
+/// so a flood of garbage cannot flood the log.
+#[derive(Default)]
+struct LogBudget(u64);
+
+impl LogBudget {
+    fn hit(&mut self) -> bool {
+        self.0 += 1;
+        self.0 <= 5 || self.0 % 1000 == 0
+    }
+}
+
+/// Run the loop for `config.steps` periods on `session`, or until `stop` resolves or the
+/// plant fails; then apply the plant's safe stop. Returns the report and the record.
+pub async fn run(
     session: &Session,
-    plant: &mut dyn Plant,
-    config: &AgentConfig,
+    plant: Box<dyn Plant>,
+    config: &LoopConfig,
     run_id: u64,
-) -> Result<(AgentReport, Vec<Row>), AgentError> {
+    stop: impl Future<Output = ()>,
+) -> Result<AgentRun, AgentError> {
+    let plant = PlantThread::spawn(plant);
+    match declare_and_run(session, &plant, config, run_id, stop).await {
+        Ok(run) => Ok(run),
+        Err(e) => {
+            // Whatever failed before the loop started, the plant still gets its safe stop.
+            if let Err(stop_err) = plant.stop().await {
+                tracing::error!(device = %config.device_id, "safe stop failed: {stop_err}");
+            }
+            Err(e)
+        }
+    }
+}
+
+async fn declare_and_run(
+    session: &Session,
+    plant: &PlantThread,
+    config: &LoopConfig,
+    run_id: u64,
+    stop: impl Future<Output = ()>,
+) -> Result<AgentRun, AgentError> {
     let n = plant.channels();
-    if config.channels.len() != n || config.reference.len() != n {
+    if config.local.len() != n || config.channels.len() != n {
         return Err(AgentError::Config(format!(
-            "the plant has {n} channels, the configuration {} and the reference {}",
-            config.channels.len(),
-            config.reference.len()
+            "the plant has {n} channel(s), the local controller {} and the scenario {}",
+            config.local.len(),
+            config.channels.len()
         )));
     }
+    config.safety.validate()?;
     protocol::keys::check_id(&config.device_id).map_err(|e| AgentError::Config(e.to_string()))?;
     let id = config.device_id.as_str();
-    let mut local: MimoController = MimoController::new(&config.channels)?;
 
-    let (tx, mut rx) = mpsc::channel::<(Instant, Vec<u8>)>(256);
+    let (tx, rx) = mpsc::channel::<(Instant, Vec<u8>)>(256);
     let _commands = session
         .declare_subscriber(keys::command(id))
         .callback(move |s| {
+            // Never block zenoh's receive thread: a full queue drops the newest, and the
+            // supervisor treats that like a lost command.
             let _ = tx.try_send((Instant::now(), s.payload().to_bytes().into_owned()));
         })
         .await
@@ -215,67 +371,82 @@ pub async fn run_agent(
             what: "liveliness token".into(),
             reason: e.to_string(),
         })?;
+    let initial = plant.write(vec![0.0; n]).await?;
+    let supervisor = Supervisor::new(config.safety, &config.local, initial)?;
+    Ok(periods(plant, config, supervisor, rx, &publisher, run_id, stop).await)
+}
 
-    let h = config.period;
+/// The periodic part. Never fails: whatever happens ends the run with a report.
+async fn periods(
+    plant: &PlantThread,
+    config: &LoopConfig,
+    mut sup: Supervisor,
+    mut rx: mpsc::Receiver<(Instant, Vec<u8>)>,
+    publisher: &zenoh::pubsub::Publisher<'_>,
+    run_id: u64,
+    stop: impl Future<Output = ()>,
+) -> AgentRun {
+    let id = config.device_id.as_str();
+    let n = plant.channels();
+    let h = config.safety.period;
     let period = Duration::from_secs_f64(h);
-    let mut applied = plant.write(&vec![0.0; n])?;
-    // Time-weighted mean of what was applied over the last period: a command that lands
-    // mid-period was applied for only part of it, and the estimator integrates exactly
-    // that.
-    let mut interval_mean = vec![0.0; n];
-    let mut interval_acc = vec![0.0; n];
-    let mut refs = vec![Reference::default(); n];
-    let mut local_out = vec![ChannelOutput::default(); n];
+    let references: Vec<&[Piece]> = config
+        .channels
+        .iter()
+        .map(|c| c.reference.as_slice())
+        .collect();
+    let mut recording = Recording::new(
+        config.channels.iter().map(|c| c.name.clone()).collect(),
+        config.channels.iter().map(|c| c.unit.clone()).collect(),
+        config.steps,
+    );
     let mut acc = vec![Accumulator::default(); n];
-    let mut rows = Vec::with_capacity(if config.record.is_some() {
-        config.steps
-    } else {
-        0
-    });
+    let mut refs = vec![Reference::default(); n];
     let mut rtts: Vec<u32> = Vec::with_capacity(config.steps);
-    let mut report = AgentReport {
-        device_id: id.to_string(),
-        channels: Vec::new(),
-        periods: 0,
-        commands: 0,
-        missing: 0,
-        late: 0,
-        stale: 0,
-        duplicate_commands: 0,
-        warming_up: 0,
-        rejected: 0,
-        fallbacks: 0,
-        holding_periods: 0,
-        fallback_periods: 0,
-        safe_stop_periods: 0,
-        rtt_p50_us: 0.0,
-        rtt_p99_us: 0.0,
-        overruns: 0,
-        completed: false,
-    };
-    let mut missing_streak: u32 = 0;
-    let mut last_applied: Option<u64> = None;
     let mut sent_at: std::collections::VecDeque<(u64, Instant)> = std::collections::VecDeque::new();
     let mut last_rtt_us: u32 = 0;
-    let mut mode = LoopMode::Remote;
-    // Give the subscriptions a moment to propagate before the first sample.
-    tokio::time::sleep(Duration::from_millis(100)).await;
-    let start = Instant::now();
+    let mut overruns = 0u64;
+    let mut end = End::Completed;
+    let mut error: Option<String> = None;
+    let (mut bad_commands, mut refusals) = (LogBudget::default(), LogBudget::default());
+    tokio::pin!(stop);
 
-    for k in 0..config.steps {
+    tokio::select! {
+        _ = tokio::time::sleep(config.startup_delay) => {}
+        _ = &mut stop => end = End::Interrupted,
+    }
+    let start = Instant::now();
+    'run: for k in 0..config.steps {
+        if end != End::Completed {
+            break;
+        }
         let deadline = start + period * k as u32;
         let next = deadline + period;
-        tokio::time::sleep_until(deadline).await;
+        tokio::select! {
+            _ = tokio::time::sleep_until(deadline) => {}
+            _ = &mut stop => { end = End::Interrupted; break 'run; }
+        }
         if Instant::now() > deadline + period / 2 {
-            report.overruns += 1;
+            overruns += 1;
         }
         let t = k as f64 * h;
-        let y = plant.read()?;
-        let flags = match mode {
-            LoopMode::Remote => 0,
-            LoopMode::Holding => pb::SampleFlags::Holding as u32,
-            LoopMode::Fallback => pb::SampleFlags::Fallback as u32,
-            LoopMode::SafeStop => pb::SampleFlags::SafeStop as u32,
+        let y = match plant.read().await {
+            Ok(y) => y,
+            Err(e) => {
+                (end, error) = (End::PlantFailed, Some(e.to_string()));
+                break;
+            }
+        };
+        for (r, pieces) in refs.iter_mut().zip(&references) {
+            *r = evaluate(pieces, t);
+        }
+        let mode_before = sup.mode();
+        let begin = match sup.begin_period(k as u64, t, &y, &refs) {
+            Ok(b) => b,
+            Err(e) => {
+                (end, error) = (End::PlantFailed, Some(format!("supervisor: {e}")));
+                break;
+            }
         };
         let sample = pb::Sample {
             version: PROTOCOL_VERSION,
@@ -283,222 +454,171 @@ pub async fn run_agent(
             seq: k as u64,
             plant_time: t,
             outputs: y.clone(),
-            applied: interval_mean.clone(),
-            flags,
+            applied: begin.applied_mean.clone(),
+            flags: flags(begin.sample_mode),
             sent_unix_ns: protocol::unix_ns(),
             last_rtt_us,
             run_id,
         };
         sent_at.push_back((k as u64, Instant::now()));
-        if sent_at.len() > config.max_age as usize + 2 {
+        if sent_at.len() > config.safety.max_age as usize + 2 {
             sent_at.pop_front();
         }
         if let Err(e) = publisher.put(encode(&sample)).await {
             tracing::warn!(device = id, "publishing sample {k}: {e}");
         }
-        // The local controller follows every period, fed what was really applied.
-        for (r, pieces) in refs.iter_mut().zip(&config.reference) {
-            *r = evaluate(pieces, t);
-        }
-        if k > 0 {
-            let _ = local.report_applied(&interval_mean);
-        }
-        let local_ok = local.step(t, &y, &refs, &mut local_out).is_ok();
-        let mut period_mode = mode;
-        let in_fallback = matches!(mode, LoopMode::Fallback | LoopMode::SafeStop);
-        if in_fallback || (missing_streak > 0 && missing_streak >= config.hold_periods) {
-            // Commands have been missing too long: fall back now, locally, without delay.
-            let v: Vec<f64> = match (config.fallback, local_ok) {
-                (Fallback::Local, true) => local_out.iter().map(|o| o.v).collect(),
-                _ => vec![0.0; n],
-            };
-            let new_mode = if config.fallback == Fallback::Local && local_ok {
-                LoopMode::Fallback
-            } else {
-                LoopMode::SafeStop
-            };
-            if !matches!(mode, LoopMode::Fallback | LoopMode::SafeStop) {
-                report.fallbacks += 1;
+        if let Some(v) = begin.write {
+            if !matches!(mode_before, Mode::Local | Mode::SafeStop) {
                 tracing::warn!(
                     device = id,
                     seq = k,
-                    "no command for {missing_streak} periods: {new_mode:?}"
+                    "no command for {} periods: {:?}",
+                    sup.missing_streak(),
+                    sup.mode()
                 );
             }
-            mode = new_mode;
-            period_mode = new_mode;
-            applied = plant.write(&v)?;
+            match plant.write(v).await {
+                Ok(a) => sup.applied(&a),
+                Err(e) => {
+                    (end, error) = (End::PlantFailed, Some(e.to_string()));
+                    break;
+                }
+            }
         }
 
-        let mut seg_start = 0.0;
-        interval_acc.iter_mut().for_each(|a| *a = 0.0);
-        // Apply the newest acceptable command as soon as it arrives, until the next
-        // deadline: normally command k; on a slow link an older one, up to `max_age`
-        // periods old. Anything older, or not newer than the last applied, is dropped.
-        let mut elapsed_in_period = 0.0;
-        let mut got = false;
-        let mut warming = false;
         let mut rtt_us = 0;
+        let mut remote: Option<(Vec<f64>, Vec<f64>)> = None;
         loop {
-            let Ok(Some((arrival, bytes))) = tokio::time::timeout_at(next, rx.recv()).await else {
+            let arrived = tokio::select! {
+                r = tokio::time::timeout_at(next, rx.recv()) => r,
+                _ = &mut stop => { end = End::Interrupted; break 'run; }
+            };
+            let Ok(Some((arrival, bytes))) = arrived else {
                 break;
             };
             let cmd = match decode::<pb::Command>(&bytes) {
-                Ok(c) => c,
+                Ok(c) if c.device_id == id => c,
+                Ok(_) => continue,
                 Err(e) => {
-                    tracing::warn!(device = id, "undecodable command: {e}");
+                    if bad_commands.hit() {
+                        tracing::warn!(device = id, "undecodable command: {e}");
+                    }
                     continue;
                 }
             };
-            let s = cmd.seq;
-            if cmd.device_id != id || s > k as u64 {
-                continue;
-            }
-            if last_applied == Some(s) {
-                report.duplicate_commands += 1;
-                continue;
-            }
-            if last_applied.is_some_and(|l| s < l) || k as u64 - s > u64::from(config.max_age) {
-                report.stale += 1;
-                continue;
-            }
-            match pb::Mode::try_from(cmd.mode) {
-                Ok(pb::Mode::Control)
-                    if cmd.v.len() == n && cmd.v.iter().all(|v| v.is_finite()) =>
-                {
-                    let at = (arrival - deadline).as_secs_f64().clamp(0.0, h);
-                    plant.advance(at - elapsed_in_period)?;
-                    elapsed_in_period = at;
-                    for (a, v) in interval_acc.iter_mut().zip(&applied) {
-                        *a += v * (at - seg_start);
+            let body = match pb::Mode::try_from(cmd.mode) {
+                Ok(pb::Mode::Control) => CommandBody::Control(&cmd.v),
+                Ok(pb::Mode::WarmingUp) => CommandBody::WarmingUp,
+                Ok(pb::Mode::Rejected) => CommandBody::Rejected(&cmd.error),
+                _ => CommandBody::Unknown,
+            };
+            let at = arrival.saturating_duration_since(deadline).as_secs_f64();
+            let was = sup.mode();
+            let (verdict, answered) = sup.on_command(at, IncomingCommand { seq: cmd.seq, body });
+            match verdict {
+                Verdict::Apply { v, advance, .. } => {
+                    let written = match plant.advance(advance).await {
+                        Ok(()) => plant.write(v).await,
+                        Err(e) => Err(e),
+                    };
+                    match written {
+                        Ok(a) => sup.applied(&a),
+                        Err(e) => {
+                            (end, error) = (End::PlantFailed, Some(e.to_string()));
+                            break 'run;
+                        }
                     }
-                    seg_start = at;
-                    applied = plant.write(&cmd.v)?;
-                    if let Some((_, sent)) = sent_at.iter().find(|(q, _)| *q == s) {
-                        rtt_us = u32::try_from((arrival - *sent).as_micros()).unwrap_or(u32::MAX);
+                    if let Some((_, sent)) = sent_at.iter().find(|(q, _)| *q == cmd.seq) {
+                        rtt_us =
+                            u32::try_from(arrival.saturating_duration_since(*sent).as_micros())
+                                .unwrap_or(u32::MAX);
                         rtts.push(rtt_us);
                     }
-                    report.commands += 1;
-                    if s < k as u64 {
-                        report.late += 1;
-                    }
-                    if matches!(mode, LoopMode::Fallback | LoopMode::SafeStop) {
+                    if matches!(was, Mode::Local | Mode::SafeStop) {
                         tracing::info!(
                             device = id,
                             seq = k,
                             "commands are back: remote control resumes"
                         );
                     }
-                    last_applied = Some(s);
-                    mode = LoopMode::Remote;
-                    missing_streak = 0;
-                    got = true;
-                    if s == k as u64 {
-                        break;
+                    remote = Some((cmd.u.clone(), cmd.f_est.clone()));
+                }
+                Verdict::Rejected => {
+                    if refusals.hit() {
+                        tracing::warn!(
+                            device = id,
+                            seq = cmd.seq,
+                            "sample refused by the controller: {}",
+                            cmd.error
+                        );
                     }
                 }
-                Ok(pb::Mode::WarmingUp) => {
-                    // The controller is alive but not ready: not a missing command, and
-                    // nothing to apply (keep holding, or keep the local fallback running).
-                    warming = true;
-                    report.warming_up += 1;
-                    missing_streak = 0;
-                    if s == k as u64 {
-                        break;
-                    }
-                }
-                Ok(pb::Mode::Rejected) => {
-                    report.rejected += 1;
-                    tracing::warn!(
-                        device = id,
-                        seq = s,
-                        "sample refused by the controller: {}",
-                        cmd.error
-                    );
-                    if s == k as u64 {
-                        break;
-                    }
-                }
-                _ => {}
+                Verdict::WarmingUp | Verdict::Ignored(_) => {}
+            }
+            if answered {
+                break;
             }
         }
-        if !got && !warming {
-            report.missing += 1;
-            missing_streak += 1;
-            if mode == LoopMode::Remote && missing_streak < config.hold_periods.max(1) {
-                mode = LoopMode::Holding;
+        let done = match sup.end_period() {
+            Ok(d) => d,
+            Err(e) => {
+                (end, error) = (End::PlantFailed, Some(format!("supervisor: {e}")));
+                break;
             }
-            if mode == LoopMode::Holding {
-                period_mode = LoopMode::Holding;
-            }
-        }
-        match period_mode {
-            LoopMode::Holding => report.holding_periods += 1,
-            LoopMode::Fallback => report.fallback_periods += 1,
-            LoopMode::SafeStop => report.safe_stop_periods += 1,
-            LoopMode::Remote => {}
-        }
-        plant.advance(h - elapsed_in_period)?;
-        for ((m, a), v) in interval_mean.iter_mut().zip(&interval_acc).zip(&applied) {
-            *m = (a + v * (h - seg_start)) / h;
+        };
+        if let Err(e) = plant.advance(done.advance).await {
+            (end, error) = (End::PlantFailed, Some(e.to_string()));
+            break;
         }
         last_rtt_us = rtt_us;
-        for i in 0..n {
-            acc[i].add(
-                y[i] - refs[i].y,
-                h,
-                applied[i],
-                applied[i].abs() >= config.max_voltage - 1e-9,
-            );
+        let applied = sup.applied_now().to_vec();
+        for (i, c) in config.channels.iter().enumerate() {
+            acc[i].add(y[i] - refs[i].y, h, applied[i], c.saturated(applied[i]));
         }
-        if config.record.is_some() {
-            rows.push(Row {
-                t,
-                y_ref: refs.iter().map(|r| r.y).collect(),
-                y,
-                v: applied.clone(),
-                mode: period_mode,
-                rtt_us,
-            });
-        }
-        report.periods += 1;
+        let y_ref: Vec<f64> = refs.iter().map(|r| r.y).collect();
+        recording.push(Period {
+            t,
+            y_ref: &y_ref,
+            y: &y,
+            u: remote.as_ref().map(|r| r.0.as_slice()),
+            v: &applied,
+            f_est: remote.as_ref().map(|r| r.1.as_slice()),
+            net: Some((done.mode, rtt_us)),
+        });
     }
-    plant.stop()?;
-    rtts.sort_unstable();
-    report.rtt_p50_us = percentile(&rtts, 0.5);
-    report.rtt_p99_us = percentile(&rtts, 0.99);
-    report.channels = acc
-        .iter()
-        .zip(&config.names)
-        .map(|(a, name)| a.finish(name))
-        .collect();
-    report.completed = true;
-    if let Some(path) = &config.record {
-        write_rows(path, &config.names, &rows).map_err(|source| AgentError::Record {
-            path: path.clone(),
-            source,
-        })?;
-    }
-    Ok((report, rows))
-}
 
-fn write_rows(path: &std::path::Path, names: &[String], rows: &[Row]) -> std::io::Result<()> {
-    use std::io::Write;
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir)?;
-    }
-    let mut w = std::io::BufWriter::new(std::fs::File::create(path)?);
-    write!(w, "t")?;
-    for n in names {
-        write!(w, ",{n}_ref,{n},{n}_v")?;
-    }
-    writeln!(w, ",mode,rtt_us")?;
-    for r in rows {
-        write!(w, "{:.4}", r.t)?;
-        for i in 0..names.len() {
-            write!(w, ",{:e},{:e},{:e}", r.y_ref[i], r.y[i], r.v[i])?;
+    // However the run ended, the plant gets its safe stop.
+    let (safe_stop_applied, safe_stop_error) = match plant.stop().await {
+        Ok(()) => (true, None),
+        Err(e) => {
+            tracing::error!(device = id, "safe stop not confirmed: {e}");
+            (false, Some(e.to_string()))
         }
-        writeln!(w, ",{:?},{}", r.mode, r.rtt_us)?;
+    };
+    if let Some(e) = &error {
+        tracing::error!(device = id, "run ended: {e}");
     }
-    w.flush()
+    rtts.sort_unstable();
+    let counters = sup.counters().clone();
+    let report = AgentReport {
+        device_id: id.to_string(),
+        scenario: config.scenario.clone(),
+        controller: config.controller.clone(),
+        end,
+        error,
+        safe_stop_applied,
+        safe_stop_error,
+        controller_reached: counters.commands + counters.warming_up > 0,
+        channels: acc
+            .iter()
+            .zip(&config.channels)
+            .map(|(a, c)| a.finish(&c.name))
+            .collect(),
+        counters,
+        rtt_p50_us: percentile(&rtts, 0.5),
+        rtt_p99_us: percentile(&rtts, 0.99),
+        overruns,
+        limit_hits: plant.limit_hits(),
+    };
+    AgentRun { report, recording }
 }

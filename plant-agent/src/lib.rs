@@ -1,20 +1,26 @@
-//! Plant agent: bridges a plant (the simulated Quanser AERO, or a real rig's driver) to the
-//! model-free controller.
+//! Plant agent: bridges one plant (a rig's driver, or a simulator) to a model-free
+//! controller service over Zenoh, paces the loop, and keeps the plant safe when commands
+//! are late or lost.
 //!
-//! This crate holds the AERO simulator ([`aero`]), the scenario format ([`scenario`], with references from
-//! [`mfc::trajectory`]), the offline closed loop ([`offline`]), the fair tuner ([`tune`]), the
-//! comparison ([`compare`]) and the plots ([`plot`]); the `plant-agent` binary is a thin CLI
-//! over them.
+//! * [`scenario`]: what a plant is to the project (channels, actuator ranges, references,
+//!   controller sets), read from TOML files; the AERO is one plant among others;
+//! * [`plant`]: the [`plant::Plant`] trait, the AERO simulator behind it and the driver
+//!   bridge for any other plant (`DRIVER.md`);
+//! * [`safety`]: the agent's rules (command acceptance, hold, fallback, safe stop, what was
+//!   really applied), pure: no I/O, no async, no clock;
+//! * [`agent`]: the networked loop, thin wiring around [`safety`];
+//! * [`config`]: the agent's configuration file;
+//! * [`record`]: the recorder every run uses (CSV, summary, plots, metrics);
+//! * [`cli`]: the `plant-agent` command line.
+//!
+//! It depends on the core crates (`mfc`, `protocol`, `transport`) and the AERO simulator,
+//! never on the controller service: the process next to a machine carries nothing it
+//! does not run.
 
-pub mod aero;
 pub mod agent;
-pub mod compare;
-pub mod demo;
-pub mod metrics;
-pub mod offline;
-pub mod output;
+pub mod cli;
+pub mod config;
 pub mod plant;
-pub mod plot;
-pub mod rng;
+pub mod record;
+pub mod safety;
 pub mod scenario;
-pub mod tune;

@@ -1,10 +1,14 @@
-//! The plant behind the agent: a [`Plant`] trait with two backends.
+//! The plant behind the agent: a [`Plant`] trait with two backends, and [`open`] to get
+//! the one a scenario names.
 //!
-//! * [`SimPlant`]: the AERO simulator, in process;
-//! * [`DriverPlant`]: a separate process that talks to the real rig (a Quanser HIL program,
-//!   a Python script, ...) over a line protocol on its stdin/stdout, so real hardware plugs
-//!   in without recompiling. `plant-agent sim-driver` is a reference driver backed by the
-//!   simulator.
+//! * [`AeroPlant`]: the AERO simulator (`aero-sim`), in process;
+//! * [`DriverPlant`]: any plant behind a separate process that speaks a line protocol on
+//!   its stdin/stdout (`plant-agent/DRIVER.md`): a real rig's driver, a Python simulator,
+//!   ... Real hardware and user simulators plug in without recompiling.
+//!
+//! The trait is synchronous on purpose: plant I/O can block (a driver thinking, a serial
+//! line), so the networked loop runs it on a thread of its own ([`crate::agent`]) and the
+//! offline loop calls it directly, in lockstep, as fast as the plant answers.
 //!
 //! # Driver protocol (one line each way, ASCII, numbers as decimal floats)
 //!
@@ -12,19 +16,22 @@
 //! |---|---|---|
 //! | (on start) | `hello channels=N` | the driver is ready and has `N` outputs and inputs |
 //! | `read` | `y1 y2 ... yN` | measure the outputs now |
-//! | `write v1 ... vN` | `ok a1 ... aN` | apply the inputs from now on; `a` is what was really applied (after the amplifier's limits) |
+//! | `write v1 ... vN` | `ok a1 ... aN` | apply the inputs from now on; `a` is what was really applied (after the actuator's limits) |
 //! | `advance DT` | `ok` | simulated drivers advance their time by `DT` seconds; real ones ignore it |
 //! | `stop` | `ok` | apply a safe stop and exit |
+//! | (end of input) | (exit) | the agent is gone: apply a safe stop and exit |
 //!
 //! Any request may be answered `err MESSAGE`. A driver that does not answer within the
-//! agent's timeout is treated as failed: the agent stops.
+//! timeout is treated as failed.
 
 use std::io::{BufRead, BufReader, Write};
 use std::process::{Child, ChildStdin, Command, Stdio};
 use std::sync::mpsc;
 use std::time::Duration;
 
-use crate::aero::{AeroParams, AeroSim, CHANNELS};
+use aero_sim::{AeroParams, AeroSim, CHANNELS};
+
+use crate::scenario::{DriverCommand, PlantSource};
 
 /// Why the plant could not be driven.
 #[derive(Debug, thiserror::Error)]
@@ -50,7 +57,35 @@ pub enum PlantError {
     },
     /// Simulator parameters.
     #[error(transparent)]
-    Params(#[from] crate::aero::ParamError),
+    Params(#[from] aero_sim::ParamError),
+    /// The plant has another number of channels than its scenario.
+    #[error("the plant has {plant} channel(s), the scenario {scenario}")]
+    Channels {
+        /// What the plant said.
+        plant: usize,
+        /// What the scenario says.
+        scenario: usize,
+    },
+}
+
+/// Open the plant a scenario names: the AERO simulator with `seed`, or its driver process.
+/// The channel count is checked against `channels`.
+pub fn open(
+    source: &PlantSource,
+    seed: u64,
+    channels: usize,
+) -> Result<Box<dyn Plant>, PlantError> {
+    let plant: Box<dyn Plant> = match source {
+        PlantSource::Aero(params) => Box::new(AeroPlant::new(params.clone(), seed)?),
+        PlantSource::Driver(cmd) => Box::new(DriverPlant::start(cmd)?),
+    };
+    if plant.channels() != channels {
+        return Err(PlantError::Channels {
+            plant: plant.channels(),
+            scenario: channels,
+        });
+    }
+    Ok(plant)
 }
 
 /// A plant the agent can drive.
@@ -63,16 +98,21 @@ pub trait Plant: Send {
     fn write(&mut self, v: &[f64]) -> Result<Vec<f64>, PlantError>;
     /// Let `dt` seconds pass (simulators integrate; real plants ignore it: time passes).
     fn advance(&mut self, dt: f64) -> Result<(), PlantError>;
-    /// Apply zeros and release the plant.
+    /// Apply the safe stop (zero inputs) and release the plant.
     fn stop(&mut self) -> Result<(), PlantError>;
+    /// Times the plant hit a mechanical limit (the AERO's pitch stop): a safety excursion
+    /// the tuner penalises. Plants that cannot tell report 0.
+    fn limit_hits(&self) -> usize {
+        0
+    }
 }
 
 /// The AERO simulator as a [`Plant`].
-pub struct SimPlant {
+pub struct AeroPlant {
     sim: AeroSim,
 }
 
-impl SimPlant {
+impl AeroPlant {
     /// A simulated AERO.
     pub fn new(params: AeroParams, seed: u64) -> Result<Self, PlantError> {
         Ok(Self {
@@ -93,7 +133,7 @@ fn pair(v: &[f64]) -> [f64; 2] {
     ]
 }
 
-impl Plant for SimPlant {
+impl Plant for AeroPlant {
     fn channels(&self) -> usize {
         CHANNELS
     }
@@ -111,7 +151,13 @@ impl Plant for SimPlant {
         self.sim.apply([0.0, 0.0]);
         Ok(())
     }
+    fn limit_hits(&self) -> usize {
+        self.sim.stop_hits()
+    }
 }
+
+/// Longest wait for a driver's `hello`: interpreters and vendor SDKs start slowly.
+pub const HELLO_TIMEOUT: Duration = Duration::from_secs(10);
 
 /// A plant behind an external driver process.
 pub struct DriverPlant {
@@ -123,15 +169,46 @@ pub struct DriverPlant {
 }
 
 impl DriverPlant {
-    /// Start `program args...` and wait (up to `timeout`) for its `hello`.
-    pub fn spawn(program: &str, args: &[String], timeout: Duration) -> Result<Self, PlantError> {
-        let mut child = Command::new(program)
+    /// Start a driver as a scenario describes it, and wait for its `hello`.
+    pub fn start(cmd: &DriverCommand) -> Result<Self, PlantError> {
+        let (program, args) = cmd
+            .argv
+            .split_first()
+            .ok_or_else(|| PlantError::Driver("empty driver command".into()))?;
+        Self::spawn(
+            program,
+            args,
+            cmd.dir.as_deref(),
+            HELLO_TIMEOUT.max(cmd.timeout),
+            cmd.timeout,
+        )
+    }
+
+    /// Start `program args...` (in `dir`, if given), wait up to `hello_timeout` for its
+    /// `hello`, then allow `timeout` per request.
+    pub fn spawn(
+        program: &str,
+        args: &[String],
+        dir: Option<&std::path::Path>,
+        hello_timeout: Duration,
+        timeout: Duration,
+    ) -> Result<Self, PlantError> {
+        let mut command = Command::new(program);
+        command
             .args(args)
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .map_err(|e| PlantError::Driver(format!("starting {program}: {e}")))?;
+            .stderr(Stdio::inherit());
+        if let Some(d) = dir {
+            command.current_dir(d);
+        }
+        let mut child = command.spawn().map_err(|e| {
+            PlantError::Driver(format!(
+                "starting {program}{}: {e}",
+                dir.map(|d| format!(" in {}", d.display()))
+                    .unwrap_or_default()
+            ))
+        })?;
         let stdin = child
             .stdin
             .take()
@@ -156,13 +233,14 @@ impl DriverPlant {
             stdin,
             lines,
             channels: 0,
-            timeout,
+            timeout: hello_timeout,
         };
         let hello = plant.answer("(start)")?;
+        plant.timeout = timeout;
         plant.channels = hello
             .strip_prefix("hello channels=")
             .and_then(|n| n.trim().parse().ok())
-            .filter(|n| *n > 0)
+            .filter(|n| (1..=crate::scenario::MAX_CHANNELS).contains(n))
             .ok_or(PlantError::Protocol {
                 request: "(start)".into(),
                 answer: hello.clone(),
@@ -242,75 +320,35 @@ impl Plant for DriverPlant {
     }
     fn stop(&mut self) -> Result<(), PlantError> {
         let a = self.request("stop");
-        let _ = self.child.wait();
+        self.reap();
         a.map(|_| ())
+    }
+}
+
+impl DriverPlant {
+    /// Wait a moment for the driver to exit after `stop` (or after its input closed),
+    /// then kill it: a driver that ignores `stop` must not keep the agent from ending.
+    fn reap(&mut self) {
+        let until = std::time::Instant::now() + Duration::from_secs(2);
+        while std::time::Instant::now() < until {
+            if !matches!(self.child.try_wait(), Ok(None)) {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
     }
 }
 
 impl Drop for DriverPlant {
     fn drop(&mut self) {
         if let Ok(None) = self.child.try_wait() {
+            // Dropped without `stop` (an error path): ask for the safe stop, then make sure
+            // the process is gone.
             let _ = writeln!(self.stdin, "stop");
             let _ = self.stdin.flush();
-            std::thread::sleep(Duration::from_millis(50));
-            let _ = self.child.kill();
-            let _ = self.child.wait();
+            self.reap();
         }
     }
-}
-
-/// Serve the driver protocol on `input`/`output` with a simulated AERO: the reference
-/// driver (`plant-agent sim-driver`) and the fake rig of the bridge's tests.
-pub fn serve_sim_driver(
-    params: AeroParams,
-    seed: u64,
-    input: impl BufRead,
-    mut output: impl Write,
-) -> std::io::Result<()> {
-    let mut sim = match AeroSim::new(params, seed) {
-        Ok(s) => s,
-        Err(e) => {
-            writeln!(output, "err {e}")?;
-            return Ok(());
-        }
-    };
-    writeln!(output, "hello channels={CHANNELS}")?;
-    output.flush()?;
-    for line in input.lines() {
-        let line = line?;
-        let mut words = line.split_whitespace();
-        let reply = match words.next() {
-            Some("read") => {
-                let y = sim.measure();
-                format!("{:e} {:e}", y[0], y[1])
-            }
-            Some("write") => {
-                let v: Result<Vec<f64>, _> = words.map(str::parse::<f64>).collect();
-                match v {
-                    Ok(v) if v.len() == CHANNELS => {
-                        let a = sim.apply(pair(&v));
-                        format!("ok {:e} {:e}", a[0], a[1])
-                    }
-                    _ => format!("err write needs {CHANNELS} numbers"),
-                }
-            }
-            Some("advance") => match words.next().and_then(|w| w.parse::<f64>().ok()) {
-                Some(dt) if dt.is_finite() && dt >= 0.0 => {
-                    sim.advance(dt);
-                    "ok".into()
-                }
-                _ => "err advance needs a duration".into(),
-            },
-            Some("stop") => {
-                sim.apply([0.0, 0.0]);
-                writeln!(output, "ok")?;
-                output.flush()?;
-                return Ok(());
-            }
-            _ => format!("err unknown request {line:?}"),
-        };
-        writeln!(output, "{reply}")?;
-        output.flush()?;
-    }
-    Ok(())
 }

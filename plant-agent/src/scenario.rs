@@ -10,30 +10,41 @@
 //! period = 0.01            # s, sampling and actuation (default 0.01)
 //! seed = 1                 # noise seed (default 0)
 //!
-//! [plant]
-//! file = "../plants/aero.toml"   # optional, relative to this file
+//! [plant]                        # the built-in AERO simulator (the default) ...
+//! file = "../plant.toml"         # optional, relative to this file
 //! added_mass = false             # the paper's 4 g at the arm (default false)
 //! params = { pitch_noise = 0.0 } # inline overrides of the plant file
+//! # ... or any plant behind a driver process (plant-agent/DRIVER.md), started in
+//! # this file's directory:
+//! # driver = ["python3", "../heater.py", "--seed", "1"]
 //!
-//! [[channels]]                   # one per output, in the plant's order
+//! [[channels]]                   # one per output, in the plant's order (1 to 64)
 //! name = "azimuth_velocity"
 //! reference = [{ kind = "constant", value = 0.0 }]
-//! output = { dead_zone = 10.0, min = -24.0, max = 24.0 }
+//! output = { dead_zone = 10.0, min = -24.0, max = 24.0 }   # default: identity, no limits
 //!
-//! [controller]                   # or a shipped one by name: controller = "ip"
+//! [controller]                   # or a file or shipped name: controller = "ipd"
 //! name = "ip"
 //! channels = [ { law = "intelligent", params = { alpha = 0.001, kp = 0.5 } }, ... ]
 //! ```
 //!
-//! Every error names the file, the field and the reason.
+//! Nothing here is specific to the AERO except the `[plant]` table's simulator fields:
+//! the channel count, the output maps and the actuator ranges come from the files, and an
+//! output map is the identity unless the file says otherwise (a heater must be able to
+//! get 3 V). Every error names the file, the field and the reason.
 
 use std::path::{Path, PathBuf};
 
 use mfc::{ChannelConfig, LawConfig, OutputMapConfig};
 use serde::{Deserialize, Serialize};
 
-use crate::aero::{AeroParams, CHANNELS, PAPER_ADDED_MASS};
+use aero_sim::{AeroParams, PAPER_ADDED_MASS};
 use mfc::trajectory::Piece;
+
+/// Most channels a plant may have: far beyond any rig we know of, small enough that a
+/// typo (`channels = 1e6` in a generated file) is caught here rather than as a huge
+/// allocation.
+pub const MAX_CHANNELS: usize = 64;
 
 /// Why a scenario, plant or controller file could not be used.
 #[derive(Debug, thiserror::Error)]
@@ -76,22 +87,59 @@ pub enum ScenarioError {
     },
 }
 
-/// The plant of a scenario.
+/// The `[plant]` table as written: the AERO simulator's fields, or a driver command.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
-pub struct PlantSpec {
-    /// Plant file (TOML of `AeroParams`), relative to the scenario file.
+pub struct PlantTable {
+    /// AERO plant file (TOML of `AeroParams`), relative to the scenario file.
     pub file: Option<PathBuf>,
-    /// Add the paper's 4 g mass at the rotor arm.
+    /// Add the paper's 4 g mass at the rotor arm (AERO).
     pub added_mass: bool,
-    /// Inline overrides of plant parameters.
+    /// Inline overrides of AERO plant parameters.
     pub params: toml::Table,
+    /// A driver process (argv), started in the scenario file's directory. Excludes the
+    /// AERO fields above.
+    pub driver: Option<Vec<String>>,
+    /// How long a driver may take to answer one request (ms). Default: five periods, at
+    /// least 500 ms. The first answer (`hello`) may take up to 10 s (interpreters start
+    /// slowly).
+    pub timeout_ms: Option<u64>,
 }
 
-/// One channel of a scenario.
+/// The plant of a loaded scenario.
+#[derive(Debug, Clone, PartialEq)]
+pub enum PlantSource {
+    /// The built-in AERO simulator with these parameters.
+    Aero(AeroParams),
+    /// A plant behind a driver process.
+    Driver(DriverCommand),
+}
+
+/// How to start a driver process.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DriverCommand {
+    /// Program and arguments.
+    pub argv: Vec<String>,
+    /// Working directory (the scenario file's directory; `None`: the current one).
+    pub dir: Option<PathBuf>,
+    /// Longest wait for one answer.
+    pub timeout: std::time::Duration,
+}
+
+impl PlantSource {
+    /// The AERO's parameters, if the plant is the simulator.
+    pub fn aero(&self) -> Option<&AeroParams> {
+        match self {
+            PlantSource::Aero(p) => Some(p),
+            PlantSource::Driver(_) => None,
+        }
+    }
+}
+
+/// One channel of a scenario: an output of the plant, its reference and its actuator.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct ChannelSpec {
+pub struct ScenarioChannel {
     /// Channel name (used in the CSV and the plots).
     pub name: String,
     /// Unit of the output, for the plots. Default: none.
@@ -99,13 +147,30 @@ pub struct ChannelSpec {
     pub unit: String,
     /// Reference: the sum of these pieces.
     pub reference: Vec<Piece>,
-    /// Output map. Default: the AERO's (±10 V dead-zone compensation, ±24 V).
-    #[serde(default = "aero_map")]
+    /// Output map and actuator range. Default: the identity with no limits; the AERO's
+    /// files state their ±10 V dead-zone compensation and ±24 V range.
+    #[serde(default)]
     pub output: OutputMapConfig,
 }
 
-fn aero_map() -> OutputMapConfig {
-    OutputMapConfig::AERO
+impl ScenarioChannel {
+    /// Whether an applied input sits at one of the channel's actuator limits.
+    pub fn saturated(&self, v: f64) -> bool {
+        const EPS: f64 = 1e-9;
+        (self.output.max.is_finite() && v >= self.output.max - EPS)
+            || (self.output.min.is_finite() && v <= self.output.min + EPS)
+    }
+
+    /// The largest input magnitude the actuator can give (1 when unlimited), to make
+    /// actuator figures comparable across plants.
+    pub fn input_scale(&self) -> f64 {
+        let m = self.output.max.abs().max(self.output.min.abs());
+        if m.is_finite() && m > 0.0 {
+            m
+        } else {
+            1.0
+        }
+    }
 }
 
 /// A controller for every channel of a plant: what `tune` writes and `sim` reads.
@@ -121,11 +186,12 @@ pub struct ControllerSet {
     pub channels: Vec<LawConfig>,
 }
 
-/// The controller of a scenario: inline, or a shipped one by name.
+/// The controller of a scenario: a file or shipped name, or inline.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(untagged)]
 pub enum ControllerRef {
-    /// A shipped controller set (`ip`, `ipi`, `ipd`, `pid`, `adrc`).
+    /// A controller file relative to the scenario, or a shipped AERO set (`ip`, `ipi`,
+    /// `ipd`, `ipd-tuned`, `pid`, `adrc`).
     Named(String),
     /// Inline.
     Inline(ControllerSet),
@@ -144,8 +210,8 @@ struct ScenarioFile {
     #[serde(default)]
     seed: u64,
     #[serde(default)]
-    plant: PlantSpec,
-    channels: Vec<ChannelSpec>,
+    plant: PlantTable,
+    channels: Vec<ScenarioChannel>,
     controller: ControllerRef,
 }
 
@@ -164,12 +230,12 @@ pub struct Scenario {
     pub duration: f64,
     /// Sampling period (s).
     pub period: f64,
-    /// Noise seed.
+    /// Noise seed of the built-in simulator (drivers take theirs on their command line).
     pub seed: u64,
-    /// Resolved plant parameters.
-    pub plant: AeroParams,
-    /// Channels.
-    pub channels: Vec<ChannelSpec>,
+    /// The plant.
+    pub plant: PlantSource,
+    /// Channels, in the plant's order.
+    pub channels: Vec<ScenarioChannel>,
     /// The scenario's own controller.
     pub controller: ControllerSet,
 }
@@ -191,43 +257,80 @@ impl Scenario {
     pub fn steps(&self) -> usize {
         (self.duration / self.period).round() as usize + 1
     }
+
+    /// Channel names, in order.
+    pub fn names(&self) -> Vec<String> {
+        self.channels.iter().map(|c| c.name.clone()).collect()
+    }
+
+    /// Reference pieces of every channel, in order.
+    pub fn references(&self) -> Vec<Vec<Piece>> {
+        self.channels.iter().map(|c| c.reference.clone()).collect()
+    }
+
+    /// Check that `set` has one valid law per channel of this scenario.
+    pub fn check_controller(&self, set: &ControllerSet) -> Result<(), ScenarioError> {
+        check_controller(
+            Path::new(&format!("controller `{}`", set.name)),
+            set,
+            self.channels.len(),
+        )
+    }
 }
 
-/// The shipped scenarios: (name, file name, text).
+/// Where the shipped plants live in the source tree (`plants/` at the workspace root).
+const SHIPPED_ROOT: &str = "<shipped>/plants/aero";
+
+/// The shipped AERO scenarios: (name, file name, text).
 pub const SHIPPED_SCENARIOS: [(&str, &str, &str); 4] = [
     (
         "1",
         "1-simple.toml",
-        include_str!("../scenarios/1-simple.toml"),
+        include_str!("../../plants/aero/scenarios/1-simple.toml"),
     ),
     (
         "2",
         "2-complex.toml",
-        include_str!("../scenarios/2-complex.toml"),
+        include_str!("../../plants/aero/scenarios/2-complex.toml"),
     ),
     (
         "3",
         "3-simple-mass.toml",
-        include_str!("../scenarios/3-simple-mass.toml"),
+        include_str!("../../plants/aero/scenarios/3-simple-mass.toml"),
     ),
     (
         "4",
         "4-complex-mass.toml",
-        include_str!("../scenarios/4-complex-mass.toml"),
+        include_str!("../../plants/aero/scenarios/4-complex-mass.toml"),
     ),
 ];
 
-/// The shipped controller sets: (name, text).
+/// The shipped AERO controller sets: (name, text).
 pub const SHIPPED_CONTROLLERS: [(&str, &str); 6] = [
-    ("ip", include_str!("../controllers/ip.toml")),
-    ("ipi", include_str!("../controllers/ipi.toml")),
-    ("ipd", include_str!("../controllers/ipd.toml")),
-    ("ipd-tuned", include_str!("../controllers/ipd-tuned.toml")),
-    ("pid", include_str!("../controllers/pid.toml")),
-    ("adrc", include_str!("../controllers/adrc.toml")),
+    ("ip", include_str!("../../plants/aero/controllers/ip.toml")),
+    (
+        "ipi",
+        include_str!("../../plants/aero/controllers/ipi.toml"),
+    ),
+    (
+        "ipd",
+        include_str!("../../plants/aero/controllers/ipd.toml"),
+    ),
+    (
+        "ipd-tuned",
+        include_str!("../../plants/aero/controllers/ipd-tuned.toml"),
+    ),
+    (
+        "pid",
+        include_str!("../../plants/aero/controllers/pid.toml"),
+    ),
+    (
+        "adrc",
+        include_str!("../../plants/aero/controllers/adrc.toml"),
+    ),
 ];
 
-const SHIPPED_PLANT: &str = include_str!("../plants/aero.toml");
+const SHIPPED_PLANT: &str = include_str!("../../plants/aero/plant.toml");
 
 fn parse<T: serde::de::DeserializeOwned>(file: &Path, text: &str) -> Result<T, ScenarioError> {
     toml::from_str(text).map_err(|e| ScenarioError::Parse {
@@ -251,20 +354,31 @@ fn invalid(file: &Path, field: impl Into<String>, reason: impl Into<String>) -> 
     }
 }
 
-/// Load a scenario from a file path, or one of the shipped ones by name (`1` to `4`, or
-/// their file names, e.g. `2-complex`).
+/// Load a scenario from a file path, or one of the shipped AERO ones by name (`1` to `4`,
+/// or their file names, e.g. `2-complex`).
 pub fn load_scenario(name_or_file: &str) -> Result<Scenario, ScenarioError> {
     let path = Path::new(name_or_file);
     if path.is_file() {
         let text = read(path)?;
-        return from_text(path, &text, path.parent());
+        let dir = path.parent().map(|d| {
+            if d.as_os_str().is_empty() {
+                Path::new(".")
+            } else {
+                d
+            }
+        });
+        return from_text(path, &text, dir);
     }
     let key = name_or_file
         .trim_start_matches("scenario-")
         .trim_end_matches(".toml");
     for (name, file, text) in SHIPPED_SCENARIOS {
         if key == name || key == file.trim_end_matches(".toml") {
-            return from_text(Path::new(&format!("<shipped>/{file}")), text, None);
+            return from_text(
+                Path::new(&format!("{SHIPPED_ROOT}/scenarios/{file}")),
+                text,
+                None,
+            );
         }
     }
     Err(ScenarioError::Unknown {
@@ -278,7 +392,8 @@ pub fn load_scenario(name_or_file: &str) -> Result<Scenario, ScenarioError> {
     })
 }
 
-/// Parse and check a scenario's text; `dir` resolves a relative plant file.
+/// Parse and check a scenario's text; `dir` resolves relative plant, driver and
+/// controller paths (`None`: a shipped scenario).
 pub fn from_text(file: &Path, text: &str, dir: Option<&Path>) -> Result<Scenario, ScenarioError> {
     let raw: ScenarioFile = parse(file, text)?;
     if !(raw.duration.is_finite() && raw.duration > 0.0) {
@@ -294,18 +409,47 @@ pub fn from_text(file: &Path, text: &str, dir: Option<&Path>) -> Result<Scenario
     if raw.duration / raw.period > 10_000_000.0 {
         return Err(invalid(file, "period", "more than 10 million steps"));
     }
-    let plant = resolve_plant(file, &raw.plant, dir)?;
-    if raw.channels.len() != CHANNELS {
+    let plant = resolve_plant(file, &raw.plant, dir, raw.period)?;
+    let n = raw.channels.len();
+    if n == 0 || n > MAX_CHANNELS {
+        return Err(invalid(
+            file,
+            "channels",
+            format!("need 1 to {MAX_CHANNELS} channels, got {n}"),
+        ));
+    }
+    if matches!(plant, PlantSource::Aero(_)) && n != aero_sim::CHANNELS {
         return Err(invalid(
             file,
             "channels",
             format!(
-                "the AERO has {CHANNELS} outputs (azimuth velocity, pitch); got {} channels",
-                raw.channels.len()
+                "the built-in AERO simulator has {} outputs ({}); got {n} channels (for another plant, set plant.driver)",
+                aero_sim::CHANNELS,
+                aero_sim::CHANNEL_NAMES.join(", ")
             ),
         ));
     }
+    let mut names = std::collections::HashSet::new();
     for (i, c) in raw.channels.iter().enumerate() {
+        if c.name.is_empty()
+            || !c
+                .name
+                .chars()
+                .all(|ch| ch.is_ascii_alphanumeric() || "_-.".contains(ch))
+        {
+            return Err(invalid(
+                file,
+                format!("channels[{i}].name"),
+                "letters, digits, `_`, `-` and `.` only (it names CSV columns and files)",
+            ));
+        }
+        if !names.insert(c.name.as_str()) {
+            return Err(invalid(
+                file,
+                format!("channels[{i}].name"),
+                format!("duplicate name {:?}", c.name),
+            ));
+        }
         for (j, piece) in c.reference.iter().enumerate() {
             piece.validate().map_err(|(field, reason)| {
                 invalid(
@@ -320,12 +464,16 @@ pub fn from_text(file: &Path, text: &str, dir: Option<&Path>) -> Result<Scenario
             .map_err(|e| invalid(file, format!("channels[{i}].output"), e.to_string()))?;
     }
     let controller = match raw.controller {
-        ControllerRef::Named(name) => shipped_controller(&name)?,
-        ControllerRef::Inline(set) => {
-            check_controller(file, &set)?;
-            set
+        ControllerRef::Named(name) => {
+            let local = dir.map(|d| d.join(&name)).filter(|p| p.is_file());
+            match local {
+                Some(p) => load_controller_file(&p)?,
+                None => shipped_controller(&name)?,
+            }
         }
+        ControllerRef::Inline(set) => set,
     };
+    check_controller(file, &controller, n)?;
     Ok(Scenario {
         name: raw.name,
         description: raw.description,
@@ -340,9 +488,39 @@ pub fn from_text(file: &Path, text: &str, dir: Option<&Path>) -> Result<Scenario
 
 fn resolve_plant(
     file: &Path,
-    spec: &PlantSpec,
+    spec: &PlantTable,
     dir: Option<&Path>,
-) -> Result<AeroParams, ScenarioError> {
+    period: f64,
+) -> Result<PlantSource, ScenarioError> {
+    if let Some(argv) = &spec.driver {
+        if spec.file.is_some() || spec.added_mass || !spec.params.is_empty() {
+            return Err(invalid(
+                file,
+                "plant.driver",
+                "a driver plant takes its parameters on its command line: drop file, added_mass and params",
+            ));
+        }
+        if argv.first().is_none_or(|p| p.trim().is_empty()) {
+            return Err(invalid(file, "plant.driver", "needs a program"));
+        }
+        let default_ms = ((period * 5.0 * 1000.0).ceil() as u64).max(500);
+        let timeout_ms = spec.timeout_ms.unwrap_or(default_ms);
+        if timeout_ms == 0 || timeout_ms > 600_000 {
+            return Err(invalid(file, "plant.timeout_ms", "must be 1 to 600000"));
+        }
+        return Ok(PlantSource::Driver(DriverCommand {
+            argv: argv.clone(),
+            dir: dir.map(Path::to_path_buf),
+            timeout: std::time::Duration::from_millis(timeout_ms),
+        }));
+    }
+    if spec.timeout_ms.is_some() {
+        return Err(invalid(
+            file,
+            "plant.timeout_ms",
+            "only for a driver plant (plant.driver)",
+        ));
+    }
     let (plant_file, mut table) = match &spec.file {
         Some(p) => {
             let full = match dir {
@@ -353,10 +531,11 @@ fn resolve_plant(
             let table: toml::Table = parse(&full, &text)?;
             (full, table)
         }
-        None => (
-            PathBuf::from("<shipped>/plants/aero.toml"),
-            parse(Path::new("<shipped>/plants/aero.toml"), SHIPPED_PLANT)?,
-        ),
+        None => {
+            let shipped = PathBuf::from(format!("{SHIPPED_ROOT}/plant.toml"));
+            let table = parse(&shipped, SHIPPED_PLANT)?;
+            (shipped, table)
+        }
     };
     for (k, v) in &spec.params {
         table.insert(k.clone(), v.clone());
@@ -374,16 +553,24 @@ fn resolve_plant(
     params
         .validate()
         .map_err(|e| invalid(file, format!("plant.{}", e.field), e.to_string()))?;
-    Ok(params)
+    Ok(PlantSource::Aero(params))
 }
 
-/// Check a controller set against the AERO (one valid law per channel).
-pub fn check_controller(file: &Path, set: &ControllerSet) -> Result<(), ScenarioError> {
-    if set.channels.len() != CHANNELS {
+/// Check a controller set: `channels` valid laws.
+pub fn check_controller(
+    file: &Path,
+    set: &ControllerSet,
+    channels: usize,
+) -> Result<(), ScenarioError> {
+    if set.channels.len() != channels {
         return Err(invalid(
             file,
             "controller.channels",
-            format!("need {CHANNELS} laws, got {}", set.channels.len()),
+            format!(
+                "the plant has {channels} channel(s); controller `{}` has {} law(s)",
+                set.name,
+                set.channels.len()
+            ),
         ));
     }
     for (i, law) in set.channels.iter().enumerate() {
@@ -396,13 +583,13 @@ pub fn check_controller(file: &Path, set: &ControllerSet) -> Result<(), Scenario
     Ok(())
 }
 
-/// A shipped controller set by name.
+/// A shipped AERO controller set by name.
 pub fn shipped_controller(name: &str) -> Result<ControllerSet, ScenarioError> {
     for (n, text) in SHIPPED_CONTROLLERS {
         if n == name {
-            let file = PathBuf::from(format!("<shipped>/controllers/{n}.toml"));
+            let file = PathBuf::from(format!("{SHIPPED_ROOT}/controllers/{n}.toml"));
             let set: ControllerSet = parse(&file, text)?;
-            check_controller(&file, &set)?;
+            check_controller(&file, &set, aero_sim::CHANNELS)?;
             return Ok(set);
         }
     }
@@ -417,13 +604,27 @@ pub fn shipped_controller(name: &str) -> Result<ControllerSet, ScenarioError> {
     })
 }
 
+fn load_controller_file(path: &Path) -> Result<ControllerSet, ScenarioError> {
+    let set: ControllerSet = parse(path, &read(path)?)?;
+    if set.channels.is_empty() || set.channels.len() > MAX_CHANNELS {
+        return Err(invalid(
+            path,
+            "channels",
+            format!("need 1 to {MAX_CHANNELS} laws, got {}", set.channels.len()),
+        ));
+    }
+    // Each law on its own; the count is checked against the plant where it is used.
+    check_controller(path, &set, set.channels.len())?;
+    Ok(set)
+}
+
 /// Load a controller set from a file (as written by `tune`), or a shipped one by name.
+/// Its channel count is checked against the plant where it is used
+/// ([`Scenario::check_controller`]).
 pub fn load_controller(name_or_file: &str) -> Result<ControllerSet, ScenarioError> {
     let path = Path::new(name_or_file);
     if path.is_file() {
-        let set: ControllerSet = parse(path, &read(path)?)?;
-        check_controller(path, &set)?;
-        return Ok(set);
+        return load_controller_file(path);
     }
     shipped_controller(name_or_file)
 }

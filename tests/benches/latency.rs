@@ -8,16 +8,11 @@
 
 use std::time::Duration;
 
-use plant_agent::agent::Fallback;
-use plant_agent::demo::{agent_config, service_config};
+use mfc_lab::harness::{run_plant, service_config, PlantSpec, ServiceHandle};
+use plant_agent::record::percentile;
 use plant_agent::scenario::{load_scenario, shipped_controller};
-use system_tests::{run_plant, Service};
 use tokio::time::Instant;
 use transport::ZenohArgs;
-
-fn pct(sorted: &[f64], q: f64) -> f64 {
-    sorted[((sorted.len() - 1) as f64 * q).round() as usize]
-}
 
 async fn echo(seconds: f64) -> anyhow::Result<Vec<f64>> {
     let port = transport::free_local_port()?;
@@ -82,11 +77,16 @@ async fn main() -> anyhow::Result<()> {
     let mut s = load_scenario("2")?;
     s.duration = seconds;
     let c = shipped_controller("ipd")?;
-    let service = Service::start(service_config(&s, &c, &["bench".into()])).await?;
-    let cfg = agent_config(&s, &c, "bench", 5, Fallback::Local, None);
-    let (report, _) = run_plant(service.endpoint.clone(), s.plant.clone(), s.seed, cfg).await?;
+    let service = ServiceHandle::start(service_config(&s, &c, &["bench".into()]), None).await?;
+    let run = run_plant(
+        vec![service.endpoint.clone()],
+        PlantSpec::new(&s, &c, "bench"),
+        true,
+    )
+    .await?;
     service.stop().await?;
-    let (e50, e99) = (pct(&e, 0.5), pct(&e, 0.99));
+    let report = run.report;
+    let (e50, e99) = (percentile(&e, 0.5), percentile(&e, 0.99));
     let (l50, l99) = (report.rtt_p50_us, report.rtt_p99_us);
     println!("round trip at 100 Hz on loopback, {seconds:.0} s each, one run:");
     println!("| path | samples | p50 (us) | p99 (us) |");
@@ -97,7 +97,7 @@ async fn main() -> anyhow::Result<()> {
     );
     println!(
         "| sample -> controller service -> command | {} | {l50:.0} | {l99:.0} |",
-        report.commands
+        report.counters.commands
     );
     println!(
         "| ratio service / echo | | {:.2} | {:.2} |",
@@ -106,7 +106,7 @@ async fn main() -> anyhow::Result<()> {
     );
     println!(
         "missing commands: {} of {} periods",
-        report.missing, report.periods
+        report.counters.missing, report.counters.periods
     );
     Ok(())
 }

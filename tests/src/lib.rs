@@ -1,79 +1,29 @@
-//! Helpers for the system tests: a controller service and simulated plants, each in its own
-//! Zenoh session on loopback (peers, multicast scouting off), as in production.
+//! Helpers shared by the system tests. The setup itself (a service and plants over Zenoh
+//! on loopback) is `mfc_lab::harness`, the same code the demo and the campaign use.
+//!
+//! # Margins
+//!
+//! Real-time tests assert counts, order and invariants. Where an assertion needs a bound
+//! in periods (a takeover must come before the fallback, a fallback must follow the last
+//! command within a few periods), the slack over the ideal figure is [`margin_periods`],
+//! explicit and configurable, so a slower machine is a setting, not a flaky test.
 
-use controller_service::{service, Registry, ServiceConfig};
-use plant_agent::agent::{run_agent, AgentConfig, AgentReport, Row};
-use plant_agent::plant::SimPlant;
-use transport::ZenohArgs;
+use std::path::PathBuf;
+
 use zenoh::Session;
 
-/// Real-time tests share two cores: they take this lock so that they do not disturb each
-/// other's timing.
+/// Real-time tests of one binary share two cores: they take this lock so that they do not
+/// disturb each other's timing.
 pub static SERIAL: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 
-/// A running controller service.
-pub struct Service {
-    /// Endpoint the service listens on.
-    pub endpoint: String,
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-    task: tokio::task::JoinHandle<Result<(), controller_service::service::ServiceError>>,
-}
-
-impl Service {
-    /// Start a service for `config` on a free loopback port.
-    pub async fn start(config: ServiceConfig) -> anyhow::Result<Self> {
-        let port = transport::free_local_port()?;
-        let endpoint = format!("tcp/127.0.0.1:{port}");
-        let registry = Registry::new(config)?;
-        let session = ZenohArgs::loopback(Some(endpoint.clone()), vec![])
-            .open()
-            .await?;
-        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-        let task = tokio::spawn(service::run(session, registry, async {
-            let _ = rx.await;
-        }));
-        Ok(Self {
-            endpoint,
-            stop: Some(tx),
-            task,
-        })
-    }
-
-    /// A client session connected to the service.
-    pub async fn client(&self) -> anyhow::Result<Session> {
-        Ok(ZenohArgs::loopback(None, vec![self.endpoint.clone()])
-            .open()
-            .await?)
-    }
-
-    /// Stop the service and wait for it.
-    pub async fn stop(mut self) -> anyhow::Result<()> {
-        if let Some(tx) = self.stop.take() {
-            let _ = tx.send(());
-        }
-        (&mut self.task).await??;
-        Ok(())
-    }
-}
-
-/// Run one simulated plant through its own session.
-pub async fn run_plant(
-    endpoint: String,
-    params: plant_agent::aero::AeroParams,
-    seed: u64,
-    config: AgentConfig,
-) -> anyhow::Result<(AgentReport, Vec<Row>)> {
-    let session = ZenohArgs::loopback(None, vec![endpoint]).open().await?;
-    let mut plant = SimPlant::new(params, seed)?;
-    let out = run_agent(
-        &session,
-        &mut plant,
-        &config,
-        plant_agent::demo::rand_id(seed),
-    )
-    .await;
-    let _ = session.close().await;
-    Ok(out?)
+/// Slack, in control periods, that real-time assertions allow over their ideal figure:
+/// `MFC_TEST_MARGIN_PERIODS`, default 5 (50 ms at 10 ms: a scheduling hiccup of a busy
+/// 2-core machine, not a design flaw).
+pub fn margin_periods() -> u32 {
+    std::env::var("MFC_TEST_MARGIN_PERIODS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(5)
 }
 
 /// Send a query on `key` (with `payload`, if any) and decode its first reply.
@@ -84,4 +34,20 @@ pub async fn query<M: protocol::Versioned>(
 ) -> anyhow::Result<M> {
     let bytes = transport::get_first(session, &key, payload).await?;
     Ok(protocol::decode(&bytes)?)
+}
+
+/// A fresh directory under the system's temp dir, named for the test and the process.
+pub fn scratch_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("mfc-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("creating a scratch directory");
+    dir
+}
+
+/// The root of the workspace (for the shipped plants under `plants/`).
+pub fn workspace_root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("tests/ has a parent")
+        .to_path_buf()
 }

@@ -4,13 +4,13 @@
 use std::time::Duration;
 
 use controller_service::config::ServiceConfig;
-use plant_agent::agent::{Fallback, LoopMode};
-use plant_agent::demo::{agent_config, service_config};
-use plant_agent::offline::run;
+use mfc_lab::harness::{run_plant, service_config, PlantSpec, ServiceHandle};
+use mfc_lab::offline::run;
+use plant_agent::safety::Mode;
 use plant_agent::scenario::{load_scenario, shipped_controller, Scenario};
 use protocol::convert::channel_to_pb;
 use protocol::{decode, encode, keys, pb, PROTOCOL_VERSION};
-use system_tests::{query, run_plant, Service, SERIAL};
+use system_tests::{query, SERIAL};
 
 fn shortened(name: &str, duration: f64) -> Scenario {
     let mut s = load_scenario(name).unwrap();
@@ -25,16 +25,20 @@ async fn one_aero_tracks_scenario_2_through_the_service() {
     let s = load_scenario("2").unwrap();
     let c = shipped_controller("ipd").unwrap();
     let offline = run(&s, &c, false).unwrap().summary;
-    let service = Service::start(service_config(&s, &c, &["aero-1".into()]))
+    let service = ServiceHandle::start(service_config(&s, &c, &["aero-1".into()]), None)
         .await
         .unwrap();
-    let cfg = agent_config(&s, &c, "aero-1", 5, Fallback::Local, None);
-    let (report, _) = run_plant(service.endpoint.clone(), s.plant.clone(), s.seed, cfg)
-        .await
-        .unwrap();
+    let report = run_plant(
+        vec![service.endpoint.clone()],
+        PlantSpec::new(&s, &c, "aero-1"),
+        true,
+    )
+    .await
+    .unwrap()
+    .report;
     service.stop().await.unwrap();
     eprintln!("{report:?}");
-    assert!(report.completed);
+    assert!(report.completed());
     for (net, off) in report.channels.iter().zip(&offline.channels) {
         let ratio = net.rms / off.rms;
         eprintln!(
@@ -44,8 +48,9 @@ async fn one_aero_tracks_scenario_2_through_the_service() {
         assert!(ratio < 1.2, "{}: ratio {ratio}", net.name);
     }
     // Nearly every sample was answered in time on loopback.
+    let k = &report.counters;
     assert!(
-        (report.commands + report.warming_up) as f64 >= 0.98 * report.periods as f64,
+        (k.commands + k.warming_up) as f64 >= 0.98 * k.periods as f64,
         "{report:?}"
     );
 }
@@ -72,44 +77,42 @@ async fn several_plants_late_join_and_leave() {
     config
         .devices
         .extend(service_config(&late, &late_c, &["late".to_string()]).devices);
-    let service = Service::start(config).await.unwrap();
+    let service = ServiceHandle::start(config, None).await.unwrap();
 
     let mut tasks = Vec::new();
     for (id, s, c) in &runs {
-        let cfg = agent_config(s, c, id, 5, Fallback::Local, None);
         tasks.push(tokio::spawn(run_plant(
-            service.endpoint.clone(),
-            s.plant.clone(),
-            s.seed,
-            cfg,
+            vec![service.endpoint.clone()],
+            PlantSpec::new(s, c, id),
+            true,
         )));
     }
     tokio::time::sleep(Duration::from_secs(4)).await;
-    let late_cfg = agent_config(&late, &late_c, "late", 5, Fallback::Local, None);
-    let (late_report, _) = run_plant(
-        service.endpoint.clone(),
-        late.plant.clone(),
-        late.seed,
-        late_cfg,
+    let late_report = run_plant(
+        vec![service.endpoint.clone()],
+        PlantSpec::new(&late, &late_c, "late"),
+        true,
     )
     .await
-    .unwrap();
+    .unwrap()
+    .report;
+    let k = &late_report.counters;
     assert!(
-        (late_report.commands + late_report.warming_up) as f64 >= 0.95 * late_report.periods as f64,
+        (k.commands + k.warming_up) as f64 >= 0.95 * k.periods as f64,
         "{late_report:?}"
     );
     for ((id, s, c), task) in runs.iter().zip(tasks) {
-        let (report, _) = task.await.unwrap().unwrap();
+        let report = task.await.unwrap().unwrap().report;
         let offline = run(s, c, false).unwrap().summary;
         for (net, off) in report.channels.iter().zip(&offline.channels) {
             let ratio = net.rms / off.rms;
             eprintln!(
                 "{id} {}: ratio {ratio:.3} (missing {})",
-                net.name, report.missing
+                net.name, report.counters.missing
             );
             assert!(ratio < 1.2, "{id} {}: ratio {ratio}", net.name);
         }
-        assert_eq!(report.fallbacks, 0, "{id}: {report:?}");
+        assert_eq!(report.counters.fallbacks, 0, "{id}: {report:?}");
     }
     service.stop().await.unwrap();
 }
@@ -120,17 +123,14 @@ async fn reconfiguration_at_run_time_is_bumpless() {
     let _serial = SERIAL.lock().await;
     let s = shortened("1", 8.0);
     let c = shipped_controller("ipd").unwrap();
-    let service = Service::start(service_config(&s, &c, &["aero-1".into()]))
+    let service = ServiceHandle::start(service_config(&s, &c, &["aero-1".into()]), None)
         .await
         .unwrap();
     let client = service.client().await.unwrap();
-    let mut cfg = agent_config(&s, &c, "aero-1", 5, Fallback::Local, None);
-    cfg.record = Some(std::env::temp_dir().join(format!("reconf-{}.csv", std::process::id())));
     let task = tokio::spawn(run_plant(
-        service.endpoint.clone(),
-        s.plant.clone(),
-        s.seed,
-        cfg,
+        vec![service.endpoint.clone()],
+        PlantSpec::new(&s, &c, "aero-1"),
+        true,
     ));
     tokio::time::sleep(Duration::from_secs(5)).await;
 
@@ -174,25 +174,20 @@ async fn reconfiguration_at_run_time_is_bumpless() {
     );
     assert_eq!(r.config, reply.config, "the refused change changed nothing");
 
-    let (report, rows) = task.await.unwrap().unwrap();
-    assert!(report.completed && report.fallbacks == 0);
+    let done = task.await.unwrap().unwrap();
+    let (report, rec) = (done.report, done.recording);
+    assert!(report.completed() && report.counters.fallbacks == 0);
     // The change lands at about t = 5.1 s (plus the query's round trip).
     // Steps of the applied u (the voltage less the dead-zone compensation, whose ±10 V
     // jumps at u = 0 are not bumps).
     let map = mfc::OutputMap::new(mfc::OutputMapConfig::AERO).unwrap();
-    let steps: Vec<(f64, f64)> = rows
-        .windows(2)
-        .map(|w| {
-            (
-                w[1].t,
-                (map.inverse(w[1].v[0]) - map.inverse(w[0].v[0])).abs(),
-            )
-        })
+    let v = &rec.traces[0].v;
+    let steps: Vec<(f64, f64)> = (1..rec.len())
+        .map(|k| (rec.t[k], (map.inverse(v[k]) - map.inverse(v[k - 1])).abs()))
         .collect();
-    let u_level = rows
-        .iter()
-        .filter(|r| (4.0..5.0).contains(&r.t))
-        .map(|r| map.inverse(r.v[0]).abs())
+    let u_level = (0..rec.len())
+        .filter(|&k| (4.0..5.0).contains(&rec.t[k]))
+        .map(|k| map.inverse(v[k]).abs())
         .fold(0.0, f64::max);
     eprintln!("largest |u| just before the change: {u_level:.3} V (halving it would be the bump)");
     let before = steps
@@ -223,13 +218,12 @@ async fn bad_network_input_is_refused_and_counted() {
     let c = shipped_controller("ipd").unwrap();
     let mut config = service_config(&s, &c, &["good".into(), "victim".into()]);
     config.controller_id = "c-bad".into();
-    let service = Service::start(config).await.unwrap();
+    let service = ServiceHandle::start(config, None).await.unwrap();
     let client = service.client().await.unwrap();
     let good = tokio::spawn(run_plant(
-        service.endpoint.clone(),
-        s.plant.clone(),
-        s.seed,
-        agent_config(&s, &c, "good", 5, Fallback::Local, None),
+        vec![service.endpoint.clone()],
+        PlantSpec::new(&s, &c, "good"),
+        true,
     ));
     // Replies to our bad samples come on the victim's command key.
     let replies = client
@@ -312,12 +306,13 @@ async fn bad_network_input_is_refused_and_counted() {
     let victim = st.devices.iter().find(|d| d.device_id == "victim").unwrap();
     assert_eq!(victim.rejected, 2);
 
-    let (report, _) = good.await.unwrap().unwrap();
+    let report = good.await.unwrap().unwrap().report;
+    let k = &report.counters;
     assert!(
-        (report.commands + report.warming_up) as f64 >= 0.98 * report.periods as f64,
+        (k.commands + k.warming_up) as f64 >= 0.98 * k.periods as f64,
         "{report:?}"
     );
-    assert_eq!(report.fallbacks, 0);
+    assert_eq!(k.fallbacks, 0);
     let _ = client.close().await;
     service.stop().await.unwrap();
 }
@@ -329,16 +324,28 @@ async fn no_controller_means_local_fallback() {
     let _serial = SERIAL.lock().await;
     let s = shortened("2", 3.0);
     let c = shipped_controller("ipd").unwrap();
-    let service = Service::start(ServiceConfig::default()).await.unwrap(); // serves nobody
-    let mut cfg = agent_config(&s, &c, "orphan", 5, Fallback::Local, None);
-    cfg.record = Some(std::env::temp_dir().join(format!("orphan-{}.csv", std::process::id())));
-    let (report, rows) = run_plant(service.endpoint.clone(), s.plant.clone(), s.seed, cfg)
+    let service = ServiceHandle::start(ServiceConfig::default(), None)
         .await
-        .unwrap();
-    assert_eq!(report.commands, 0);
-    assert_eq!(report.fallbacks, 1);
-    assert_eq!(report.holding_periods, 5);
-    assert!(rows.iter().skip(6).all(|r| r.mode == LoopMode::Fallback));
+        .unwrap(); // serves nobody
+    let orphan = run_plant(
+        vec![service.endpoint.clone()],
+        PlantSpec::new(&s, &c, "orphan"),
+        true,
+    )
+    .await
+    .unwrap();
+    let (report, rec) = (orphan.report, orphan.recording);
+    assert_eq!(report.counters.commands, 0);
+    assert_eq!(report.counters.fallbacks, 1);
+    // Hold for hold_periods, then the local controller for good.
+    assert_eq!(report.counters.holding_periods, 5);
+    assert!(
+        rec.modes.iter().skip(5).all(|m| *m == Mode::Local),
+        "{:?}",
+        &rec.modes[..8]
+    );
+    assert!(!report.controller_reached);
+    assert_eq!(report.exit_code(), 3, "no controller ever answered");
     let offline = run(&s, &c, false).unwrap().summary;
     for (a, b) in report.channels.iter().zip(&offline.channels) {
         assert!(a.rms < 1.5 * b.rms, "{}: {} vs {}", a.name, a.rms, b.rms);

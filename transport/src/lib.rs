@@ -175,6 +175,33 @@ pub fn free_local_port() -> std::io::Result<u16> {
     Ok(l.local_addr()?.port())
 }
 
+/// Resolves on SIGINT or SIGTERM: how every long-running binary of the project is asked to
+/// stop (a terminal's Ctrl-C, systemd's stop). Each then ends cleanly: the service writes
+/// its snapshots, the agent applies its plant's safe stop and writes its record.
+pub async fn shutdown_signal() {
+    let ctrl_c = tokio::signal::ctrl_c();
+    #[cfg(unix)]
+    {
+        let mut term =
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(s) => s,
+                Err(e) => {
+                    eprintln!("cannot listen for SIGTERM: {e}");
+                    let _ = ctrl_c.await;
+                    return;
+                }
+            };
+        tokio::select! {
+            _ = ctrl_c => {},
+            _ = term.recv() => {},
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = ctrl_c.await;
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,0 +1,349 @@
+//! The fault campaign: for each profile and link, a controller service and simulated
+//! plants (one per controller, side by side on the same impaired link) run a scenario
+//! through `faultlab`'s relay, in real time; then the table and the degradation plots.
+
+use std::net::SocketAddr;
+use std::path::Path;
+
+use anyhow::Result;
+use controller_service::config::ServiceConfig;
+use faultlab::profile::{Profile, ProfileSet};
+use faultlab::relay::{Link, Relay, RelayStats};
+use plant_agent::agent::AgentReport;
+use plant_agent::record::Recording;
+use plant_agent::safety::FallbackPolicy;
+use plant_agent::scenario::{ControllerSet, Scenario};
+use plotters::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::harness::{open_session, run_plant, service_config, PlantSpec, ServiceHandle};
+
+/// One controller's run under one profile on one link.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct CaseResult {
+    /// Profile name.
+    pub profile: String,
+    /// Link.
+    pub link: Link,
+    /// Controller name.
+    pub controller: String,
+    /// The agent's report.
+    pub report: AgentReport,
+    /// RMS over the unimpaired run on the same link, per channel (filled by the campaign).
+    pub rms_ratio: Vec<f64>,
+    /// What the relay did.
+    pub relay: RelayStats,
+    /// The run, period by period.
+    #[serde(skip)]
+    pub recording: Recording,
+}
+
+/// Wait (at most 5 s) until the service reports round trips for every device.
+async fn wait_until_flowing(service_endpoint: &str, ids: &[String]) {
+    let Ok(probe) = open_session(None, vec![service_endpoint.to_string()], false).await else {
+        return;
+    };
+    let deadline = tokio::time::Instant::now() + std::time::Duration::from_secs(5);
+    while tokio::time::Instant::now() < deadline {
+        let mut flowing = 0;
+        for id in ids {
+            let status = transport::get_first(&probe, &protocol::keys::status(id), None)
+                .await
+                .ok()
+                .and_then(|b| protocol::decode::<protocol::pb::DeviceStatus>(&b).ok());
+            if status.is_some_and(|st| st.loop_rtt.is_some_and(|l| l.count >= 5)) {
+                flowing += 1;
+            }
+        }
+        if flowing == ids.len() {
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+    }
+    let _ = probe.close().await;
+}
+
+/// Options of a case.
+#[derive(Debug, Clone)]
+pub struct CaseOptions {
+    /// Periods to hold before falling back.
+    pub hold_periods: u32,
+    /// What to fall back to.
+    pub fallback: FallbackPolicy,
+    /// Oldest command worth applying (periods).
+    pub max_age: u32,
+}
+
+impl Default for CaseOptions {
+    fn default() -> Self {
+        Self {
+            hold_periods: crate::harness::DEFAULT_HOLD_PERIODS,
+            fallback: FallbackPolicy::LocalController,
+            max_age: crate::harness::DEFAULT_MAX_AGE,
+        }
+    }
+}
+
+/// Run every controller of `controllers` on `scenario`, side by side, through a relay
+/// impairing `link` with `profile`.
+pub async fn run_case(
+    scenario: &Scenario,
+    controllers: &[ControllerSet],
+    profile: &Profile,
+    link: Link,
+    options: &CaseOptions,
+) -> anyhow::Result<Vec<CaseResult>> {
+    let port = match link {
+        Link::Tcp => transport::free_local_port()?,
+        Link::Udp => transport::free_udp_port()?,
+    };
+    let target: SocketAddr = format!("127.0.0.1:{port}").parse()?;
+    let mut config = ServiceConfig::default();
+    let ids: Vec<String> = controllers
+        .iter()
+        .map(|c| format!("aero-{}", c.name))
+        .collect();
+    for (c, id) in controllers.iter().zip(&ids) {
+        config
+            .devices
+            .extend(service_config(scenario, c, std::slice::from_ref(id)).devices);
+    }
+    let svc = ServiceHandle::start_with(config, Some(format!("{}/{target}", link.scheme())), false)
+        .await?;
+    // Sessions establish through a transparent relay; it starts impairing once the loops
+    // run (zenoh does not retransmit handshakes or declarations lost on a UDP link).
+    let relay = Relay::start(link, "127.0.0.1:0".parse()?, target, profile, false).await?;
+    let endpoint = format!("{}/{}", link.scheme(), relay.listen);
+
+    let mut tasks = Vec::new();
+    // Every controller's plant gets the scenario's noise seed: the same rig, side by side.
+    for (c, id) in controllers.iter().zip(&ids) {
+        let mut plant = PlantSpec::new(scenario, c, id);
+        plant.loop_config.safety.hold_periods = options.hold_periods;
+        plant.loop_config.safety.fallback = options.fallback;
+        plant.loop_config.safety.max_age = options.max_age;
+        tasks.push(tokio::spawn(run_plant(
+            vec![endpoint.clone()],
+            plant,
+            false,
+        )));
+    }
+    // Arm once every plant has received commands (its samples report a round trip): by
+    // then every session is up and every declaration has crossed the link.
+    wait_until_flowing(&format!("{}/{target}", link.scheme()), &ids).await;
+    relay.arm();
+    let mut results = Vec::new();
+    for (task, c) in tasks.into_iter().zip(controllers) {
+        let run = task.await??;
+        results.push(CaseResult {
+            profile: profile.name.clone(),
+            link,
+            controller: c.name.clone(),
+            report: run.report,
+            rms_ratio: Vec::new(),
+            relay: relay.stats(),
+            recording: run.recording,
+        });
+    }
+    drop(relay);
+    svc.stop().await?;
+    Ok(results)
+}
+
+/// The whole campaign.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Campaign {
+    /// Scenario name.
+    pub scenario: String,
+    /// Duration of each run (s).
+    pub duration: f64,
+    /// Every case.
+    pub cases: Vec<CaseResult>,
+}
+
+impl Campaign {
+    /// Fill each case's RMS ratio from the `none` profile on the same link and controller.
+    pub fn compute_ratios(&mut self, baseline: &str) {
+        let base: Vec<(Link, String, Vec<f64>)> = self
+            .cases
+            .iter()
+            .filter(|c| c.profile == baseline)
+            .map(|c| {
+                (
+                    c.link,
+                    c.controller.clone(),
+                    c.report.channels.iter().map(|m| m.rms).collect(),
+                )
+            })
+            .collect();
+        for c in &mut self.cases {
+            if let Some((_, _, b)) = base
+                .iter()
+                .find(|(l, n, _)| *l == c.link && *n == c.controller)
+            {
+                c.rms_ratio = c
+                    .report
+                    .channels
+                    .iter()
+                    .zip(b)
+                    .map(|(m, b)| m.rms / b)
+                    .collect();
+            }
+        }
+    }
+
+    /// The table in Markdown.
+    pub fn markdown(&self) -> String {
+        use std::fmt::Write as _;
+        let mut out = String::new();
+        let _ = writeln!(
+            out,
+            "| profile | link | controller | azimuth RMS ratio | pitch RMS ratio | pitch RMS (rad) | pitch worst (rad) | periods without command | applied late | stale | fallbacks | RTT p50 / p99 (ms) |"
+        );
+        let _ = writeln!(
+            out,
+            "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+        );
+        for c in &self.cases {
+            let r = &c.report;
+            let ratio = |i: usize| c.rms_ratio.get(i).map_or("-".into(), |x| format!("{x:.2}"));
+            let _ = writeln!(
+                out,
+                "| {} | {} | {} | {} | {} | {:.2e} | {:.3} | {:.1}% | {} | {} | {} | {:.1} / {:.1} |",
+                c.profile,
+                c.link.scheme(),
+                c.controller,
+                ratio(0),
+                ratio(1),
+                r.channels.get(1).map_or(0.0, |m| m.rms),
+                r.channels.get(1).map_or(0.0, |m| m.max_abs),
+                100.0 * r.counters.missing as f64 / r.counters.periods.max(1) as f64,
+                r.counters.late,
+                r.counters.too_old + r.counters.superseded,
+                r.counters.fallbacks,
+                r.rtt_p50_us / 1000.0,
+                r.rtt_p99_us / 1000.0
+            );
+        }
+        out
+    }
+}
+
+/// Degradation curves: pitch RMS ratio against loss rate (pure-loss profiles) and against
+/// round-trip latency (pure-latency profiles), one line per controller and link.
+pub fn plots(out: &Path, c: &Campaign, set: &ProfileSet) -> Result<()> {
+    let x_of = |name: &str, loss_axis: bool| -> Option<f64> {
+        let p = set.profiles.iter().find(|p| p.name == name)?;
+        let b = &p.both;
+        let plain = b.burst.is_none() && b.outages.is_empty() && p.up.is_none() && p.down.is_none();
+        if !plain {
+            return None;
+        }
+        if loss_axis && b.delay_ms == 0.0 {
+            Some(100.0 * b.loss)
+        } else if !loss_axis && b.loss == 0.0 {
+            Some(2.0 * b.delay_ms)
+        } else {
+            None
+        }
+    };
+    for (file, loss_axis, xlabel) in [
+        ("rms_vs_loss", true, "random loss each way (%)"),
+        ("rms_vs_latency", false, "round-trip latency (ms)"),
+    ] {
+        let mut series: Vec<(String, Vec<(f64, f64)>)> = Vec::new();
+        for case in &c.cases {
+            let (Some(x), Some(y)) = (x_of(&case.profile, loss_axis), case.rms_ratio.get(1)) else {
+                continue;
+            };
+            let name = format!("{} over {}", case.controller, case.link.scheme());
+            match series.iter_mut().find(|(n, _)| *n == name) {
+                Some((_, pts)) => pts.push((x, *y)),
+                None => series.push((name, vec![(x, *y)])),
+            }
+        }
+        for (_, pts) in &mut series {
+            pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+        }
+        let xmax = series
+            .iter()
+            .flat_map(|(_, p)| p.iter().map(|x| x.0))
+            .fold(1.0, f64::max);
+        let ymax = series
+            .iter()
+            .flat_map(|(_, p)| p.iter().map(|x| x.1))
+            .fold(2.0, f64::max)
+            * 1.1;
+        plant_agent::record::plot::ensure_font();
+        let png = out.join(format!("{file}.png"));
+        let svg = out.join(format!("{file}.svg"));
+        draw(
+            BitMapBackend::new(&png, (900, 600)).into_drawing_area(),
+            &series,
+            xlabel,
+            xmax,
+            ymax,
+        )?;
+        draw(
+            SVGBackend::new(&svg, (900, 600)).into_drawing_area(),
+            &series,
+            xlabel,
+            xmax,
+            ymax,
+        )?;
+    }
+    Ok(())
+}
+
+fn draw<DB: DrawingBackend>(
+    root: DrawingArea<DB, plotters::coord::Shift>,
+    series: &[(String, Vec<(f64, f64)>)],
+    xlabel: &str,
+    xmax: f64,
+    ymax: f64,
+) -> Result<()>
+where
+    DB::ErrorType: 'static,
+{
+    let e = |err: DrawingAreaErrorKind<DB::ErrorType>| anyhow::anyhow!("plot: {err:?}");
+    root.fill(&WHITE).map_err(e)?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(
+            "Pitch tracking under faults (RMS / unimpaired RMS)",
+            ("sans-serif", 22),
+        )
+        .margin(15)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0.0..xmax, 0.0..ymax)
+        .map_err(e)?;
+    chart
+        .configure_mesh()
+        .x_desc(xlabel)
+        .y_desc("RMS ratio")
+        .draw()
+        .map_err(e)?;
+    let colors = [BLUE, RED, GREEN, MAGENTA, CYAN, BLACK];
+    for (i, (name, pts)) in series.iter().enumerate() {
+        let color = colors[i % colors.len()];
+        chart
+            .draw_series(LineSeries::new(pts.iter().copied(), color.stroke_width(2)))
+            .map_err(e)?
+            .label(name)
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+            });
+        chart
+            .draw_series(pts.iter().map(|p| Circle::new(*p, 4, color.filled())))
+            .map_err(e)?;
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .position(SeriesLabelPosition::UpperLeft)
+        .draw()
+        .map_err(e)?;
+    root.present().map_err(e)?;
+    Ok(())
+}

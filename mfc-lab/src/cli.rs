@@ -1,0 +1,538 @@
+//! The `mfc-lab` command line. Thin: parsing, progress and printing; the work is in the
+//! library.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use clap::{Parser, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use faultlab::profile::ProfileSet;
+use faultlab::relay::Link;
+use plant_agent::agent::AgentReport;
+use plant_agent::record::write_run;
+use plant_agent::safety::{FallbackPolicy, SafetyConfig};
+use plant_agent::scenario::{
+    load_controller, load_scenario, shipped_controller, ControllerSet, Scenario,
+    SHIPPED_CONTROLLERS, SHIPPED_SCENARIOS,
+};
+
+use crate::campaign::{run_case, Campaign, CaseOptions};
+use crate::compare::compare;
+use crate::demo::{demo, DemoOptions};
+use crate::harness::{service_config, DEFAULT_HOLD_PERIODS, DEFAULT_MAX_AGE};
+use crate::offline::{run, Summary};
+use crate::tune::{starting_point, tune, KINDS};
+
+#[derive(Parser)]
+#[command(
+    name = "mfc-lab",
+    version,
+    about = "Model-free control bench: simulate, tune, compare, demo over Zenoh, fault campaign"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum Fallback {
+    /// The local controller.
+    Local,
+    /// Zero inputs.
+    SafeStop,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run a scenario closed-loop offline, in lockstep (no network, no real time), or
+    /// compare every shipped controller on the shipped AERO scenarios.
+    Sim {
+        /// Scenario file (any plant, including a driver), or a shipped AERO one: 1, 2, 3, 4.
+        #[arg(long, default_value = "2")]
+        scenario: String,
+        /// Controller: a controller file (as written by `tune`) or a shipped AERO name (ip,
+        /// ipi, ipd, ipd-tuned, pid, adrc). Default: the scenario's.
+        #[arg(long)]
+        controller: Option<String>,
+        /// Output directory.
+        #[arg(long, default_value = "out/sim")]
+        out: PathBuf,
+        /// Run every shipped controller on the four shipped scenarios and print the table;
+        /// with --scenario and --controllers, those instead.
+        #[arg(long)]
+        compare: bool,
+        /// With --compare: controller files or shipped names, comma-separated.
+        #[arg(long, value_delimiter = ',', requires = "compare")]
+        controllers: Vec<String>,
+    },
+    /// Run the main job: a controller service and N simulated plants over Zenoh on
+    /// loopback, in real time.
+    Demo {
+        /// Number of plants.
+        #[arg(long, default_value_t = 2)]
+        plants: usize,
+        /// Scenario file or shipped AERO one.
+        #[arg(long, default_value = "2")]
+        scenario: String,
+        /// Controller file or shipped name (default: the scenario's).
+        #[arg(long)]
+        controller: Option<String>,
+        /// Periods to hold the last command before falling back.
+        #[arg(long, default_value_t = DEFAULT_HOLD_PERIODS)]
+        hold_periods: u32,
+        /// What to fall back to.
+        #[arg(long, value_enum, default_value = "local")]
+        fallback: Fallback,
+        /// Output directory (per plant: run.csv, summary.json, plots).
+        #[arg(long, default_value = "out/demo")]
+        out: PathBuf,
+    },
+    /// Tune one controller with a fixed budget of offline runs.
+    Tune {
+        /// Scenario file or shipped AERO one.
+        #[arg(long, default_value = "1")]
+        scenario: String,
+        /// Starting point: a built-in AERO kind (ip, ipi, ipd, pid, adrc) ...
+        #[arg(long, required_unless_present = "start", conflicts_with = "start")]
+        controller: Option<String>,
+        /// ... or a controller file (any plant): its gains are the first guess.
+        #[arg(long)]
+        start: Option<PathBuf>,
+        /// Where to write the tuned controller (TOML, usable by `sim --controller`).
+        #[arg(long)]
+        out: PathBuf,
+        /// Number of offline runs (the same for every kind makes the comparison fair).
+        #[arg(long, default_value_t = 150)]
+        budget: usize,
+        /// Seed of the random phase.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Name of the written controller set. Default: the starting point's.
+        #[arg(long)]
+        name: Option<String>,
+    },
+    /// Run the service and simulated plants through the impairment relay for every
+    /// profile, over TCP and UDP, with several controllers side by side.
+    Campaign {
+        /// Profile file (or `default` for the shipped set).
+        #[arg(long, default_value = "default")]
+        profiles: String,
+        /// Output directory (campaign.md, campaign.json, plots).
+        #[arg(long, default_value = "out/campaign")]
+        out: PathBuf,
+        /// Scenario (shortened to --duration).
+        #[arg(long, default_value = "2")]
+        scenario: String,
+        /// Seconds per run.
+        #[arg(long, default_value_t = 20.0)]
+        duration: f64,
+        /// Controllers, side by side on the same link.
+        #[arg(long, value_delimiter = ',', default_value = "ipd,pid")]
+        controllers: Vec<String>,
+        /// Links.
+        #[arg(long, value_delimiter = ',', default_value = "tcp,udp")]
+        links: Vec<Link>,
+    },
+    /// Print a controller-service configuration that serves these devices on a scenario.
+    ServiceConfig {
+        /// Device ids, comma-separated.
+        #[arg(long, value_delimiter = ',', required = true)]
+        devices: Vec<String>,
+        /// Scenario whose references and output maps to use.
+        #[arg(long, default_value = "2")]
+        scenario: String,
+        /// Controller file or shipped name (default: the scenario's).
+        #[arg(long)]
+        controller: Option<String>,
+    },
+}
+
+/// Parse the process's arguments and run.
+pub fn main() -> std::process::ExitCode {
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .try_init();
+    match real_main() {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn scenario_and_controller(
+    scenario: &str,
+    controller: Option<&str>,
+) -> Result<(Scenario, ControllerSet)> {
+    let s = load_scenario(scenario)?;
+    let c = match controller {
+        Some(c) => load_controller(c)?,
+        None => s.controller.clone(),
+    };
+    s.check_controller(&c)?;
+    Ok((s, c))
+}
+
+fn bar(len: u64, template: &str) -> ProgressBar {
+    ProgressBar::new(len).with_style(
+        ProgressStyle::with_template(template)
+            .expect("static template")
+            .progress_chars("=> "),
+    )
+}
+
+fn real_main() -> Result<()> {
+    match Cli::parse().command {
+        Command::Sim {
+            scenario,
+            controller,
+            out,
+            compare: true,
+            controllers,
+        } => {
+            if controller.is_some() {
+                bail!("--compare takes --controllers (a list), not --controller");
+            }
+            sim_compare(
+                &out,
+                (!controllers.is_empty()).then_some((&scenario, &controllers)),
+            )
+        }
+        Command::Sim {
+            scenario,
+            controller,
+            out,
+            compare: false,
+            ..
+        } => {
+            let (scenario, set) = scenario_and_controller(&scenario, controller.as_deref())?;
+            let r = run(&scenario, &set, true)?;
+            write_run(
+                &out,
+                &format!("{} — {}", scenario.name, set.name),
+                &r.recording,
+                &r.summary,
+            )?;
+            print_summary(&r.summary);
+            println!(
+                "wrote {}/{{run.csv, summary.json, *.png, *.svg}}",
+                out.display()
+            );
+            Ok(())
+        }
+        Command::Demo {
+            plants,
+            scenario,
+            controller,
+            hold_periods,
+            fallback,
+            out,
+        } => {
+            if plants == 0 || plants > 64 {
+                bail!("--plants must be between 1 and 64");
+            }
+            let (scenario, set) = scenario_and_controller(&scenario, controller.as_deref())?;
+            let offline = run(&scenario, &set, false)?.summary;
+            println!(
+                "{}: {} plant(s) and a controller service over Zenoh on loopback, {:.0} s in real time...",
+                scenario.name, plants, scenario.duration
+            );
+            let runtime = tokio::runtime::Builder::new_multi_thread()
+                .enable_all()
+                .build()?;
+            let reports = runtime.block_on(demo(
+                &scenario,
+                &set,
+                &DemoOptions {
+                    plants,
+                    safety: SafetyConfig {
+                        period: scenario.period,
+                        max_age: DEFAULT_MAX_AGE,
+                        hold_periods,
+                        fallback: match fallback {
+                            Fallback::Local => FallbackPolicy::LocalController,
+                            Fallback::SafeStop => FallbackPolicy::SafeStop,
+                        },
+                    },
+                    out: Some(out.clone()),
+                },
+            ))?;
+            print_reports(&reports, Some(&offline));
+            println!(
+                "wrote {}/<device>/{{run.csv, summary.json, *.png, *.svg}}",
+                out.display()
+            );
+            Ok(())
+        }
+        Command::Tune {
+            scenario,
+            controller,
+            start,
+            out,
+            budget,
+            seed,
+            name,
+        } => {
+            if budget == 0 {
+                bail!("--budget must be at least 1");
+            }
+            let scenario = load_scenario(&scenario)?;
+            let (start_set, from) = match (&controller, &start) {
+                (Some(kind), _) => (
+                    starting_point(kind).with_context(|| {
+                        format!(
+                            "unknown controller kind `{kind}` (built-in AERO starting points: {}; for another plant give --start FILE)",
+                            KINDS.join(", ")
+                        )
+                    })?,
+                    format!("--controller {kind}"),
+                ),
+                (None, Some(file)) => (
+                    load_controller(&file.to_string_lossy())?,
+                    format!("--start {}", file.display()),
+                ),
+                (None, None) => bail!("give --controller KIND or --start FILE"),
+            };
+            scenario.check_controller(&start_set)?;
+            let label = start_set.name.clone();
+            let bar = bar(budget as u64, "{msg} [{bar:30}] {pos}/{len} runs ({eta})");
+            let tuned = tune(&scenario, &start_set, budget, seed, |done, best| {
+                bar.set_position(done as u64);
+                bar.set_message(format!("tuning {label}: best {best:.4}"));
+            })?;
+            bar.finish_and_clear();
+            let mut set = tuned.set;
+            if let Some(name) = &name {
+                set.name = name.clone();
+            }
+            let text = toml::to_string_pretty(&set)?;
+            if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+                std::fs::create_dir_all(dir)?;
+            }
+            let command = format!(
+                "mfc-lab tune --scenario {} {from} --budget {budget} --seed {seed}{}",
+                scenario.name,
+                name.as_ref()
+                    .map(|n| format!(" --name {n}"))
+                    .unwrap_or_default()
+            );
+            std::fs::write(&out, format!("# Written by `{command}`.\n{text}"))
+                .with_context(|| format!("writing {}", out.display()))?;
+            println!(
+                "{label} on {}: objective {:.4} (start {:.4}) in {} runs; wrote {}",
+                scenario.name,
+                tuned.cost,
+                tuned.start_cost,
+                tuned.runs,
+                out.display()
+            );
+            Ok(())
+        }
+        Command::Campaign {
+            profiles,
+            out,
+            scenario,
+            duration,
+            controllers,
+            links,
+        } => campaign(&profiles, &out, &scenario, duration, &controllers, &links),
+        Command::ServiceConfig {
+            devices,
+            scenario,
+            controller,
+        } => {
+            let (scenario, set) = scenario_and_controller(&scenario, controller.as_deref())?;
+            let config = service_config(&scenario, &set, &devices);
+            config.check("(generated)")?;
+            println!(
+                "# controller-service configuration: {} on {} for {}\n{}",
+                set.name,
+                scenario.name,
+                devices.join(", "),
+                toml::to_string_pretty(&config)?
+            );
+            Ok(())
+        }
+    }
+}
+
+fn print_summary(s: &Summary) {
+    println!("{} with {}:", s.scenario, s.controller);
+    for c in &s.channels {
+        println!(
+            "  {:<18} rms {:.3e}  max {:.3e}  iae {:.3e}  saturated {:.1}%  chatter {:.3}",
+            c.name,
+            c.rms,
+            c.max_abs,
+            c.iae,
+            100.0 * c.saturated_fraction,
+            c.control_variation
+        );
+    }
+    if !s.completed {
+        println!("  the run stopped early: the controller refused the plant's data");
+    }
+}
+
+fn print_reports(reports: &[AgentReport], offline: Option<&Summary>) {
+    if let Some(first) = reports.first() {
+        print!("| plant |");
+        for c in &first.channels {
+            print!(" {} RMS |", c.name);
+        }
+        println!(" RTT p50 (us) | RTT p99 (us) | missing | late | fallbacks |");
+        println!(
+            "|---|{}---:|---:|---:|---:|---:|",
+            "---:|".repeat(first.channels.len())
+        );
+    }
+    if let Some(o) = offline {
+        print!("| offline (no network) |");
+        for c in &o.channels {
+            print!(" {:.3e} |", c.rms);
+        }
+        println!(" - | - | - | - | - |");
+    }
+    for r in reports {
+        print!("| {} |", r.device_id);
+        for c in &r.channels {
+            print!(" {:.3e} |", c.rms);
+        }
+        println!(
+            " {:.0} | {:.0} | {} | {} | {} |",
+            r.rtt_p50_us, r.rtt_p99_us, r.counters.missing, r.counters.late, r.counters.fallbacks
+        );
+    }
+    for r in reports.iter().filter(|r| r.exit_code() != 0) {
+        println!("{}", r.headline());
+    }
+}
+
+fn sim_compare(out: &Path, only: Option<(&String, &Vec<String>)>) -> Result<()> {
+    let (scenarios, controllers) = match only {
+        Some((s, cs)) => (
+            vec![load_scenario(s)?],
+            cs.iter()
+                .map(|c| load_controller(c))
+                .collect::<Result<Vec<_>, _>>()?,
+        ),
+        None => (
+            SHIPPED_SCENARIOS
+                .iter()
+                .map(|(n, _, _)| load_scenario(n))
+                .collect::<Result<Vec<_>, _>>()?,
+            SHIPPED_CONTROLLERS
+                .iter()
+                .map(|(k, _)| shipped_controller(k))
+                .collect::<Result<Vec<_>, _>>()?,
+        ),
+    };
+    let bar = bar(
+        (scenarios.len() * controllers.len()) as u64,
+        "{msg:<28} [{bar:30}] {pos}/{len} runs",
+    );
+    let cmp = compare(&scenarios, &controllers, |s, c| {
+        bar.set_message(format!("{s} / {c}"));
+        bar.inc(1);
+    })?;
+    bar.finish_and_clear();
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let mass = cmp.mass_markdown();
+    let md = if mass.is_empty() {
+        cmp.markdown()
+    } else {
+        format!(
+            "{}\nRMS with the 4 g mass over RMS without (no retuning):\n\n{mass}",
+            cmp.markdown()
+        )
+    };
+    std::fs::write(out.join("comparison.md"), &md)?;
+    std::fs::write(
+        out.join("comparison.json"),
+        serde_json::to_string_pretty(&cmp)? + "\n",
+    )?;
+    println!("{md}");
+    println!(
+        "wrote {0}/comparison.md and {0}/comparison.json",
+        out.display()
+    );
+    Ok(())
+}
+
+fn campaign(
+    profiles: &str,
+    out: &Path,
+    scenario: &str,
+    duration: f64,
+    controllers: &[String],
+    links: &[Link],
+) -> Result<()> {
+    if !(duration.is_finite() && duration >= 2.0) {
+        bail!("--duration must be at least 2 s");
+    }
+    let set = ProfileSet::load(profiles)?;
+    if !set.profiles.iter().any(|p| p.name == "none") {
+        bail!("{profiles}: the campaign needs a profile named `none` (the unimpaired baseline)");
+    }
+    let mut s = load_scenario(scenario)?;
+    s.duration = duration;
+    let sets = controllers
+        .iter()
+        .map(|c| load_controller(c))
+        .collect::<Result<Vec<_>, _>>()?;
+    for c in &sets {
+        s.check_controller(c)?;
+    }
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?;
+    let total = set.profiles.len() * links.len();
+    let bar = bar(
+        total as u64,
+        "{msg:<32} [{bar:30}] {pos}/{len} cases, {elapsed} ({eta} left)",
+    );
+    let mut campaign = Campaign {
+        scenario: s.name.clone(),
+        duration,
+        cases: Vec::new(),
+    };
+    for p in &set.profiles {
+        for link in links {
+            bar.set_message(format!("{} over {}", p.name, link.scheme()));
+            let r = runtime.block_on(run_case(&s, &sets, p, *link, &CaseOptions::default()))?;
+            campaign.cases.extend(r);
+            bar.inc(1);
+        }
+    }
+    bar.finish_and_clear();
+    campaign.compute_ratios("none");
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let md = campaign.markdown();
+    std::fs::write(out.join("campaign.md"), &md)?;
+    std::fs::write(
+        out.join("campaign.json"),
+        serde_json::to_string_pretty(&campaign)? + "\n",
+    )?;
+    crate::campaign::plots(out, &campaign, &set)?;
+    println!("{md}");
+    println!(
+        "wrote {0}/campaign.md, {0}/campaign.json, {0}/rms_vs_loss.png|svg, {0}/rms_vs_latency.png|svg",
+        out.display()
+    );
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    /// clap's own consistency checks (unique ids, valid defaults) on the whole CLI.
+    #[test]
+    fn cli_is_consistent() {
+        use clap::CommandFactory;
+        super::Cli::command().debug_assert();
+    }
+}

@@ -1,0 +1,202 @@
+//! The one harness that starts a controller service and plants in-process, each in its
+//! own Zenoh session on loopback (peers, multicast scouting off), as in production. The
+//! demo, the fault campaign, the system tests and the benchmarks all use it, so there is
+//! one way to set up a networked run.
+
+use controller_service::config::{DeviceChannel, DeviceSpec, ServiceConfig};
+use controller_service::{service, Registry};
+use plant_agent::agent::{self, AgentRun, LoopConfig};
+use plant_agent::safety::{FallbackPolicy, SafetyConfig};
+use plant_agent::scenario::{ControllerSet, Scenario};
+use transport::ZenohArgs;
+use zenoh::Session;
+
+/// Default oldest command worth applying, in periods (100 ms at 10 ms).
+pub const DEFAULT_MAX_AGE: u32 = 10;
+/// Default periods held before the fallback.
+pub const DEFAULT_HOLD_PERIODS: u32 = 5;
+
+/// The safety settings of the demo and the tests: hold 5 periods, then the local
+/// controller; commands up to 10 periods old are still applied.
+pub fn default_safety(scenario: &Scenario) -> SafetyConfig {
+    SafetyConfig {
+        period: scenario.period,
+        max_age: DEFAULT_MAX_AGE,
+        hold_periods: DEFAULT_HOLD_PERIODS,
+        fallback: FallbackPolicy::LocalController,
+    }
+}
+
+/// The service configuration that serves `ids` with `controller` on `scenario`.
+pub fn service_config(
+    scenario: &Scenario,
+    controller: &ControllerSet,
+    ids: &[String],
+) -> ServiceConfig {
+    ServiceConfig {
+        controller_id: "controller-1".into(),
+        devices: ids
+            .iter()
+            .map(|id| DeviceSpec {
+                id: id.clone(),
+                channels: scenario
+                    .channels
+                    .iter()
+                    .zip(&controller.channels)
+                    .map(|(c, law)| DeviceChannel {
+                        law: *law,
+                        output: c.output,
+                        reference: c.reference.clone(),
+                    })
+                    .collect(),
+            })
+            .collect(),
+        ..ServiceConfig::default()
+    }
+}
+
+/// Open a peer session on loopback. `gossip = false` for fault tests: peers must not find a
+/// way around the relay.
+pub async fn open_session(
+    listen: Option<String>,
+    connect: Vec<String>,
+    gossip: bool,
+) -> anyhow::Result<Session> {
+    let mut config = ZenohArgs::loopback(listen, connect).to_config()?;
+    if !gossip {
+        config
+            .insert_json5("scouting/gossip/enabled", "false")
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+    }
+    zenoh::open(config)
+        .await
+        .map_err(|e| anyhow::anyhow!("opening a zenoh session: {e}"))
+}
+
+/// A controller service running in this process.
+pub struct ServiceHandle {
+    /// Endpoint the service listens on.
+    pub endpoint: String,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    task: tokio::task::JoinHandle<Result<(), service::ServiceError>>,
+}
+
+impl ServiceHandle {
+    /// Start a service for `config` listening on `endpoint` (`None`: a free TCP port on
+    /// loopback).
+    pub async fn start(config: ServiceConfig, endpoint: Option<String>) -> anyhow::Result<Self> {
+        Self::start_with(config, endpoint, true).await
+    }
+
+    /// As [`ServiceHandle::start`], choosing whether the service's session gossips.
+    pub async fn start_with(
+        config: ServiceConfig,
+        endpoint: Option<String>,
+        gossip: bool,
+    ) -> anyhow::Result<Self> {
+        let endpoint = match endpoint {
+            Some(e) => e,
+            None => format!("tcp/127.0.0.1:{}", transport::free_local_port()?),
+        };
+        let registry = Registry::new(config)?;
+        let session = open_session(Some(endpoint.clone()), vec![], gossip).await?;
+        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+        let task = tokio::spawn(service::run(session, registry, async {
+            let _ = rx.await;
+        }));
+        Ok(Self {
+            endpoint,
+            stop: Some(tx),
+            task,
+        })
+    }
+
+    /// A client session connected to the service.
+    pub async fn client(&self) -> anyhow::Result<Session> {
+        open_session(None, vec![self.endpoint.clone()], true).await
+    }
+
+    /// Stop the service and wait for it.
+    pub async fn stop(mut self) -> anyhow::Result<()> {
+        if let Some(tx) = self.stop.take() {
+            let _ = tx.send(());
+        }
+        (&mut self.task).await??;
+        Ok(())
+    }
+}
+
+/// One plant to run through the harness.
+#[derive(Debug, Clone)]
+pub struct PlantSpec {
+    /// The scenario (its plant, channels and references).
+    pub scenario: Scenario,
+    /// The loop's settings (device id, safety, local controller).
+    pub loop_config: LoopConfig,
+    /// Noise seed of the built-in simulator.
+    pub seed: u64,
+}
+
+impl PlantSpec {
+    /// Plant `id` on `scenario` with `controller` as its local copy and the default safety
+    /// settings.
+    pub fn new(scenario: &Scenario, controller: &ControllerSet, id: &str) -> Self {
+        Self {
+            scenario: scenario.clone(),
+            loop_config: LoopConfig::new(scenario, controller, id, default_safety(scenario)),
+            seed: scenario.seed,
+        }
+    }
+}
+
+/// Run one plant through its own session connected to `endpoints`, to the end of its
+/// scenario.
+pub async fn run_plant(
+    endpoints: Vec<String>,
+    plant: PlantSpec,
+    gossip: bool,
+) -> anyhow::Result<AgentRun> {
+    let session = open_session(None, endpoints, gossip).await?;
+    let p = plant_agent::plant::open(
+        &plant.scenario.plant,
+        plant.seed,
+        plant.scenario.channels.len(),
+    )?;
+    let out = agent::run(
+        &session,
+        p,
+        &plant.loop_config,
+        run_id(plant.seed),
+        std::future::pending(),
+    )
+    .await;
+    let _ = session.close().await;
+    Ok(out?)
+}
+
+/// A run id that differs between runs and between plants of one run.
+pub fn run_id(salt: u64) -> u64 {
+    plant_agent::cli::run_id() ^ salt.wrapping_mul(0x9E37_79B9_7F4A_7C15)
+}
+
+/// Start a service for `plants` and run them all concurrently; returns their runs in order.
+pub async fn run_fleet(
+    plants: Vec<PlantSpec>,
+    config: ServiceConfig,
+) -> anyhow::Result<Vec<AgentRun>> {
+    let service = ServiceHandle::start(config, None).await?;
+    let mut tasks = Vec::new();
+    for p in plants {
+        tasks.push(tokio::spawn(run_plant(
+            vec![service.endpoint.clone()],
+            p,
+            true,
+        )));
+    }
+    let mut runs = Vec::new();
+    for t in tasks {
+        runs.push(t.await??);
+    }
+    service.stop().await?;
+    Ok(runs)
+}

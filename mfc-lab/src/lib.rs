@@ -1,0 +1,22 @@
+//! The research bench of model-free control as a service.
+//!
+//! * [`offline`]: a scenario closed-loop, in lockstep, against any plant (the AERO
+//!   simulator or a driver process), no network, no real time;
+//! * [`tune`]: a fair tuner (the same search and budget for every controller kind);
+//! * [`compare`]: every controller on every scenario, as a table;
+//! * [`harness`]: a controller service and N plants in-process over Zenoh on loopback, the
+//!   one setup behind the demo, the campaign, the system tests and the benchmarks;
+//! * [`demo`]: the README's first command;
+//! * [`campaign`]: the fault campaign through `faultlab`'s relay, with its plots;
+//! * [`cli`]: the `mfc-lab` command line.
+//!
+//! This is the one crate that composes the others: it links the service, the agent and
+//! the relay to run them together. Nothing depends on it but the system tests.
+
+pub mod campaign;
+pub mod cli;
+pub mod compare;
+pub mod demo;
+pub mod harness;
+pub mod offline;
+pub mod tune;

@@ -1,0 +1,5 @@
+//! `mfc-lab`: see `mfc_lab::cli`.
+
+fn main() -> std::process::ExitCode {
+    mfc_lab::cli::main()
+}

@@ -1,0 +1,136 @@
+//! The closed loop run offline, in lockstep: plant and controller in one thread, no
+//! network, no real time, as fast as the plant answers.
+//!
+//! Each period: read the plant, step the MIMO controller, write the inputs (the plant
+//! reports what it really applied: saturation, a driver's own limits), tell the controller
+//! what was really applied, let one period of plant time pass. The plant is any
+//! [`plant_agent::plant::Plant`]: the built-in AERO simulator or a driver process, so a
+//! user tries and tunes a controller on their own simulator before going live. This is
+//! also the reference the networked loop is compared against.
+
+use mfc::trajectory::evaluate;
+use mfc::{ChannelOutput, MimoController, Reference};
+use plant_agent::plant::PlantError;
+use plant_agent::record::{Accumulator, ChannelMetrics, Period, Recording};
+use plant_agent::scenario::{ControllerSet, Scenario};
+use serde::{Deserialize, Serialize};
+
+/// Why a run could not be done.
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    /// The controller configuration was refused.
+    #[error("controller `{controller}`: {source}")]
+    Controller {
+        /// Controller name.
+        controller: String,
+        /// The control core's reason.
+        source: mfc::MfcError,
+    },
+    /// The controller does not fit the scenario.
+    #[error(transparent)]
+    Scenario(#[from] plant_agent::scenario::ScenarioError),
+    /// The plant could not be started or failed during the run.
+    #[error("plant: {0}")]
+    Plant(#[from] PlantError),
+}
+
+/// Summary of an offline run, as written to `summary.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Summary {
+    /// Scenario name.
+    pub scenario: String,
+    /// Controller name.
+    pub controller: String,
+    /// Per channel.
+    pub channels: Vec<ChannelMetrics>,
+    /// Times the plant hit a mechanical limit (the AERO's pitch stop): a safety excursion.
+    pub limit_hits: usize,
+    /// Whether the run went to the end (a controller error stops it).
+    pub completed: bool,
+}
+
+/// A finished run.
+#[derive(Debug, Clone)]
+pub struct Run {
+    /// Period by period (empty unless recorded).
+    pub recording: Recording,
+    /// Metrics.
+    pub summary: Summary,
+}
+
+/// Run `scenario` closed-loop with `controller`, recording every period if `record`.
+pub fn run(scenario: &Scenario, controller: &ControllerSet, record: bool) -> Result<Run, RunError> {
+    scenario.check_controller(controller)?;
+    let n = scenario.channels.len();
+    let configs = scenario.channel_configs(controller);
+    let mut mimo: MimoController =
+        MimoController::new(&configs).map_err(|source| RunError::Controller {
+            controller: controller.name.clone(),
+            source,
+        })?;
+    let mut plant = plant_agent::plant::open(&scenario.plant, scenario.seed, n)?;
+    let h = scenario.period;
+    let steps = scenario.steps();
+    let mut acc = vec![Accumulator::default(); n];
+    let mut recording = Recording::new(
+        scenario.names(),
+        scenario.channels.iter().map(|c| c.unit.clone()).collect(),
+        if record { steps } else { 0 },
+    );
+    let mut out = vec![ChannelOutput::default(); n];
+    let mut refs = vec![Reference::default(); n];
+    let mut v = vec![0.0; n];
+    let mut failed = false;
+    for k in 0..steps {
+        let t = k as f64 * h;
+        let y = plant.read()?;
+        for (r, c) in refs.iter_mut().zip(&scenario.channels) {
+            *r = evaluate(&c.reference, t);
+        }
+        if mimo.step(t, &y, &refs, &mut out).is_err() {
+            // Only non-finite plant data can do this; the run stops and says so.
+            failed = true;
+            break;
+        }
+        for (vi, o) in v.iter_mut().zip(&out) {
+            *vi = o.v;
+        }
+        let applied = plant.write(&v)?;
+        if applied != v {
+            // The plant limited the input: keep the estimator honest.
+            let _ = mimo.report_applied(&applied);
+        }
+        for (i, c) in scenario.channels.iter().enumerate() {
+            acc[i].add(y[i] - refs[i].y, h, applied[i], c.saturated(applied[i]));
+        }
+        if record {
+            let y_ref: Vec<f64> = refs.iter().map(|r| r.y).collect();
+            let u: Vec<f64> = out.iter().map(|o| o.u).collect();
+            let f: Vec<f64> = out.iter().map(|o| o.f_est.unwrap_or(f64::NAN)).collect();
+            recording.push(Period {
+                t,
+                y_ref: &y_ref,
+                y: &y,
+                u: Some(&u),
+                v: &applied,
+                f_est: Some(&f),
+                net: None,
+            });
+        }
+        plant.advance(h)?;
+    }
+    let limit_hits = plant.limit_hits();
+    plant.stop()?;
+    let summary = Summary {
+        scenario: scenario.name.clone(),
+        controller: controller.name.clone(),
+        channels: acc
+            .iter()
+            .zip(&scenario.channels)
+            .map(|(a, c)| a.finish(&c.name))
+            .collect(),
+        limit_hits,
+        completed: !failed,
+    };
+    Ok(Run { recording, summary })
+}

@@ -1,0 +1,109 @@
+//! The `mfc-lab` commands, run as a user would.
+
+use std::process::Command;
+
+fn lab() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_mfc-lab"))
+}
+
+#[test]
+fn sim_writes_timeseries_summary_and_plots() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = lab()
+        .args(["sim", "--scenario", "4", "--controller", "ipd", "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("summary.json")).unwrap())
+            .unwrap();
+    assert_eq!(summary["scenario"], "scenario-4");
+    assert_eq!(summary["controller"], "ipd");
+    for ch in summary["channels"].as_array().unwrap() {
+        for key in ["name", "rms", "max_abs", "iae", "saturated_fraction"] {
+            assert!(!ch[key].is_null(), "{key}");
+        }
+    }
+    let csv = std::fs::read_to_string(dir.path().join("run.csv")).unwrap();
+    let mut lines = csv.lines();
+    assert_eq!(
+        lines.next().unwrap(),
+        "t,azimuth_velocity_ref,azimuth_velocity,azimuth_velocity_u,azimuth_velocity_v,azimuth_velocity_f_est,pitch_ref,pitch,pitch_u,pitch_v,pitch_f_est"
+    );
+    assert_eq!(lines.count(), 4001);
+    for name in ["azimuth_velocity", "pitch"] {
+        for ext in ["png", "svg"] {
+            let meta = std::fs::metadata(dir.path().join(format!("{name}.{ext}"))).unwrap();
+            assert!(meta.len() > 10_000, "{name}.{ext} too small");
+        }
+    }
+}
+
+#[test]
+fn tune_output_is_usable_by_sim() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("adrc.toml");
+    let out = lab()
+        .args([
+            "tune",
+            "--scenario",
+            "1",
+            "--controller",
+            "adrc",
+            "--budget",
+            "6",
+            "--out",
+        ])
+        .arg(&file)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let out = lab()
+        .args(["sim", "--scenario", "3", "--controller"])
+        .arg(&file)
+        .arg("--out")
+        .arg(dir.path().join("run"))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+#[test]
+fn bad_input_gives_a_clear_error_and_exit_code() {
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(
+        &bad,
+        "name = \"x\"\nduration = 1.0\ncontroller = \"ip\"\nchanels = []\n",
+    )
+    .unwrap();
+    let out = lab()
+        .args(["sim", "--scenario"])
+        .arg(&bad)
+        .arg("--out")
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("bad.toml") && err.contains("chanels"), "{err}");
+    let out = lab()
+        .args(["tune", "--controller", "lqr", "--out", "x.toml"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("unknown controller kind `lqr`"));
+}

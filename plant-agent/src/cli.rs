@@ -1,0 +1,203 @@
+//! The `plant-agent` command line. Thin: parse, resolve the configuration, open the plant
+//! and the session, run, write the record, exit with the run's status.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use clap::{Parser, Subcommand};
+
+use crate::agent::{self, AgentReport};
+use crate::config::AgentFile;
+use crate::record::write_run;
+use crate::safety::FallbackPolicy;
+
+#[derive(Parser)]
+#[command(
+    name = "plant-agent",
+    version,
+    about = "Bridges a plant (a rig's driver or a simulator) to a model-free controller service over Zenoh"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run one plant against a controller service until the scenario's duration, SIGINT
+    /// or SIGTERM; then apply the plant's safe stop and write the record.
+    ///
+    /// Exit status: 0 ran (or was stopped) with a controller answering; 3 no controller
+    /// ever answered (the plant ran on its fallback); 4 the plant failed or did not
+    /// confirm its safe stop; 1 the configuration or the session was refused.
+    Run(RunArgs),
+}
+
+#[derive(clap::Args)]
+struct RunArgs {
+    /// Agent configuration file (TOML; see `plant-agent/src/config.rs`). The flags below
+    /// override it.
+    #[arg(long, short)]
+    config: Option<PathBuf>,
+    /// Device id.
+    #[arg(long)]
+    device: Option<String>,
+    /// Scenario file, or a shipped AERO one (1, 2, 3, 4).
+    #[arg(long)]
+    scenario: Option<String>,
+    /// Local controller (also the fallback): a controller file or a shipped name.
+    #[arg(long)]
+    controller: Option<String>,
+    /// Run length (s), instead of the scenario's.
+    #[arg(long)]
+    duration: Option<f64>,
+    /// Periods to hold the last command before falling back.
+    #[arg(long)]
+    hold_periods: Option<u32>,
+    /// What to fall back to.
+    #[arg(long, value_enum)]
+    fallback: Option<Fallback>,
+    /// Oldest command still applied, in periods.
+    #[arg(long)]
+    max_age: Option<u32>,
+    /// Where to write the record.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    #[command(flatten)]
+    zenoh: transport::ZenohArgs,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum Fallback {
+    /// The local controller.
+    Local,
+    /// Zero inputs.
+    SafeStop,
+}
+
+/// Parse the process's arguments, run, and return the exit status.
+pub fn main() -> std::process::ExitCode {
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| "info,zenoh=warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .try_init();
+    let Command::Run(args) = Cli::parse().command;
+    match run(args) {
+        Ok(code) => std::process::ExitCode::from(code),
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(args: RunArgs) -> Result<u8> {
+    let (mut file, source) = match &args.config {
+        Some(p) => (AgentFile::load(p)?, p.clone()),
+        None => (AgentFile::default(), PathBuf::from("(flags)")),
+    };
+    if let Some(d) = args.device {
+        file.device = Some(d);
+    }
+    if let Some(s) = args.scenario {
+        file.scenario = s;
+    }
+    if let Some(c) = args.controller {
+        file.controller = Some(c);
+    }
+    if args.duration.is_some() {
+        file.duration = args.duration;
+    }
+    if let Some(h) = args.hold_periods {
+        file.hold_periods = h;
+    }
+    if let Some(f) = args.fallback {
+        file.fallback = match f {
+            Fallback::Local => FallbackPolicy::LocalController,
+            Fallback::SafeStop => FallbackPolicy::SafeStop,
+        };
+    }
+    if let Some(a) = args.max_age {
+        file.max_age = a;
+    }
+    if let Some(o) = args.out {
+        file.out = o;
+    }
+    let r = file.resolve(&source)?;
+    let plant = crate::plant::open(
+        &r.scenario.plant,
+        r.scenario.seed,
+        r.scenario.channels.len(),
+    )
+    .context("opening the plant")?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?;
+    let run = runtime.block_on(async {
+        let session = match args.zenoh.open().await {
+            Ok(s) => s,
+            Err(e) => {
+                // The plant was opened: give it its safe stop before giving up.
+                let p = agent::PlantThread::spawn(plant);
+                let _ = p.stop().await;
+                return Err(anyhow::Error::from(e));
+            }
+        };
+        let out = agent::run(
+            &session,
+            plant,
+            &r.loop_config,
+            run_id(),
+            transport::shutdown_signal(),
+        )
+        .await;
+        let _ = session.close().await;
+        Ok(out?)
+    })?;
+    let title = format!("{} — {} over Zenoh", r.scenario.name, run.report.device_id);
+    write_run(&r.out, &title, &run.recording, &run.report)
+        .with_context(|| format!("writing the record to {}", r.out.display()))?;
+    print_report(&run.report);
+    println!(
+        "wrote {}/{{run.csv, summary.json, *.png, *.svg}}",
+        r.out.display()
+    );
+    Ok(run.report.exit_code())
+}
+
+/// A run id that differs between runs: the service rebuilds a device's state when it
+/// changes (a restarted plant).
+pub fn run_id() -> u64 {
+    protocol::unix_ns() ^ u64::from(std::process::id()).rotate_left(32)
+}
+
+fn print_report(r: &AgentReport) {
+    println!("{}", r.headline());
+    for c in &r.channels {
+        println!(
+            "  {:<18} rms {:.3e}  max {:.3e}  saturated {:.1}%",
+            c.name,
+            c.rms,
+            c.max_abs,
+            100.0 * c.saturated_fraction
+        );
+    }
+    let k = &r.counters;
+    println!(
+        "  commands {} (late {}), missing {}, fallbacks {}, RTT p50 {:.0} us p99 {:.0} us",
+        k.commands, k.late, k.missing, k.fallbacks, r.rtt_p50_us, r.rtt_p99_us
+    );
+}
+
+#[cfg(test)]
+mod tests {
+    /// clap's own consistency checks (unique ids, valid defaults) on the whole CLI.
+    #[test]
+    fn cli_is_consistent() {
+        use clap::CommandFactory;
+        super::Cli::command().debug_assert();
+    }
+}

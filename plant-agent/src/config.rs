@@ -1,0 +1,184 @@
+//! The agent's configuration file (TOML). Every field has its default here, in
+//! [`AgentFile::default`], and nowhere else; command-line flags override the file.
+//!
+//! ```toml
+//! device = "aero-1"          # device id (key chunk); required, here or as --device
+//! scenario = "2"             # scenario file (relative to this file) or a shipped AERO one:
+//!                            # the plant, its channels, references, period and duration
+//! controller = "ipd"         # local controller (fallback): file or shipped name; default: the scenario's
+//! duration = 40.0            # s; default: the scenario's
+//! max_age = 10               # oldest command still applied, in periods
+//! hold_periods = 5           # periods holding the last command before the fallback
+//! fallback = "local"         # "local" (the local controller) or "safe_stop" (zero inputs)
+//! out = "out/run"            # where the record goes (relative to the working directory)
+//! ```
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::agent::LoopConfig;
+use crate::safety::{FallbackPolicy, SafetyConfig};
+use crate::scenario::{load_controller, load_scenario, ControllerSet, Scenario, ScenarioError};
+
+/// Why the agent's configuration was refused.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// The file could not be read.
+    #[error("{file}: cannot read: {source}")]
+    Io {
+        /// The file.
+        file: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// Not valid TOML for the schema (the message names the field and line).
+    #[error("{file}: {message}")]
+    Parse {
+        /// The file.
+        file: PathBuf,
+        /// The parser's message.
+        message: String,
+    },
+    /// A value is out of range or missing.
+    #[error("{file}: `{field}`: {reason}")]
+    Invalid {
+        /// The file (or `(flags)`).
+        file: PathBuf,
+        /// The field.
+        field: &'static str,
+        /// What is wrong.
+        reason: String,
+    },
+    /// The scenario or the controller.
+    #[error(transparent)]
+    Scenario(#[from] ScenarioError),
+}
+
+/// The agent's configuration file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AgentFile {
+    /// Device id. No default: two agents with the same id would fight over one device.
+    pub device: Option<String>,
+    /// Scenario file or shipped name. Default `2` (the AERO's complex references).
+    pub scenario: String,
+    /// Local controller: file or shipped name. Default: the scenario's.
+    pub controller: Option<String>,
+    /// Run length (s). Default: the scenario's duration.
+    pub duration: Option<f64>,
+    /// Oldest command still worth applying, in periods. Default 10 (100 ms at 10 ms): on a
+    /// slow link the newest command is still the best there is; older ones are stale.
+    pub max_age: u32,
+    /// Periods to hold the last command before falling back. Default 5.
+    pub hold_periods: u32,
+    /// What to fall back to. Default: the local controller.
+    pub fallback: FallbackPolicy,
+    /// Where to write the record (`run.csv`, `summary.json`, plots). Default `out/run`.
+    pub out: PathBuf,
+}
+
+impl Default for AgentFile {
+    fn default() -> Self {
+        Self {
+            device: None,
+            scenario: "2".into(),
+            controller: None,
+            duration: None,
+            max_age: 10,
+            hold_periods: 5,
+            fallback: FallbackPolicy::LocalController,
+            out: PathBuf::from("out/run"),
+        }
+    }
+}
+
+/// `p` relative to `dir` when it names a file there; otherwise as given (a shipped name,
+/// an absolute path).
+fn rebase(dir: &Path, p: &str) -> String {
+    let full = dir.join(p);
+    if Path::new(p).is_relative() && full.is_file() {
+        full.to_string_lossy().into_owned()
+    } else {
+        p.to_string()
+    }
+}
+
+/// A configuration resolved against its files: ready to run.
+#[derive(Debug, Clone)]
+pub struct Resolved {
+    /// The scenario (with the duration override applied).
+    pub scenario: Scenario,
+    /// The local controller.
+    pub controller: ControllerSet,
+    /// The loop's settings.
+    pub loop_config: LoopConfig,
+    /// Where to write the record.
+    pub out: PathBuf,
+}
+
+impl AgentFile {
+    /// Read a configuration file.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
+            file: path.to_path_buf(),
+            source,
+        })?;
+        let mut file: AgentFile = toml::from_str(&text).map_err(|e| ConfigError::Parse {
+            file: path.to_path_buf(),
+            message: e.to_string().trim_end().into(),
+        })?;
+        // Paths in the file are relative to the file, so it can be moved with its
+        // scenario and controller.
+        let dir = path.parent().unwrap_or(Path::new("."));
+        file.scenario = rebase(dir, &file.scenario);
+        file.controller = file.controller.as_deref().map(|c| rebase(dir, c));
+        Ok(file)
+    }
+
+    /// Load the scenario and the controller and check every value; `file` names the
+    /// source in errors.
+    pub fn resolve(&self, file: &Path) -> Result<Resolved, ConfigError> {
+        let invalid = |field: &'static str, reason: String| ConfigError::Invalid {
+            file: file.to_path_buf(),
+            field,
+            reason,
+        };
+        let device = self
+            .device
+            .clone()
+            .ok_or_else(|| invalid("device", "required (or --device)".into()))?;
+        protocol::keys::check_id(&device).map_err(|e| invalid("device", e.to_string()))?;
+        let mut scenario = load_scenario(&self.scenario)?;
+        if let Some(d) = self.duration {
+            if !(d.is_finite() && d >= scenario.period && d <= 366.0 * 86_400.0) {
+                return Err(invalid(
+                    "duration",
+                    format!("must be between one period and a year, got {d}"),
+                ));
+            }
+            scenario.duration = d;
+        }
+        let controller = match &self.controller {
+            Some(c) => load_controller(c)?,
+            None => scenario.controller.clone(),
+        };
+        scenario.check_controller(&controller)?;
+        let safety = SafetyConfig {
+            period: scenario.period,
+            max_age: self.max_age,
+            hold_periods: self.hold_periods,
+            fallback: self.fallback,
+        };
+        safety
+            .validate()
+            .map_err(|e| invalid("max_age/hold_periods", e.to_string()))?;
+        let loop_config = LoopConfig::new(&scenario, &controller, &device, safety);
+        Ok(Resolved {
+            scenario,
+            controller,
+            loop_config,
+            out: self.out.clone(),
+        })
+    }
+}
