@@ -55,7 +55,8 @@ const MEASURED: [(f64, f64); 9] = [
 ];
 
 impl TorqueCurve {
-    /// `φ(V)` in equivalent volts.
+    /// `φ(V)` in equivalent volts: odd in `V`, interpolated linearly between the measured
+    /// points, and beyond 23.53 V extended along the last segment.
     pub fn eval(self, v: f64) -> f64 {
         match self {
             TorqueCurve::Linear => v,
@@ -114,7 +115,8 @@ pub struct AeroParams {
     /// states. With the identity each output is dominated by the *other* input, and every
     /// per-channel iP of a grid over alpha, Kp and window fell into a coupled oscillation.
     pub mixing: [[f64; 2]; 2],
-    /// Amplifier saturation (V). Default 24.
+    /// Amplifier saturation (V): bounds each channel output and again each motor voltage
+    /// after mixing. Default 24.
     pub max_voltage: f64,
     /// Pitch encoder counts per revolution (0: no quantisation). Default 2048.
     pub pitch_counts: u32,
@@ -132,7 +134,7 @@ pub struct AeroParams {
     pub pitch_limit: f64,
     /// Largest internal integration step (s), at most 0.001. Default 0.001.
     pub integration_step: f64,
-    /// Initial pitch (rad). Default 0.
+    /// Initial pitch (rad), within ±`pitch_limit`. Default 0.
     pub initial_pitch: f64,
 }
 
@@ -165,23 +167,25 @@ impl Default for AeroParams {
     }
 }
 
-/// The paper's added mass (kg).
+/// The paper's added mass (kg), scenarios 3 and 4: what the `added_mass` switch (scenario
+/// file, `aero-sim` flag) puts in [`AeroParams::added_mass`].
 pub const PAPER_ADDED_MASS: f64 = 0.004;
 
 /// A parameter that is out of its physical range.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("plant parameter `{field}` = {value}: {reason}")]
 pub struct ParamError {
-    /// Field name.
+    /// The field's name as a plant file spells it (`jp`, `mixing`, ...).
     pub field: &'static str,
-    /// Its value.
+    /// The offending value; for `mixing`, the first non-finite entry.
     pub value: f64,
     /// What it must be.
     pub reason: &'static str,
 }
 
 impl AeroParams {
-    /// Check every field.
+    /// Check every field against its physical range and report the first that is out;
+    /// [`AeroSim::new`] refuses parameters that fail it.
     pub fn validate(&self) -> Result<(), ParamError> {
         let positive = [
             ("jp", self.jp),
@@ -274,25 +278,30 @@ pub struct AeroState {
 #[derive(Debug, Clone)]
 pub struct AeroSim {
     p: AeroParams,
+    /// The true state, which [`AeroSim::measure`] quantises and adds noise to.
     x: AeroState,
     /// Saturated motor voltages being applied.
     motors: [f64; 2],
     /// Channel outputs being applied (after saturation).
     applied: [f64; 2],
+    /// Simulated time (s), advanced only by [`AeroSim::advance`].
     t: f64,
+    /// Measurement noise, seeded so that a run replays.
     rng: Rng,
     /// Last yaw reading (time, quantised angle) and the rate derived from it (rad/s).
     last_yaw: Option<(f64, f64)>,
     last_rate: f64,
+    /// Arrivals of the pitch arm at its stop.
     stop_hits: usize,
+    /// Whether the arm is at its stop now, so that resting there counts as one hit.
     at_stop: bool,
 }
 
 /// Number of outputs and inputs of the AERO.
 pub const CHANNELS: usize = 2;
-/// Names of the outputs, in order.
+/// Names of the outputs, in the order [`AeroSim::measure`] returns them.
 pub const CHANNEL_NAMES: [&str; 2] = ["azimuth_velocity", "pitch"];
-/// Units of the outputs.
+/// Units of the outputs: the azimuth velocity is in rad/ms, as in the paper, not rad/s.
 pub const CHANNEL_UNITS: [&str; 2] = ["rad/ms", "rad"];
 
 impl AeroSim {
@@ -322,12 +331,14 @@ impl AeroSim {
         &self.p
     }
 
-    /// The true state.
+    /// The true state, unquantised and noise-free (for checks: a controller only ever sees
+    /// [`AeroSim::measure`]).
     pub fn state(&self) -> AeroState {
         self.x
     }
 
-    /// How many times the pitch arm has hit its mechanical stop.
+    /// How many times the pitch arm has hit its mechanical stop; resting against it counts
+    /// once. Reported by the plant agent as the plant's limit hits.
     pub fn stop_hits(&self) -> usize {
         self.stop_hits
     }
@@ -345,7 +356,8 @@ impl AeroSim {
         (angle / step).round() * step
     }
 
-    /// Read the sensors now: `[azimuth velocity (rad/ms), pitch (rad)]`.
+    /// Read the sensors now: `[azimuth velocity (rad/ms), pitch (rad)]`. The first reading
+    /// reports a velocity of 0 (no earlier angle to difference against).
     pub fn measure(&mut self) -> [f64; 2] {
         let mut pitch = Self::quantise(self.x.pitch, self.p.pitch_counts);
         let mut yaw = Self::quantise(self.x.yaw, self.p.yaw_counts);
@@ -367,8 +379,8 @@ impl AeroSim {
         [self.last_rate / 1000.0, pitch]
     }
 
-    /// Apply the channel outputs `v` from now on (saturated at ±max_voltage); returns what
-    /// was applied, in channel terms.
+    /// Apply the channel outputs `v` from now on (saturated at ±max_voltage, a non-finite
+    /// value read as 0); returns what was applied, in channel terms.
     pub fn apply(&mut self, v: [f64; 2]) -> [f64; 2] {
         let vmax = self.p.max_voltage;
         let sat = |x: f64| {
@@ -393,7 +405,9 @@ impl AeroSim {
         self.applied
     }
 
-    /// Advance the simulation by `dt` seconds with the applied voltages held.
+    /// Advance the simulation by `dt` seconds with the applied voltages held, in equal RK4
+    /// steps no longer than `integration_step`. A `dt` that is not finite and > 0 does
+    /// nothing.
     pub fn advance(&mut self, dt: f64) {
         if !(dt.is_finite() && dt > 0.0) {
             return;

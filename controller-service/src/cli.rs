@@ -71,7 +71,7 @@ pub async fn run(cli: Cli) -> Result<()> {
     }
     let registry = Registry::new(config).context("building the devices")?;
     let session = cli.zenoh.open().await?;
-    service::run(session, registry, transport::shutdown_signal()).await?;
+    service::serve(session, registry, transport::shutdown_signal()).await?;
     Ok(())
 }
 

@@ -28,30 +28,36 @@ use serde::{Deserialize, Serialize};
 /// Why a configuration was refused.
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
-    /// Unreadable file.
+    /// The file could not be read (only from [`ServiceConfig::load`]).
     #[error("{file}: {source}")]
     Io {
-        /// File.
+        /// The path as given to [`ServiceConfig::load`], so the message names what the user
+        /// typed.
         file: String,
-        /// Cause.
+        /// The I/O error of reading it (missing file, no permission, not UTF-8).
         source: std::io::Error,
     },
     /// Not valid TOML for the schema (the message names the field and line).
     #[error("{file}: {message}")]
     Parse {
-        /// File.
+        /// The path for [`ServiceConfig::load`], the caller's label for
+        /// [`ServiceConfig::parse`].
         file: String,
-        /// Parser message.
+        /// toml's message with trailing whitespace trimmed: it locates the error in the text
+        /// and says what is wrong there (an unknown field, a wrong type, ...).
         message: String,
     },
-    /// A value is out of range.
+    /// The TOML parsed but a value breaks a rule: out of range, a bad id or pattern, a
+    /// duplicate device id, an empty channel list, or a law the core refuses.
     #[error("{file}: `{field}`: {reason}")]
     Invalid {
-        /// File.
+        /// As in [`ConfigError::Parse`].
         file: String,
-        /// Field path.
+        /// Where the bad value sits, in the file's own terms:
+        /// `devices[1].channels[0].reference[2].duration`, `standby.takeover_ms`, ...
         field: String,
-        /// Reason.
+        /// Why it is refused, readable on its own (e.g. `must be > 0`); for a channel, the
+        /// core's own error.
         reason: String,
     },
 }
@@ -63,16 +69,20 @@ pub struct DeviceChannel {
     /// Control law. Default: iP, alpha 1, Kp 1.
     #[serde(default)]
     pub law: LawConfig,
-    /// Output map. Default: identity.
+    /// Output map from the law's control value to what is sent to the plant (dead-zone
+    /// compensation, limits, rate limit). Default: identity.
     #[serde(default)]
     pub output: OutputMapConfig,
-    /// Reference pieces (evaluated on the plant's clock). Default: constant 0.
+    /// Reference pieces, summed and evaluated on the plant's clock (from the file the
+    /// reference starts at plant time 0; a live update may move its start). Default: none,
+    /// that is a constant 0.
     #[serde(default)]
     pub reference: Vec<Piece>,
 }
 
 impl DeviceChannel {
-    /// The core configuration of the channel.
+    /// The law and output map, as the core builds a controller from them. The reference is
+    /// left out: the service evaluates it itself and hands the controller its value.
     pub fn channel(&self) -> ChannelConfig {
         ChannelConfig {
             law: self.law,
@@ -81,13 +91,17 @@ impl DeviceChannel {
     }
 }
 
-/// A declared device.
+/// A declared device: built when the service starts, before its first sample, so it shows
+/// in the status at once and a snapshot of it is restored only while it stays declared.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DeviceSpec {
-    /// Device id (letters, digits, `-`, `_`, `.`).
+    /// Device id: 1 to 64 letters, digits, `-`, `_`, `.`; unique in the file. It is the
+    /// `{id}` chunk of the device's keys, and a sample whose own `device_id` differs from
+    /// the key it came on is rejected.
     pub id: String,
-    /// One entry per plant output.
+    /// One entry per plant output, in the plant's channel order; at least one. Every sample
+    /// must carry exactly this many outputs.
     pub channels: Vec<DeviceChannel>,
 }
 
@@ -98,7 +112,8 @@ pub struct TemplateSpec {
     /// Zenoh key expression matched against the device id: `*` for any id, `aero-$*` for
     /// ids that start with `aero-` (zenoh syntax: `$*` inside a chunk).
     pub pattern: String,
-    /// Channels given to a matching device.
+    /// Channels of every device the pattern provisions (at least one); each such device
+    /// gets its own control state built from them.
     pub channels: Vec<DeviceChannel>,
 }
 
@@ -106,17 +121,19 @@ pub struct TemplateSpec {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StandbySpec {
-    /// Group name (key chunk).
+    /// Name shared by the members that back each other up: the `{group}` chunk of the
+    /// heartbeat key, so the same rules as a device id.
     pub group: String,
     /// Role at start. An `active` member that hears another active one at start becomes
     /// standby. Default: standby.
     #[serde(default)]
     pub role: Role,
-    /// Heartbeat period of the active member (ms). Default 10 (one control period).
+    /// Heartbeat period of the active member, also how often a standby checks for silence
+    /// (ms, > 0). Default 10 (one control period).
     #[serde(default = "heartbeat_ms")]
     pub heartbeat_ms: u64,
-    /// Silence after which a standby takes over (ms). Default 30: three heartbeats, so a
-    /// takeover lands within five control periods.
+    /// Silence after which a standby takes over (ms, longer than `heartbeat_ms`). Default
+    /// 30: three heartbeats, so a takeover lands within five control periods.
     #[serde(default = "takeover_ms")]
     pub takeover_ms: u64,
 }
@@ -145,7 +162,8 @@ pub enum Role {
 pub struct SnapshotSpec {
     /// Directory of the snapshot files (one per device, `{id}.snap`), created if missing.
     pub dir: std::path::PathBuf,
-    /// How often to write them (ms). Default 1000. They are also written on shutdown.
+    /// How often to write them (ms, > 0). Default 1000. They are also written on shutdown,
+    /// so this bounds only what a crash loses.
     #[serde(default = "snapshot_ms")]
     pub interval_ms: u64,
 }
@@ -154,7 +172,8 @@ fn snapshot_ms() -> u64 {
     1000
 }
 
-/// The whole file.
+/// The whole file. [`Default`] is an empty service (`controller-1`, no devices, no
+/// templates) for programs that fill it in themselves.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ServiceConfig {
@@ -162,16 +181,19 @@ pub struct ServiceConfig {
     /// `controller-1`.
     #[serde(default = "default_id")]
     pub controller_id: String,
-    /// Declared devices.
+    /// Devices served from the start, with unique ids. Default none: then only templates
+    /// provision devices.
     #[serde(default)]
     pub devices: Vec<DeviceSpec>,
-    /// Templates for devices provisioned on first sample, tried in order.
+    /// Templates for devices provisioned on first sample, tried in order: the first whose
+    /// pattern matches wins. A declared id never reaches them.
     #[serde(default)]
     pub templates: Vec<TemplateSpec>,
     /// Hot standby group, if any (absent: this service is always active).
     #[serde(default)]
     pub standby: Option<StandbySpec>,
-    /// State snapshots, if any.
+    /// Where and how often to save device state (absent: nothing is saved, and a restarted
+    /// service starts every device afresh).
     #[serde(default)]
     pub snapshots: Option<SnapshotSpec>,
 }

@@ -26,45 +26,82 @@ use crate::config::{DeviceChannel, ServiceConfig};
 /// A gap longer than this (s) between a snapshot and the next sample makes the restored
 /// estimators start a fresh window.
 const RESUME_GAP: f64 = 0.1;
-/// Round trips kept per device for the status percentiles.
+/// Most recent round trips kept per device for the status percentiles; older ones drop out.
 const RTT_WINDOW: usize = 1000;
-/// Unknown device ids remembered for the status.
+/// Unknown device ids listed in the status (each warned about once); samples from further
+/// unknown ids are still counted, just not named.
 const UNKNOWN_KEPT: usize = 64;
 
 /// What to do with a sample.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Outcome {
-    /// Publish this command on the device's command key.
+    /// Publish this command on the device's command key: a new answer, or the cached one
+    /// again for a duplicate.
     Reply(pb::Command),
     /// Unknown device and no template: nothing to publish (counted).
     Unknown,
 }
 
+/// What the service holds for one device: its control state, where the plant's run stands,
+/// and the counters of its status.
 #[derive(Debug, Clone)]
 struct Device {
     /// Restored from a snapshot and not yet resumed: the first sample decides whether the
     /// data history still holds (no gap) or must be forgotten.
     restored: bool,
+    /// Provisioned from a template, not declared: reported in the status, and lets a
+    /// snapshot rebuild the device although no declaration names it.
     from_template: bool,
+    /// Laws and output maps in force (changed by `configure`); a snapshot of a declared
+    /// device is restored only if its laws equal these.
     configs: Vec<ChannelConfig>,
     mimo: MimoController,
+    /// Reference pieces per channel, evaluated at `plant_time - reference_start`.
     reference: Vec<Vec<Piece>>,
+    /// Plant time (s) at which the reference starts: 0 from the file, moved by a live
+    /// reference update.
     reference_start: f64,
+    /// The plant run this state belongs to (`None` before the first sample); a sample with
+    /// another one resets the control state.
     run_id: Option<u64>,
+    /// Sequence number of the last sample answered with control values; rejected and stale
+    /// samples do not move it.
     last_seq: Option<u64>,
+    /// Plant time of that sample (s); the next must come strictly later. Minus infinity
+    /// until the first one (and after a plant restart), so any first time is accepted.
     last_time: f64,
+    /// The command answering `last_seq`, sent again verbatim for a duplicate. `None` after a
+    /// restart or a restore.
     last_command: Option<pb::Command>,
+    /// Each step's outputs per channel, a buffer reused from sample to sample.
     outputs: Vec<ChannelOutput>,
+    /// The references per channel at the current sample, likewise reused.
     refs: Vec<Reference>,
+    /// Samples for this device, counted before the sequence and value checks (duplicates,
+    /// stale and rejected ones included; one carrying another device's id is not).
     samples: u64,
+    /// Commands computed (CONTROL or WARMING_UP); not resends for duplicates, not REJECTED
+    /// or STALE answers.
     commands: u64,
+    /// Sequence numbers skipped between one answered sample and the next; a sample that
+    /// arrived but was rejected in between counts here too.
     lost: u64,
+    /// Samples repeating `last_seq`, answered with the cached command when there is one.
     duplicates: u64,
+    /// Samples older than `last_seq`, answered STALE.
     stale: u64,
+    /// Samples answered REJECTED: another device's id, bad values, or a step the core
+    /// refused.
     rejected: u64,
+    /// Samples sent while the plant was holding, on its local fallback or in safe stop:
+    /// counts samples, not fallback episodes.
     samples_off_remote: u64,
+    /// The plant's round-trip reports (µs), oldest first, at most `RTT_WINDOW`; a report of
+    /// 0 (no round trip yet) is not kept.
     rtts: VecDeque<u32>,
+    /// The last F estimate per channel; NaN until a step gives one.
     f_est: Vec<f64>,
+    /// Why the last refused sample was refused; a later good sample does not clear it.
     last_error: String,
 }
 
@@ -98,7 +135,8 @@ impl Device {
         })
     }
 
-    /// A restarted plant: fresh control state, same configuration and reference.
+    /// A restarted plant: fresh control state, same configuration and reference. The
+    /// counters carry on across runs.
     fn restart(&mut self) {
         if let Ok(m) = MimoController::new(&self.configs) {
             self.mimo = m;
@@ -169,7 +207,8 @@ impl Device {
     }
 }
 
-/// Percentiles of round trips (µs).
+/// Median, 99th percentile and maximum of round trips (µs), nearest rank on the sorted
+/// window; all zero (count 0) for an empty window.
 pub fn latency(rtts: &VecDeque<u32>) -> pb::LatencyStats {
     if rtts.is_empty() {
         return pb::LatencyStats::default();
@@ -212,8 +251,11 @@ pub struct Registry {
     controller_id: String,
     config: ServiceConfig,
     devices: BTreeMap<String, Device>,
+    /// Samples whose id is neither declared nor matched by a template.
     unknown_samples: u64,
+    /// The first `UNKNOWN_KEPT` of those ids.
     unknown_devices: BTreeSet<String>,
+    /// Payloads that did not decode (samples, reference updates, config requests).
     decode_errors: u64,
 }
 
@@ -244,17 +286,17 @@ impl Registry {
         self.config.standby.as_ref()
     }
 
-    /// This controller's id.
+    /// This controller's id, carried in every command and in the service status.
     pub fn controller_id(&self) -> &str {
         &self.controller_id
     }
 
-    /// Ids of the devices served now.
+    /// Ids of the devices served now: the declared ones and those provisioned so far.
     pub fn device_ids(&self) -> impl Iterator<Item = &str> {
         self.devices.keys().map(String::as_str)
     }
 
-    /// Count a payload that did not decode.
+    /// Count a payload that did not decode; reported as `decode_errors` in the service status.
     pub fn note_decode_error(&mut self) {
         self.decode_errors += 1;
     }
@@ -278,7 +320,8 @@ impl Registry {
         false
     }
 
-    /// Answer a sample received on the key of device `key_id`.
+    /// Answer a sample received on the key of device `key_id` (the key decides the device; a
+    /// sample whose own `device_id` differs is rejected), by the rules of the module doc.
     pub fn handle_sample(&mut self, key_id: &str, s: &pb::Sample) -> Outcome {
         let controller_id = self.controller_id.clone();
         if s.device_id != key_id {
@@ -413,7 +456,9 @@ impl Registry {
         self.devices.get(id).map(|d| d.config_pb(id))
     }
 
-    /// Apply a configuration request, all or nothing, bumplessly.
+    /// Apply a configuration request, all or nothing, bumplessly. Empty `channels` keeps the
+    /// laws, no `reference` keeps the reference; the reply carries the configuration in
+    /// force afterwards, accepted or not (none for an unknown device).
     pub fn configure(&mut self, id: &str, req: &pb::ConfigRequest) -> pb::ConfigReply {
         let refuse = |reason: String, config: Option<pb::DeviceConfig>| pb::ConfigReply {
             version: PROTOCOL_VERSION,
@@ -505,7 +550,8 @@ impl Registry {
         self.devices.get(id).map(|d| d.status_pb(id))
     }
 
-    /// Status of the whole service.
+    /// Status of the whole service, `uptime` in seconds. It reports `active` true and term
+    /// 0: the caller overwrites them with its hot-standby state.
     pub fn service_status(&self, uptime: f64) -> pb::ServiceStatus {
         pb::ServiceStatus {
             version: PROTOCOL_VERSION,
@@ -522,7 +568,8 @@ impl Registry {
 }
 
 impl Registry {
-    /// Snapshots of every device (for [`crate::snapshot`]).
+    /// Snapshots of every device (for [`crate::snapshot`]); a device whose control state
+    /// does not encode is left out.
     pub fn snapshots(&self) -> Vec<crate::snapshot::DeviceSnapshot> {
         self.devices
             .iter()
@@ -611,7 +658,8 @@ impl Registry {
     }
 
     /// Write every device's snapshot into `dir` (write to a temporary file, then rename:
-    /// a crash mid-write never leaves a torn snapshot).
+    /// a crash mid-write never leaves a torn snapshot). Returns how many were written; a
+    /// device that does not encode is skipped; the first I/O error ends the pass.
     pub fn save_snapshots(&self, dir: &std::path::Path) -> std::io::Result<usize> {
         std::fs::create_dir_all(dir)?;
         let mut n = 0;
@@ -627,7 +675,8 @@ impl Registry {
         Ok(n)
     }
 
-    /// Restore every device that has a snapshot in `dir`; returns (restored, refused).
+    /// Restore every device that has a `.snap` file in `dir`; returns (restored, refused),
+    /// (0, 0) if `dir` cannot be read. Each refusal is logged with its reason.
     pub fn load_snapshots(&mut self, dir: &std::path::Path) -> (usize, usize) {
         let Ok(entries) = std::fs::read_dir(dir) else {
             return (0, 0);

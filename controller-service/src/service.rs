@@ -21,15 +21,22 @@ use crate::registry::{Outcome, Registry};
 
 /// Messages from zenoh's callbacks to the worker.
 enum Msg {
+    /// A sample's key (it names the device) and undecoded payload.
     Sample(String, Vec<u8>),
+    /// A heartbeat of the group, this member's own included (`on_heartbeat` skips those).
     Heartbeat(Vec<u8>),
+    /// A live reference update's key and undecoded payload.
     Reference(String, Vec<u8>),
+    /// A config query: a read without payload, a change with one.
     Config(Query),
+    /// A device status query; a wildcard key gets one reply per device.
     Status(Query),
+    /// A service status query, answered with the hot-standby state and the queue drops.
     ServiceStatus(Query),
 }
 
-/// Depth of the callback-to-worker channel.
+/// Depth of the callback-to-worker channel (messages). When it is full new messages are
+/// dropped; dropped samples are added to `decode_errors` in the service status.
 const QUEUE: usize = 8192;
 
 /// Why the service stopped with an error.
@@ -38,7 +45,7 @@ pub enum ServiceError {
     /// A zenoh declaration failed.
     #[error("declaring {what}: {reason}")]
     Declare {
-        /// What.
+        /// What was being declared, e.g. `sample subscriber`, `liveliness token`.
         what: String,
         /// zenoh's reason.
         reason: String,
@@ -55,7 +62,7 @@ fn declare_err(what: impl Into<String>) -> impl FnOnce(zenoh::Error) -> ServiceE
 
 /// Run the service on `session` until `shutdown` resolves; then undeclare everything
 /// (the liveliness token disappears at once, so plants and standbys see a clean exit).
-pub async fn run(
+pub async fn serve(
     session: Session,
     mut registry: Registry,
     shutdown: impl std::future::Future<Output = ()>,
@@ -350,14 +357,22 @@ pub async fn run(
 /// The hot-standby state machine (no I/O).
 #[derive(Debug)]
 pub struct HotStandby {
-    /// Whether this member answers samples.
+    /// Whether this member publishes commands and heartbeats. A standby still steps every
+    /// sample, so its state is warm when it takes over.
     pub active: bool,
-    /// Its term (raised at every takeover).
+    /// Its term, sent in heartbeats and the status: at a takeover, one above the highest
+    /// term it holds or has heard. When two members are active the higher term stays, and
+    /// on equal terms the greater controller id.
     pub term: u64,
-    /// Heartbeat period.
+    /// Heartbeat period, also the period of the takeover check. 10 ms without a group,
+    /// where nothing uses it.
     pub heartbeat: std::time::Duration,
+    /// Silence after which a standby takes over; never (`Duration::MAX`) without a group.
     takeover: std::time::Duration,
+    /// When another member was last heard; set one second ahead at start for a `standby`
+    /// member (its grace).
     last_heard: Instant,
+    /// Highest term heard from another member, so that a takeover outranks it.
     peer_term: u64,
 }
 

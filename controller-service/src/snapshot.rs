@@ -9,49 +9,56 @@
 use bincode::{Decode, Encode};
 use mfc::trajectory::Piece;
 
-/// Bumped whenever the layout changes.
+/// Bumped whenever the layout changes; a file of another version is refused and its
+/// device starts from the configuration.
 pub const SNAPSHOT_VERSION: u32 = 1;
 
 /// What a device snapshot holds.
 #[derive(Debug, Clone, Encode, Decode)]
 pub struct DeviceSnapshot {
-    /// Format version.
+    /// [`SNAPSHOT_VERSION`] when written; [`decode`] refuses any other.
     pub version: u32,
-    /// Device id.
+    /// Device id; the file is named after it (`{id}.snap`).
     pub id: String,
-    /// The control state, encoded by `mfc::snapshot`.
+    /// The control state, encoded by `mfc::snapshot`. Its laws are compared with the
+    /// configuration in force before a declared device is restored.
     pub mimo: Vec<u8>,
-    /// Reference pieces per channel.
+    /// Reference pieces per channel, as last set (a live update included); one entry per
+    /// channel or the snapshot is refused.
     pub reference: Vec<Vec<Piece>>,
-    /// Reference start on the plant's clock.
+    /// Plant time (s) the reference is evaluated from, so a restored device keeps its phase.
     pub reference_start: f64,
-    /// Plant run id.
+    /// The plant run the state belongs to: a plant that restarted meanwhile sends another
+    /// run id, and the restored control state is reset at its first sample.
     pub run_id: Option<u64>,
-    /// Last answered sequence number.
+    /// Last sequence number answered with control values (`None`: none yet).
     pub last_seq: Option<u64>,
-    /// Plant time of that sample.
+    /// Plant time of that sample (s). If the next sample comes more than 0.1 s later, the
+    /// restored estimators start a fresh window.
     pub last_time: f64,
-    /// Counters: samples, commands, lost, duplicates, stale, rejected, plant fallbacks.
+    /// Status counters, in this order: samples, commands, lost, duplicates, stale, rejected,
+    /// samples_off_remote (samples sent off remote control, not fallback episodes).
     pub counters: [u64; 7],
-    /// Whether the device came from a template.
+    /// Provisioned from a template: restored even though no declaration names it, and
+    /// without comparing its laws with the template's.
     pub from_template: bool,
 }
 
 /// Why a snapshot could not be used.
 #[derive(Debug, thiserror::Error)]
 pub enum SnapshotError {
-    /// Encoding failed.
+    /// bincode could not encode it; the device is then left out of that save.
     #[error("encoding a snapshot: {0}")]
     Encode(#[from] bincode::error::EncodeError),
     /// The bytes are not a snapshot of this format.
     #[error("decoding a snapshot: {0}")]
     Decode(#[from] bincode::error::DecodeError),
-    /// Another format version.
+    /// The bytes decode, but carry another [`SNAPSHOT_VERSION`].
     #[error("snapshot format {0}, this build reads {SNAPSHOT_VERSION}")]
     Version(u32),
 }
 
-/// Encode a snapshot.
+/// Encode a snapshot with bincode's standard configuration, as [`decode`] expects.
 pub fn encode(s: &DeviceSnapshot) -> Result<Vec<u8>, SnapshotError> {
     Ok(bincode::encode_to_vec(s, bincode::config::standard())?)
 }

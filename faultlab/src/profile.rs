@@ -16,7 +16,7 @@
 //! `loss`, `burst` (Gilbert-Elliott: `{ p_good_bad, p_bad_good, loss_good, loss_bad }`),
 //! `delay_ms`, `jitter_ms`, `reorder` (probability that a packet is held back by
 //! `reorder_ms` more, so later ones overtake it), `reorder_ms`, `duplicate`, `rate_kbps`,
-//! `outages` (`[{ start_s, duration_s }]`, seconds after the relay starts), and
+//! `outages` (`[{ start_s, duration_s }]`, seconds after the relay starts impairing), and
 //! `tcp_rto_ms`: over TCP a lost segment is not lost but retransmitted, so "loss" holds
 //! the stream back by one retransmission timeout (Linux's minimum, 200 ms, by default) and
 //! everything behind it waits; duplication and reordering do not exist on a TCP stream.
@@ -27,9 +27,10 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct GilbertElliott {
-    /// Probability of going from the good to the bad state.
+    /// Probability, per packet, of going from the good to the bad state.
     pub p_good_bad: f64,
-    /// Probability of going from the bad to the good state.
+    /// Probability, per packet, of going from the bad to the good state: a burst lasts
+    /// `1 / p_bad_good` packets on average.
     pub p_bad_good: f64,
     /// Loss probability in the good state. Default 0.
     #[serde(default)]
@@ -44,7 +45,8 @@ fn one() -> f64 {
 }
 
 impl GilbertElliott {
-    /// Long-run loss rate of the chain.
+    /// Long-run loss rate of the chain (the two states' losses weighted by the time spent in
+    /// each): what the relay's observed loss should approach. The relay never uses it.
     pub fn mean_loss(&self) -> f64 {
         let pi_bad = self.p_good_bad / (self.p_good_bad + self.p_bad_good).max(1e-12);
         pi_bad * self.loss_bad + (1.0 - pi_bad) * self.loss_good
@@ -55,9 +57,10 @@ impl GilbertElliott {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Outage {
-    /// Start, seconds after the relay starts.
+    /// Start, in seconds after the relay starts impairing (is armed), >= 0.
     pub start_s: f64,
-    /// Duration (s).
+    /// Length (s, >= 0). UDP packets that arrive during the cut are dropped; TCP chunks are
+    /// held until it ends.
     pub duration_s: f64,
 }
 
@@ -65,13 +68,15 @@ pub struct Outage {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Impairment {
-    /// Random loss probability.
+    /// Probability that a packet is lost, each packet drawn independently, in [0, 1]. Over
+    /// TCP a "lost" chunk is delayed by `tcp_rto_ms` instead.
     pub loss: f64,
     /// Bursty loss (replaces `loss` when present).
     pub burst: Option<GilbertElliott>,
     /// Fixed one-way delay (ms).
     pub delay_ms: f64,
-    /// Jitter (ms): uniform in [-jitter, +jitter] around the delay, never below zero.
+    /// Jitter (ms): uniform in [-jitter, +jitter] around the delay, never below zero. Over
+    /// UDP packets are delayed independently, so jitter alone reorders them.
     pub jitter_ms: f64,
     /// Probability of holding a packet back by `reorder_ms` (UDP only).
     pub reorder: f64,
@@ -79,9 +84,10 @@ pub struct Impairment {
     pub reorder_ms: f64,
     /// Probability of sending a packet twice (UDP only).
     pub duplicate: f64,
-    /// Rate limit (kbit/s), if any.
+    /// Link rate (kbit/s, > 0): each packet waits for those before it to be sent, and none
+    /// is dropped however long the queue grows. `None`: unlimited.
     pub rate_kbps: Option<f64>,
-    /// Scheduled link cuts.
+    /// Scheduled link cuts, timed from when the relay is armed.
     pub outages: Vec<Outage>,
     /// TCP: how long a "lost" segment holds the stream (ms). Default 200.
     pub tcp_rto_ms: f64,
@@ -108,18 +114,21 @@ impl Default for Impairment {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Profile {
-    /// Name (table rows, file names).
+    /// What `faultlab relay --profile` selects and campaign tables show. Not checked for
+    /// uniqueness (a lookup takes the first); a campaign needs one named `none`.
     pub name: String,
-    /// Seed of every random draw. Default 1.
+    /// Seed of every random draw. Default 1. The up direction uses it as is, the down one a
+    /// value derived from it, so the two directions do not draw the same sequence.
     #[serde(default = "seed")]
     pub seed: u64,
-    /// Impairment of both directions.
+    /// Impairment of each direction that has no override.
     #[serde(default)]
     pub both: Impairment,
-    /// Plant -> controller, if different.
+    /// Plant -> controller (samples), if different. It replaces `both` as a whole: a field
+    /// it omits is unimpaired, not taken from `both`.
     #[serde(default)]
     pub up: Option<Impairment>,
-    /// Controller -> plant, if different.
+    /// Controller -> plant (commands), if different; replaces `both` as `up` does.
     #[serde(default)]
     pub down: Option<Impairment>,
 }
@@ -132,44 +141,47 @@ fn seed() -> u64 {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ProfileSet {
-    /// The profiles, in order.
+    /// The profiles, in file order, which is the order a campaign runs them in.
     pub profiles: Vec<Profile>,
 }
 
 /// A profile that cannot be used.
 #[derive(Debug, thiserror::Error)]
 pub enum ProfileError {
-    /// Unreadable file.
+    /// The file could not be read.
     #[error("{file}: {source}")]
     Io {
-        /// File.
+        /// The path as given to [`ProfileSet::load`].
         file: String,
-        /// Cause.
+        /// The I/O error of reading it (missing file, no permission, not UTF-8).
         source: std::io::Error,
     },
     /// Not valid TOML for the schema.
     #[error("{file}: {message}")]
     Parse {
-        /// File.
+        /// The path, or `<shipped>/profiles/default.toml` for the compiled-in set.
         file: String,
         /// Parser message (names the field).
         message: String,
     },
-    /// Out of range.
+    /// A value out of range: a probability outside [0, 1], a negative or non-finite time,
+    /// a rate not above 0.
     #[error("{file}: profile `{profile}`: `{field}` {reason}")]
     Invalid {
-        /// File.
+        /// As in [`ProfileError::Parse`].
         file: String,
-        /// Profile name.
+        /// Name of the profile that holds the value.
         profile: String,
-        /// Field.
+        /// The field with its direction, e.g. `both.loss`, `down.jitter_ms`; `burst` and
+        /// `outages` are named as a whole.
         field: String,
-        /// Reason.
+        /// The rule it breaks, e.g. `must be in [0, 1]`.
         reason: String,
     },
 }
 
-/// The shipped default profile set.
+/// The shipped profile set (`profiles/default.toml`, compiled in), read by
+/// `ProfileSet::load("default")`; it includes the `none` baseline a campaign needs.
 pub const DEFAULT_PROFILES: &str = include_str!("../profiles/default.toml");
 
 impl Profile {

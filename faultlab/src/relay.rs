@@ -35,7 +35,7 @@ pub enum Link {
 }
 
 impl Link {
-    /// The zenoh endpoint prefix.
+    /// The zenoh endpoint prefix: plants reach the relay at `{scheme}/{listen}`.
     pub fn scheme(self) -> &'static str {
         match self {
             Link::Udp => "udp",
@@ -44,20 +44,22 @@ impl Link {
     }
 }
 
-/// Counters of one direction.
+/// Counters of one direction. They count every packet, zenoh's own session traffic
+/// included, and also before the relay is armed.
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct DirectionStats {
-    /// Packets (UDP) or chunks (TCP) received.
+    /// Packets (UDP) or chunks (TCP: what one read returned, not segments) received,
+    /// whatever their fate.
     pub received: u64,
     /// Dropped by loss (UDP) or held back by a retransmission timeout (TCP).
     pub lost: u64,
     /// Dropped (UDP) or held (TCP) by an outage.
     pub outage: u64,
-    /// Sent twice.
+    /// Packets sent twice (UDP only; the copy follows 0.5 ms later).
     pub duplicated: u64,
-    /// Held back to be overtaken.
+    /// Packets held back by `reorder_ms` (UDP only); not those that jitter alone reorders.
     pub reordered: u64,
-    /// Bytes forwarded.
+    /// Bytes let through: a duplicated packet counts once, dropped packets not at all.
     pub bytes: u64,
 }
 
@@ -73,7 +75,7 @@ pub struct RelayStats {
 /// The fate of one packet.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Fate {
-    /// Dropped.
+    /// Never forwarded: lost, or cut by an outage.
     Drop,
     /// Sent at these instants (two for a duplicate).
     Send(Vec<Instant>),
@@ -87,15 +89,22 @@ pub struct Shaper {
     armed: Arc<Mutex<Option<Instant>>>,
     imp: Impairment,
     rng: Uniform,
+    /// Whether the Gilbert-Elliott chain is in its bad state.
     bad: bool,
+    /// Creation time: the outage clock's origin when no arming time is set.
     start: Instant,
+    /// When the rate-limited link is done sending what it already took.
     link_free: Instant,
+    /// Latest release time given to a TCP chunk; no later chunk is released before it, so
+    /// the stream keeps its order.
     last_release: Instant,
+    /// Shared with the [`Relay`], which reads it for [`Relay::stats`].
     stats: Arc<Mutex<DirectionStats>>,
 }
 
 impl Shaper {
-    /// A shaper for `imp`, seeded, with the outage clock starting at `start`.
+    /// A shaper for `imp`, seeded, armed at `start` (so the outage clock starts there) unless
+    /// [`Shaper::with_arming`] gives it a shared switch instead.
     pub fn new(
         imp: Impairment,
         seed: u64,
@@ -236,10 +245,14 @@ impl Shaper {
 
 /// A running relay; stops when dropped.
 pub struct Relay {
-    /// Address the plants connect to.
+    /// Address the plants connect to: the one asked for, with a port 0 replaced by the
+    /// port actually bound.
     pub listen: SocketAddr,
+    /// The arming switch both shapers share: `None` until armed.
     armed: Arc<Mutex<Option<Instant>>>,
+    /// Counters of the up direction (plant -> controller).
     stats: Arc<Mutex<DirectionStats>>,
+    /// Counters of the down direction (controller -> plant).
     stats_down: Arc<Mutex<DirectionStats>>,
     task: JoinHandle<()>,
 }
@@ -297,7 +310,8 @@ impl Relay {
         })
     }
 
-    /// Start impairing now (outage times count from here).
+    /// Start impairing now (outage times count from here). Once armed, a later call does
+    /// nothing.
     pub fn arm(&self) {
         let mut a = self.armed.lock().unwrap_or_else(|e| e.into_inner());
         if a.is_none() {
@@ -318,11 +332,15 @@ impl Relay {
     }
 }
 
+/// A UDP packet waiting in the relay's heap for its send time.
 #[derive(Debug, PartialEq, Eq)]
 struct Pending {
     at: Instant,
+    /// Arrival rank: packets due at the same instant leave in the order they came.
     order: u64,
+    /// Up (to the controller) rather than down (to the plant).
     to_server: bool,
+    /// The plant's address: which uplink socket sends it up, or where it goes down.
     client: SocketAddr,
     bytes: Vec<u8>,
 }

@@ -21,7 +21,7 @@ use crate::campaign::{run_case, Campaign, CaseOptions};
 use crate::compare::compare;
 use crate::demo::{demo, DemoOptions};
 use crate::harness::{service_config, DEFAULT_HOLD_PERIODS, DEFAULT_MAX_AGE};
-use crate::offline::{run, Summary};
+use crate::offline::{simulate, Summary};
 use crate::tune::{starting_point, tune, KINDS};
 
 #[derive(Parser)]
@@ -211,7 +211,7 @@ fn real_main() -> Result<()> {
             ..
         } => {
             let (scenario, set) = scenario_and_controller(&scenario, controller.as_deref())?;
-            let r = run(&scenario, &set, true)?;
+            let r = simulate(&scenario, &set, true)?;
             write_run(
                 &out,
                 &format!("{} — {}", scenario.name, set.name),
@@ -237,7 +237,7 @@ fn real_main() -> Result<()> {
                 bail!("--plants must be between 1 and 64");
             }
             let (scenario, set) = scenario_and_controller(&scenario, controller.as_deref())?;
-            let offline = run(&scenario, &set, false)?.summary;
+            let offline = simulate(&scenario, &set, false)?.summary;
             println!(
                 "{}: {} plant(s) and a controller service over Zenoh on loopback, {:.0} s in real time...",
                 scenario.name, plants, scenario.duration

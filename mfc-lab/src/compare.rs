@@ -6,7 +6,7 @@ use serde::{Deserialize, Serialize};
 
 use plant_agent::scenario::{ControllerSet, Scenario};
 
-use crate::offline::{run, RunError, Summary};
+use crate::offline::{simulate, RunError, Summary};
 
 /// The comparison: one summary per (scenario, controller).
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -29,7 +29,7 @@ pub fn compare(
     for s in scenarios {
         for c in controllers {
             progress(&s.name, &c.name);
-            runs.push(run(s, c, false)?.summary);
+            runs.push(simulate(s, c, false)?.summary);
         }
     }
     Ok(Comparison {

@@ -101,7 +101,7 @@ impl ServiceHandle {
         let registry = Registry::new(config)?;
         let session = open_session(Some(endpoint.clone()), vec![], gossip).await?;
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-        let task = tokio::spawn(service::run(session, registry, async {
+        let task = tokio::spawn(service::serve(session, registry, async {
             let _ = rx.await;
         }));
         Ok(Self {
@@ -162,7 +162,7 @@ pub async fn run_plant(
         plant.seed,
         plant.scenario.channels.len(),
     )?;
-    let out = agent::run(
+    let out = agent::run_loop(
         &session,
         p,
         &plant.loop_config,

@@ -49,9 +49,9 @@ pub struct Summary {
     pub completed: bool,
 }
 
-/// A finished run.
+/// A finished offline run.
 #[derive(Debug, Clone)]
-pub struct Run {
+pub struct Simulation {
     /// Period by period (empty unless recorded).
     pub recording: Recording,
     /// Metrics.
@@ -59,7 +59,11 @@ pub struct Run {
 }
 
 /// Run `scenario` closed-loop with `controller`, recording every period if `record`.
-pub fn run(scenario: &Scenario, controller: &ControllerSet, record: bool) -> Result<Run, RunError> {
+pub fn simulate(
+    scenario: &Scenario,
+    controller: &ControllerSet,
+    record: bool,
+) -> Result<Simulation, RunError> {
     scenario.check_controller(controller)?;
     let n = scenario.channels.len();
     let configs = scenario.channel_configs(controller);
@@ -132,5 +136,5 @@ pub fn run(scenario: &Scenario, controller: &ControllerSet, record: bool) -> Res
         limit_hits,
         completed: !failed,
     };
-    Ok(Run { recording, summary })
+    Ok(Simulation { recording, summary })
 }

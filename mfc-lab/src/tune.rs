@@ -21,7 +21,7 @@ use mfc::{AdrcParams, ControllerKind, LawConfig, Order, PidParams};
 use aero_sim::rng::Rng;
 use plant_agent::scenario::{ControllerSet, Scenario};
 
-use crate::offline::{run, RunError};
+use crate::offline::{simulate, RunError};
 use mfc::trajectory::evaluate;
 
 /// Controller kinds with a built-in starting point for the AERO. Other plants give theirs
@@ -182,7 +182,7 @@ pub const CHATTER_WEIGHT: f64 = 0.1;
 /// and chatter penalties, plus 1 per hit of a mechanical limit (the AERO's pitch stop). Invalid gains (refused by the core) cost
 /// infinity.
 pub fn objective(scenario: &Scenario, set: &ControllerSet) -> Result<f64, RunError> {
-    let r = match run(scenario, set, false) {
+    let r = match simulate(scenario, set, false) {
         Ok(r) => r,
         Err(RunError::Controller { .. } | RunError::Scenario(_)) => return Ok(f64::INFINITY),
         Err(e) => return Err(e),

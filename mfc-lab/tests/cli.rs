@@ -107,3 +107,91 @@ fn bad_input_gives_a_clear_error_and_exit_code() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("unknown controller kind `lqr`"));
 }
+
+fn plants() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../plants")
+}
+
+/// `sim` and `tune` on scenarios that name driver plants (the heater's one-sided actuator,
+/// the motor with backlash): in lockstep, no network, the record and a usable controller.
+#[test]
+fn sim_and_tune_run_driver_plants() {
+    let dir = tempfile::tempdir().unwrap();
+    let heater = plants().join("heater/scenarios/heater-steps.toml");
+    let out = lab()
+        .args(["sim", "--scenario"])
+        .arg(&heater)
+        .arg("--out")
+        .arg(dir.path().join("heater"))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let summary: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.path().join("heater/summary.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(summary["scenario"], "heater-steps");
+    let ch = &summary["channels"][0];
+    assert_eq!(ch["name"], "temperature");
+    // The heater's actuator is 0..24 V: voltages between 0 and 10 V are reachable (no
+    // AERO dead-zone map), and the run tracks within a degree RMS.
+    assert!(ch["rms"].as_f64().unwrap() < 1.0, "{summary}");
+    let csv = std::fs::read_to_string(dir.path().join("heater/run.csv")).unwrap();
+    let v: Vec<f64> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').nth(4).unwrap().parse().unwrap())
+        .collect();
+    assert_eq!(v.len(), 4001);
+    assert!(v.iter().all(|v| (0.0..=24.0).contains(v)));
+    assert!(
+        v.iter().any(|v| *v > 1.0 && *v < 9.0),
+        "inside the AERO's dead zone"
+    );
+
+    let motor = plants().join("dc-motor/scenarios/motor-steps.toml");
+    let tuned = dir.path().join("pid.toml");
+    let out = lab()
+        .args(["tune", "--scenario"])
+        .arg(&motor)
+        .arg("--start")
+        .arg(plants().join("dc-motor/controllers/start/pid.toml"))
+        .args(["--budget", "4", "--out"])
+        .arg(&tuned)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("in 4 runs"));
+    let out = lab()
+        .args(["sim", "--scenario"])
+        .arg(&motor)
+        .arg("--controller")
+        .arg(&tuned)
+        .arg("--out")
+        .arg(dir.path().join("motor"))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // A controller for another channel count is refused, naming both counts.
+    let out = lab()
+        .args(["sim", "--scenario"])
+        .arg(&motor)
+        .args(["--controller", "ipd"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("1 channel") && err.contains("2 law"), "{err}");
+}

@@ -3,7 +3,7 @@
 
 use std::io::Write;
 
-use mfc_lab::offline::run;
+use mfc_lab::offline::simulate;
 use mfc_lab::tune::{starting_point, tune};
 use plant_agent::scenario::{
     load_controller, load_scenario, shipped_controller, ScenarioError, SHIPPED_CONTROLLERS,
@@ -47,7 +47,7 @@ fn paper_style_files_are_the_starting_points() {
 #[test]
 fn full_offline_scenario_tracks_within_bounds() {
     let s = load_scenario("2").unwrap();
-    let r = run(&s, &shipped_controller("ipd").unwrap(), true).unwrap();
+    let r = simulate(&s, &shipped_controller("ipd").unwrap(), true).unwrap();
     assert!(r.summary.completed);
     assert_eq!(r.summary.limit_hits, 0);
     assert_eq!(r.recording.len(), s.steps());
@@ -66,10 +66,10 @@ fn full_offline_scenario_tracks_within_bounds() {
 fn mass_does_not_deteriorate_mfc_tracking() {
     let c = shipped_controller("ipd").unwrap();
     for (nominal, mass) in [("1", "3"), ("2", "4")] {
-        let a = run(&load_scenario(nominal).unwrap(), &c, false)
+        let a = simulate(&load_scenario(nominal).unwrap(), &c, false)
             .unwrap()
             .summary;
-        let b = run(&load_scenario(mass).unwrap(), &c, false)
+        let b = simulate(&load_scenario(mass).unwrap(), &c, false)
             .unwrap()
             .summary;
         for ch in 0..2 {
@@ -128,7 +128,12 @@ fn user_scenario_with_plant_file_and_overrides() {
     assert_eq!(p.rotor_time_constant, 0.1);
     assert_eq!(p.dp, 0.02, "inline overrides the file");
     assert_eq!(p.added_mass, 0.004);
-    assert!(run(&s, &s.controller, false).unwrap().summary.completed);
+    assert!(
+        simulate(&s, &s.controller, false)
+            .unwrap()
+            .summary
+            .completed
+    );
 }
 
 #[test]

@@ -310,7 +310,7 @@ impl LogBudget {
 
 /// Run the loop for `config.steps` periods on `session`, or until `stop` resolves or the
 /// plant fails; then apply the plant's safe stop. Returns the report and the record.
-pub async fn run(
+pub async fn run_loop(
     session: &Session,
     plant: Box<dyn Plant>,
     config: &LoopConfig,

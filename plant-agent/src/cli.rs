@@ -146,7 +146,7 @@ fn run(args: RunArgs) -> Result<u8> {
                 return Err(anyhow::Error::from(e));
             }
         };
-        let out = agent::run(
+        let out = agent::run_loop(
             &session,
             plant,
             &r.loop_config,

@@ -182,3 +182,84 @@ impl AgentFile {
         })
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
+        let p = dir.join(name);
+        std::fs::write(&p, text).unwrap();
+        p
+    }
+
+    fn scratch(name: &str) -> PathBuf {
+        let d =
+            std::env::temp_dir().join(format!("mfc-agent-config-{name}-{}", std::process::id()));
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    /// An empty file is the documented defaults, and every default is in `Default`.
+    #[test]
+    fn defaults_live_in_one_place() {
+        let d = scratch("defaults");
+        let f = AgentFile::load(&write(&d, "a.toml", "")).unwrap();
+        assert_eq!(f, AgentFile::default());
+        assert_eq!((f.max_age, f.hold_periods), (10, 5));
+        assert_eq!(f.fallback, FallbackPolicy::LocalController);
+        // No device: refused, naming the field.
+        let e = f.resolve(Path::new("a.toml")).unwrap_err().to_string();
+        assert!(e.contains("device"), "{e}");
+    }
+
+    #[test]
+    fn unknown_fields_and_bad_values_are_refused_with_the_field() {
+        let d = scratch("bad");
+        let e = AgentFile::load(&write(&d, "a.toml", "device = \"x\"\nmax_ag = 3\n"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("a.toml") && e.contains("max_ag"), "{e}");
+        let f = AgentFile::load(&write(&d, "b.toml", "device = \"x y\"\n")).unwrap();
+        assert!(f.resolve(Path::new("b.toml")).is_err(), "not a key chunk");
+        let f = AgentFile::load(&write(&d, "c.toml", "device = \"x\"\nduration = -1.0\n")).unwrap();
+        let e = f.resolve(Path::new("c.toml")).unwrap_err().to_string();
+        assert!(e.contains("duration"), "{e}");
+        let f = AgentFile::load(&write(
+            &d,
+            "d.toml",
+            "device = \"x\"\ncontroller = \"pid-3\"\n",
+        ))
+        .unwrap();
+        assert!(
+            f.resolve(Path::new("d.toml")).is_err(),
+            "no such controller"
+        );
+    }
+
+    /// A scenario and a controller named relative to the file are found next to it, so an
+    /// agent's directory can be moved as a whole.
+    #[test]
+    fn paths_are_relative_to_the_file() {
+        let d = scratch("relative");
+        let scenario = include_str!("../../plants/aero/scenarios/1-simple.toml");
+        write(&d, "s.toml", scenario);
+        write(
+            &d,
+            "c.toml",
+            include_str!("../../plants/aero/controllers/pid.toml"),
+        );
+        let cfg = write(
+            &d,
+            "agent.toml",
+            "device = \"rig-7\"\nscenario = \"s.toml\"\ncontroller = \"c.toml\"\nduration = 2.0\nfallback = \"safe_stop\"\n",
+        );
+        let r = AgentFile::load(&cfg).unwrap().resolve(&cfg).unwrap();
+        assert_eq!(r.scenario.name, "scenario-1");
+        assert_eq!(r.controller.name, "pid");
+        assert_eq!(r.scenario.duration, 2.0);
+        assert_eq!(r.loop_config.steps, 201);
+        assert_eq!(r.loop_config.device_id, "rig-7");
+        assert_eq!(r.loop_config.safety.fallback, FallbackPolicy::SafeStop);
+    }
+}

@@ -11,13 +11,15 @@ use mfc::{
 
 use crate::pb;
 
-/// A wire configuration the core cannot represent.
+/// A wire configuration the core cannot represent, or whose values it refuses.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("{field}: {reason}")]
 pub struct ConvertError {
-    /// Field path.
+    /// Path of the bad field inside the converted message, e.g. `intelligent.order` or
+    /// `reference.channels[1].piece.duration`; just `channel` when the core refuses the
+    /// assembled channel. The service prefixes a channel's index (`channels[2].`).
     pub field: String,
-    /// What is wrong.
+    /// Readable on its own: `missing`, `order must be 1 or 2, got 3`, or the core's message.
     pub reason: String,
 }
 
@@ -40,7 +42,8 @@ fn order_to(o: Order) -> u32 {
     u32::from(o.n())
 }
 
-/// Core channel configuration to wire.
+/// Core channel configuration to wire. Infinite limits go out absent and an infinite
+/// `max_interval` as 0, the wire's ways of saying "unbounded".
 pub fn channel_to_pb(c: &ChannelConfig) -> pb::ChannelConfig {
     use pb::channel_config::Law;
     let law = match c.law {
@@ -105,7 +108,8 @@ pub fn channel_to_pb(c: &ChannelConfig) -> pb::ChannelConfig {
     }
 }
 
-/// Wire channel configuration to core (checked by the core as well).
+/// Wire channel configuration to core (checked by the core as well). The inverse of
+/// [`channel_to_pb`]: absent limits read as infinite, `max_interval` 0 as infinite.
 pub fn channel_from_pb(c: &pb::ChannelConfig) -> Result<ChannelConfig, ConvertError> {
     use pb::channel_config::Law;
     let law = match &c.law {
@@ -189,7 +193,7 @@ pub fn channel_from_pb(c: &pb::ChannelConfig) -> Result<ChannelConfig, ConvertEr
     Ok(cfg)
 }
 
-/// Core piece to wire.
+/// Core piece to wire; a sine that never ends goes out without `end`.
 pub fn piece_to_pb(p: &Piece) -> pb::Piece {
     use pb::piece::Shape;
     let shape = match *p {
@@ -223,7 +227,7 @@ pub fn piece_to_pb(p: &Piece) -> pb::Piece {
     pb::Piece { shape: Some(shape) }
 }
 
-/// Wire piece to core, checked.
+/// Wire piece to core, checked by `Piece::validate`; a sine without `end` never ends.
 pub fn piece_from_pb(p: &pb::Piece) -> Result<Piece, ConvertError> {
     use pb::piece::Shape;
     let piece = match &p.shape {
@@ -254,7 +258,7 @@ pub fn piece_from_pb(p: &pb::Piece) -> Result<Piece, ConvertError> {
     Ok(piece)
 }
 
-/// Per-channel pieces and a start time to wire.
+/// Per-channel pieces, and the plant time (s) they are evaluated from, to wire.
 pub fn reference_to_pb(channels: &[Vec<Piece>], start_time: f64) -> pb::Reference {
     pb::Reference {
         channels: channels
@@ -267,7 +271,8 @@ pub fn reference_to_pb(channels: &[Vec<Piece>], start_time: f64) -> pb::Referenc
     }
 }
 
-/// Wire reference to per-channel pieces and start time, checked.
+/// Wire reference to per-channel pieces and start time, checked. The number of channels is
+/// not: only the caller knows the device it is meant for.
 pub fn reference_from_pb(r: &pb::Reference) -> Result<(Vec<Vec<Piece>>, f64), ConvertError> {
     if !r.start_time.is_finite() {
         return Err(err("reference.start_time", "must be finite"));

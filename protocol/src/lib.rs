@@ -24,7 +24,7 @@ pub enum DecodeError {
     /// Not a valid protobuf encoding of the message.
     #[error("malformed {what}: {source}")]
     Malformed {
-        /// Message type.
+        /// The message type expected ([`Versioned::NAME`], e.g. `Sample`).
         what: &'static str,
         /// prost's reason.
         source: prost::DecodeError,
@@ -32,18 +32,19 @@ pub enum DecodeError {
     /// A different protocol version (or none at all).
     #[error("{what} has protocol version {got}, this build speaks {PROTOCOL_VERSION}")]
     Version {
-        /// Message type.
+        /// The message type expected ([`Versioned::NAME`]).
         what: &'static str,
-        /// Version found.
+        /// The version the payload carries: 0 when it carries none (an empty payload
+        /// decodes to all defaults).
         got: u32,
     },
 }
 
 /// Messages that carry a version in field 1.
 pub trait Versioned: prost::Message + Default {
-    /// Type name for errors.
+    /// The protobuf message name (`Sample`, `Command`, ...), to say which decode failed.
     const NAME: &'static str;
-    /// The version field.
+    /// Field 1, which [`decode`] compares with [`PROTOCOL_VERSION`].
     fn version(&self) -> u32;
 }
 
@@ -84,12 +85,14 @@ pub fn decode<M: Versioned>(bytes: &[u8]) -> Result<M, DecodeError> {
     Ok(m)
 }
 
-/// Encode a message to bytes.
+/// Encode a message to bytes; cannot fail. It does not set `version`: the caller fills it
+/// with [`PROTOCOL_VERSION`], or the peer's [`decode`] refuses the message.
 pub fn encode<M: prost::Message>(m: &M) -> Vec<u8> {
     m.encode_to_vec()
 }
 
-/// Wall clock in Unix nanoseconds (0 if the clock is before 1970).
+/// Wall clock in Unix nanoseconds (0 if the clock is before 1970): the `sent_unix_ns` and
+/// `controller_unix_ns` stamps. The controllers never step on it: they follow `plant_time`.
 pub fn unix_ns() -> u64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)

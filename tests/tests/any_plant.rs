@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 
 use mfc_lab::harness::{run_fleet, service_config, PlantSpec};
-use mfc_lab::offline::run;
+use mfc_lab::offline::simulate;
 use plant_agent::agent::End;
 use plant_agent::scenario::{load_scenario, Scenario};
 use system_tests::{scratch_dir, workspace_root, SERIAL};
@@ -45,11 +45,13 @@ fn load(path: &Path) -> Scenario {
 /// Offline, in lockstep, as fast as the driver answers: every channel tracks its step.
 #[test]
 fn driver_plants_of_1_3_and_16_channels_run_offline() {
+    // Not real time, but it loads the cores: keep it off the real-time test's timing.
+    let _serial = SERIAL.blocking_lock();
     let dir = scratch_dir("lags-offline");
     for n in [1, 3, 16] {
         let s = load(&lags(&dir, n, 3.0));
         assert_eq!(s.channels.len(), n);
-        let r = run(&s, &s.controller, true).unwrap();
+        let r = simulate(&s, &s.controller, true).unwrap();
         assert!(r.summary.completed);
         assert_eq!(r.recording.len(), s.steps());
         assert_eq!(r.recording.traces.len(), n);
@@ -97,7 +99,7 @@ async fn driver_plants_of_1_3_and_16_channels_run_through_the_service() {
                 s.name
             );
             assert_eq!(k.fallbacks, 0, "{}: {k:?}", s.name);
-            let offline = run(s, &s.controller, false).unwrap().summary;
+            let offline = simulate(s, &s.controller, false).unwrap().summary;
             for (net, off) in rep.channels.iter().zip(&offline.channels) {
                 let ratio = net.rms / off.rms;
                 eprintln!("{} {}: ratio {ratio:.3}", s.name, net.name);

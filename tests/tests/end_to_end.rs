@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use controller_service::config::ServiceConfig;
 use mfc_lab::harness::{run_plant, service_config, PlantSpec, ServiceHandle};
-use mfc_lab::offline::run;
+use mfc_lab::offline::simulate;
 use plant_agent::safety::Mode;
 use plant_agent::scenario::{load_scenario, shipped_controller, Scenario};
 use protocol::convert::channel_to_pb;
@@ -24,7 +24,7 @@ async fn one_aero_tracks_scenario_2_through_the_service() {
     let _serial = SERIAL.lock().await;
     let s = load_scenario("2").unwrap();
     let c = shipped_controller("ipd").unwrap();
-    let offline = run(&s, &c, false).unwrap().summary;
+    let offline = simulate(&s, &c, false).unwrap().summary;
     let service = ServiceHandle::start(service_config(&s, &c, &["aero-1".into()]), None)
         .await
         .unwrap();
@@ -103,7 +103,7 @@ async fn several_plants_late_join_and_leave() {
     );
     for ((id, s, c), task) in runs.iter().zip(tasks) {
         let report = task.await.unwrap().unwrap().report;
-        let offline = run(s, c, false).unwrap().summary;
+        let offline = simulate(s, c, false).unwrap().summary;
         for (net, off) in report.channels.iter().zip(&offline.channels) {
             let ratio = net.rms / off.rms;
             eprintln!(
@@ -346,7 +346,7 @@ async fn no_controller_means_local_fallback() {
     );
     assert!(!report.controller_reached);
     assert_eq!(report.exit_code(), 3, "no controller ever answered");
-    let offline = run(&s, &c, false).unwrap().summary;
+    let offline = simulate(&s, &c, false).unwrap().summary;
     for (a, b) in report.channels.iter().zip(&offline.channels) {
         assert!(a.rms < 1.5 * b.rms, "{}: {} vs {}", a.name, a.rms, b.rms);
     }

@@ -23,9 +23,11 @@ pub enum TransportError {
     /// A declaration (publisher, subscriber, queryable, token) failed.
     #[error("declaring {what}: {reason}")]
     Declare {
-        /// What was declared.
+        /// What was being declared, with its key: `publisher KEY`, or `query KEY` for
+        /// [`get_first`].
         what: String,
-        /// zenoh's reason.
+        /// zenoh's reason; for a query also `no reply: ...` (nobody answered) or
+        /// `error reply: ...` (the queryable answered with an error).
         reason: String,
     },
 }
@@ -170,6 +172,7 @@ pub fn free_udp_port() -> std::io::Result<u16> {
 }
 
 /// A free TCP port on 127.0.0.1 (bind to port 0, read it, release it), for tests and demos.
+/// It is released before it is returned, so another process may take it first.
 pub fn free_local_port() -> std::io::Result<u16> {
     let l = std::net::TcpListener::bind("127.0.0.1:0")?;
     Ok(l.local_addr()?.port())
