@@ -18,7 +18,8 @@ trap 'kill $LOAD 2>/dev/null || true' EXIT
 for i in $(seq "$RUNS"); do
   start=$(date +%s)
   if cargo test -p system-tests --no-fail-fast --locked -q >"/tmp/mfc-stress-$i.log" 2>&1; then
-    echo "run $i/$RUNS: passed ($(grep -c '^test .* ok$' "/tmp/mfc-stress-$i.log" || true) tests, $(( $(date +%s) - start )) s)"
+    passed=$(awk '/^test result:/ {s += $4} END {print s+0}' "/tmp/mfc-stress-$i.log")
+    echo "run $i/$RUNS: passed ($passed tests, $(( $(date +%s) - start )) s)"
   else
     echo "run $i/$RUNS: FAILED (log: /tmp/mfc-stress-$i.log)"
     grep -E "panicked|FAILED|failed" "/tmp/mfc-stress-$i.log" | head -20

@@ -6,18 +6,24 @@ fn lab() -> Command {
     Command::new(env!("CARGO_BIN_EXE_mfc-lab"))
 }
 
-#[test]
-fn sim_writes_timeseries_summary_and_plots() {
-    let dir = tempfile::tempdir().unwrap();
-    let out = lab()
-        .args(["sim", "--scenario", "4", "--controller", "ipd", "--out"])
-        .arg(dir.path())
-        .output()
-        .unwrap();
+/// Run `cmd` and insist that it succeeds, showing its stderr if not.
+fn succeed(cmd: &mut Command) -> std::process::Output {
+    let out = cmd.output().unwrap();
     assert!(
         out.status.success(),
         "{}",
         String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+#[test]
+fn sim_writes_timeseries_summary_and_plots() {
+    let dir = tempfile::tempdir().unwrap();
+    succeed(
+        lab()
+            .args(["sim", "--scenario", "4", "--controller", "ipd", "--out"])
+            .arg(dir.path()),
     );
     let summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(dir.path().join("summary.json")).unwrap())
@@ -67,17 +73,12 @@ fn tune_output_is_usable_by_sim() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let out = lab()
-        .args(["sim", "--scenario", "3", "--controller"])
-        .arg(&file)
-        .arg("--out")
-        .arg(dir.path().join("run"))
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    succeed(
+        lab()
+            .args(["sim", "--scenario", "3", "--controller"])
+            .arg(&file)
+            .arg("--out")
+            .arg(dir.path().join("run")),
     );
 }
 
@@ -118,17 +119,12 @@ fn plants() -> std::path::PathBuf {
 fn sim_and_tune_run_driver_plants() {
     let dir = tempfile::tempdir().unwrap();
     let heater = plants().join("heater/scenarios/heater-steps.toml");
-    let out = lab()
-        .args(["sim", "--scenario"])
-        .arg(&heater)
-        .arg("--out")
-        .arg(dir.path().join("heater"))
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    succeed(
+        lab()
+            .args(["sim", "--scenario"])
+            .arg(&heater)
+            .arg("--out")
+            .arg(dir.path().join("heater")),
     );
     let summary: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(dir.path().join("heater/summary.json")).unwrap(),
@@ -155,34 +151,24 @@ fn sim_and_tune_run_driver_plants() {
 
     let motor = plants().join("dc-motor/scenarios/motor-steps.toml");
     let tuned = dir.path().join("pid.toml");
-    let out = lab()
-        .args(["tune", "--scenario"])
-        .arg(&motor)
-        .arg("--start")
-        .arg(plants().join("dc-motor/controllers/start/pid.toml"))
-        .args(["--budget", "4", "--out"])
-        .arg(&tuned)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let out = succeed(
+        lab()
+            .args(["tune", "--scenario"])
+            .arg(&motor)
+            .arg("--start")
+            .arg(plants().join("dc-motor/controllers/start/pid.toml"))
+            .args(["--budget", "4", "--out"])
+            .arg(&tuned),
     );
     assert!(String::from_utf8_lossy(&out.stdout).contains("in 4 runs"));
-    let out = lab()
-        .args(["sim", "--scenario"])
-        .arg(&motor)
-        .arg("--controller")
-        .arg(&tuned)
-        .arg("--out")
-        .arg(dir.path().join("motor"))
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    succeed(
+        lab()
+            .args(["sim", "--scenario"])
+            .arg(&motor)
+            .arg("--controller")
+            .arg(&tuned)
+            .arg("--out")
+            .arg(dir.path().join("motor")),
     );
     // A controller for another channel count is refused, naming both counts.
     let out = lab()

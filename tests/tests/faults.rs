@@ -388,7 +388,9 @@ async fn controller_crash_and_restart() {
         "killed ~4.0 s, fallback at {:.2} s, restart ~6.0 s, remote again at {:.2} s",
         rec.t[first_fb], rec.t[back]
     );
-    assert!(rec.t[first_fb] > 3.5 && rec.t[back] > rec.t[first_fb]);
+    // (No bound on when, in plant time, the kill landed: the test's wall clock and the
+    // plant's clock start apart by the session's set-up, longer on a busy machine.)
+    assert!(rec.t[back] > rec.t[first_fb]);
     let pitch = worst(&rec, 1, 0.0, f64::INFINITY);
     assert!(pitch < 0.05, "pitch error reached {pitch} rad");
     assert!(rec.traces[1].y.iter().all(|y| y.abs() < 1.0), "pitch stop");
@@ -396,9 +398,14 @@ async fn controller_crash_and_restart() {
 }
 
 /// Hot standby: two services for the same device, one active, one warm (fed the same
-/// samples, publishing nothing). kill -9 the active one: the standby takes over (within
-/// its takeover time of 3 heartbeats, plus the test margin) before the plant falls back,
-/// and no sample gets two commands.
+/// samples, publishing nothing). kill -9 the active one: the standby takes over before the
+/// plant falls back, and no sample gets two commands.
+///
+/// A standby cannot tell a dead active member from one that is merely stalled: if the
+/// active one's heartbeat is late by more than `takeover_ms`, both answer for a moment
+/// (the agent drops the second command and counts it). On a busy 2-core machine a 30 ms
+/// stall happens, so the test widens the takeover by the margin (30 ms + 10 ms per margin
+/// period) and the plant's hold by the same, keeping the order under test, not the race.
 #[tokio::test(flavor = "multi_thread")]
 async fn hot_standby_takes_over_before_the_fallback() {
     let _s = SERIAL.lock().await;
@@ -410,14 +417,17 @@ async fn hot_standby_takes_over_before_the_fallback() {
         transport::free_local_port().unwrap(),
     );
     let (ea, eb) = (format!("tcp/127.0.0.1:{pa}"), format!("tcp/127.0.0.1:{pb}"));
+    // Takeover after 3 heartbeats of silence, plus the margin.
+    let takeover = 3 + margin_periods();
     let write = |name: &str, id: &str, role: &str| {
         let mut cfg = service_config(&s, &c, &["aero-1".into()]);
         cfg.controller_id = id.into();
         let text = format!(
-            "{}\n[standby]\ngroup = \"g1\"\nrole = \"{role}\"\n",
+            "{}\n[standby]\ngroup = \"g1\"\nrole = \"{role}\"\nheartbeat_ms = 10\ntakeover_ms = {}\n",
             toml::to_string(&cfg)
                 .unwrap()
-                .replace("templates = []\n", "")
+                .replace("templates = []\n", ""),
+            10 * takeover
         );
         let path = dir.join(name);
         std::fs::write(&path, text).unwrap();
@@ -443,10 +453,8 @@ async fn hot_standby_takes_over_before_the_fallback() {
     // Let the standby hear the active one's heartbeats (its start-up grace is 1 s).
     tokio::time::sleep(Duration::from_millis(1200)).await;
 
-    // The standby takes over after 30 ms of silence (3 periods). The plant holds for that
-    // plus the margin before falling back: the test is about the order of the two, and a
-    // busy machine's hiccup must not decide it.
-    let takeover = 3;
+    // The plant holds for the takeover time plus the margin before falling back: the test
+    // is about the order of the two, and a busy machine's hiccup must not decide it.
     let mut plant = PlantSpec::new(&s, &c, "aero-1");
     plant.loop_config.safety.hold_periods = takeover + margin_periods();
     let run = tokio::spawn(run_plant(vec![ea.clone(), eb.clone()], plant, true));
