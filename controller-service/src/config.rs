@@ -25,6 +25,8 @@ use mfc::trajectory::Piece;
 use mfc::{ChannelConfig, LawConfig, OutputMapConfig};
 use serde::{Deserialize, Serialize};
 
+use crate::envelope::Limits;
+
 /// Why a configuration was refused.
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
@@ -78,6 +80,13 @@ pub struct DeviceChannel {
     /// that is a constant 0.
     #[serde(default)]
     pub reference: Vec<Piece>,
+    /// The channel's safety envelope: limits no command ever leaves, whatever law, gains or
+    /// output map a client sets later (`{ min = -24.0, max = 24.0, rate_limit = 500.0 }`).
+    /// Default: the limits of `output` above, so that a file without envelopes means what
+    /// it meant before. The output map must lie inside it; limits it leaves out are the
+    /// envelope's.
+    #[serde(default)]
+    pub envelope: Option<Limits>,
 }
 
 impl DeviceChannel {
@@ -88,6 +97,12 @@ impl DeviceChannel {
             law: self.law,
             output: self.output,
         }
+    }
+
+    /// The channel's envelope: the one written, else the output map's limits.
+    pub fn limits(&self) -> Limits {
+        self.envelope
+            .unwrap_or_else(|| Limits::of_map(&self.output))
     }
 }
 
@@ -196,6 +211,19 @@ pub struct ServiceConfig {
     /// service starts every device afresh).
     #[serde(default)]
     pub snapshots: Option<SnapshotSpec>,
+    /// Most devices served at once, declared and provisioned together (at least the number
+    /// declared). A template device beyond it is refused and counted
+    /// (`device_table_full`), so a flood of new ids cannot grow the service. Default 1024.
+    #[serde(default = "max_devices")]
+    pub max_devices: usize,
+    /// Whether an `EnvelopeRequest` from the network may widen a device's envelope.
+    /// Narrowing is always allowed. Default false: only this file widens an envelope.
+    #[serde(default)]
+    pub allow_remote_widening: bool,
+}
+
+fn max_devices() -> usize {
+    1024
 }
 
 fn default_id() -> String {
@@ -210,6 +238,8 @@ impl Default for ServiceConfig {
             templates: Vec::new(),
             standby: None,
             snapshots: None,
+            max_devices: max_devices(),
+            allow_remote_widening: false,
         }
     }
 }
@@ -229,6 +259,13 @@ fn check_channels(file: &str, at: &str, channels: &[DeviceChannel]) -> Result<()
     for (i, c) in channels.iter().enumerate() {
         mfc::Channel::<{ mfc::DEFAULT_CAPACITY }>::new(&c.channel())
             .map_err(|e| invalid(format!("{at}.channels[{i}]"), e.to_string()))?;
+        let limits = c.limits();
+        limits
+            .check()
+            .map_err(|e| invalid(format!("{at}.channels[{i}].envelope"), e))?;
+        limits
+            .fit_request(c.output, "output")
+            .map_err(|e| invalid(format!("{at}.channels[{i}]"), e))?;
         for (j, p) in c.reference.iter().enumerate() {
             p.validate().map_err(|(f, r)| {
                 invalid(format!("{at}.channels[{i}].reference[{j}].{f}"), r.into())
@@ -297,6 +334,16 @@ impl ServiceConfig {
                     "must be > 0".into(),
                 ));
             }
+        }
+        if self.max_devices < self.devices.len() {
+            return Err(invalid(
+                "max_devices".into(),
+                format!(
+                    "{} is fewer than the {} devices declared",
+                    self.max_devices,
+                    self.devices.len()
+                ),
+            ));
         }
         for (i, t) in self.templates.iter().enumerate() {
             zenoh::key_expr::KeyExpr::try_from(t.pattern.as_str())

@@ -1,45 +1,96 @@
-//! Per-device control state and the rules for answering samples. No I/O: the Zenoh wiring
-//! in [`crate::service`] feeds it decoded messages and publishes what it returns, so every
-//! rule here is tested without a network.
+//! Per-device control state and the rules for answering samples. No I/O, no clock, no
+//! logging: the Zenoh wiring in [`crate::service`] feeds it decoded messages, publishes what
+//! it returns and decides what to log, so every rule here is tested without a network.
 //!
-//! Rules for a sample of device `d` with sequence `s` and plant time `t`:
-//! * unknown `d`: provisioned from the first matching template, else refused and counted;
-//! * a new `run_id`: the plant restarted; its state is rebuilt from the configuration;
-//! * `s` = last: a duplicate; the cached command is sent again (commands are idempotent);
-//! * `s` < last: older than one already answered; answered `STALE`, nothing moves;
-//! * `s` > last + 1: the samples in between were lost (counted); the estimator follows the
-//!   timestamps, so the hole does not bias it;
-//! * bad values (NaN, wrong channel count, `t` not after the last one): answered
-//!   `REJECTED` with the reason, counted, state untouched;
-//! * otherwise the applied inputs the plant reports are given to the estimators, the
-//!   controllers step, and a `CONTROL` command carries the same `s`.
+//! A sample of device `d` is checked completely before anything about `d` changes (the
+//! rules, in order, are written for clients in the `.proto`, on `Sample`):
+//! 1. `d` must be served: declared, or provisioned from the first matching template while
+//!    the device table has room; otherwise it is counted and not answered (no publisher,
+//!    no state: a flood of unknown keys costs a counter);
+//! 2. its `device_id` must equal the key's, and its values must be usable (one finite
+//!    output per channel, finite applied values, finite plant time): else `REJECTED`;
+//! 3. a new `run_id` starts a new run (fresh control state); a late sample of one of the
+//!    last few runs, arriving within the new run's first [`REORDER_WINDOW`] samples, is
+//!    `STALE` (later, that run is taken to be back, so one stray sample can never lock the
+//!    real plant out); a plant that sends no `run_id` is recognised as restarted when its
+//!    sequence goes back far, or to 0 or 1;
+//! 4. within a run: the last sequence again is a duplicate (the cached command again);
+//!    older is `STALE`; a forward jump of more than [`MAX_SEQ_JUMP`] is `REJECTED` (so no
+//!    value of `seq` can lock a device); the numbers skipped count as lost; plant time
+//!    must advance;
+//! 5. the controllers step, and the command is checked against the device's envelope a
+//!    last time: a non-finite value is never sent (`REJECTED`), one outside is clipped and
+//!    counted.
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
 use mfc::trajectory::{evaluate, Piece};
 use mfc::{ChannelConfig, ChannelOutput, MimoController, Reference};
-use protocol::convert::{channel_from_pb, channel_to_pb, reference_from_pb, reference_to_pb};
-use protocol::{pb, PROTOCOL_VERSION};
+use protocol::convert::{
+    apply_update, channel_from_pb, channel_to_pb, reference_from_pb, reference_to_pb,
+};
+use protocol::{pb, printable, PROTOCOL_VERSION};
 
 use crate::config::{DeviceChannel, ServiceConfig};
+use crate::envelope::Limits;
 
 /// A gap longer than this (s) between a snapshot and the next sample makes the restored
 /// estimators start a fresh window.
 const RESUME_GAP: f64 = 0.1;
 /// Most recent round trips kept per device for the status percentiles; older ones drop out.
 const RTT_WINDOW: usize = 1000;
-/// Unknown device ids listed in the status (each warned about once); samples from further
-/// unknown ids are still counted, just not named.
+/// Unknown device ids listed in the status; samples from further unknown ids are still
+/// counted, just not named.
 const UNKNOWN_KEPT: usize = 64;
+/// Largest forward jump of `seq` within a run. An hour's outage at 100 Hz skips 360 000;
+/// anything larger is garbage or hostile, and accepting it would make every later sample
+/// of the real plant look stale.
+pub const MAX_SEQ_JUMP: u64 = 1_000_000;
+/// How far back (samples) a sequence may go and still be a late sample of the same run,
+/// for plants that send no `run_id`; further back is taken for a restart.
+pub const REORDER_WINDOW: u64 = 64;
+/// Longest reason stored or sent back (bytes): reasons quote values from the network.
+const MAX_REASON: usize = 240;
+
+/// A reason cut to [`MAX_REASON`] bytes (on a character boundary), so that no input can
+/// make what the service stores, sends or logs large.
+fn capped(mut reason: String) -> String {
+    if reason.len() > MAX_REASON {
+        let mut end = MAX_REASON;
+        while !reason.is_char_boundary(end) {
+            end -= 1;
+        }
+        reason.truncate(end);
+        reason.push_str("...");
+    }
+    reason
+}
+
+/// Run ids remembered after their run ended, so a late sample of one is STALE instead of
+/// starting that run again.
+const RETIRED_RUNS: usize = 4;
 
 /// What to do with a sample.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Outcome {
-    /// Publish this command on the device's command key: a new answer, or the cached one
-    /// again for a duplicate.
+    /// Publish this command on the device's command key: a new answer, the cached one again
+    /// for a duplicate, or a refusal (`REJECTED`/`STALE`, with the reason in `error`).
     Reply(pb::Command),
-    /// Unknown device and no template: nothing to publish (counted).
+    /// Not a device this service serves, and no template provisions it: nothing to publish
+    /// (counted in `unknown_samples`).
     Unknown,
+    /// A template matches but the device table is full: nothing to publish (counted in
+    /// `device_table_full`).
+    TableFull,
+}
+
+/// How a sample relates to the run in force.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Run {
+    Same,
+    New,
+    /// A late sample of a run that already ended.
+    Retired,
 }
 
 /// What the service holds for one device: its control state, where the plant's run stands,
@@ -52,6 +103,8 @@ struct Device {
     /// Provisioned from a template, not declared: reported in the status, and lets a
     /// snapshot rebuild the device although no declaration names it.
     from_template: bool,
+    /// The safety envelope per channel. Every output map in `configs` lies inside it.
+    envelope: Vec<Limits>,
     /// Laws and output maps in force (changed by `configure`); a snapshot of a declared
     /// device is restored only if its laws equal these.
     configs: Vec<ChannelConfig>,
@@ -61,11 +114,15 @@ struct Device {
     /// Plant time (s) at which the reference starts: 0 from the file, moved by a live
     /// reference update.
     reference_start: f64,
-    /// The plant run this state belongs to (`None` before the first sample); a sample with
-    /// another one resets the control state.
+    /// The plant run this state belongs to (`None` before the first sample).
     run_id: Option<u64>,
-    /// Sequence number of the last sample answered with control values; rejected and stale
-    /// samples do not move it.
+    /// Runs that ended, newest last, at most `RETIRED_RUNS`.
+    retired: VecDeque<u64>,
+    /// Samples received since the run in force started, refused ones included: a sample of
+    /// a retired run is late only while this is below `REORDER_WINDOW`.
+    run_samples: u64,
+    /// Sequence number of the last sample answered with control values; refused samples do
+    /// not move it.
     last_seq: Option<u64>,
     /// Plant time of that sample (s); the next must come strictly later. Minus infinity
     /// until the first one (and after a plant restart), so any first time is accepted.
@@ -77,46 +134,71 @@ struct Device {
     outputs: Vec<ChannelOutput>,
     /// The references per channel at the current sample, likewise reused.
     refs: Vec<Reference>,
-    /// Samples for this device, counted before the sequence and value checks (duplicates,
-    /// stale and rejected ones included; one carrying another device's id is not).
+    /// Samples for this device, counted before any check.
     samples: u64,
     /// Commands computed (CONTROL or WARMING_UP); not resends for duplicates, not REJECTED
     /// or STALE answers.
     commands: u64,
     /// Sequence numbers skipped between one answered sample and the next; a sample that
-    /// arrived but was rejected in between counts here too.
+    /// arrived but was refused in between counts here too.
     lost: u64,
     /// Samples repeating `last_seq`, answered with the cached command when there is one.
     duplicates: u64,
-    /// Samples older than `last_seq`, answered STALE.
+    /// Samples older than `last_seq`, or of an ended run: answered STALE.
     stale: u64,
-    /// Samples answered REJECTED: another device's id, bad values, or a step the core
-    /// refused.
+    /// Samples answered REJECTED: another device's id, bad values, a sequence jump, or a
+    /// step the core refused.
     rejected: u64,
+    /// Samples replaced by a newer one before the worker read them (reported by the
+    /// service's inbox).
+    superseded: u64,
     /// Samples sent while the plant was holding, on its local fallback or in safe stop:
     /// counts samples, not fallback episodes.
     samples_off_remote: u64,
+    /// Envelope changes accepted since the service started.
+    envelope_changes: u64,
+    /// Commands the final envelope check clipped (0 unless a law or map misbehaves).
+    clamped: u64,
+    /// Reference updates refused.
+    references_refused: u64,
+    /// Runs started (the first sample's included).
+    restarts: u64,
     /// The plant's round-trip reports (µs), oldest first, at most `RTT_WINDOW`; a report of
     /// 0 (no round trip yet) is not kept.
     rtts: VecDeque<u32>,
     /// The last F estimate per channel; NaN until a step gives one.
     f_est: Vec<f64>,
-    /// Why the last refused sample was refused; a later good sample does not clear it.
+    /// Why the last refused sample or request was refused (already cut to printable
+    /// length); a later good one does not clear it.
     last_error: String,
 }
 
 impl Device {
-    fn new(channels: &[DeviceChannel], from_template: bool) -> Result<Self, mfc::MfcError> {
-        let configs: Vec<ChannelConfig> = channels.iter().map(DeviceChannel::channel).collect();
+    fn new(channels: &[DeviceChannel], from_template: bool) -> Result<Self, String> {
+        let envelope: Vec<Limits> = channels.iter().map(DeviceChannel::limits).collect();
+        let configs = channels
+            .iter()
+            .zip(&envelope)
+            .enumerate()
+            .map(|(i, (c, e))| {
+                Ok(ChannelConfig {
+                    law: c.law,
+                    output: e.fit_request(c.output, &format!("channels[{i}].output"))?,
+                })
+            })
+            .collect::<Result<Vec<_>, String>>()?;
         let n = configs.len();
         Ok(Self {
             restored: false,
             from_template,
-            mimo: MimoController::new(&configs)?,
+            envelope,
+            mimo: MimoController::new(&configs).map_err(|e| e.to_string())?,
             configs,
             reference: channels.iter().map(|c| c.reference.clone()).collect(),
             reference_start: 0.0,
             run_id: None,
+            retired: VecDeque::with_capacity(RETIRED_RUNS),
+            run_samples: 0,
             last_seq: None,
             last_time: f64::NEG_INFINITY,
             last_command: None,
@@ -128,29 +210,48 @@ impl Device {
             duplicates: 0,
             stale: 0,
             rejected: 0,
+            superseded: 0,
             samples_off_remote: 0,
+            envelope_changes: 0,
+            clamped: 0,
+            references_refused: 0,
+            restarts: 0,
             rtts: VecDeque::with_capacity(RTT_WINDOW),
             f_est: vec![f64::NAN; n],
             last_error: String::new(),
         })
     }
 
-    /// A restarted plant: fresh control state, same configuration and reference. The
+    /// A new plant run: fresh control state, same configuration and reference. The
     /// counters carry on across runs.
-    fn restart(&mut self) {
+    fn start_run(&mut self, run_id: u64) {
+        if let Some(old) = self.run_id {
+            if old != run_id {
+                if self.retired.len() == RETIRED_RUNS {
+                    self.retired.pop_front();
+                }
+                self.retired.push_back(old);
+            }
+        }
+        self.retired.retain(|r| *r != run_id);
         if let Ok(m) = MimoController::new(&self.configs) {
             self.mimo = m;
         }
+        self.run_id = Some(run_id);
+        self.run_samples = 0;
+        self.restored = false;
         self.last_seq = None;
         self.last_time = f64::NEG_INFINITY;
         self.last_command = None;
+        self.restarts += 1;
     }
 
     fn channels(&self) -> usize {
         self.configs.len()
     }
 
-    fn check(&self, s: &pb::Sample) -> Result<(), String> {
+    /// Rule 2, the part that depends on the device: how many values.
+    fn check_values(&self, s: &pb::Sample) -> Result<(), String> {
         let n = self.channels();
         if s.outputs.len() != n {
             return Err(format!("expected {n} outputs, got {}", s.outputs.len()));
@@ -161,16 +262,45 @@ impl Device {
                 s.applied.len()
             ));
         }
-        if let Some(bad) = s.outputs.iter().chain(&s.applied).find(|v| !v.is_finite()) {
-            return Err(format!("non-finite value {bad}"));
-        }
-        if !s.plant_time.is_finite() || s.plant_time <= self.last_time {
-            return Err(format!(
-                "plant time {} does not advance past {}",
-                s.plant_time, self.last_time
-            ));
-        }
         Ok(())
+    }
+
+    /// Rule 3.
+    fn run_of(&self, s: &pb::Sample) -> Run {
+        match (self.run_id, self.last_seq) {
+            (None, _) => Run::New,
+            (Some(r), _) if s.run_id != r => {
+                if self.retired.contains(&s.run_id) && self.run_samples < REORDER_WINDOW {
+                    Run::Retired
+                } else {
+                    Run::New
+                }
+            }
+            // No run id from this plant: guess a restart from the sequence going back to
+            // a fresh start, or further back than any reordering and with an earlier time.
+            (Some(0), Some(last))
+                if s.seq < last
+                    && (s.seq <= 1
+                        || (last - s.seq > REORDER_WINDOW && s.plant_time < self.last_time)) =>
+            {
+                Run::New
+            }
+            _ => Run::Same,
+        }
+    }
+
+    fn limits_pb(&self) -> pb::Envelope {
+        pb::Envelope {
+            channels: self
+                .envelope
+                .iter()
+                .map(|l| pb::ChannelLimits {
+                    min: l.min.is_finite().then_some(l.min),
+                    max: l.max.is_finite().then_some(l.max),
+                    rate_limit: l.rate_limit,
+                })
+                .collect(),
+        }
     }
 
     fn config_pb(&self, id: &str) -> pb::DeviceConfig {
@@ -179,6 +309,7 @@ impl Device {
             device_id: id.into(),
             channels: self.configs.iter().map(channel_to_pb).collect(),
             reference: Some(reference_to_pb(&self.reference, self.reference_start)),
+            envelope: Some(self.limits_pb()),
         }
     }
 
@@ -203,7 +334,79 @@ impl Device {
             f_est: self.f_est.clone(),
             last_error: self.last_error.clone(),
             from_template: self.from_template,
+            superseded: self.superseded,
+            envelope: Some(self.limits_pb()),
+            envelope_changes: self.envelope_changes,
+            clamped: self.clamped,
+            references_refused: self.references_refused,
+            restarts: self.restarts,
         }
+    }
+
+    /// The laws and maps a configuration request asks for, checked against the envelope,
+    /// and its reference; nothing changes here (the caller applies it all or nothing).
+    #[allow(clippy::type_complexity)]
+    fn plan(
+        &self,
+        req: &pb::ConfigRequest,
+    ) -> Result<(Vec<ChannelConfig>, Option<(Vec<Vec<Piece>>, f64)>), String> {
+        let n = self.channels();
+        let mut configs = self.configs.clone();
+        if !req.channels.is_empty() {
+            if req.channels.len() != n {
+                return Err(format!(
+                    "device has {n} channels, request has {}",
+                    req.channels.len()
+                ));
+            }
+            for (i, c) in req.channels.iter().enumerate() {
+                let field = format!("channels[{i}]");
+                let cfg =
+                    channel_from_pb(c).map_err(|e| format!("{field}.{}: {}", e.field, e.reason))?;
+                // No output map in the request: keep the one in force (a client that sends
+                // only laws must not drop the limits).
+                let output = match c.output {
+                    None => configs[i].output,
+                    Some(_) => {
+                        self.envelope[i].fit_request(cfg.output, &format!("{field}.output"))?
+                    }
+                };
+                configs[i] = ChannelConfig {
+                    law: cfg.law,
+                    output,
+                };
+            }
+        }
+        for (k, u) in req.updates.iter().enumerate() {
+            let i = u.channel as usize;
+            if i >= n {
+                return Err(format!(
+                    "updates[{k}].channel: {} but the device has {n} channels",
+                    u.channel
+                ));
+            }
+            let next = apply_update(&configs[i], u)
+                .map_err(|e| format!("updates[{k}].{}: {}", e.field, e.reason))?;
+            let output = self.envelope[i].fit_request(next.output, &format!("updates[{k}]"))?;
+            configs[i] = ChannelConfig {
+                law: next.law,
+                output,
+            };
+        }
+        let reference = match &req.reference {
+            None => None,
+            Some(r) => match reference_from_pb(r) {
+                Ok((pieces, _)) if pieces.len() != n => {
+                    return Err(format!(
+                        "device has {n} channels, reference has {}",
+                        pieces.len()
+                    ))
+                }
+                Ok(r) => Some(r),
+                Err(e) => return Err(format!("reference.{}: {}", e.field, e.reason)),
+            },
+        };
+        Ok((configs, reference))
     }
 }
 
@@ -224,25 +427,81 @@ pub fn latency(rtts: &VecDeque<u32>) -> pb::LatencyStats {
     }
 }
 
-/// A command without control values (refusals and stale answers).
+/// The checks of rule 2 that need no state: the sample's `device_id` is the key's, and
+/// every value is finite. The service runs them in Zenoh's callback, before a sample may
+/// take its device's place in the inbox (so garbage cannot supersede a real sample), and
+/// [`Registry::handle_sample`] runs them again. The reason is cut to printable length.
+pub fn precheck(key_id: &str, s: &pb::Sample) -> Result<(), String> {
+    if s.device_id != key_id {
+        return Err(format!(
+            "device id \"{}\" in a sample on the key of \"{key_id}\"",
+            printable(&s.device_id)
+        ));
+    }
+    if let Some(bad) = s.outputs.iter().chain(&s.applied).find(|v| !v.is_finite()) {
+        return Err(format!("non-finite value {bad:?}"));
+    }
+    if !s.plant_time.is_finite() {
+        return Err(format!("non-finite plant time {:?}", s.plant_time));
+    }
+    Ok(())
+}
+
+/// A command without control values (refusals and stale answers) for the sample `seq`
+/// sent at `sent_unix_ns`.
 fn reply(
     controller_id: &str,
     id: &str,
-    s: &pb::Sample,
+    (seq, sent_unix_ns): (u64, u64),
     mode: pb::Mode,
     error: String,
 ) -> pb::Command {
     pb::Command {
         version: PROTOCOL_VERSION,
         device_id: id.into(),
-        seq: s.seq,
+        seq,
         controller_unix_ns: protocol::unix_ns(),
         mode: mode as i32,
-        sample_sent_unix_ns: s.sent_unix_ns,
+        sample_sent_unix_ns: sent_unix_ns,
         controller_id: controller_id.into(),
         error,
         ..Default::default()
     }
+}
+
+fn refused(reason: String, config: Option<pb::DeviceConfig>) -> pb::ConfigReply {
+    pb::ConfigReply {
+        version: PROTOCOL_VERSION,
+        accepted: false,
+        reason,
+        config,
+    }
+}
+
+/// Wire limits to core, checked; `i` names the channel in errors.
+fn limits_from_pb(l: &pb::ChannelLimits, i: usize) -> Result<Limits, String> {
+    let out = Limits {
+        min: l.min.unwrap_or(f64::NEG_INFINITY),
+        max: l.max.unwrap_or(f64::INFINITY),
+        rate_limit: l.rate_limit,
+    };
+    out.check()
+        .map_err(|e| format!("envelope.channels[{i}]: {e}"))?;
+    Ok(out)
+}
+
+/// Why a registry could not be built from a configuration.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RegistryError {
+    /// A declared device's channels do not make a controller, or its output map lies
+    /// outside its envelope ([`ServiceConfig::check`] catches these first).
+    #[error("device {id:?}: {reason}")]
+    Device {
+        /// The declared id.
+        id: String,
+        /// The core's or the envelope's reason.
+        reason: String,
+    },
 }
 
 /// All devices of one controller.
@@ -255,16 +514,26 @@ pub struct Registry {
     unknown_samples: u64,
     /// The first `UNKNOWN_KEPT` of those ids.
     unknown_devices: BTreeSet<String>,
-    /// Payloads that did not decode (samples, reference updates, config requests).
-    decode_errors: u64,
+    /// Samples a template would have provisioned, refused because the table was full.
+    device_table_full: u64,
+    /// Payloads that did not decode (samples, reference updates, requests).
+    undecodable: u64,
+    /// Samples answered REJECTED, every device.
+    rejected: u64,
+    /// Configuration, envelope and reference requests refused.
+    requests_refused: u64,
 }
 
 impl Registry {
     /// Build every declared device from a checked configuration.
-    pub fn new(config: ServiceConfig) -> Result<Self, mfc::MfcError> {
+    pub fn new(config: ServiceConfig) -> Result<Self, RegistryError> {
         let mut devices = BTreeMap::new();
         for d in &config.devices {
-            devices.insert(d.id.clone(), Device::new(&d.channels, false)?);
+            let dev = Device::new(&d.channels, false).map_err(|reason| RegistryError::Device {
+                id: d.id.clone(),
+                reason,
+            })?;
+            devices.insert(d.id.clone(), dev);
         }
         Ok(Self {
             controller_id: config.controller_id.clone(),
@@ -272,7 +541,10 @@ impl Registry {
             devices,
             unknown_samples: 0,
             unknown_devices: BTreeSet::new(),
-            decode_errors: 0,
+            device_table_full: 0,
+            undecodable: 0,
+            rejected: 0,
+            requests_refused: 0,
         })
     }
 
@@ -296,67 +568,152 @@ impl Registry {
         self.devices.keys().map(String::as_str)
     }
 
-    /// Count a payload that did not decode; reported as `decode_errors` in the service status.
-    pub fn note_decode_error(&mut self) {
-        self.decode_errors += 1;
+    /// Whether `id` is served now.
+    pub fn serves(&self, id: &str) -> bool {
+        self.devices.contains_key(id)
     }
 
-    fn provision(&mut self, id: &str) -> bool {
-        let Ok(ke) = zenoh::key_expr::KeyExpr::try_from(id) else {
-            return false;
+    /// How many devices are served now; never more than the file's `max_devices`.
+    pub fn device_count(&self) -> usize {
+        self.devices.len()
+    }
+
+    /// Count a payload that did not decode; reported as `undecodable` in the service status.
+    pub fn note_undecodable(&mut self) {
+        self.undecodable += 1;
+    }
+
+    /// Count a refused request that never reached a device (undecodable, bad key).
+    pub fn note_request_refused(&mut self) {
+        self.requests_refused += 1;
+    }
+
+    /// Add `n` superseded samples to device `id`'s status (the service-wide count is the
+    /// inbox's own).
+    pub fn note_superseded(&mut self, id: &str, n: u64) {
+        if let Some(d) = self.devices.get_mut(id) {
+            d.superseded += n;
+        }
+    }
+
+    fn template_for(&self, id: &str) -> Option<&crate::config::TemplateSpec> {
+        let ke = zenoh::key_expr::KeyExpr::try_from(id).ok()?;
+        self.config.templates.iter().find(|t| {
+            zenoh::key_expr::KeyExpr::try_from(t.pattern.as_str()).is_ok_and(|p| p.includes(&ke))
+        })
+    }
+
+    /// Rule 1: serve `id` if it is declared or a template provisions it with room left;
+    /// otherwise why not ([`Outcome::Unknown`] or [`Outcome::TableFull`]).
+    fn provision(&mut self, id: &str) -> Option<Outcome> {
+        if self.devices.contains_key(id) {
+            return None;
+        }
+        let Some(t) = self.template_for(id) else {
+            return Some(Outcome::Unknown);
         };
-        for t in &self.config.templates {
-            let Ok(pattern) = zenoh::key_expr::KeyExpr::try_from(t.pattern.as_str()) else {
-                continue;
-            };
-            if pattern.includes(&ke) {
-                if let Ok(d) = Device::new(&t.channels, true) {
-                    tracing::info!(device = id, pattern = %t.pattern, "provisioned from template");
-                    self.devices.insert(id.to_string(), d);
-                    return true;
+        if self.devices.len() >= self.config.max_devices {
+            return Some(Outcome::TableFull);
+        }
+        match Device::new(&t.channels, true) {
+            Ok(d) => {
+                self.devices.insert(id.to_string(), d);
+                None
+            }
+            Err(_) => Some(Outcome::Unknown),
+        }
+    }
+
+    /// Answer a sample received on the key of device `key_id` (the key decides the device;
+    /// a sample whose own `device_id` differs is rejected), by the rules of the module doc.
+    pub fn handle_sample(&mut self, key_id: &str, s: &pb::Sample) -> Outcome {
+        if let Some(outcome) = self.provision(key_id) {
+            match outcome {
+                Outcome::TableFull => self.device_table_full += 1,
+                _ => {
+                    self.unknown_samples += 1;
+                    if self.unknown_devices.len() < UNKNOWN_KEPT {
+                        self.unknown_devices.insert(printable(key_id));
+                    }
                 }
             }
+            return outcome;
         }
-        false
-    }
-
-    /// Answer a sample received on the key of device `key_id` (the key decides the device; a
-    /// sample whose own `device_id` differs is rejected), by the rules of the module doc.
-    pub fn handle_sample(&mut self, key_id: &str, s: &pb::Sample) -> Outcome {
-        let controller_id = self.controller_id.clone();
-        if s.device_id != key_id {
-            let reason = format!(
-                "device id {:?} in a sample on the key of {key_id:?}",
-                s.device_id
-            );
-            tracing::warn!(device = key_id, "{reason}");
-            if let Some(d) = self.devices.get_mut(key_id) {
-                d.rejected += 1;
-                d.last_error = reason.clone();
-            }
-            return Outcome::Reply(reply(&controller_id, key_id, s, pb::Mode::Rejected, reason));
-        }
-        if !self.devices.contains_key(key_id) && !self.provision(key_id) {
-            self.unknown_samples += 1;
-            if self.unknown_devices.len() < UNKNOWN_KEPT
-                && self.unknown_devices.insert(key_id.into())
-            {
-                tracing::warn!(
-                    device = key_id,
-                    "sample from an unknown device (no template matches): refused"
-                );
-            }
-            return Outcome::Unknown;
-        }
+        let controller_id = self.controller_id.as_str();
         let Some(d) = self.devices.get_mut(key_id) else {
             return Outcome::Unknown;
         };
-        if d.run_id.is_some_and(|r| r != s.run_id) {
-            tracing::info!(device = key_id, "plant restarted (new run id): state reset");
-            d.restart();
-        }
-        d.run_id = Some(s.run_id);
         d.samples += 1;
+        let refuse = |d: &mut Device, rejected: &mut u64, reason: String| {
+            let reason = capped(reason);
+            d.rejected += 1;
+            *rejected += 1;
+            d.last_error.clone_from(&reason);
+            Outcome::Reply(reply(
+                controller_id,
+                key_id,
+                (s.seq, s.sent_unix_ns),
+                pb::Mode::Rejected,
+                reason,
+            ))
+        };
+        // Rule 2.
+        if let Err(reason) = precheck(key_id, s).and_then(|()| d.check_values(s)) {
+            return refuse(d, &mut self.rejected, reason);
+        }
+        // Rule 3.
+        d.run_samples = d.run_samples.saturating_add(1);
+        match d.run_of(s) {
+            Run::Same => {}
+            Run::New => d.start_run(s.run_id),
+            Run::Retired => {
+                d.stale += 1;
+                let why = "a sample of an earlier run of the plant".to_string();
+                return Outcome::Reply(reply(
+                    controller_id,
+                    key_id,
+                    (s.seq, s.sent_unix_ns),
+                    pb::Mode::Stale,
+                    why,
+                ));
+            }
+        }
+        // Rule 4.
+        match d.last_seq {
+            Some(last) if s.seq == last => {
+                d.duplicates += 1;
+                if let Some(c) = &d.last_command {
+                    return Outcome::Reply(c.clone());
+                }
+                // Nothing cached (answered before a restore): the time check below refuses it.
+            }
+            Some(last) if s.seq < last => {
+                d.stale += 1;
+                return Outcome::Reply(reply(
+                    controller_id,
+                    key_id,
+                    (s.seq, s.sent_unix_ns),
+                    pb::Mode::Stale,
+                    String::new(),
+                ));
+            }
+            Some(last) if s.seq - last > MAX_SEQ_JUMP => {
+                let reason = format!(
+                    "sequence jumps from {last} to {}, more than {MAX_SEQ_JUMP}",
+                    s.seq
+                );
+                return refuse(d, &mut self.rejected, reason);
+            }
+            _ => {}
+        }
+        if s.plant_time <= d.last_time {
+            let reason = format!(
+                "plant time {:?} does not advance past {:?}",
+                s.plant_time, d.last_time
+            );
+            return refuse(d, &mut self.rejected, reason);
+        }
+        // The sample is good: from here on it may change state.
         if s.last_rtt_us > 0 {
             if d.rtts.len() == RTT_WINDOW {
                 d.rtts.pop_front();
@@ -369,33 +726,9 @@ impl Registry {
         if s.flags & plant_trouble != 0 {
             d.samples_off_remote += 1;
         }
-        match d.last_seq {
-            Some(last) if s.seq == last => {
-                d.duplicates += 1;
-                if let Some(c) = &d.last_command {
-                    return Outcome::Reply(c.clone());
-                }
-            }
-            Some(last) if s.seq < last => {
-                d.stale += 1;
-                return Outcome::Reply(reply(
-                    &controller_id,
-                    key_id,
-                    s,
-                    pb::Mode::Stale,
-                    String::new(),
-                ));
-            }
-            _ => {}
-        }
-        if let Err(reason) = d.check(s) {
-            d.rejected += 1;
-            tracing::debug!(device = key_id, seq = s.seq, "sample refused: {reason}");
-            d.last_error = reason.clone();
-            return Outcome::Reply(reply(&controller_id, key_id, s, pb::Mode::Rejected, reason));
-        }
         if let Some(last) = d.last_seq {
-            d.lost += s.seq.saturating_sub(last + 1);
+            // s.seq > last here (equal returned or fell through only without a cache).
+            d.lost += s.seq.saturating_sub(last).saturating_sub(1);
         }
         if d.last_seq.is_some() && !s.applied.is_empty() {
             // Checked finite above, so this cannot fail.
@@ -414,15 +747,28 @@ impl Registry {
             .mimo
             .step(s.plant_time, &s.outputs, &d.refs, &mut d.outputs)
         {
-            d.rejected += 1;
-            d.last_error = e.to_string();
-            return Outcome::Reply(reply(
-                &controller_id,
-                key_id,
-                s,
-                pb::Mode::Rejected,
-                e.to_string(),
-            ));
+            return refuse(d, &mut self.rejected, e.to_string());
+        }
+        // Rule 5: the last check before anything leaves.
+        if let Some(bad) = d.outputs.iter().find(|o| !o.v.is_finite()) {
+            let reason = format!(
+                "the controller produced a non-finite command ({:?}): check the gains",
+                bad.v
+            );
+            return refuse(d, &mut self.rejected, reason);
+        }
+        let dt = s.plant_time - d.last_time;
+        let prev = d.last_command.as_ref().map(|c| c.v.clone());
+        let mut v: Vec<f64> = Vec::with_capacity(d.outputs.len());
+        let mut clipped = false;
+        for (i, o) in d.outputs.iter().enumerate() {
+            let p = prev.as_ref().and_then(|p| p.get(i)).map(|p| (*p, dt));
+            let (x, c) = d.envelope[i].clamp(o.v, p);
+            clipped |= c;
+            v.push(x);
+        }
+        if clipped {
+            d.clamped += 1;
         }
         d.last_seq = Some(s.seq);
         d.last_time = s.plant_time;
@@ -434,7 +780,7 @@ impl Registry {
             device_id: key_id.into(),
             seq: s.seq,
             u: d.outputs.iter().map(|o| o.u).collect(),
-            v: d.outputs.iter().map(|o| o.v).collect(),
+            v,
             controller_unix_ns: protocol::unix_ns(),
             f_est: d.f_est.clone(),
             mode: if d.outputs.iter().any(|o| o.warming_up) {
@@ -443,7 +789,7 @@ impl Registry {
                 pb::Mode::Control
             } as i32,
             sample_sent_unix_ns: s.sent_unix_ns,
-            controller_id,
+            controller_id: controller_id.into(),
             error: String::new(),
         };
         d.commands += 1;
@@ -451,97 +797,154 @@ impl Registry {
         Outcome::Reply(command)
     }
 
+    /// Answer a sample that [`precheck`] refused before it reached the inbox: REJECTED with
+    /// `reason` if the key's device is served, else counted as unknown (a malformed
+    /// sample never provisions a device).
+    pub fn refuse_sample(
+        &mut self,
+        key_id: &str,
+        seq: u64,
+        sent_unix_ns: u64,
+        reason: String,
+    ) -> Outcome {
+        let Some(d) = self.devices.get_mut(key_id) else {
+            self.unknown_samples += 1;
+            if self.unknown_devices.len() < UNKNOWN_KEPT {
+                self.unknown_devices.insert(printable(key_id));
+            }
+            return Outcome::Unknown;
+        };
+        let reason = capped(reason);
+        d.samples += 1;
+        d.rejected += 1;
+        self.rejected += 1;
+        d.last_error.clone_from(&reason);
+        Outcome::Reply(reply(
+            &self.controller_id,
+            key_id,
+            (seq, sent_unix_ns),
+            pb::Mode::Rejected,
+            reason,
+        ))
+    }
+
     /// The configuration of a device, if served.
     pub fn config_of(&self, id: &str) -> Option<pb::DeviceConfig> {
         self.devices.get(id).map(|d| d.config_pb(id))
     }
 
-    /// Apply a configuration request, all or nothing, bumplessly. Empty `channels` keeps the
-    /// laws, no `reference` keeps the reference; the reply carries the configuration in
-    /// force afterwards, accepted or not (none for an unknown device).
+    /// Apply a configuration request (see `ConfigRequest` in the `.proto`): all or nothing,
+    /// bumpless, never outside the envelope. The reply carries the configuration in force
+    /// afterwards, accepted or not (none for an unknown device).
     pub fn configure(&mut self, id: &str, req: &pb::ConfigRequest) -> pb::ConfigReply {
-        let refuse = |reason: String, config: Option<pb::DeviceConfig>| pb::ConfigReply {
-            version: PROTOCOL_VERSION,
-            accepted: false,
-            reason,
-            config,
-        };
         let Some(d) = self.devices.get_mut(id) else {
-            return refuse(format!("unknown device {id:?}"), None);
+            self.requests_refused += 1;
+            return refused(format!("unknown device \"{}\"", printable(id)), None);
         };
-        let n = d.channels();
-        let configs = if req.channels.is_empty() {
-            None
-        } else {
-            if req.channels.len() != n {
-                return refuse(
-                    format!(
-                        "device has {n} channels, request has {}",
-                        req.channels.len()
-                    ),
-                    Some(d.config_pb(id)),
-                );
-            }
-            match req
-                .channels
-                .iter()
-                .enumerate()
-                .map(|(i, c)| {
-                    channel_from_pb(c)
-                        .map_err(|e| format!("channels[{i}].{}: {}", e.field, e.reason))
-                })
-                .collect::<Result<Vec<_>, _>>()
-            {
-                Ok(c) => Some(c),
-                Err(reason) => return refuse(reason, Some(d.config_pb(id))),
-            }
-        };
-        let reference = match &req.reference {
-            None => None,
-            Some(r) => match reference_from_pb(r) {
-                Ok((pieces, _)) if pieces.len() != n => {
-                    return refuse(
-                        format!("device has {n} channels, reference has {}", pieces.len()),
-                        Some(d.config_pb(id)),
-                    )
+        let planned = d.plan(req).and_then(|(configs, reference)| {
+            d.mimo.reconfigure(&configs).map_err(|e| e.to_string())?;
+            Ok((configs, reference))
+        });
+        match planned {
+            Ok((configs, reference)) => {
+                d.configs = configs;
+                if let Some((pieces, start)) = reference {
+                    d.reference = pieces;
+                    d.reference_start = start;
                 }
-                Ok(r) => Some(r),
-                Err(e) => {
-                    return refuse(format!("{}: {}", e.field, e.reason), Some(d.config_pb(id)))
+                pb::ConfigReply {
+                    version: PROTOCOL_VERSION,
+                    accepted: true,
+                    reason: String::new(),
+                    config: Some(d.config_pb(id)),
                 }
-            },
-        };
-        if let Some(configs) = configs {
-            if let Err(e) = d.mimo.reconfigure(&configs) {
-                return refuse(e.to_string(), Some(d.config_pb(id)));
             }
-            d.configs = configs;
-        }
-        if let Some((pieces, start)) = reference {
-            d.reference = pieces;
-            d.reference_start = start;
-        }
-        tracing::info!(device = id, "configuration changed");
-        pb::ConfigReply {
-            version: PROTOCOL_VERSION,
-            accepted: true,
-            reason: String::new(),
-            config: Some(d.config_pb(id)),
+            Err(reason) => {
+                let reason = capped(reason);
+                self.requests_refused += 1;
+                d.last_error.clone_from(&reason);
+                refused(reason, Some(d.config_pb(id)))
+            }
         }
     }
 
-    /// Replace a device's reference (live steering).
-    pub fn set_reference(&mut self, id: &str, update: &pb::ReferenceUpdate) -> Result<(), String> {
+    /// Replace a device's reference (live steering); the reply says why if refused.
+    pub fn set_reference(&mut self, id: &str, update: &pb::ReferenceUpdate) -> pb::ConfigReply {
         let req = pb::ConfigRequest {
             version: PROTOCOL_VERSION,
-            channels: Vec::new(),
-            reference: update.reference.clone(),
+            reference: Some(update.reference.clone().unwrap_or_default()),
+            ..Default::default()
         };
         let reply = self.configure(id, &req);
-        if reply.accepted {
-            Ok(())
-        } else {
-            Err(reply.reason)
+        if !reply.accepted {
+            if let Some(d) = self.devices.get_mut(id) {
+                d.references_refused += 1;
+            }
+        }
+        reply
+    }
+
+    /// Change a device's envelope (see `EnvelopeRequest` in the `.proto`). Narrowing is
+    /// always accepted; widening only if the file sets `allow_remote_widening`. The output
+    /// maps in force are narrowed to fit, bumplessly.
+    pub fn change_envelope(&mut self, id: &str, req: &pb::EnvelopeRequest) -> pb::ConfigReply {
+        let allow_widening = self.config.allow_remote_widening;
+        let Some(d) = self.devices.get_mut(id) else {
+            self.requests_refused += 1;
+            return refused(format!("unknown device \"{}\"", printable(id)), None);
+        };
+        let n = d.channels();
+        let planned = (|| {
+            let asked = req.envelope.clone().unwrap_or_default().channels;
+            if asked.len() != n {
+                return Err(format!(
+                    "device has {n} channels, envelope has {}",
+                    asked.len()
+                ));
+            }
+            let limits = asked
+                .iter()
+                .enumerate()
+                .map(|(i, l)| limits_from_pb(l, i))
+                .collect::<Result<Vec<_>, _>>()?;
+            if !allow_widening {
+                if let Some(i) = (0..n).find(|&i| d.envelope[i].is_widened_by(&limits[i])) {
+                    return Err(format!(
+                        "envelope.channels[{i}] widens the envelope; this service allows only \
+                         narrowing (allow_remote_widening = false in its file)"
+                    ));
+                }
+            }
+            let configs: Vec<ChannelConfig> = d
+                .configs
+                .iter()
+                .zip(&limits)
+                .map(|(c, l)| ChannelConfig {
+                    law: c.law,
+                    output: l.narrow(c.output),
+                })
+                .collect();
+            d.mimo.reconfigure(&configs).map_err(|e| e.to_string())?;
+            Ok((limits, configs))
+        })();
+        match planned {
+            Ok((limits, configs)) => {
+                d.envelope = limits;
+                d.configs = configs;
+                d.envelope_changes += 1;
+                pb::ConfigReply {
+                    version: PROTOCOL_VERSION,
+                    accepted: true,
+                    reason: String::new(),
+                    config: Some(d.config_pb(id)),
+                }
+            }
+            Err(reason) => {
+                let reason = capped(reason);
+                self.requests_refused += 1;
+                d.last_error.clone_from(&reason);
+                refused(reason, Some(d.config_pb(id)))
+            }
         }
     }
 
@@ -551,7 +954,7 @@ impl Registry {
     }
 
     /// Status of the whole service, `uptime` in seconds. It reports `active` true and term
-    /// 0: the caller overwrites them with its hot-standby state.
+    /// 0, and none of the inbox's drops: the caller fills those in.
     pub fn service_status(&self, uptime: f64) -> pb::ServiceStatus {
         pb::ServiceStatus {
             version: PROTOCOL_VERSION,
@@ -559,10 +962,14 @@ impl Registry {
             devices: self.devices.iter().map(|(id, d)| d.status_pb(id)).collect(),
             unknown_samples: self.unknown_samples,
             unknown_devices: self.unknown_devices.iter().cloned().collect(),
-            decode_errors: self.decode_errors,
+            undecodable: self.undecodable,
             uptime,
             active: true,
             term: 0,
+            rejected: self.rejected,
+            device_table_full: self.device_table_full,
+            requests_refused: self.requests_refused,
+            ..Default::default()
         }
     }
 }
@@ -608,24 +1015,47 @@ impl Registry {
         let d = match self.devices.get_mut(&snap.id) {
             Some(d) => d,
             None if snap.from_template => {
-                let specs: Vec<DeviceChannel> = configs
-                    .iter()
-                    .map(|c| DeviceChannel {
-                        law: c.law,
-                        output: c.output,
-                        reference: Vec::new(),
-                    })
-                    .collect();
-                let d = Device::new(&specs, true).map_err(|e| e.to_string())?;
+                // Rebuilt from the template that matches it now, for its envelope; a device
+                // no template matches any more is not served any more.
+                let Some(t) = self.template_for(&snap.id) else {
+                    return Err(format!("no template matches device {:?} any more", snap.id));
+                };
+                if self.devices.len() >= self.config.max_devices {
+                    return Err(format!("device {:?}: the device table is full", snap.id));
+                }
+                let d = Device::new(&t.channels, true)?;
                 self.devices.entry(snap.id.clone()).or_insert(d)
             }
             None => return Err(format!("device {:?} is no longer configured", snap.id)),
         };
+        if configs.len() != d.channels() {
+            return Err(format!(
+                "device {:?}: the snapshot has {} channels, the device {}",
+                snap.id,
+                configs.len(),
+                d.channels()
+            ));
+        }
         if !snap.from_template && configs != d.configs {
             return Err(format!(
                 "device {:?}: configuration changed since the snapshot",
                 snap.id
             ));
+        }
+        // A template device's laws may have been changed remotely; its maps must still lie
+        // inside the envelope it has now.
+        for (i, (c, l)) in configs.iter().zip(&d.envelope).enumerate() {
+            if *c
+                != (ChannelConfig {
+                    law: c.law,
+                    output: l.narrow(c.output),
+                })
+            {
+                return Err(format!(
+                    "device {:?}: channel {i}'s output map lies outside its envelope",
+                    snap.id
+                ));
+            }
         }
         if snap.reference.len() != configs.len() {
             return Err(format!(
@@ -653,6 +1083,7 @@ impl Registry {
             d.samples_off_remote,
         ] = snap.counters;
         d.last_command = None;
+        d.retired.clear();
         d.restored = true;
         Ok(())
     }

@@ -47,6 +47,8 @@ pub fn service_config(
                         law: *law,
                         output: c.output,
                         reference: c.reference.clone(),
+                        // The envelope is the scenario's actuator range (its output map).
+                        envelope: None,
                     })
                     .collect(),
             })

@@ -193,6 +193,107 @@ pub fn channel_from_pb(c: &pb::ChannelConfig) -> Result<ChannelConfig, ConvertEr
     Ok(cfg)
 }
 
+/// Apply a merge change ([`pb::ChannelUpdate`]) to one channel's configuration: a new law
+/// first if the update carries one (the output map is kept), then every single parameter
+/// present. A parameter the law in force does not have is refused with its name, so a
+/// client never believes a gain changed when it did not. Output-map limits come out as
+/// asked; fitting them into the device's envelope is the caller's job.
+pub fn apply_update(
+    c: &ChannelConfig,
+    u: &pb::ChannelUpdate,
+) -> Result<ChannelConfig, ConvertError> {
+    use pb::channel_config::Law as CLaw;
+    use pb::channel_update::Law as ULaw;
+    let mut cfg = *c;
+    if let Some(law) = &u.law {
+        let law = match law {
+            ULaw::Intelligent(i) => CLaw::Intelligent(*i),
+            ULaw::Pid(p) => CLaw::Pid(*p),
+            ULaw::Adrc(a) => CLaw::Adrc(*a),
+        };
+        let mut wire = channel_to_pb(c);
+        wire.law = Some(law);
+        cfg.law = channel_from_pb(&wire)?.law;
+    }
+    let kind = match cfg.law {
+        LawConfig::Intelligent { .. } => "intelligent",
+        LawConfig::Pid { .. } => "pid",
+        LawConfig::Adrc { .. } => "adrc",
+    };
+    let missing = |name: &str| err(name, format!("the {kind} law in force has no {name}"));
+    let set = |name: &'static str, value: Option<f64>, slot: Option<&mut f64>| match (value, slot) {
+        (None, _) => Ok(()),
+        (Some(v), Some(slot)) => {
+            *slot = v;
+            Ok(())
+        }
+        (Some(_), None) => Err(missing(name)),
+    };
+    match &mut cfg.law {
+        LawConfig::Intelligent { params, .. } => {
+            set("kp", u.kp, Some(&mut params.kp))?;
+            set("ki", u.ki, Some(&mut params.ki))?;
+            set("kd", u.kd, Some(&mut params.kd))?;
+            set("alpha", u.alpha, Some(&mut params.alpha))?;
+            set(
+                "derivative_filter",
+                u.derivative_filter,
+                Some(&mut params.derivative_filter),
+            )?;
+            set("b0", u.b0, None)?;
+            set("wc", u.wc, None)?;
+            set("wo", u.wo, None)?;
+            set("setpoint_weight", u.setpoint_weight, None)?;
+        }
+        LawConfig::Pid { params } => {
+            set("kp", u.kp, Some(&mut params.kp))?;
+            set("ki", u.ki, Some(&mut params.ki))?;
+            set("kd", u.kd, Some(&mut params.kd))?;
+            set("alpha", u.alpha, None)?;
+            set(
+                "derivative_filter",
+                u.derivative_filter,
+                Some(&mut params.derivative_filter),
+            )?;
+            set("b0", u.b0, None)?;
+            set("wc", u.wc, None)?;
+            set("wo", u.wo, None)?;
+            set(
+                "setpoint_weight",
+                u.setpoint_weight,
+                Some(&mut params.setpoint_weight),
+            )?;
+        }
+        LawConfig::Adrc { params } => {
+            set("kp", u.kp, None)?;
+            set("ki", u.ki, None)?;
+            set("kd", u.kd, None)?;
+            set("alpha", u.alpha, None)?;
+            set("derivative_filter", u.derivative_filter, None)?;
+            set("b0", u.b0, Some(&mut params.b0))?;
+            set("wc", u.wc, Some(&mut params.wc))?;
+            set("wo", u.wo, Some(&mut params.wo))?;
+            set("setpoint_weight", u.setpoint_weight, None)?;
+        }
+    }
+    if let Some(v) = u.dead_zone {
+        cfg.output.dead_zone = v;
+    }
+    if let Some(v) = u.min {
+        cfg.output.min = v;
+    }
+    if let Some(v) = u.max {
+        cfg.output.max = v;
+    }
+    if let Some(v) = u.rate_limit {
+        cfg.output.rate_limit = Some(v);
+    }
+    // Let the core say what is out of range (a NaN gain, a negative alpha, min above max).
+    mfc::Channel::<{ mfc::DEFAULT_CAPACITY }>::new(&cfg)
+        .map_err(|e| err("channel", e.to_string()))?;
+    Ok(cfg)
+}
+
 /// Core piece to wire; a sine that never ends goes out without `end`.
 pub fn piece_to_pb(p: &Piece) -> pb::Piece {
     use pb::piece::Shape;

@@ -6,7 +6,8 @@
 //! | `mfc/v1/device/{id}/command` | controller → plant, pub/sub | [`Command`](crate::pb::Command) answering a sample |
 //! | `mfc/v1/device/{id}/config` | queryable on the controller | read (empty query) or change ([`ConfigRequest`](crate::pb::ConfigRequest) → [`ConfigReply`](crate::pb::ConfigReply)) |
 //! | `mfc/v1/device/{id}/status` | queryable on the controller | [`DeviceStatus`](crate::pb::DeviceStatus) |
-//! | `mfc/v1/device/{id}/reference` | operator → controller, pub/sub | [`ReferenceUpdate`](crate::pb::ReferenceUpdate), steer the reference live |
+//! | `mfc/v1/device/{id}/reference` | operator → controller, pub/sub or query | [`ReferenceUpdate`](crate::pb::ReferenceUpdate), steer the reference live (a query is answered with a [`ConfigReply`](crate::pb::ConfigReply)) |
+//! | `mfc/v1/device/{id}/envelope` | queryable on the controller | read (empty query) or change the safety envelope ([`EnvelopeRequest`](crate::pb::EnvelopeRequest) → [`ConfigReply`](crate::pb::ConfigReply)) |
 //! | `mfc/v1/service/{controller}/status` | queryable on the controller | [`ServiceStatus`](crate::pb::ServiceStatus) |
 //! | `mfc/v1/group/{group}/heartbeat` | active controller → its group | [`Heartbeat`](crate::pb::Heartbeat), hot standby |
 //! | `mfc/v1/alive/controller/{controller}` | liveliness token | a controller is up |
@@ -59,6 +60,10 @@ pub fn status(id: &str) -> String {
 /// `mfc/v1/device/{id}/reference`.
 pub fn reference(id: &str) -> String {
     format!("{PREFIX}/device/{id}/reference")
+}
+/// `mfc/v1/device/{id}/envelope`.
+pub fn envelope(id: &str) -> String {
+    format!("{PREFIX}/device/{id}/envelope")
 }
 /// `mfc/v1/service/{controller}/status`.
 pub fn service_status(controller: &str) -> String {

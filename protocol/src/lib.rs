@@ -18,6 +18,29 @@ pub mod pb {
 /// Version carried in field 1 of every top-level message; decoders refuse any other.
 pub const PROTOCOL_VERSION: u32 = 1;
 
+/// Largest payload a controller reads (bytes). A sample of 16 channels is under 400 bytes
+/// and a configuration with long references a few kilobytes; anything larger is dropped
+/// unread, before it is copied, so a flood of huge messages costs no memory.
+pub const MAX_PAYLOAD: usize = 64 * 1024;
+
+/// Longest string from the network that is echoed, stored or logged (characters).
+pub const MAX_ECHO: usize = 64;
+
+/// A string from the network made safe to echo, store or log: at most [`MAX_ECHO`]
+/// characters, control characters escaped, and a note of how long it really was when cut.
+pub fn printable(s: &str) -> String {
+    let mut out: String = s
+        .chars()
+        .take(MAX_ECHO)
+        .flat_map(char::escape_debug)
+        .collect();
+    let n = s.chars().count();
+    if n > MAX_ECHO {
+        out.push_str(&format!("... ({} bytes)", s.len()));
+    }
+    out
+}
+
 /// Why a payload could not be used.
 #[derive(Debug, thiserror::Error)]
 pub enum DecodeError {
@@ -65,6 +88,7 @@ versioned!(
     ConfigRequest,
     ConfigReply,
     ReferenceUpdate,
+    EnvelopeRequest,
     DeviceStatus,
     ServiceStatus,
     Heartbeat
@@ -116,6 +140,7 @@ mod tests {
             let _ = decode::<pb::ConfigRequest>(&bytes);
             let _ = decode::<pb::ConfigReply>(&bytes);
             let _ = decode::<pb::ReferenceUpdate>(&bytes);
+            let _ = decode::<pb::EnvelopeRequest>(&bytes);
             let _ = decode::<pb::DeviceStatus>(&bytes);
             let _ = decode::<pb::ServiceStatus>(&bytes);
             let _ = decode::<pb::Heartbeat>(&bytes);
@@ -129,6 +154,7 @@ mod tests {
                 version: PROTOCOL_VERSION,
                 channels: vec![convert::channel_to_pb(&mfc::ChannelConfig::default())],
                 reference: Some(convert::reference_to_pb(&[vec![mfc::trajectory::Piece::Constant { value: 1.0 }]], 0.0)),
+                updates: vec![pb::ChannelUpdate { channel: 0, kp: Some(2.0), max: Some(1.0), ..Default::default() }],
             };
             let mut bytes = encode(&cfg);
             for (i, b) in flips {
@@ -144,8 +170,20 @@ mod tests {
                 if let Some(r) = &m.reference {
                     let _ = convert::reference_from_pb(r);
                 }
+                for u in &m.updates {
+                    let _ = convert::apply_update(&mfc::ChannelConfig::default(), u);
+                }
             }
         }
+    }
+
+    #[test]
+    fn printable_caps_and_escapes() {
+        assert_eq!(printable("aero-1"), "aero-1");
+        assert_eq!(printable("a\nb"), "a\\nb");
+        let huge = "x".repeat(1 << 20);
+        let p = printable(&huge);
+        assert!(p.len() < 100 && p.ends_with("(1048576 bytes)"), "{p}");
     }
 
     #[test]

@@ -124,8 +124,11 @@ pub async fn control_publisher(
         })
 }
 
-/// Query `key` (with `payload`, if any) and return the payload of the first reply: the
-/// request/reply path for configuration and status (never the control path).
+/// Query `key` (with `payload`, if any) and return the payload of the first good reply:
+/// the request/reply path for configuration and status (never the control path). Error
+/// replies are skipped while another replier may still answer well (a service that does
+/// not serve a device says so with an error, and the one that does answers); if none does,
+/// the first error is returned.
 pub async fn get_first(
     session: &Session,
     key: &str,
@@ -140,14 +143,19 @@ pub async fn get_first(
         get = get.payload(p);
     }
     let replies = get.await.map_err(|e| err(e.to_string()))?;
-    let reply = replies
-        .recv_async()
-        .await
-        .map_err(|e| err(format!("no reply: {e}")))?;
-    let sample = reply
-        .result()
-        .map_err(|e| err(format!("error reply: {e:?}")))?;
-    Ok(sample.payload().to_bytes().into_owned())
+    let mut first_error = None;
+    while let Ok(reply) = replies.recv_async().await {
+        match reply.result() {
+            Ok(sample) => return Ok(sample.payload().to_bytes().into_owned()),
+            Err(e) => {
+                let text = e.payload().to_bytes();
+                first_error.get_or_insert_with(|| {
+                    err(format!("error reply: {}", String::from_utf8_lossy(&text)))
+                });
+            }
+        }
+    }
+    Err(first_error.unwrap_or_else(|| err("no reply".into())))
 }
 
 /// Wait until a liveliness token on `key` exists, polling every 100 ms for at most

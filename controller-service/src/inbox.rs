@@ -1,0 +1,202 @@
+//! Where samples wait between Zenoh's callbacks and the worker that serves them.
+//!
+//! A control loop wants the newest sample of each device, not every sample: a command for
+//! an old sample is applied late or not at all. So the inbox keeps at most one unread
+//! sample per device. A newer one replaces it (counted as superseded), and devices are
+//! served in the order their pending sample arrived. What waits is therefore bounded by
+//! the number of devices, never by one device's rate: a device flooding samples delays
+//! every other device by at most one sample of its own.
+//!
+//! Only well-formed samples get this far (decoded, of the key's own device, finite values:
+//! the callbacks check that first), so garbage on a device's key cannot push that
+//! device's real samples out.
+//!
+//! Devices the service does not serve (yet: the first sample of a template device comes
+//! this way) share a small fixed number of slots, so a flood of unknown keys fills those
+//! and is dropped (counted as queue full) without touching the slots of served devices.
+//! Pure data: the service wraps it in a mutex that is held only to push or pop.
+
+use std::collections::{HashMap, HashSet, VecDeque};
+
+/// What became of a pushed sample.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Push {
+    /// The device had nothing pending: the sample waits, and the worker must be woken.
+    Queued,
+    /// It replaced the device's unread sample (the worker is already due to come).
+    Superseded,
+    /// No slot left for a device the service does not serve: dropped.
+    Full,
+}
+
+#[derive(Debug)]
+struct Pending<T> {
+    item: T,
+    /// Samples of this device this one replaced.
+    superseded: u64,
+}
+
+/// The latest unread sample (`T`) of each device, in arrival order.
+#[derive(Debug)]
+pub struct Inbox<T> {
+    pending: HashMap<String, Pending<T>>,
+    ready: VecDeque<String>,
+    served: HashSet<String>,
+    /// Pending samples of devices not in `served`.
+    others: usize,
+    others_cap: usize,
+    superseded: u64,
+    full: u64,
+}
+
+/// A sample taken out of the inbox.
+#[derive(Debug, PartialEq, Eq)]
+pub struct Taken<T> {
+    /// The device id from the key.
+    pub id: String,
+    /// The sample.
+    pub item: T,
+    /// How many older samples of the device it replaced while waiting.
+    pub superseded: u64,
+}
+
+impl<T> Inbox<T> {
+    /// An empty inbox whose unserved devices share `others_cap` slots (at least 1).
+    pub fn new(others_cap: usize) -> Self {
+        Self {
+            pending: HashMap::new(),
+            ready: VecDeque::new(),
+            served: HashSet::new(),
+            others: 0,
+            others_cap: others_cap.max(1),
+            superseded: 0,
+            full: 0,
+        }
+    }
+
+    /// Give device `id` a slot of its own: the worker calls this once it serves `id`.
+    pub fn serve(&mut self, id: &str) {
+        if self.served.insert(id.to_string()) && self.pending.contains_key(id) {
+            // Its pending sample no longer takes one of the shared slots.
+            self.others -= 1;
+        }
+    }
+
+    /// Put a sample of device `id` in.
+    pub fn push(&mut self, id: &str, item: T) -> Push {
+        if let Some(p) = self.pending.get_mut(id) {
+            p.item = item;
+            p.superseded += 1;
+            self.superseded += 1;
+            return Push::Superseded;
+        }
+        if !self.served.contains(id) {
+            if self.others >= self.others_cap {
+                self.full += 1;
+                return Push::Full;
+            }
+            self.others += 1;
+        }
+        self.pending.insert(
+            id.to_string(),
+            Pending {
+                item,
+                superseded: 0,
+            },
+        );
+        self.ready.push_back(id.to_string());
+        Push::Queued
+    }
+
+    /// Take the sample of the device that has waited longest.
+    pub fn pop(&mut self) -> Option<Taken<T>> {
+        let id = self.ready.pop_front()?;
+        let p = self.pending.remove(&id)?;
+        if !self.served.contains(&id) {
+            self.others -= 1;
+        }
+        Some(Taken {
+            id,
+            item: p.item,
+            superseded: p.superseded,
+        })
+    }
+
+    /// Samples waiting (one per device at most).
+    pub fn len(&self) -> usize {
+        self.ready.len()
+    }
+
+    /// Whether nothing waits.
+    pub fn is_empty(&self) -> bool {
+        self.ready.is_empty()
+    }
+
+    /// Samples replaced by a newer one of the same device, since the start.
+    pub fn superseded(&self) -> u64 {
+        self.superseded
+    }
+
+    /// Samples dropped for lack of a slot, since the start.
+    pub fn full(&self) -> u64 {
+        self.full
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_flooding_device_supersedes_itself_and_delays_no_one() {
+        let mut inbox: Inbox<Vec<u8>> = Inbox::new(4);
+        inbox.serve("good");
+        inbox.serve("flood");
+        assert_eq!(inbox.push("flood", vec![0]), Push::Queued);
+        assert_eq!(inbox.push("good", vec![1]), Push::Queued);
+        for k in 2..10_000u32 {
+            assert_eq!(
+                inbox.push("flood", k.to_le_bytes().to_vec()),
+                Push::Superseded
+            );
+        }
+        assert_eq!(inbox.len(), 2);
+        let first = inbox.pop().unwrap();
+        assert_eq!(first.id, "flood");
+        assert_eq!(first.item, 9_999u32.to_le_bytes().to_vec(), "latest wins");
+        assert_eq!(first.superseded, 9_998);
+        assert_eq!(inbox.pop().unwrap().id, "good");
+        assert!(inbox.pop().is_none());
+        assert_eq!(inbox.superseded(), 9_998);
+    }
+
+    #[test]
+    fn unknown_keys_share_a_few_slots_and_never_take_a_served_devices() {
+        let mut inbox: Inbox<Vec<u8>> = Inbox::new(3);
+        inbox.serve("good");
+        for k in 0..1000 {
+            inbox.push(&format!("x{k}"), vec![]);
+        }
+        assert_eq!(inbox.len(), 3);
+        assert_eq!(inbox.full(), 997);
+        assert_eq!(inbox.push("good", vec![7]), Push::Queued);
+        assert_eq!(inbox.len(), 4);
+        // Served in arrival order; popping frees the shared slots.
+        let ids: Vec<String> = std::iter::from_fn(|| inbox.pop().map(|t| t.id)).collect();
+        assert_eq!(ids, ["x0", "x1", "x2", "good"]);
+        assert_eq!(inbox.push("x5", vec![]), Push::Queued);
+    }
+
+    #[test]
+    fn a_device_served_while_pending_frees_its_shared_slot() {
+        let mut inbox: Inbox<Vec<u8>> = Inbox::new(1);
+        assert_eq!(inbox.push("new", vec![]), Push::Queued);
+        assert_eq!(inbox.push("other", vec![]), Push::Full);
+        inbox.serve("new");
+        assert_eq!(inbox.push("other", vec![]), Push::Queued);
+        assert_eq!(inbox.pop().unwrap().id, "new");
+        assert_eq!(inbox.pop().unwrap().id, "other");
+        assert!(inbox.is_empty());
+        assert_eq!(inbox.push("third", vec![]), Push::Queued);
+    }
+}

@@ -1,0 +1,633 @@
+//! Untrusted input against the registry, without a network: the envelope holds whatever a
+//! client asks, state stays bounded, and nothing changes before a message is validated.
+
+use controller_service::registry::{Outcome, MAX_SEQ_JUMP};
+use controller_service::{Registry, ServiceConfig};
+use proptest::prelude::*;
+use protocol::{pb, PROTOCOL_VERSION};
+
+/// Two AERO-like channels with a ±24 V envelope (from the output map, the default), a
+/// one-sided heater channel with an explicit envelope and rate limit, and a template.
+const CONFIG: &str = r#"
+controller_id = "c1"
+max_devices = 4
+
+[[devices]]
+id = "aero-1"
+[[devices.channels]]
+law = { law = "intelligent", params = { kind = "ip", alpha = 1.0, kp = 2.0 }, estimator = { window = 3 } }
+output = { dead_zone = 10.0, min = -24.0, max = 24.0 }
+reference = [{ kind = "constant", value = 1.0 }]
+[[devices.channels]]
+law = { law = "pid", params = { kp = 1.0 } }
+output = { min = -24.0, max = 24.0 }
+
+[[devices]]
+id = "heater"
+[[devices.channels]]
+law = { law = "pid", params = { kp = 50.0, ki = 1.0 } }
+envelope = { min = 0.0, max = 24.0, rate_limit = 100.0 }
+reference = [{ kind = "constant", value = 40.0 }]
+
+[[templates]]
+pattern = "sim-$*"
+[[templates.channels]]
+law = { law = "pid", params = { kp = 2.0 } }
+output = { min = -5.0, max = 5.0 }
+"#;
+
+fn registry() -> Registry {
+    registry_with(CONFIG)
+}
+
+fn registry_with(text: &str) -> Registry {
+    Registry::new(ServiceConfig::parse("test.toml", text).unwrap()).unwrap()
+}
+
+fn sample(id: &str, run: u64, seq: u64, t: f64, y: &[f64]) -> pb::Sample {
+    pb::Sample {
+        version: PROTOCOL_VERSION,
+        device_id: id.into(),
+        seq,
+        plant_time: t,
+        outputs: y.to_vec(),
+        run_id: run,
+        ..Default::default()
+    }
+}
+
+fn reply(o: Outcome) -> pb::Command {
+    match o {
+        Outcome::Reply(c) => c,
+        other => panic!("no reply: {other:?}"),
+    }
+}
+
+fn mode(c: &pb::Command) -> pb::Mode {
+    pb::Mode::try_from(c.mode).unwrap()
+}
+
+/// Drive `aero-1` for `n` samples of run 7 from `seq0`, returning the last command.
+fn run(r: &mut Registry, seq0: u64, n: u64) -> pb::Command {
+    let mut last = None;
+    for k in seq0..seq0 + n {
+        last = Some(reply(r.handle_sample(
+            "aero-1",
+            &sample("aero-1", 7, k, k as f64 * 0.01, &[0.0, 0.0]),
+        )));
+    }
+    last.unwrap()
+}
+
+fn pid_law(kp: f64) -> pb::channel_config::Law {
+    pb::channel_config::Law::Pid(pb::Pid {
+        kp,
+        ..Default::default()
+    })
+}
+
+#[test]
+fn a_law_only_change_keeps_the_limits() {
+    // The bug a Python client hit: channels that set only the law used to drop the maps.
+    let mut r = registry();
+    let req = pb::ConfigRequest {
+        version: PROTOCOL_VERSION,
+        channels: vec![
+            pb::ChannelConfig {
+                law: Some(pid_law(1e6)),
+                output: None,
+            },
+            pb::ChannelConfig {
+                law: Some(pid_law(1e6)),
+                output: None,
+            },
+        ],
+        ..Default::default()
+    };
+    let rep = r.configure("aero-1", &req);
+    assert!(rep.accepted, "{}", rep.reason);
+    let cfg = rep.config.unwrap();
+    assert_eq!(cfg.channels[0].output.unwrap().max, Some(24.0));
+    assert_eq!(cfg.channels[0].output.unwrap().dead_zone, 10.0);
+    // A huge gain on a big error: the command saturates at the envelope, never beyond.
+    for k in 0..20u64 {
+        let c = reply(r.handle_sample(
+            "aero-1",
+            &sample("aero-1", 7, k, k as f64 * 0.01, &[-100.0, 100.0]),
+        ));
+        assert!(c.v.iter().all(|v| v.abs() <= 24.0), "{:?}", c.v);
+    }
+    // An output map that leaves out its limits gets the envelope's.
+    let req = pb::ConfigRequest {
+        version: PROTOCOL_VERSION,
+        channels: vec![
+            pb::ChannelConfig {
+                law: Some(pid_law(1.0)),
+                output: Some(pb::OutputMap::default()),
+            },
+            pb::ChannelConfig {
+                law: Some(pid_law(1.0)),
+                output: Some(pb::OutputMap::default()),
+            },
+        ],
+        ..Default::default()
+    };
+    let cfg = r.configure("aero-1", &req).config.unwrap();
+    assert_eq!(cfg.channels[1].output.unwrap().min, Some(-24.0));
+}
+
+#[test]
+fn explicit_widening_through_a_config_change_is_refused_and_changes_nothing() {
+    let mut r = registry();
+    let before = r.config_of("aero-1").unwrap();
+    let req = pb::ConfigRequest {
+        version: PROTOCOL_VERSION,
+        updates: vec![pb::ChannelUpdate {
+            channel: 1,
+            max: Some(30.0),
+            kp: Some(3.0),
+            ..Default::default()
+        }],
+        ..Default::default()
+    };
+    let rep = r.configure("aero-1", &req);
+    assert!(!rep.accepted);
+    assert!(rep.reason.contains("updates[0].max 30"), "{}", rep.reason);
+    assert_eq!(r.config_of("aero-1").unwrap(), before);
+    assert_eq!(r.service_status(0.0).requests_refused, 1);
+}
+
+#[test]
+fn one_gain_changes_without_resending_the_rest() {
+    let mut r = registry();
+    let before = r.config_of("aero-1").unwrap();
+    let req = pb::ConfigRequest {
+        version: PROTOCOL_VERSION,
+        updates: vec![pb::ChannelUpdate {
+            channel: 0,
+            kp: Some(5.0),
+            ..Default::default()
+        }],
+        ..Default::default()
+    };
+    let rep = r.configure("aero-1", &req);
+    assert!(rep.accepted, "{}", rep.reason);
+    let after = rep.config.unwrap();
+    let law = |c: &pb::DeviceConfig| match c.channels[0].law.unwrap() {
+        pb::channel_config::Law::Intelligent(i) => i,
+        other => panic!("{other:?}"),
+    };
+    assert_eq!(law(&after).kp, 5.0);
+    assert_eq!(law(&after).alpha, law(&before).alpha);
+    assert_eq!(after.channels[0].output, before.channels[0].output);
+    assert_eq!(after.channels[1], before.channels[1]);
+    assert_eq!(after.reference, before.reference);
+    // A parameter the law does not have is refused by name; so is a channel out of range.
+    for (u, needle) in [
+        (
+            pb::ChannelUpdate {
+                channel: 1,
+                alpha: Some(2.0),
+                ..Default::default()
+            },
+            "no alpha",
+        ),
+        (
+            pb::ChannelUpdate {
+                channel: 2,
+                kp: Some(1.0),
+                ..Default::default()
+            },
+            "2 channels",
+        ),
+        (
+            pb::ChannelUpdate {
+                channel: 0,
+                kp: Some(f64::NAN),
+                ..Default::default()
+            },
+            "updates[0]",
+        ),
+    ] {
+        let rep = r.configure(
+            "aero-1",
+            &pb::ConfigRequest {
+                version: PROTOCOL_VERSION,
+                updates: vec![u],
+                ..Default::default()
+            },
+        );
+        assert!(
+            !rep.accepted && rep.reason.contains(needle),
+            "{needle}: {}",
+            rep.reason
+        );
+    }
+    // A new law through an update keeps the output map.
+    let rep = r.configure(
+        "aero-1",
+        &pb::ConfigRequest {
+            version: PROTOCOL_VERSION,
+            updates: vec![pb::ChannelUpdate {
+                channel: 0,
+                law: Some(pb::channel_update::Law::Pid(pb::Pid {
+                    kp: 1.0,
+                    ..Default::default()
+                })),
+                ki: Some(0.5),
+                ..Default::default()
+            }],
+            ..Default::default()
+        },
+    );
+    assert!(rep.accepted, "{}", rep.reason);
+    let cfg = rep.config.unwrap();
+    assert_eq!(cfg.channels[0].output, before.channels[0].output);
+    assert!(matches!(
+        cfg.channels[0].law,
+        Some(pb::channel_config::Law::Pid(pb::Pid { ki, .. })) if ki == 0.5
+    ));
+}
+
+fn envelope(limits: &[(Option<f64>, Option<f64>, Option<f64>)]) -> pb::EnvelopeRequest {
+    pb::EnvelopeRequest {
+        version: PROTOCOL_VERSION,
+        envelope: Some(pb::Envelope {
+            channels: limits
+                .iter()
+                .map(|&(min, max, rate_limit)| pb::ChannelLimits {
+                    min,
+                    max,
+                    rate_limit,
+                })
+                .collect(),
+        }),
+        reason: "test".into(),
+    }
+}
+
+#[test]
+fn the_envelope_narrows_freely_widens_only_if_the_file_allows() {
+    let mut r = registry();
+    let narrow = envelope(&[
+        (Some(-12.0), Some(12.0), None),
+        (Some(-6.0), Some(6.0), None),
+    ]);
+    let rep = r.change_envelope("aero-1", &narrow);
+    assert!(rep.accepted, "{}", rep.reason);
+    let cfg = rep.config.unwrap();
+    assert_eq!(
+        cfg.channels[0].output.unwrap().max,
+        Some(12.0),
+        "map narrowed to fit"
+    );
+    assert_eq!(r.device_status("aero-1").unwrap().envelope_changes, 1);
+    let c = run(&mut r, 0, 20);
+    assert!(c.v[0].abs() <= 12.0 && c.v[1].abs() <= 6.0, "{:?}", c.v);
+    let wide = envelope(&[
+        (Some(-24.0), Some(24.0), None),
+        (Some(-24.0), Some(24.0), None),
+    ]);
+    let rep = r.change_envelope("aero-1", &wide);
+    assert!(
+        !rep.accepted && rep.reason.contains("allow_remote_widening"),
+        "{}",
+        rep.reason
+    );
+    // Nor can a config change step past the narrowed envelope.
+    let rep = r.configure(
+        "aero-1",
+        &pb::ConfigRequest {
+            version: PROTOCOL_VERSION,
+            updates: vec![pb::ChannelUpdate {
+                channel: 0,
+                max: Some(20.0),
+                ..Default::default()
+            }],
+            ..Default::default()
+        },
+    );
+    assert!(!rep.accepted);
+    // Malformed envelopes are refused.
+    for bad in [
+        envelope(&[(Some(1.0), Some(-1.0), None), (None, None, None)]),
+        envelope(&[(None, None, Some(-3.0)), (None, None, None)]),
+        envelope(&[(None, None, None)]),
+    ] {
+        assert!(!r.change_envelope("aero-1", &bad).accepted);
+    }
+    // With the file's permission, widening works.
+    let mut open = registry_with(&CONFIG.replace(
+        "max_devices = 4",
+        "max_devices = 4\nallow_remote_widening = true",
+    ));
+    let wider = envelope(&[
+        (Some(-30.0), Some(30.0), None),
+        (Some(-24.0), Some(24.0), None),
+    ]);
+    assert!(open.change_envelope("aero-1", &wider).accepted);
+}
+
+#[test]
+fn a_one_sided_rate_limited_envelope_holds_through_any_gain() {
+    let mut r = registry();
+    let rep = r.configure(
+        "heater",
+        &pb::ConfigRequest {
+            version: PROTOCOL_VERSION,
+            updates: vec![pb::ChannelUpdate {
+                channel: 0,
+                kp: Some(1e9),
+                ..Default::default()
+            }],
+            ..Default::default()
+        },
+    );
+    assert!(rep.accepted, "{}", rep.reason);
+    let mut prev: Option<f64> = None;
+    for k in 0..200u64 {
+        // The temperature swings wildly around the 40 degree setpoint.
+        let y = if k % 7 < 3 { 100.0 } else { -50.0 };
+        let c = reply(r.handle_sample("heater", &sample("heater", 1, k, k as f64 * 0.01, &[y])));
+        let v = c.v[0];
+        assert!((0.0..=24.0).contains(&v), "seq {k}: {v}");
+        if let Some(p) = prev {
+            assert!((v - p).abs() <= 100.0 * 0.01 + 1e-9, "seq {k}: {p} -> {v}");
+        }
+        prev = Some(v);
+    }
+}
+
+#[test]
+fn a_bad_sample_with_a_new_run_id_does_not_restart_the_device() {
+    let mut r = registry();
+    assert_eq!(mode(&run(&mut r, 0, 10)), pb::Mode::Control);
+    let mut nan = sample("aero-1", 99, 10, 0.1, &[f64::NAN, 0.0]);
+    assert_eq!(
+        mode(&reply(r.handle_sample("aero-1", &nan))),
+        pb::Mode::Rejected
+    );
+    nan.device_id = "someone-else".into();
+    assert_eq!(
+        mode(&reply(r.handle_sample("aero-1", &nan))),
+        pb::Mode::Rejected
+    );
+    // The real plant carries on in control: no warm-up.
+    assert_eq!(mode(&run(&mut r, 10, 1)), pb::Mode::Control);
+    assert_eq!(r.device_status("aero-1").unwrap().restarts, 1);
+}
+
+#[test]
+fn no_sequence_number_can_lock_a_device() {
+    let mut r = registry();
+    run(&mut r, 0, 10);
+    let wild = sample("aero-1", 7, u64::MAX, 0.2, &[0.0, 0.0]);
+    let c = reply(r.handle_sample("aero-1", &wild));
+    assert_eq!(mode(&c), pb::Mode::Rejected);
+    assert!(c.error.contains("jumps"), "{}", c.error);
+    assert_eq!(mode(&run(&mut r, 10, 1)), pb::Mode::Control);
+    // A jump within the bound is an outage: counted as lost, answered.
+    let far = 10 + MAX_SEQ_JUMP;
+    let c = reply(r.handle_sample("aero-1", &sample("aero-1", 7, far, 100.0, &[0.0, 0.0])));
+    assert_eq!(mode(&c), pb::Mode::Control);
+    assert_eq!(r.device_status("aero-1").unwrap().lost, MAX_SEQ_JUMP - 1);
+    // A new run may start anywhere, u64::MAX included, and the arithmetic does not wrap:
+    // the next run starts again from 1.
+    let top = reply(r.handle_sample("aero-1", &sample("aero-1", 8, u64::MAX, 0.0, &[0.0, 0.0])));
+    assert_eq!(mode(&top), pb::Mode::WarmingUp);
+    let again = reply(r.handle_sample("aero-1", &sample("aero-1", 9, 1, 0.0, &[0.0, 0.0])));
+    assert_eq!(mode(&again), pb::Mode::WarmingUp);
+    assert_eq!(r.device_status("aero-1").unwrap().lost, MAX_SEQ_JUMP - 1);
+}
+
+#[test]
+fn a_stray_run_cannot_lock_the_real_plant_out() {
+    let mut r = registry();
+    run(&mut r, 0, 100);
+    // One valid sample of another run restarts the device (it cannot be told from a
+    // restart). The real plant's run is then retired: its samples are late ones at first,
+    // and after the reorder window the real plant is taken back.
+    reply(r.handle_sample("aero-1", &sample("aero-1", 666, 5, 0.0, &[0.0, 0.0])));
+    let mut modes = Vec::new();
+    for k in 100..300u64 {
+        let c = reply(r.handle_sample(
+            "aero-1",
+            &sample("aero-1", 7, k, k as f64 * 0.01, &[0.0, 0.0]),
+        ));
+        modes.push(mode(&c));
+    }
+    let stale = modes.iter().filter(|m| **m == pb::Mode::Stale).count() as u64;
+    assert!(
+        stale < controller_service::registry::REORDER_WINDOW,
+        "{stale}"
+    );
+    assert_eq!(modes.last(), Some(&pb::Mode::Control));
+}
+
+#[test]
+fn a_plant_without_a_run_id_recovers_from_its_restart() {
+    let mut r = registry();
+    for k in 1..=300u64 {
+        reply(r.handle_sample(
+            "aero-1",
+            &sample("aero-1", 0, k, k as f64 * 0.01, &[0.0, 0.0]),
+        ));
+    }
+    // A late sample is still stale...
+    let late = reply(r.handle_sample("aero-1", &sample("aero-1", 0, 290, 2.9, &[0.0, 0.0])));
+    assert_eq!(mode(&late), pb::Mode::Stale);
+    // ...but the plant starting again at seq 1, time 0.01, is a new run.
+    let c = reply(r.handle_sample("aero-1", &sample("aero-1", 0, 1, 0.01, &[0.0, 0.0])));
+    assert_eq!(mode(&c), pb::Mode::WarmingUp);
+    for k in 2..20u64 {
+        let c = reply(r.handle_sample(
+            "aero-1",
+            &sample("aero-1", 0, k, k as f64 * 0.01, &[0.0, 0.0]),
+        ));
+        assert_ne!(mode(&c), pb::Mode::Stale);
+        assert_ne!(mode(&c), pb::Mode::Rejected, "{}", c.error);
+    }
+    // Even if its first samples after the restart were lost.
+    let c = reply(r.handle_sample("aero-1", &sample("aero-1", 0, 1, 0.01, &[0.0, 0.0])));
+    assert_eq!(mode(&c), pb::Mode::WarmingUp);
+}
+
+#[test]
+fn echoed_strings_are_capped_and_unknown_ids_bounded() {
+    let mut r = registry();
+    let huge = "x".repeat(1 << 20);
+    let c = reply(r.handle_sample("aero-1", &sample(&huge, 7, 0, 0.0, &[0.0, 0.0])));
+    assert!(c.error.len() < 200, "{} bytes", c.error.len());
+    assert!(r.device_status("aero-1").unwrap().last_error.len() < 200);
+    for k in 0..10_000 {
+        let id = format!("ghost-{k}");
+        assert_eq!(
+            r.handle_sample(&id, &sample(&id, 1, 0, 0.0, &[0.0])),
+            Outcome::Unknown
+        );
+    }
+    let st = r.service_status(0.0);
+    assert_eq!(st.unknown_samples, 10_000);
+    assert_eq!(st.unknown_devices.len(), 64);
+    assert_eq!(st.devices.len(), 2);
+    // Templates provision up to max_devices (4, two declared), then refuse and count.
+    for k in 0..10 {
+        let id = format!("sim-{k}");
+        let o = r.handle_sample(&id, &sample(&id, 1, 0, 0.0, &[0.0]));
+        assert_eq!(matches!(o, Outcome::Reply(_)), k < 2, "{id}");
+    }
+    let st = r.service_status(0.0);
+    assert_eq!((st.devices.len(), st.device_table_full), (4, 8));
+}
+
+/// One operation of the property test.
+#[derive(Debug, Clone)]
+enum Op {
+    Sample {
+        dev: usize,
+        run: u64,
+        seq: u64,
+        dt: f64,
+        y: Vec<f64>,
+    },
+    Update {
+        dev: usize,
+        channel: u32,
+        kp: Option<f64>,
+        alpha: Option<f64>,
+        min: Option<f64>,
+        max: Option<f64>,
+        rate: Option<f64>,
+    },
+    Envelope {
+        dev: usize,
+        lo: f64,
+        hi: f64,
+    },
+    Reference {
+        dev: usize,
+        value: f64,
+        channels: usize,
+    },
+}
+
+fn value() -> impl Strategy<Value = f64> {
+    prop_oneof![
+        8 => -100.0..100.0f64,
+        1 => Just(f64::NAN),
+        1 => Just(f64::INFINITY),
+        1 => Just(1e300),
+        1 => Just(-1e300),
+    ]
+}
+
+fn op() -> impl Strategy<Value = Op> {
+    let ids = 0..4usize;
+    prop_oneof![
+        8 => (ids.clone(), prop_oneof![Just(1u64), Just(2), any::<u64>()],
+              prop_oneof![4 => 0..1000u64, 1 => any::<u64>()], prop_oneof![Just(0.01), -1.0..1.0f64, Just(f64::NAN)],
+              proptest::collection::vec(value(), 0..4))
+            .prop_map(|(dev, run, seq, dt, y)| Op::Sample { dev, run, seq, dt, y }),
+        2 => (ids.clone(), 0..3u32, proptest::option::of(value()), proptest::option::of(value()),
+              proptest::option::of(value()), proptest::option::of(value()), proptest::option::of(value()))
+            .prop_map(|(dev, channel, kp, alpha, min, max, rate)| Op::Update { dev, channel, kp, alpha, min, max, rate }),
+        1 => (ids.clone(), value(), value()).prop_map(|(dev, lo, hi)| Op::Envelope { dev, lo, hi }),
+        1 => (ids, value(), 0..3usize).prop_map(|(dev, value, channels)| Op::Reference { dev, value, channels }),
+    ]
+}
+
+const IDS: [&str; 4] = ["aero-1", "heater", "sim-a", "ghost"];
+
+fn limits_of(r: &Registry, id: &str) -> Vec<(f64, f64)> {
+    r.device_status(id)
+        .map(|s| {
+            s.envelope
+                .unwrap()
+                .channels
+                .iter()
+                .map(|l| {
+                    (
+                        l.min.unwrap_or(f64::NEG_INFINITY),
+                        l.max.unwrap_or(f64::INFINITY),
+                    )
+                })
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(1024))]
+    /// Random sequences of samples, configuration changes, envelope changes and reference
+    /// updates, valid and not: no panic; every command carries finite values inside the
+    /// envelope in force when it was computed, and never outside the file's envelope
+    /// (remote widening is off); state stays bounded.
+    #[test]
+    fn the_envelope_holds_and_state_stays_bounded(ops in proptest::collection::vec(op(), 1..200)) {
+        let mut r = registry();
+        let file: Vec<Vec<(f64, f64)>> = IDS.iter().map(|id| limits_of(&r, id)).collect();
+        let mut t = [0.0f64; 4];
+        for op in ops {
+            match op {
+                Op::Sample { dev, run, seq, dt, y } => {
+                    t[dev] += dt;
+                    let id = IDS[dev];
+                    let s = sample(id, run, seq, t[dev], &y);
+                    let env = limits_of(&r, id);
+                    if let Outcome::Reply(c) = r.handle_sample(id, &s) {
+                        prop_assert_eq!(c.seq, seq);
+                        let env = if env.is_empty() { limits_of(&r, id) } else { env };
+                        for (i, v) in c.v.iter().enumerate() {
+                            prop_assert!(v.is_finite(), "{}: {:?}", id, c.v);
+                            prop_assert!(env[i].0 <= *v && *v <= env[i].1, "{}: {} outside {:?}", id, v, env[i]);
+                            if let Some(f) = file[dev].get(i) {
+                                prop_assert!(f.0 <= *v && *v <= f.1, "{}: {} outside the file's {:?}", id, v, f);
+                            }
+                        }
+                        prop_assert!(c.error.len() < 300);
+                    }
+                }
+                Op::Update { dev, channel, kp, alpha, min, max, rate } => {
+                    let req = pb::ConfigRequest {
+                        version: PROTOCOL_VERSION,
+                        updates: vec![pb::ChannelUpdate { channel, kp, alpha, min, max, rate_limit: rate, ..Default::default() }],
+                        ..Default::default()
+                    };
+                    let before = r.config_of(IDS[dev]);
+                    let rep = r.configure(IDS[dev], &req);
+                    if !rep.accepted {
+                        prop_assert_eq!(r.config_of(IDS[dev]), before, "a refused request changed nothing");
+                    }
+                }
+                Op::Envelope { dev, lo, hi } => {
+                    let n = limits_of(&r, IDS[dev]).len();
+                    let req = envelope(&vec![(Some(lo), Some(hi), None); n]);
+                    let before = limits_of(&r, IDS[dev]);
+                    let rep = r.change_envelope(IDS[dev], &req);
+                    let after = limits_of(&r, IDS[dev]);
+                    if rep.accepted {
+                        for (b, a) in before.iter().zip(&after) {
+                            prop_assert!(a.0 >= b.0 && a.1 <= b.1, "widened {:?} -> {:?}", b, a);
+                        }
+                    } else {
+                        prop_assert_eq!(before, after);
+                    }
+                }
+                Op::Reference { dev, value, channels } => {
+                    let pieces = vec![vec![mfc::trajectory::Piece::Constant { value }]; channels];
+                    let u = pb::ReferenceUpdate {
+                        version: PROTOCOL_VERSION,
+                        reference: Some(protocol::convert::reference_to_pb(&pieces, 0.0)),
+                    };
+                    let _ = r.set_reference(IDS[dev], &u);
+                }
+            }
+        }
+        let st = r.service_status(0.0);
+        prop_assert!(st.devices.len() <= 4);
+        prop_assert!(st.unknown_devices.len() <= 64);
+        for d in &st.devices {
+            prop_assert!(d.last_error.len() < 300, "{}", d.last_error.len());
+        }
+    }
+}
