@@ -64,6 +64,8 @@ where
 
 /// Run the service described by `cli` until SIGINT or SIGTERM.
 pub async fn run(cli: Cli) -> Result<()> {
+    // First: a SIGTERM while the session opens must end the service cleanly, not be lost.
+    let shutdown = transport::shutdown_signal();
     let mut config = ServiceConfig::load(&cli.config)?;
     if let Some(id) = cli.controller_id {
         config.controller_id = id;
@@ -71,7 +73,7 @@ pub async fn run(cli: Cli) -> Result<()> {
     }
     let registry = Registry::new(config).context("building the devices")?;
     let session = cli.zenoh.open().await?;
-    service::serve(session, registry, transport::shutdown_signal()).await?;
+    service::serve(session, registry, shutdown).await?;
     Ok(())
 }
 

@@ -2,12 +2,15 @@
 //!
 //! ```toml
 //! controller_id = "controller-1"      # default "controller-1"
+//! max_devices = 1024                   # declared + provisioned, default 1024
+//! allow_remote_widening = false        # may an EnvelopeRequest widen? default false
 //!
 //! [[devices]]                          # declared devices
 //! id = "aero-1"
 //! [[devices.channels]]
 //! law = { law = "intelligent", params = { kind = "ip", alpha = 0.001, kp = 0.5 } }
 //! output = { dead_zone = 10.0, min = -24.0, max = 24.0 }
+//! envelope = { min = -24.0, max = 24.0, rate_limit = 2400.0 }  # default: output's limits
 //! reference = [{ kind = "constant", value = 0.0 }]
 //!
 //! [[templates]]                        # provision unknown devices whose id matches

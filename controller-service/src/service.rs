@@ -441,7 +441,7 @@ pub async fn serve(
                 if !registry.serves(&dev) {
                     // An explicit answer, as an error: with several services on one
                     // network, the client takes the good reply of the one that serves it.
-                    registry.note_request_refused();
+                    // Not counted as refused: it is the normal answer of every other service.
                     let _ = q
                         .reply_err(format!("controller {id} does not serve device \"{dev}\""))
                         .await;
@@ -473,7 +473,7 @@ pub async fn serve(
                 if !registry.serves(&dev) {
                     // An explicit answer, as an error: with several services on one
                     // network, the client takes the good reply of the one that serves it.
-                    registry.note_request_refused();
+                    // Not counted as refused: it is the normal answer of every other service.
                     let _ = q
                         .reply_err(format!("controller {id} does not serve device \"{dev}\""))
                         .await;
@@ -506,7 +506,7 @@ pub async fn serve(
                 if !registry.serves(&dev) {
                     // An explicit answer, as an error: with several services on one
                     // network, the client takes the good reply of the one that serves it.
-                    registry.note_request_refused();
+                    // Not counted as refused: it is the normal answer of every other service.
                     let _ = q
                         .reply_err(format!("controller {id} does not serve device \"{dev}\""))
                         .await;

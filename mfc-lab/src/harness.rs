@@ -178,7 +178,7 @@ pub async fn run_plant(
 
 /// A run id that differs between runs and between plants of one run.
 pub fn run_id(salt: u64) -> u64 {
-    plant_agent::cli::run_id() ^ salt.wrapping_mul(0x9E37_79B9_7F4A_7C15)
+    (plant_agent::cli::run_id() ^ salt.wrapping_mul(0x9E37_79B9_7F4A_7C15)).max(1)
 }
 
 /// Start a service for `plants` and run them all concurrently; returns their runs in order.

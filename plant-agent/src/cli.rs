@@ -137,6 +137,9 @@ fn run(args: RunArgs) -> Result<u8> {
         .enable_all()
         .build()?;
     let run = runtime.block_on(async {
+        // Before the session opens, so a stop requested meanwhile is kept (then the plant
+        // gets its safe stop at once).
+        let shutdown = transport::shutdown_signal();
         let session = match args.zenoh.open().await {
             Ok(s) => s,
             Err(e) => {
@@ -146,14 +149,7 @@ fn run(args: RunArgs) -> Result<u8> {
                 return Err(anyhow::Error::from(e));
             }
         };
-        let out = agent::run_loop(
-            &session,
-            plant,
-            &r.loop_config,
-            run_id(),
-            transport::shutdown_signal(),
-        )
-        .await;
+        let out = agent::run_loop(&session, plant, &r.loop_config, run_id(), shutdown).await;
         let _ = session.close().await;
         Ok(out?)
     })?;
@@ -169,9 +165,9 @@ fn run(args: RunArgs) -> Result<u8> {
 }
 
 /// A run id that differs between runs: the service rebuilds a device's state when it
-/// changes (a restarted plant).
+/// changes (a restarted plant). Never 0, which the protocol reserves for "not set".
 pub fn run_id() -> u64 {
-    protocol::unix_ns() ^ u64::from(std::process::id()).rotate_left(32)
+    (protocol::unix_ns() ^ u64::from(std::process::id()).rotate_left(32)).max(1)
 }
 
 fn print_report(r: &AgentReport) {

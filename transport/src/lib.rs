@@ -189,27 +189,41 @@ pub fn free_local_port() -> std::io::Result<u16> {
 /// Resolves on SIGINT or SIGTERM: how every long-running binary of the project is asked to
 /// stop (a terminal's Ctrl-C, systemd's stop). Each then ends cleanly: the service writes
 /// its snapshots, the agent applies its plant's safe stop and writes its record.
-pub async fn shutdown_signal() {
-    let ctrl_c = tokio::signal::ctrl_c();
+///
+/// The handlers are installed when this is called, not when the future is first polled:
+/// call it first thing, so that a signal sent while the process is still starting (opening
+/// its session, declaring) is kept and ends the run cleanly instead of killing the process
+/// or being lost. Must be called inside a tokio runtime.
+pub fn shutdown_signal() -> impl std::future::Future<Output = ()> {
     #[cfg(unix)]
     {
-        let mut term =
-            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-                Ok(s) => s,
-                Err(e) => {
-                    eprintln!("cannot listen for SIGTERM: {e}");
-                    let _ = ctrl_c.await;
-                    return;
+        use tokio::signal::unix::{signal, SignalKind};
+        let int = signal(SignalKind::interrupt());
+        let term = signal(SignalKind::terminate());
+        async move {
+            match (int, term) {
+                (Ok(mut int), Ok(mut term)) => {
+                    tokio::select! {
+                        _ = int.recv() => {},
+                        _ = term.recv() => {},
+                    }
                 }
-            };
-        tokio::select! {
-            _ = ctrl_c => {},
-            _ = term.recv() => {},
+                (int, term) => {
+                    eprintln!(
+                        "cannot listen for signals: {:?} {:?}",
+                        int.err(),
+                        term.err()
+                    );
+                    let _ = tokio::signal::ctrl_c().await;
+                }
+            }
         }
     }
     #[cfg(not(unix))]
     {
-        let _ = ctrl_c.await;
+        async {
+            let _ = tokio::signal::ctrl_c().await;
+        }
     }
 }
 
