@@ -478,6 +478,30 @@ fn refused(reason: String, config: Option<pb::DeviceConfig>) -> pb::ConfigReply 
     }
 }
 
+/// The reply to a request on device `d` (`id`): the configuration in force afterwards,
+/// and for a refusal the reason, also kept as the device's last error and counted.
+fn conclude(
+    d: &mut Device,
+    requests_refused: &mut u64,
+    id: &str,
+    applied: Result<(), String>,
+) -> pb::ConfigReply {
+    match applied {
+        Ok(()) => pb::ConfigReply {
+            version: PROTOCOL_VERSION,
+            accepted: true,
+            reason: String::new(),
+            config: Some(d.config_pb(id)),
+        },
+        Err(reason) => {
+            let reason = capped(reason);
+            *requests_refused += 1;
+            d.last_error.clone_from(&reason);
+            refused(reason, Some(d.config_pb(id)))
+        }
+    }
+}
+
 /// Wire limits to core, checked; `i` names the channel in errors.
 fn limits_from_pb(l: &pb::ChannelLimits, i: usize) -> Result<Limits, String> {
     let out = Limits {
@@ -845,27 +869,14 @@ impl Registry {
             d.mimo.reconfigure(&configs).map_err(|e| e.to_string())?;
             Ok((configs, reference))
         });
-        match planned {
-            Ok((configs, reference)) => {
-                d.configs = configs;
-                if let Some((pieces, start)) = reference {
-                    d.reference = pieces;
-                    d.reference_start = start;
-                }
-                pb::ConfigReply {
-                    version: PROTOCOL_VERSION,
-                    accepted: true,
-                    reason: String::new(),
-                    config: Some(d.config_pb(id)),
-                }
+        let applied = planned.map(|(configs, reference)| {
+            d.configs = configs;
+            if let Some((pieces, start)) = reference {
+                d.reference = pieces;
+                d.reference_start = start;
             }
-            Err(reason) => {
-                let reason = capped(reason);
-                self.requests_refused += 1;
-                d.last_error.clone_from(&reason);
-                refused(reason, Some(d.config_pb(id)))
-            }
-        }
+        });
+        conclude(d, &mut self.requests_refused, id, applied)
     }
 
     /// Replace a device's reference (live steering); the reply says why if refused.
@@ -927,25 +938,12 @@ impl Registry {
             d.mimo.reconfigure(&configs).map_err(|e| e.to_string())?;
             Ok((limits, configs))
         })();
-        match planned {
-            Ok((limits, configs)) => {
-                d.envelope = limits;
-                d.configs = configs;
-                d.envelope_changes += 1;
-                pb::ConfigReply {
-                    version: PROTOCOL_VERSION,
-                    accepted: true,
-                    reason: String::new(),
-                    config: Some(d.config_pb(id)),
-                }
-            }
-            Err(reason) => {
-                let reason = capped(reason);
-                self.requests_refused += 1;
-                d.last_error.clone_from(&reason);
-                refused(reason, Some(d.config_pb(id)))
-            }
-        }
+        let applied = planned.map(|(limits, configs)| {
+            d.envelope = limits;
+            d.configs = configs;
+            d.envelope_changes += 1;
+        });
+        conclude(d, &mut self.requests_refused, id, applied)
     }
 
     /// Status of one device.

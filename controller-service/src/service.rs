@@ -434,19 +434,9 @@ pub async fn serve(
                 }
             },
             Msg::Config(q) => {
-                let Some(dev) = query_device(&q, &mut registry) else {
-                    let _ = q.reply_err("not the key of one device").await;
+                let Some(dev) = served_device(&q, &mut registry, &id).await else {
                     continue;
                 };
-                if !registry.serves(&dev) {
-                    // An explicit answer, as an error: with several services on one
-                    // network, the client takes the good reply of the one that serves it.
-                    // Not counted as refused: it is the normal answer of every other service.
-                    let _ = q
-                        .reply_err(format!("controller {id} does not serve device \"{dev}\""))
-                        .await;
-                    continue;
-                }
                 let reply = match payload(&q) {
                     None => read_config(&registry, &dev),
                     Some(bytes) => match decode::<pb::ConfigRequest>(&bytes) {
@@ -466,19 +456,9 @@ pub async fn serve(
                 let _ = q.reply(keys::config(&dev), encode(&reply)).await;
             }
             Msg::Envelope(q) => {
-                let Some(dev) = query_device(&q, &mut registry) else {
-                    let _ = q.reply_err("not the key of one device").await;
+                let Some(dev) = served_device(&q, &mut registry, &id).await else {
                     continue;
                 };
-                if !registry.serves(&dev) {
-                    // An explicit answer, as an error: with several services on one
-                    // network, the client takes the good reply of the one that serves it.
-                    // Not counted as refused: it is the normal answer of every other service.
-                    let _ = q
-                        .reply_err(format!("controller {id} does not serve device \"{dev}\""))
-                        .await;
-                    continue;
-                }
                 let reply = match payload(&q) {
                     None => read_config(&registry, &dev),
                     Some(bytes) => match decode::<pb::EnvelopeRequest>(&bytes) {
@@ -499,19 +479,9 @@ pub async fn serve(
                 let _ = q.reply(keys::envelope(&dev), encode(&reply)).await;
             }
             Msg::ReferenceQuery(q) => {
-                let Some(dev) = query_device(&q, &mut registry) else {
-                    let _ = q.reply_err("not the key of one device").await;
+                let Some(dev) = served_device(&q, &mut registry, &id).await else {
                     continue;
                 };
-                if !registry.serves(&dev) {
-                    // An explicit answer, as an error: with several services on one
-                    // network, the client takes the good reply of the one that serves it.
-                    // Not counted as refused: it is the normal answer of every other service.
-                    let _ = q
-                        .reply_err(format!("controller {id} does not serve device \"{dev}\""))
-                        .await;
-                    continue;
-                }
                 let reply = match payload(&q) {
                     None => read_config(&registry, &dev),
                     Some(bytes) => match decode::<pb::ReferenceUpdate>(&bytes) {
@@ -605,13 +575,26 @@ fn payload(q: &Query) -> Option<Vec<u8>> {
     q.payload().map(|p| p.to_bytes().into_owned())
 }
 
-/// The one device a query's key names; a wildcard or a bad id is counted and gets `None`.
-fn query_device(q: &Query, registry: &mut Registry) -> Option<String> {
-    let dev = keys::device_of(q.key_expr().as_str()).map(str::to_string);
-    if dev.is_none() {
+/// The device a request's key names, if this service serves it. Otherwise the query gets
+/// an explicit error reply and `None`: a key that names no single device (a wildcard, a
+/// bad id) is counted as refused; a device served elsewhere is not, since with several
+/// services that is every other service's normal answer (the client takes the good reply
+/// of the one that serves it).
+async fn served_device(q: &Query, registry: &mut Registry, controller: &str) -> Option<String> {
+    let Some(dev) = keys::device_of(q.key_expr().as_str()).map(str::to_string) else {
         registry.note_request_refused();
+        let _ = q.reply_err("not the key of one device").await;
+        return None;
+    };
+    if !registry.serves(&dev) {
+        let _ = q
+            .reply_err(format!(
+                "controller {controller} does not serve device \"{dev}\""
+            ))
+            .await;
+        return None;
     }
-    dev
+    Some(dev)
 }
 
 fn read_config(registry: &Registry, dev: &str) -> pb::ConfigReply {

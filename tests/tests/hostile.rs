@@ -147,6 +147,31 @@ struct GoodReport {
     sent: u64,
     answered: HashSet<u64>,
     outside: Vec<f64>,
+    /// When each sample was sent, by seq (index seq - 1).
+    sent_at: Vec<Option<std::time::Instant>>,
+    /// Round trips (µs) by seq, for the report only: timing is not asserted.
+    rtt_us: Vec<(u64, u64)>,
+}
+
+/// Median and 99th percentile of the round trips of seqs in `range`, and how many took
+/// longer than a 10 ms period.
+fn rtt_summary(r: &GoodReport, range: std::ops::Range<u64>) -> (u64, u64, usize) {
+    let mut v: Vec<u64> = r
+        .rtt_us
+        .iter()
+        .filter(|(s, _)| range.contains(s))
+        .map(|(_, t)| *t)
+        .collect();
+    if v.is_empty() {
+        return (0, 0, 0);
+    }
+    v.sort_unstable();
+    let pick = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
+    (
+        pick(0.5),
+        pick(0.99),
+        v.iter().filter(|t| **t > 10_000).count(),
+    )
 }
 
 /// The good device: a first-order lag at 100 Hz on absolute deadlines, applying the last
@@ -170,7 +195,12 @@ async fn good_plant(endpoint: String) -> GoodReport {
                 let useful =
                     c.mode == pb::Mode::Control as i32 || c.mode == pb::Mode::WarmingUp as i32;
                 if useful && c.seq >= 1 && c.seq <= GOOD_SAMPLES {
-                    r.answered.insert(c.seq);
+                    if r.answered.insert(c.seq) {
+                        if let Some(Some(t0)) = r.sent_at.get(c.seq as usize - 1) {
+                            let us = t0.elapsed().as_micros() as u64;
+                            r.rtt_us.push((c.seq, us));
+                        }
+                    }
                     if let Some(v) = c.v.first() {
                         *applied.lock().unwrap() = *v;
                     }
@@ -194,6 +224,11 @@ async fn good_plant(endpoint: String) -> GoodReport {
             applied: vec![v],
             ..sample("good-1", 0x600d, seq, seq as f64 * dt, y)
         };
+        report
+            .lock()
+            .unwrap()
+            .sent_at
+            .push(Some(std::time::Instant::now()));
         publisher.put(encode(&s)).await.unwrap();
         report.lock().unwrap().sent += 1;
     }
@@ -555,6 +590,13 @@ async fn a_hostile_client_cannot_harm_a_plant_or_starve_another() {
     let report = good.await.unwrap();
     rss_max = rss_max.max(rss_kb(pid));
     let answered = report.answered.len() as f64 / report.sent as f64;
+    // The first second runs before any attack: the anchor for the round trips under it.
+    let (q50, q99, qlate) = rtt_summary(&report, 1..90);
+    let (a50, a99, alate) = rtt_summary(&report, 100..GOOD_SAMPLES + 1);
+    eprintln!(
+        "good device round trip: quiet p50 {q50} us p99 {q99} us ({qlate} over 10 ms); \
+         under attack p50 {a50} us p99 {a99} us ({alate} over 10 ms)"
+    );
     eprintln!(
         "good device: {} of {} samples answered ({:.2} %); RSS max {rss_max} kB",
         report.answered.len(),
