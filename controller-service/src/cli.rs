@@ -38,6 +38,8 @@ where
                 .unwrap_or_else(|_| "info,zenoh=warn".into()),
         )
         .with_writer(std::io::stderr)
+        // Colour codes only for a terminal: not into files or the journal.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .try_init();
     let cli = match Cli::try_parse_from(args) {
         Ok(c) => c,

@@ -124,6 +124,18 @@ impl Throttle {
             }
         }
     }
+
+    /// At `now`, the events counted but not logged, if a line is due: so a burst's count
+    /// is told even when nothing of its kind follows.
+    pub fn flush(&mut self, now: Instant, interval: Duration) -> Option<u64> {
+        match self.last {
+            Some(t) if self.suppressed > 0 && now.saturating_duration_since(t) >= interval => {
+                self.last = Some(now);
+                Some(std::mem::take(&mut self.suppressed))
+            }
+            _ => None,
+        }
+    }
 }
 
 /// The kinds of throttled warnings.
@@ -136,6 +148,31 @@ struct Warnings {
     refused: Throttle,
     changed: Throttle,
     envelope: Throttle,
+}
+
+impl Warnings {
+    /// Log how many of each kind were held back, for the kinds whose interval is over.
+    fn flush(&mut self, now: Instant) {
+        for (kind, t) in [
+            ("undecodable requests or heartbeats", &mut self.undecodable),
+            ("samples refused", &mut self.rejected),
+            ("samples from unknown devices", &mut self.unknown),
+            (
+                "samples refused for a full device table",
+                &mut self.table_full,
+            ),
+            ("requests refused", &mut self.refused),
+            ("configuration changes", &mut self.changed),
+            ("envelope changes", &mut self.envelope),
+        ] {
+            if let Some(n) = t.flush(now, LOG_INTERVAL) {
+                tracing::warn!(
+                    count = n,
+                    "{kind} not logged one by one since the last line"
+                );
+            }
+        }
+    }
 }
 
 /// Log through a throttle: `warn_throttled!(throttle, level, fields..., "fmt", args)`.
@@ -402,6 +439,7 @@ pub async fn serve(
                         "messages dropped since the last report (every drop is counted in the service status)");
                 }
                 reported = now;
+                warn.flush(Instant::now());
                 continue;
             }
             () = &mut shutdown => break,
@@ -768,5 +806,25 @@ impl HotStandby {
             return true;
         }
         false
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn throttle_logs_the_first_then_one_line_per_interval_with_a_count() {
+        let t0 = Instant::now();
+        let s = Duration::from_secs(5);
+        let mut t = Throttle::default();
+        assert_eq!(t.hit(t0, s), Some(0), "the first is logged at once");
+        for k in 1..1000u64 {
+            assert_eq!(t.hit(t0 + Duration::from_millis(k), s), None);
+        }
+        assert_eq!(t.flush(t0 + Duration::from_secs(1), s), None, "not due yet");
+        assert_eq!(t.flush(t0 + s, s), Some(999), "the burst's count is told");
+        assert_eq!(t.flush(t0 + 3 * s, s), None, "nothing more to tell");
+        assert_eq!(t.hit(t0 + 3 * s, s), Some(0));
     }
 }

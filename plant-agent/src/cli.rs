@@ -83,6 +83,8 @@ pub fn main() -> std::process::ExitCode {
                 .unwrap_or_else(|_| "info,zenoh=warn".into()),
         )
         .with_writer(std::io::stderr)
+        // Colour codes only for a terminal: not into files or the journal.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .try_init();
     let Command::Run(args) = Cli::parse().command;
     match run(args) {

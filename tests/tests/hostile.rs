@@ -33,6 +33,10 @@ const RSS_BOUND_KB: u64 = 48 * 1024;
 /// where a per-key leak of ~3 kB would add about 7 MB.
 const UNKNOWN_KEYS_GROWTH_KB: u64 = 1024;
 
+/// Most lines the service may log through the whole attack: about ten kinds of warning,
+/// each at most once per 5 s over ~20 s, plus start and stop.
+const LOG_LINES_BOUND: usize = 80;
+
 const GOOD_SAMPLES: u64 = 1500;
 const GOOD_LIMIT: f64 = 10.0;
 const HOSTILE_LIMIT: f64 = 5.0;
@@ -82,7 +86,12 @@ fn rss_kb(pid: u32) -> u64 {
         .unwrap_or(0)
 }
 
-fn spawn_service(config: &std::path::Path, endpoint: &str, connect: Option<&str>) -> Child {
+fn spawn_service(
+    config: &std::path::Path,
+    endpoint: &str,
+    connect: Option<&str>,
+    log: &std::path::Path,
+) -> Child {
     Command::new(env!("CARGO_BIN_EXE_service-under-test"))
         .args([
             "--config",
@@ -93,7 +102,7 @@ fn spawn_service(config: &std::path::Path, endpoint: &str, connect: Option<&str>
         ])
         .args(connect.map(|c| ["--connect", c]).into_iter().flatten())
         .stdout(Stdio::null())
-        .stderr(Stdio::null())
+        .stderr(std::fs::File::create(log).unwrap())
         .spawn()
         .unwrap()
 }
@@ -248,7 +257,8 @@ async fn a_hostile_client_cannot_harm_a_plant_or_starve_another() {
     std::fs::write(&cfg, CONFIG).unwrap();
     let port = transport::free_local_port().unwrap();
     let endpoint = format!("tcp/127.0.0.1:{port}");
-    let mut service = spawn_service(&cfg, &endpoint, None);
+    let log = dir.join("service.log");
+    let mut service = spawn_service(&cfg, &endpoint, None, &log);
     let pid = service.id();
     let h = open(&endpoint).await;
     assert!(
@@ -264,7 +274,12 @@ async fn a_hostile_client_cannot_harm_a_plant_or_starve_another() {
     let cfg2 = dir.join("second.toml");
     std::fs::write(&cfg2, "controller_id = \"c-second\"\n").unwrap();
     let port2 = transport::free_local_port().unwrap();
-    let mut second = spawn_service(&cfg2, &format!("tcp/127.0.0.1:{port2}"), Some(&endpoint));
+    let mut second = spawn_service(
+        &cfg2,
+        &format!("tcp/127.0.0.1:{port2}"),
+        Some(&endpoint),
+        &dir.join("second.log"),
+    );
 
     let good = tokio::spawn(good_plant(endpoint.clone()));
     tokio::time::sleep(Duration::from_secs(1)).await;
@@ -623,4 +638,9 @@ async fn a_hostile_client_cannot_harm_a_plant_or_starve_another() {
         rss_max <= RSS_BOUND_KB,
         "RSS {rss_max} kB over {RSS_BOUND_KB} kB"
     );
+    // Some 30 000 hostile messages: warnings are throttled (the first of each kind, then one
+    // line per kind per 5 s), so the log stays a few dozen lines, not one per message.
+    let lines = std::fs::read_to_string(&log).unwrap().lines().count();
+    eprintln!("service log: {lines} lines");
+    assert!(lines <= LOG_LINES_BOUND, "{lines} log lines");
 }
