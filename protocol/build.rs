@@ -2,6 +2,9 @@
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!("cargo:rerun-if-changed=proto");
     let fds = protox::compile(["mfc/v1/mfc.proto"], ["proto"])?;
-    prost_build::Config::new().compile_fds(fds)?;
+    // Serialize on every message, enum and oneof: operator tools print them as JSON.
+    prost_build::Config::new()
+        .type_attribute(".", "#[derive(serde::Serialize)]")
+        .compile_fds(fds)?;
     Ok(())
 }

@@ -1,0 +1,337 @@
+//! The command line. Every command is one or two queries through whatever session the
+//! Zenoh flags describe (in a secured deployment: the operator's client config for the
+//! router), printed as text, or as JSON with `--json`.
+//!
+//! ```text
+//! mfcctl --connect tcp/10.0.0.1:7447 services
+//! mfcctl devices
+//! mfcctl status aero-1
+//! mfcctl config aero-1
+//! mfcctl set aero-1 --channel 1 kp=450 alpha=5
+//! mfcctl reference aero-1 --constant 0,0.2
+//! mfcctl reference aero-1 --file steps.toml          # pieces start now on the plant's clock
+//! mfcctl envelope aero-1 --channel 1 --min -12 --max 12 --reason "commissioning"
+//! ```
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+use clap::{Parser, Subcommand};
+use protocol::pb;
+use serde::Serialize;
+
+use crate::{ops, render};
+
+/// Operate model-free control services: status, configuration, gains, references.
+#[derive(Debug, Parser)]
+#[command(name = "mfcctl", version)]
+pub struct Cli {
+    #[command(flatten)]
+    pub zenoh: transport::ZenohArgs,
+    /// Print JSON (the protobuf messages, field names as in `mfc.proto`) instead of text.
+    #[arg(long, global = true)]
+    pub json: bool,
+    /// How long to wait for answers (ms).
+    #[arg(long, default_value_t = 2000, global = true)]
+    pub timeout_ms: u64,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// What to do.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Every controller that answers: role, term, devices, drop counters.
+    Services,
+    /// Every device served, with its controller and whether its plant is up.
+    Devices,
+    /// One device's counters, round trips, F estimates and envelope.
+    Status {
+        /// Device id.
+        device: String,
+    },
+    /// One device's laws, output maps, envelope and reference.
+    Config {
+        /// Device id.
+        device: String,
+    },
+    /// Change single parameters of one channel (a partial change: nothing else moves).
+    /// Fields: kp ki kd alpha derivative_filter b0 wc wo setpoint_weight dead_zone min max
+    /// rate_limit. Output limits must stay inside the envelope.
+    Set {
+        /// Device id.
+        device: String,
+        /// Channel index (0-based).
+        #[arg(long)]
+        channel: u32,
+        /// FIELD=VALUE pairs.
+        #[arg(required = true, value_name = "FIELD=VALUE")]
+        fields: Vec<String>,
+    },
+    /// Steer the reference: a constant per channel, or pieces from a TOML file
+    /// (`channels = [[{ kind = "smooth_step", start = 1.0, duration = 2.0, height = 0.1 }], ...]`).
+    Reference {
+        /// Device id.
+        device: String,
+        /// One constant per channel, comma-separated.
+        #[arg(
+            long,
+            value_delimiter = ',',
+            allow_hyphen_values = true,
+            conflicts_with = "file"
+        )]
+        constant: Vec<f64>,
+        /// A TOML file of pieces per channel.
+        #[arg(long)]
+        file: Option<PathBuf>,
+        /// Times in the file are plant times (default: relative to the plant's time now).
+        #[arg(long)]
+        absolute: bool,
+    },
+    /// Narrow one channel's envelope (widening only if the service's file allows it).
+    Envelope {
+        /// Device id.
+        device: String,
+        /// Channel index (0-based).
+        #[arg(long)]
+        channel: usize,
+        /// Lowest command.
+        #[arg(long, allow_hyphen_values = true)]
+        min: f64,
+        /// Highest command.
+        #[arg(long, allow_hyphen_values = true)]
+        max: f64,
+        /// Largest change per second (none: keep no rate limit).
+        #[arg(long)]
+        rate: Option<f64>,
+        /// Who asks and why (logged by the service).
+        #[arg(long)]
+        reason: String,
+    },
+}
+
+/// Parse `args`, run, print; the process's exit code: 0 done, 1 refused or failed (the
+/// reason on stderr), 2 bad usage.
+pub fn main_with_args<I, T>(args: I) -> std::process::ExitCode
+where
+    I: IntoIterator<Item = T>,
+    T: Into<std::ffi::OsString> + Clone,
+{
+    let cli = match Cli::try_parse_from(args) {
+        Ok(c) => c,
+        Err(e) => {
+            let _ = e.print();
+            return std::process::ExitCode::from(if e.use_stderr() { 2 } else { 0 });
+        }
+    };
+    let runtime = match tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("mfcctl: {e}");
+            return std::process::ExitCode::FAILURE;
+        }
+    };
+    match runtime.block_on(run(cli)) {
+        Ok(text) => {
+            print!("{text}");
+            std::process::ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("mfcctl: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn out<T: Serialize>(json: bool, value: &T, text: impl FnOnce(&T) -> String) -> Result<String> {
+    if json {
+        Ok(serde_json::to_string_pretty(value)? + "\n")
+    } else {
+        Ok(text(value))
+    }
+}
+
+/// A `FIELD=VALUE` list as a partial change of `channel`.
+pub fn parse_update(channel: u32, fields: &[String]) -> Result<pb::ChannelUpdate> {
+    let mut u = pb::ChannelUpdate {
+        channel,
+        ..Default::default()
+    };
+    for f in fields {
+        let (k, v) = f
+            .split_once('=')
+            .with_context(|| format!("{f:?}: write FIELD=VALUE, e.g. kp=2.5"))?;
+        let v: f64 = v
+            .trim()
+            .parse()
+            .with_context(|| format!("{f:?}: {v:?} is not a number"))?;
+        let slot = match k.trim() {
+            "kp" => &mut u.kp,
+            "ki" => &mut u.ki,
+            "kd" => &mut u.kd,
+            "alpha" => &mut u.alpha,
+            "derivative_filter" => &mut u.derivative_filter,
+            "b0" => &mut u.b0,
+            "wc" => &mut u.wc,
+            "wo" => &mut u.wo,
+            "setpoint_weight" => &mut u.setpoint_weight,
+            "dead_zone" => &mut u.dead_zone,
+            "min" => &mut u.min,
+            "max" => &mut u.max,
+            "rate_limit" => &mut u.rate_limit,
+            other => bail!(
+                "unknown field {other:?}: kp ki kd alpha derivative_filter b0 wc wo \
+                 setpoint_weight dead_zone min max rate_limit"
+            ),
+        };
+        *slot = Some(v);
+    }
+    Ok(u)
+}
+
+/// The reference file's shape.
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ReferenceFile {
+    /// Pieces per channel, summed.
+    channels: Vec<Vec<mfc::trajectory::Piece>>,
+}
+
+/// Run one command; the text (or JSON) to print.
+pub async fn run(cli: Cli) -> Result<String> {
+    let timeout = Duration::from_millis(cli.timeout_ms);
+    let session = cli.zenoh.open().await?;
+    let result = command(&session, &cli.command, cli.json, timeout).await;
+    let _ = session.close().await;
+    result
+}
+
+async fn command(
+    session: &zenoh::Session,
+    command: &Command,
+    json: bool,
+    timeout: Duration,
+) -> Result<String> {
+    Ok(match command {
+        Command::Services => {
+            let list = ops::services(session, timeout).await?;
+            let alive = ops::alive(session, "controller").await?;
+            if list.is_empty() && alive.is_empty() {
+                bail!("no controller answered within {} ms", timeout.as_millis());
+            }
+            out(json, &list, |l| render::services(l, &alive))?
+        }
+        Command::Devices => {
+            let list = ops::services(session, timeout).await?;
+            let plants = ops::alive(session, "plant").await?;
+            out(json, &list, |l| render::devices(l, &plants))?
+        }
+        Command::Status { device } => {
+            let s = ops::device_status(session, device, timeout).await?;
+            out(json, &s, render::status)?
+        }
+        Command::Config { device } => {
+            let c = ops::config(session, device, timeout).await?;
+            out(json, &c, render::config)?
+        }
+        Command::Set {
+            device,
+            channel,
+            fields,
+        } => {
+            let u = parse_update(*channel, fields)?;
+            let c = ops::update(session, device, u, timeout).await?;
+            out(json, &c, render::config)?
+        }
+        Command::Reference {
+            device,
+            constant,
+            file,
+            absolute,
+        } => {
+            let (pieces, start) = match file {
+                Some(path) => {
+                    let text = std::fs::read_to_string(path)
+                        .with_context(|| format!("reading {}", path.display()))?;
+                    let f: ReferenceFile =
+                        toml::from_str(&text).with_context(|| format!("{}", path.display()))?;
+                    let start = if *absolute {
+                        0.0
+                    } else {
+                        ops::device_status(session, device, timeout)
+                            .await?
+                            .plant_time
+                    };
+                    (f.channels, start)
+                }
+                None if !constant.is_empty() => (
+                    constant
+                        .iter()
+                        .map(|&value| vec![mfc::trajectory::Piece::Constant { value }])
+                        .collect(),
+                    0.0,
+                ),
+                None => bail!("give --constant V[,V...] or --file FILE"),
+            };
+            let r = protocol::convert::reference_to_pb(&pieces, start);
+            let c = ops::set_reference(session, device, r, timeout).await?;
+            out(json, &c, render::config)?
+        }
+        Command::Envelope {
+            device,
+            channel,
+            min,
+            max,
+            rate,
+            reason,
+        } => {
+            let now = ops::config(session, device, timeout).await?;
+            let mut env = now.envelope.unwrap_or_default();
+            let n = env.channels.len();
+            let Some(slot) = env.channels.get_mut(*channel) else {
+                bail!("device {device} has {n} channels, not {}", channel + 1);
+            };
+            *slot = pb::ChannelLimits {
+                min: Some(*min),
+                max: Some(*max),
+                rate_limit: *rate,
+            };
+            let c = ops::change_envelope(session, device, env, reason, timeout).await?;
+            out(json, &c, render::config)?
+        }
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn field_assignments_become_a_partial_change() {
+        let u = parse_update(1, &["kp=450".into(), "alpha = 5".into()]).unwrap();
+        assert_eq!(
+            (u.channel, u.kp, u.alpha, u.ki),
+            (1, Some(450.0), Some(5.0), None)
+        );
+        for bad in ["kp", "kp=x", "gain=1"] {
+            assert!(parse_update(0, &[bad.into()]).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn the_command_line_parses() {
+        use clap::CommandFactory;
+        Cli::command().debug_assert();
+        let cli =
+            Cli::try_parse_from(["mfcctl", "--json", "reference", "a", "--constant", "-1,0.5"])
+                .unwrap();
+        assert!(cli.json);
+        assert!(
+            matches!(cli.command, Command::Reference { ref constant, .. } if constant == &[-1.0, 0.5])
+        );
+    }
+}

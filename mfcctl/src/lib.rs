@@ -1,0 +1,13 @@
+//! `mfcctl`, the operator's command line: list the controllers and the devices they serve,
+//! read status, counters and configuration, change one gain (a partial change, inside the
+//! envelope), steer the reference, narrow an envelope. It only sends the protocol's
+//! queries, so whatever the session may reach (an operator's credentials on a secured
+//! router) is what it may do.
+//!
+//! * [`ops`]: the queries, decoded, with typed errors;
+//! * [`render`]: text for people (pure);
+//! * [`cli`]: the command line (the binary is a one-line `main`).
+
+pub mod cli;
+pub mod ops;
+pub mod render;

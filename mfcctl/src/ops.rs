@@ -1,0 +1,249 @@
+//! What an operator asks of the controllers, over a Zenoh session: each call is one query
+//! (or a liveliness read) and returns the decoded answer or a typed error that says what
+//! went wrong and where. No printing here: [`crate::render`] does that.
+
+use std::time::Duration;
+
+use protocol::{decode, encode, keys, pb, PROTOCOL_VERSION};
+use zenoh::Session;
+
+/// Why an operation failed.
+#[derive(Debug, thiserror::Error)]
+pub enum OpError {
+    /// Nobody answered the query in time (no service up, or none reachable).
+    #[error("{what}: no answer within {timeout_ms} ms (is a controller up and reachable?)")]
+    NoAnswer {
+        /// What was asked, with its key.
+        what: String,
+        /// The query timeout.
+        timeout_ms: u64,
+    },
+    /// A controller answered with an error (for instance: it does not serve that device).
+    #[error("{what}: {reason}")]
+    Refused {
+        /// What was asked, with its key.
+        what: String,
+        /// The controller's reason.
+        reason: String,
+    },
+    /// An answer that is not the expected message.
+    #[error("{what}: {source}")]
+    Decode {
+        /// What was asked, with its key.
+        what: String,
+        /// The decoder's reason.
+        source: protocol::DecodeError,
+    },
+    /// The query could not be sent.
+    #[error("{what}: {reason}")]
+    Zenoh {
+        /// What was asked, with its key.
+        what: String,
+        /// zenoh's reason.
+        reason: String,
+    },
+    /// A request the operator wrote that cannot be sent as it is.
+    #[error("{0}")]
+    Usage(String),
+}
+
+/// Every reply to a query on `key` (good ones decoded as `M`, errors as text), waiting at
+/// most `timeout`: a wildcard gets one reply per service.
+async fn replies<M: protocol::Versioned>(
+    session: &Session,
+    key: &str,
+    payload: Option<Vec<u8>>,
+    timeout: Duration,
+) -> Result<Vec<Result<M, String>>, OpError> {
+    let what = format!("query {key}");
+    let mut get = session
+        .get(key)
+        .target(zenoh::query::QueryTarget::All)
+        .timeout(timeout);
+    if let Some(p) = payload {
+        get = get.payload(p);
+    }
+    let rx = get.await.map_err(|e| OpError::Zenoh {
+        what: what.clone(),
+        reason: e.to_string(),
+    })?;
+    let mut out = Vec::new();
+    while let Ok(reply) = rx.recv_async().await {
+        let item = match reply.result() {
+            Ok(s) => {
+                Ok(
+                    decode::<M>(&s.payload().to_bytes()).map_err(|source| OpError::Decode {
+                        what: what.clone(),
+                        source,
+                    })?,
+                )
+            }
+            Err(e) => Err(String::from_utf8_lossy(&e.payload().to_bytes()).into_owned()),
+        };
+        out.push(item);
+    }
+    Ok(out)
+}
+
+/// The good reply of the controller that serves the device (others say they do not, with
+/// an error); the first error if no controller answered well.
+async fn one<M: protocol::Versioned>(
+    session: &Session,
+    key: &str,
+    payload: Option<Vec<u8>>,
+    timeout: Duration,
+) -> Result<M, OpError> {
+    let all = replies::<M>(session, key, payload, timeout).await?;
+    let mut first_err = None;
+    for r in all {
+        match r {
+            Ok(m) => return Ok(m),
+            Err(e) => {
+                first_err.get_or_insert(e);
+            }
+        }
+    }
+    Err(match first_err {
+        Some(reason) => OpError::Refused {
+            what: format!("query {key}"),
+            reason,
+        },
+        None => OpError::NoAnswer {
+            what: format!("query {key}"),
+            timeout_ms: timeout.as_millis() as u64,
+        },
+    })
+}
+
+/// The status of every controller that answers, by controller id.
+pub async fn services(
+    session: &Session,
+    timeout: Duration,
+) -> Result<Vec<pb::ServiceStatus>, OpError> {
+    let key = format!("{}/service/*/status", keys::PREFIX);
+    let mut out: Vec<pb::ServiceStatus> = replies(session, &key, None, timeout)
+        .await?
+        .into_iter()
+        .filter_map(Result::ok)
+        .collect();
+    out.sort_by(|a, b| a.controller_id.cmp(&b.controller_id));
+    Ok(out)
+}
+
+/// Ids of the plants and of the controllers whose liveliness tokens are up.
+pub async fn alive(session: &Session, what: &str) -> Result<Vec<String>, OpError> {
+    let key = format!("{}/alive/{what}/*", keys::PREFIX);
+    let rx = session
+        .liveliness()
+        .get(&key)
+        .await
+        .map_err(|e| OpError::Zenoh {
+            what: format!("liveliness {key}"),
+            reason: e.to_string(),
+        })?;
+    let mut ids = Vec::new();
+    while let Ok(reply) = rx.recv_async().await {
+        if let Ok(s) = reply.result() {
+            if let Some(id) = s.key_expr().as_str().rsplit('/').next() {
+                ids.push(id.to_string());
+            }
+        }
+    }
+    ids.sort();
+    ids.dedup();
+    Ok(ids)
+}
+
+/// One device's status, from the controller that serves it.
+pub async fn device_status(
+    session: &Session,
+    id: &str,
+    timeout: Duration,
+) -> Result<pb::DeviceStatus, OpError> {
+    check(id)?;
+    one(session, &keys::status(id), None, timeout).await
+}
+
+/// One device's configuration in force (laws, output maps, envelope, reference).
+pub async fn config(
+    session: &Session,
+    id: &str,
+    timeout: Duration,
+) -> Result<pb::DeviceConfig, OpError> {
+    check(id)?;
+    let reply: pb::ConfigReply = one(session, &keys::config(id), None, timeout).await?;
+    accepted(&keys::config(id), reply)
+}
+
+/// A partial change of one channel: only the fields of `update` that are set change.
+pub async fn update(
+    session: &Session,
+    id: &str,
+    update: pb::ChannelUpdate,
+    timeout: Duration,
+) -> Result<pb::DeviceConfig, OpError> {
+    check(id)?;
+    let req = pb::ConfigRequest {
+        version: PROTOCOL_VERSION,
+        updates: vec![update],
+        ..Default::default()
+    };
+    let reply: pb::ConfigReply =
+        one(session, &keys::config(id), Some(encode(&req)), timeout).await?;
+    accepted(&keys::config(id), reply)
+}
+
+/// Replace the device's reference (answered: a refusal comes back with its reason).
+pub async fn set_reference(
+    session: &Session,
+    id: &str,
+    reference: pb::Reference,
+    timeout: Duration,
+) -> Result<pb::DeviceConfig, OpError> {
+    check(id)?;
+    let u = pb::ReferenceUpdate {
+        version: PROTOCOL_VERSION,
+        reference: Some(reference),
+    };
+    let reply: pb::ConfigReply =
+        one(session, &keys::reference(id), Some(encode(&u)), timeout).await?;
+    accepted(&keys::reference(id), reply)
+}
+
+/// Change the device's envelope (narrowing; widening only where the service allows it).
+pub async fn change_envelope(
+    session: &Session,
+    id: &str,
+    envelope: pb::Envelope,
+    reason: &str,
+    timeout: Duration,
+) -> Result<pb::DeviceConfig, OpError> {
+    check(id)?;
+    let req = pb::EnvelopeRequest {
+        version: PROTOCOL_VERSION,
+        envelope: Some(envelope),
+        reason: reason.into(),
+    };
+    let reply: pb::ConfigReply =
+        one(session, &keys::envelope(id), Some(encode(&req)), timeout).await?;
+    accepted(&keys::envelope(id), reply)
+}
+
+fn check(id: &str) -> Result<(), OpError> {
+    keys::check_id(id)
+        .map(|_| ())
+        .map_err(|e| OpError::Usage(e.to_string()))
+}
+
+fn accepted(key: &str, reply: pb::ConfigReply) -> Result<pb::DeviceConfig, OpError> {
+    if !reply.accepted {
+        return Err(OpError::Refused {
+            what: format!("query {key}"),
+            reason: reply.reason,
+        });
+    }
+    reply.config.ok_or_else(|| OpError::Refused {
+        what: format!("query {key}"),
+        reason: "accepted, but no configuration came back".into(),
+    })
+}
