@@ -90,6 +90,39 @@ pub enum End {
     PlantFailed,
 }
 
+/// Whether the plant had a controller, as an operator needs to know it: a plant that never
+/// reached one is a deployment problem (endpoint, TLS, access control), one that lost it
+/// is a network or service problem.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Link {
+    /// No controller ever answered: the plant ran on its fallback all along.
+    Never,
+    /// A controller answered, then stopped, and the run ended on the fallback.
+    Lost,
+    /// A controller answered, and was answering (or holding) at the end.
+    Kept,
+}
+
+/// How the run stood with its controller, from the mode of every period and whether any
+/// controller answered: the link, and for [`Link::Lost`] the plant time at which the
+/// final stretch off remote control began.
+pub fn link_of(modes: &[Mode], times: &[f64], reached: bool) -> (Link, Option<f64>) {
+    if !reached {
+        return (Link::Never, None);
+    }
+    match modes.last() {
+        Some(Mode::Local | Mode::SafeStop) => {
+            let start = modes
+                .iter()
+                .rposition(|m| *m == Mode::Remote)
+                .map_or(0, |k| k + 1);
+            (Link::Lost, times.get(start).copied())
+        }
+        _ => (Link::Kept, None),
+    }
+}
+
 /// What a run of the agent measured, and how it ended: `summary.json`.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct AgentReport {
@@ -109,6 +142,10 @@ pub struct AgentReport {
     pub safe_stop_error: Option<String>,
     /// Whether any controller answered (a command or a warm-up answer) during the run.
     pub controller_reached: bool,
+    /// Never reached, lost (and ended on the fallback), or kept.
+    pub link: Link,
+    /// For a lost link: the plant time (s) from which the plant stayed off remote control.
+    pub lost_at: Option<f64>,
     /// Tracking per channel.
     pub channels: Vec<ChannelMetrics>,
     /// What the supervisor counted: periods, commands, late, missing, stale, fallbacks...
@@ -132,14 +169,17 @@ impl AgentReport {
     /// The process exit status this run deserves: 0 when it ran (or was stopped on
     /// request) with a controller answering and the safe stop applied; 3 when no
     /// controller ever answered (the plant ran on its fallback all along: a deployment
-    /// problem, not a success); 4 when the plant failed or did not confirm its safe stop.
+    /// problem, not a success); 5 when the controller was lost and the run ended on the
+    /// fallback; 4 when the plant failed or did not confirm its safe stop.
     pub fn exit_code(&self) -> u8 {
         if self.end == End::PlantFailed || !self.safe_stop_applied {
             4
-        } else if !self.controller_reached {
-            3
         } else {
-            0
+            match self.link {
+                Link::Never => 3,
+                Link::Lost => 5,
+                Link::Kept => 0,
+            }
         }
     }
 
@@ -161,10 +201,15 @@ impl AgentReport {
                 self.safe_stop_error.as_deref().unwrap_or("unknown")
             )
         };
-        let ctl = if self.controller_reached {
-            String::new()
-        } else {
-            "; no controller ever answered".into()
+        let ctl = match (self.link, self.lost_at) {
+            (Link::Kept, _) => String::new(),
+            (Link::Never, _) => "; NO CONTROLLER EVER ANSWERED (check the endpoint, TLS and \
+                                 access control): the plant ran on its fallback"
+                .into(),
+            (Link::Lost, at) => format!(
+                "; CONTROLLER LOST at t = {:.2} s: the run ended on the fallback",
+                at.unwrap_or(0.0)
+            ),
         };
         format!(
             "{}: {end} after {} periods, {stop}{ctl}",
@@ -416,6 +461,8 @@ async fn periods(
         _ = &mut stop => end = End::Interrupted,
     }
     let start = Instant::now();
+    // "Never connected" is said every 5 s of plant time until a controller answers.
+    let never_every = ((5.0 / h).round() as usize).max(1);
     'run: for k in 0..config.steps {
         if end != End::Completed {
             break;
@@ -467,15 +514,38 @@ async fn periods(
         if let Err(e) = publisher.put(encode(&sample)).await {
             tracing::warn!(device = id, "publishing sample {k}: {e}");
         }
+        let answered_once = {
+            let c = sup.counters();
+            c.commands + c.warming_up > 0
+        };
+        if !answered_once && k > 0 && k % never_every == 0 {
+            tracing::warn!(
+                device = id,
+                "no controller has answered after {:.0} s: check the endpoint, TLS and access \
+                 control (the plant runs on its {:?})",
+                t,
+                sup.mode()
+            );
+        }
         if let Some(v) = begin.write {
             if !matches!(mode_before, Mode::Local | Mode::SafeStop) {
-                tracing::warn!(
-                    device = id,
-                    seq = k,
-                    "no command for {} periods: {:?}",
-                    sup.missing_streak(),
-                    sup.mode()
-                );
+                if answered_once {
+                    tracing::warn!(
+                        device = id,
+                        seq = k,
+                        "controller lost: no command for {} periods, now {:?}",
+                        sup.missing_streak(),
+                        sup.mode()
+                    );
+                } else {
+                    tracing::warn!(
+                        device = id,
+                        seq = k,
+                        "no controller yet: {:?} after {} periods",
+                        sup.mode(),
+                        sup.missing_streak()
+                    );
+                }
             }
             match plant.write(v).await {
                 Ok(a) => sup.applied(&a),
@@ -600,6 +670,8 @@ async fn periods(
     }
     rtts.sort_unstable();
     let counters = sup.counters().clone();
+    let reached = counters.commands + counters.warming_up > 0;
+    let (link, lost_at) = link_of(&recording.modes, &recording.t, reached);
     let report = AgentReport {
         device_id: id.to_string(),
         scenario: config.scenario.clone(),
@@ -608,7 +680,9 @@ async fn periods(
         error,
         safe_stop_applied,
         safe_stop_error,
-        controller_reached: counters.commands + counters.warming_up > 0,
+        controller_reached: reached,
+        link,
+        lost_at,
         channels: acc
             .iter()
             .zip(&config.channels)
@@ -621,4 +695,31 @@ async fn periods(
         limit_hits: plant.limit_hits(),
     };
     AgentRun { report, recording }
+}
+
+#[cfg(test)]
+mod link_tests {
+    use super::*;
+
+    #[test]
+    fn never_lost_and_kept_are_told_apart() {
+        use Mode::*;
+        let t: Vec<f64> = (0..8).map(|k| k as f64 * 0.01).collect();
+        assert_eq!(link_of(&[Local; 8], &t, false), (Link::Never, None));
+        let lost = [
+            Remote, Remote, Remote, Holding, Holding, Local, Local, Local,
+        ];
+        assert_eq!(link_of(&lost, &t, true), (Link::Lost, Some(0.03)));
+        // Lost, then back: kept. Holding at the very end is not a loss either.
+        let back = [
+            Remote, Holding, Local, Local, Remote, Remote, Remote, Holding,
+        ];
+        assert_eq!(link_of(&back, &t, true), (Link::Kept, None));
+        // A warm-up answer counts as reached, even if no command was ever applied.
+        assert_eq!(link_of(&[Local; 8], &t, true), (Link::Lost, Some(0.0)));
+        assert_eq!(
+            link_of(&[Remote, SafeStop], &t, true),
+            (Link::Lost, Some(0.01))
+        );
+    }
 }

@@ -28,8 +28,9 @@ enum Command {
     /// or SIGTERM; then apply the plant's safe stop and write the record.
     ///
     /// Exit status: 0 ran (or was stopped) with a controller answering; 3 no controller
-    /// ever answered (the plant ran on its fallback); 4 the plant failed or did not
-    /// confirm its safe stop; 1 the configuration or the session was refused.
+    /// ever answered (the plant ran on its fallback: check endpoint, TLS, access control);
+    /// 5 the controller was lost and the run ended on the fallback; 4 the plant failed or
+    /// did not confirm its safe stop; 1 the configuration or the session was refused.
     Run(RunArgs),
 }
 

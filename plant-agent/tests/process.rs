@@ -117,6 +117,7 @@ fn sigterm_mid_run_stops_the_plant_and_writes_the_record() {
     assert_eq!(s["end"], "interrupted", "{s}");
     assert_eq!(s["safe_stop_applied"], true, "{s}");
     assert_eq!(s["controller_reached"], false, "{s}");
+    assert_eq!(s["link"], "never", "{s}");
     assert!(s["counters"]["fallbacks"].as_u64().unwrap() >= 1, "{s}");
     let periods = s["counters"]["periods"].as_u64().unwrap();
     assert!(periods >= 100, "{s}");

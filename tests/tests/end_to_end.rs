@@ -365,10 +365,47 @@ async fn no_controller_means_local_fallback() {
         &rec.modes[..8]
     );
     assert!(!report.controller_reached);
+    assert_eq!(report.link, plant_agent::agent::Link::Never);
     assert_eq!(report.exit_code(), 3, "no controller ever answered");
+    assert!(report.headline().contains("NO CONTROLLER EVER ANSWERED"));
     let offline = simulate(&s, &c, false).unwrap().summary;
     for (a, b) in report.channels.iter().zip(&offline.channels) {
         assert!(a.rms < 1.5 * b.rms, "{}: {} vs {}", a.name, a.rms, b.rms);
     }
     service.stop().await.unwrap();
+}
+
+/// A controller that goes away for good: the plant falls back, and the run says it lost
+/// its controller (exit 5), with the plant time it happened, instead of exiting 0.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_lost_controller_is_reported_as_lost() {
+    let _serial = SERIAL.lock().await;
+    let s = shortened("2", 4.0);
+    let c = shipped_controller("ipd").unwrap();
+    let service = ServiceHandle::start(service_config(&s, &c, &["aero-1".into()]), None)
+        .await
+        .unwrap();
+    let plant = tokio::spawn(run_plant(
+        vec![service.endpoint.clone()],
+        PlantSpec::new(&s, &c, "aero-1"),
+        true,
+    ));
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    service.stop().await.unwrap();
+    let report = plant.await.unwrap().unwrap().report;
+    assert!(report.controller_reached && report.counters.commands > 0);
+    assert_eq!(
+        report.link,
+        plant_agent::agent::Link::Lost,
+        "{}",
+        report.headline()
+    );
+    assert_eq!(report.exit_code(), 5);
+    let at = report.lost_at.unwrap();
+    assert!(at > 0.0 && at < 4.0, "lost at {at}");
+    assert!(
+        report.headline().contains("CONTROLLER LOST"),
+        "{}",
+        report.headline()
+    );
 }
