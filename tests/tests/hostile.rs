@@ -86,12 +86,29 @@ fn rss_kb(pid: u32) -> u64 {
         .unwrap_or(0)
 }
 
+/// A child process killed when the test ends, passed or panicked: a failed assertion must
+/// not leave a service running on the machine.
+struct Reaped(Child);
+
+impl Reaped {
+    fn id(&self) -> u32 {
+        self.0.id()
+    }
+}
+
+impl Drop for Reaped {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
 fn spawn_service(
     config: &std::path::Path,
     endpoint: &str,
     connect: Option<&str>,
     log: &std::path::Path,
-) -> Child {
+) -> Reaped {
     Command::new(env!("CARGO_BIN_EXE_service-under-test"))
         .args([
             "--config",
@@ -104,6 +121,7 @@ fn spawn_service(
         .stdout(Stdio::null())
         .stderr(std::fs::File::create(log).unwrap())
         .spawn()
+        .map(Reaped)
         .unwrap()
 }
 
@@ -258,7 +276,7 @@ async fn a_hostile_client_cannot_harm_a_plant_or_starve_another() {
     let port = transport::free_local_port().unwrap();
     let endpoint = format!("tcp/127.0.0.1:{port}");
     let log = dir.join("service.log");
-    let mut service = spawn_service(&cfg, &endpoint, None, &log);
+    let service = spawn_service(&cfg, &endpoint, None, &log);
     let pid = service.id();
     let h = open(&endpoint).await;
     assert!(
@@ -274,7 +292,7 @@ async fn a_hostile_client_cannot_harm_a_plant_or_starve_another() {
     let cfg2 = dir.join("second.toml");
     std::fs::write(&cfg2, "controller_id = \"c-second\"\n").unwrap();
     let port2 = transport::free_local_port().unwrap();
-    let mut second = spawn_service(
+    let second = spawn_service(
         &cfg2,
         &format!("tcp/127.0.0.1:{port2}"),
         Some(&endpoint),
@@ -618,10 +636,8 @@ async fn a_hostile_client_cannot_harm_a_plant_or_starve_another() {
         report.sent,
         100.0 * answered
     );
-    let _ = service.kill();
-    let _ = second.kill();
-    let _ = service.wait();
-    let _ = second.wait();
+    drop(service);
+    drop(second);
     assert_eq!(report.sent, GOOD_SAMPLES);
     assert!(answered >= 0.99, "the good device was starved: {answered}");
     assert!(
