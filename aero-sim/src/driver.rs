@@ -19,18 +19,19 @@ fn pair(v: &[f64]) -> [f64; 2] {
 }
 
 /// Serve the driver protocol on `input`/`output` with a simulated AERO until `stop` or the
-/// end of `input`; both end in a safe stop.
+/// end of `input`; both end in a safe stop. Returns the voltages applied at the end (what
+/// a test checks: zero), or `None` if the simulator could not be built (said with `err`).
 pub fn serve(
     params: AeroParams,
     seed: u64,
     input: impl BufRead,
     mut output: impl Write,
-) -> std::io::Result<()> {
+) -> std::io::Result<Option<[f64; 2]>> {
     let mut sim = match AeroSim::new(params, seed) {
         Ok(s) => s,
         Err(e) => {
             writeln!(output, "err {e}")?;
-            return Ok(());
+            return Ok(None);
         }
     };
     writeln!(output, "hello channels={CHANNELS}")?;
@@ -64,7 +65,7 @@ pub fn serve(
                 sim.apply([0.0, 0.0]);
                 writeln!(output, "ok")?;
                 output.flush()?;
-                return Ok(());
+                return Ok(Some(sim.applied()));
             }
             _ => format!("err unknown request {:?}", truncate(&line, 80)),
         };
@@ -73,7 +74,7 @@ pub fn serve(
     }
     // End of input: the agent is gone. Safe stop, as on `stop`.
     sim.apply([0.0, 0.0]);
-    Ok(())
+    Ok(Some(sim.applied()))
 }
 
 /// At most `n` characters of `s`, so an error never echoes a huge line back.
@@ -81,5 +82,42 @@ fn truncate(s: &str, n: usize) -> &str {
     match s.char_indices().nth(n) {
         Some((i, _)) => &s[..i],
         None => s,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The agent writes 20 V and goes away without `stop`: the rig ends at zero volts.
+    #[test]
+    fn end_of_input_leaves_the_rig_at_zero_volts() {
+        let mut out = Vec::new();
+        let end = serve(
+            AeroParams::default(),
+            1,
+            &b"write 20 20\nadvance 0.1\n"[..],
+            &mut out,
+        )
+        .unwrap();
+        let text = String::from_utf8(out).unwrap();
+        assert!(text.contains("\nok 2"), "the write was applied: {text}");
+        assert_eq!(end, Some([0.0, 0.0]));
+    }
+
+    /// Likewise on `stop`, which is answered.
+    #[test]
+    fn stop_leaves_the_rig_at_zero_volts_and_answers() {
+        let mut out = Vec::new();
+        let end = serve(
+            AeroParams::default(),
+            1,
+            &b"write -20 20\nstop\nread\n"[..],
+            &mut out,
+        )
+        .unwrap();
+        let text = String::from_utf8(out).unwrap();
+        assert!(text.trim_end().ends_with("ok"), "{text}");
+        assert_eq!(end, Some([0.0, 0.0]));
     }
 }

@@ -74,7 +74,10 @@ pub async fn run(cli: Cli) -> Result<()> {
         config.check(&cli.config.display().to_string())?;
     }
     let registry = Registry::new(config).context("building the devices")?;
-    let session = cli.zenoh.open().await?;
+    let session = cli
+        .zenoh
+        .open_bounded(protocol::MAX_TRANSPORT_MESSAGE)
+        .await?;
     service::serve(session, registry, shutdown).await?;
     Ok(())
 }

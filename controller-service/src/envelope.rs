@@ -133,14 +133,14 @@ impl Limits {
         }
     }
 
-    /// The last check before a command leaves: `v` clipped into `[min, max]` and, when the
-    /// previous command `prev` of this run was sent `dt` seconds of plant time earlier,
-    /// moved at most `rate_limit * dt` from it. Returns the value and whether it had to
-    /// clip. `v` must be finite (the caller refuses a non-finite command outright).
+    /// The last check before a command leaves: `v` clipped into `[min, max]` and, given
+    /// `prev = (p, dt)`, moved at most `rate_limit * dt` from `p`, the value the actuator
+    /// holds (`dt = 0`: not at all). Returns the value and whether it had to clip. `v` must
+    /// be finite (the caller refuses a non-finite command outright).
     pub fn clamp(&self, v: f64, prev: Option<(f64, f64)>) -> (f64, bool) {
         let mut out = v.clamp(self.min, self.max);
         if let (Some(r), Some((p, dt))) = (self.rate_limit, prev) {
-            if dt.is_finite() && dt > 0.0 {
+            if dt.is_finite() && dt >= 0.0 {
                 // A tolerance of one part in 10^9 of the step: the output map's own rate
                 // limit, computed the same way, must not count as a clip.
                 let step = r * dt * (1.0 + 1e-9);

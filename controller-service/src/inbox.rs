@@ -9,7 +9,10 @@
 //!
 //! Only well-formed samples get this far (decoded, of the key's own device, finite values:
 //! the callbacks check that first), so garbage on a device's key cannot push that
-//! device's real samples out.
+//! device's real samples out, and neither can a replay of its old samples (an older
+//! sample of the same run never replaces a newer one). What remains is a well-formed
+//! sample of a new run or a later sequence, which only the device's own identity can send
+//! once access control is on (`deploy/`): within one device, the latest sample wins.
 //!
 //! Devices the service does not serve (yet: the first sample of a template device comes
 //! this way) share a small fixed number of slots, so a flood of unknown keys fills those
@@ -84,8 +87,18 @@ impl<T> Inbox<T> {
 
     /// Put a sample of device `id` in.
     pub fn push(&mut self, id: &str, item: T) -> Push {
+        self.push_unless_older(id, item, |_, _| false)
+    }
+
+    /// Put a sample of device `id` in, unless `older(new, pending)` says it is older than
+    /// the one already waiting: then the waiting one stays and the new one is dropped,
+    /// counted as superseded all the same (a newer sample of its device is served
+    /// instead). A replay of old samples thus cannot push a device's newest one out.
+    pub fn push_unless_older(&mut self, id: &str, item: T, older: impl Fn(&T, &T) -> bool) -> Push {
         if let Some(p) = self.pending.get_mut(id) {
-            p.item = item;
+            if !older(&item, &p.item) {
+                p.item = item;
+            }
             p.superseded += 1;
             self.superseded += 1;
             return Push::Superseded;
@@ -198,5 +211,23 @@ mod tests {
         assert_eq!(inbox.pop().unwrap().id, "other");
         assert!(inbox.is_empty());
         assert_eq!(inbox.push("third", vec![]), Push::Queued);
+    }
+
+    #[test]
+    fn an_older_sample_does_not_push_out_a_newer_one() {
+        let mut inbox = Inbox::new(4);
+        inbox.serve("a");
+        let older = |new: &(u64, u64), old: &(u64, u64)| new.0 == old.0 && new.1 < old.1;
+        assert_eq!(inbox.push_unless_older("a", (1, 10), older), Push::Queued);
+        assert_eq!(
+            inbox.push_unless_older("a", (1, 3), older),
+            Push::Superseded
+        );
+        assert_eq!(inbox.pop().unwrap().item, (1, 10));
+        inbox.push_unless_older("a", (1, 10), older);
+        // Another run is not older: it replaces.
+        inbox.push_unless_older("a", (2, 0), older);
+        let t = inbox.pop().unwrap();
+        assert_eq!((t.item, t.superseded), ((2, 0), 1));
     }
 }

@@ -15,12 +15,20 @@
 //!    real plant out); a plant that sends no `run_id` is recognised as restarted when its
 //!    sequence goes back far, or to 0 or 1;
 //! 4. within a run: the last sequence again is a duplicate (the cached command again);
-//!    older is `STALE`; a forward jump of more than [`MAX_SEQ_JUMP`] is `REJECTED` (so no
-//!    value of `seq` can lock a device); the numbers skipped count as lost; plant time
-//!    must advance;
-//! 5. the controllers step, and the command is checked against the device's envelope a
-//!    last time: a non-finite value is never sent (`REJECTED`), one outside is clipped and
-//!    counted.
+//!    older is `STALE`; a forward jump of more than [`MAX_SEQ_JUMP`] is `REJECTED`; plant
+//!    time must advance (else `REJECTED`). After [`RESYNC_AFTER`] such refusals in a row
+//!    that form a consistent stream of their own, the device follows that stream as a new
+//!    run: no value of `seq` or of plant time can lock a device out for longer;
+//! 5. the step's inputs (time, outputs, the references at that time) are checked against
+//!    the controllers (a fresh one for a new run): else `REJECTED`. Only now does the
+//!    device change: a new run starts, the numbers skipped count as lost, what the plant
+//!    applied is reported, and the controllers step;
+//! 6. the command is checked against the device's envelope a last time: a non-finite value
+//!    is never sent (`REJECTED`); one outside `[min, max]`, or further than the rate limit
+//!    allows from what the actuator holds, is clipped and counted (`clamped`). The rate
+//!    limit runs from the last command when the plant applied it, otherwise from what the
+//!    sample says the plant applies (or from rest), over at most a couple of periods of
+//!    plant time (the median of recent intervals), so a leap of plant time cannot open it.
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
@@ -51,6 +59,20 @@ pub const MAX_SEQ_JUMP: u64 = 1_000_000;
 pub const REORDER_WINDOW: u64 = 64;
 /// Longest reason stored or sent back (bytes): reasons quote values from the network.
 const MAX_REASON: usize = 240;
+/// Consecutive samples of the run in force that the device refused as out of step (older
+/// than the last answered one, past a sequence jump, or with a plant time that does not
+/// advance) while forming a consistent stream of their own (sequence and time increasing)
+/// before the device follows that stream as a new run. Whatever put the device ahead of
+/// the plant (a jump of `seq` inside [`MAX_SEQ_JUMP`], a glitch of the plant's clock, a
+/// forged sample), the real plant is locked out for at most this many samples.
+pub const RESYNC_AFTER: u32 = 64;
+/// Sample intervals kept per device to estimate its period (their median).
+const PERIOD_WINDOW: usize = 8;
+/// The rate limit allows a step of `rate * dt` with `dt` at most this many estimated
+/// periods: plant time comes from the network, and a leap of it must not open the limit.
+const RATE_DT_PERIODS: f64 = 2.0;
+/// ... and at most this long (s) while no period is known yet.
+const RATE_DT_UNKNOWN: f64 = 1.0;
 
 /// A reason cut to [`MAX_REASON`] bytes (on a character boundary), so that no input can
 /// make what the service stores, sends or logs large.
@@ -130,6 +152,15 @@ struct Device {
     /// The command answering `last_seq`, sent again verbatim for a duplicate. `None` after a
     /// restart or a restore.
     last_command: Option<pb::Command>,
+    /// The samples refused as out of step since the last answered one, if they form a
+    /// consistent stream: its last sequence and time, and how many ([`RESYNC_AFTER`]).
+    astray: Option<(u64, f64, u32)>,
+    /// Recent intervals between consecutive samples (s), for the period estimate that
+    /// bounds the rate limit's `dt`; kept across runs (the same rig, the same period).
+    intervals: [f64; PERIOD_WINDOW],
+    /// How many of `intervals` are filled, and where the next goes.
+    intervals_len: usize,
+    intervals_next: usize,
     /// Each step's outputs per channel, a buffer reused from sample to sample.
     outputs: Vec<ChannelOutput>,
     /// The references per channel at the current sample, likewise reused.
@@ -176,6 +207,12 @@ struct Device {
 impl Device {
     fn new(channels: &[DeviceChannel], from_template: bool) -> Result<Self, String> {
         let envelope: Vec<Limits> = channels.iter().map(DeviceChannel::limits).collect();
+        // The file's check already did this; a configuration built in code must not get
+        // past it either (a NaN limit would make the last check meaningless).
+        for (i, e) in envelope.iter().enumerate() {
+            e.check()
+                .map_err(|r| format!("channels[{i}].envelope: {r}"))?;
+        }
         let configs = channels
             .iter()
             .zip(&envelope)
@@ -202,6 +239,10 @@ impl Device {
             last_seq: None,
             last_time: f64::NEG_INFINITY,
             last_command: None,
+            astray: None,
+            intervals: [0.0; PERIOD_WINDOW],
+            intervals_len: 0,
+            intervals_next: 0,
             outputs: vec![ChannelOutput::default(); n],
             refs: vec![Reference::default(); n],
             samples: 0,
@@ -224,7 +265,7 @@ impl Device {
 
     /// A new plant run: fresh control state, same configuration and reference. The
     /// counters carry on across runs.
-    fn start_run(&mut self, run_id: u64) {
+    fn start_run(&mut self, run_id: u64, fresh: MimoController) {
         if let Some(old) = self.run_id {
             if old != run_id {
                 if self.retired.len() == RETIRED_RUNS {
@@ -234,16 +275,45 @@ impl Device {
             }
         }
         self.retired.retain(|r| *r != run_id);
-        if let Ok(m) = MimoController::new(&self.configs) {
-            self.mimo = m;
-        }
+        self.mimo = fresh;
         self.run_id = Some(run_id);
         self.run_samples = 0;
         self.restored = false;
         self.last_seq = None;
         self.last_time = f64::NEG_INFINITY;
         self.last_command = None;
+        self.astray = None;
         self.restarts += 1;
+    }
+
+    /// The sample period, as the median of the recent intervals; `None` before the first.
+    fn period(&self) -> Option<f64> {
+        let n = self.intervals_len;
+        if n == 0 {
+            return None;
+        }
+        let mut v = self.intervals;
+        let v = &mut v[..n];
+        v.sort_unstable_by(f64::total_cmp);
+        Some(v[n / 2])
+    }
+
+    fn note_interval(&mut self, dt: f64) {
+        self.intervals[self.intervals_next] = dt;
+        self.intervals_next = (self.intervals_next + 1) % PERIOD_WINDOW;
+        self.intervals_len = (self.intervals_len + 1).min(PERIOD_WINDOW);
+    }
+
+    /// Count a sample of the run in force refused as out of step; true once
+    /// [`RESYNC_AFTER`] of them in a row form a stream of their own, which the device then
+    /// follows as a new run.
+    fn out_of_step(&mut self, s: &pb::Sample) -> bool {
+        let n = match self.astray {
+            Some((seq, t, n)) if s.seq > seq && s.plant_time > t => n + 1,
+            _ => 1,
+        };
+        self.astray = Some((s.seq, s.plant_time, n));
+        n >= RESYNC_AFTER
     }
 
     fn channels(&self) -> usize {
@@ -681,63 +751,86 @@ impl Registry {
                 reason,
             ))
         };
+        let stale = |d: &mut Device, why: &str| {
+            d.stale += 1;
+            Outcome::Reply(reply(
+                controller_id,
+                key_id,
+                (s.seq, s.sent_unix_ns),
+                pb::Mode::Stale,
+                why.into(),
+            ))
+        };
         // Rule 2.
         if let Err(reason) = precheck(key_id, s).and_then(|()| d.check_values(s)) {
             return refuse(d, &mut self.rejected, reason);
         }
         // Rule 3.
         d.run_samples = d.run_samples.saturating_add(1);
-        match d.run_of(s) {
-            Run::Same => {}
-            Run::New => d.start_run(s.run_id),
-            Run::Retired => {
-                d.stale += 1;
-                let why = "a sample of an earlier run of the plant".to_string();
-                return Outcome::Reply(reply(
-                    controller_id,
-                    key_id,
-                    (s.seq, s.sent_unix_ns),
-                    pb::Mode::Stale,
-                    why,
-                ));
-            }
-        }
-        // Rule 4.
-        match d.last_seq {
-            Some(last) if s.seq == last => {
-                d.duplicates += 1;
-                if let Some(c) = &d.last_command {
-                    return Outcome::Reply(c.clone());
+        let mut new_run = match d.run_of(s) {
+            Run::Same => false,
+            Run::New => true,
+            Run::Retired => return stale(d, "a sample of an earlier run of the plant"),
+        };
+        // Rule 4, within the run in force.
+        if !new_run {
+            let out_of_step = match d.last_seq {
+                Some(last) if s.seq == last => {
+                    d.duplicates += 1;
+                    return match &d.last_command {
+                        Some(c) => Outcome::Reply(c.clone()),
+                        // Answered before a restore: nothing cached to send again.
+                        None => stale(d, "already answered (before a restart of the service)"),
+                    };
                 }
-                // Nothing cached (answered before a restore): the time check below refuses it.
-            }
-            Some(last) if s.seq < last => {
-                d.stale += 1;
-                return Outcome::Reply(reply(
-                    controller_id,
-                    key_id,
-                    (s.seq, s.sent_unix_ns),
-                    pb::Mode::Stale,
-                    String::new(),
-                ));
-            }
-            Some(last) if s.seq - last > MAX_SEQ_JUMP => {
-                let reason = format!(
+                Some(last) if s.seq < last => Some(None),
+                Some(last) if s.seq - last > MAX_SEQ_JUMP => Some(Some(format!(
                     "sequence jumps from {last} to {}, more than {MAX_SEQ_JUMP}",
                     s.seq
-                );
-                return refuse(d, &mut self.rejected, reason);
+                ))),
+                _ if s.plant_time <= d.last_time => Some(Some(format!(
+                    "plant time {:?} does not advance past {:?}",
+                    s.plant_time, d.last_time
+                ))),
+                _ => None,
+            };
+            if let Some(why) = out_of_step {
+                if !d.out_of_step(s) {
+                    return match why {
+                        None => stale(d, ""),
+                        Some(reason) => refuse(d, &mut self.rejected, reason),
+                    };
+                }
+                // A consistent stream the device has refused RESYNC_AFTER times: the plant
+                // is there and the device is out of step with it, so follow the plant.
+                new_run = true;
             }
-            _ => {}
         }
-        if s.plant_time <= d.last_time {
-            let reason = format!(
-                "plant time {:?} does not advance past {:?}",
-                s.plant_time, d.last_time
-            );
-            return refuse(d, &mut self.rejected, reason);
+        // Rule 5, checked before anything moves: the step's inputs (a new run is checked
+        // against the fresh state it would start from).
+        for (r, pieces) in d.refs.iter_mut().zip(&d.reference) {
+            *r = evaluate(pieces, s.plant_time - d.reference_start);
+        }
+        let fresh = if new_run {
+            match MimoController::new(&d.configs) {
+                Ok(m) => Some(m),
+                Err(e) => return refuse(d, &mut self.rejected, e.to_string()),
+            }
+        } else {
+            None
+        };
+        if let Err(e) = fresh
+            .as_ref()
+            .unwrap_or(&d.mimo)
+            .check(s.plant_time, &s.outputs, &d.refs)
+        {
+            return refuse(d, &mut self.rejected, e.to_string());
         }
         // The sample is good: from here on it may change state.
+        if let Some(m) = fresh {
+            d.start_run(s.run_id, m);
+        }
+        d.astray = None;
         if s.last_rtt_us > 0 {
             if d.rtts.len() == RTT_WINDOW {
                 d.rtts.pop_front();
@@ -750,30 +843,41 @@ impl Registry {
         if s.flags & plant_trouble != 0 {
             d.samples_off_remote += 1;
         }
+        let dt = s.plant_time - d.last_time;
+        // The plant applied the last command and nothing else since: the rate limit runs
+        // from it. Otherwise (a new run, a restore, a gap, a plant holding or on its
+        // fallback, a warm-up answer it did not apply) from what the plant says it applies,
+        // or from rest if it does not say.
+        let follows = d.last_seq == Some(s.seq.wrapping_sub(1))
+            && s.flags & plant_trouble == 0
+            && d.last_command
+                .as_ref()
+                .is_some_and(|c| c.mode == pb::Mode::Control as i32);
         if let Some(last) = d.last_seq {
-            // s.seq > last here (equal returned or fell through only without a cache).
+            // s.seq > last here.
             d.lost += s.seq.saturating_sub(last).saturating_sub(1);
+            if s.seq - last == 1 {
+                d.note_interval(dt);
+            }
         }
         if d.last_seq.is_some() && !s.applied.is_empty() {
             // Checked finite above, so this cannot fail.
             let _ = d.mimo.report_applied(&s.applied);
         }
-        if std::mem::take(&mut d.restored) && s.plant_time - d.last_time > RESUME_GAP {
+        if std::mem::take(&mut d.restored) && dt > RESUME_GAP {
             // Restarted from a snapshot after a gap: the estimators' history does not reach
             // across it. Keep gains and the reference phase, and start bumplessly from what
             // the plant applies now (its local fallback's output, reported above).
             d.mimo.forget_windows();
         }
-        for (r, pieces) in d.refs.iter_mut().zip(&d.reference) {
-            *r = evaluate(pieces, s.plant_time - d.reference_start);
-        }
         if let Err(e) = d
             .mimo
             .step(s.plant_time, &s.outputs, &d.refs, &mut d.outputs)
         {
+            // Not reached: the same inputs passed `check` above.
             return refuse(d, &mut self.rejected, e.to_string());
         }
-        // Rule 5: the last check before anything leaves.
+        // Rule 6: the last check before anything leaves.
         if let Some(bad) = d.outputs.iter().find(|o| !o.v.is_finite()) {
             let reason = format!(
                 "the controller produced a non-finite command ({:?}): check the gains",
@@ -781,13 +885,26 @@ impl Registry {
             );
             return refuse(d, &mut self.rejected, reason);
         }
-        let dt = s.plant_time - d.last_time;
-        let prev = d.last_command.as_ref().map(|c| c.v.clone());
+        let period = d.period();
+        let rate_dt = if follows {
+            dt.min(period.map_or(RATE_DT_UNKNOWN, |p| RATE_DT_PERIODS * p))
+        } else {
+            // One period from what is applied now; none at all before a period is known.
+            period.unwrap_or(0.0)
+        };
         let mut v: Vec<f64> = Vec::with_capacity(d.outputs.len());
         let mut clipped = false;
         for (i, o) in d.outputs.iter().enumerate() {
-            let p = prev.as_ref().and_then(|p| p.get(i)).map(|p| (*p, dt));
-            let (x, c) = d.envelope[i].clamp(o.v, p);
+            let from = match &d.last_command {
+                Some(c) if follows => c.v.get(i).copied(),
+                _ => s
+                    .applied
+                    .get(i)
+                    .copied()
+                    .or_else(|| d.last_command.as_ref().and_then(|c| c.v.get(i).copied())),
+            }
+            .unwrap_or(0.0);
+            let (x, c) = d.envelope[i].clamp(o.v, Some((from, rate_dt)));
             clipped |= c;
             v.push(x);
         }
@@ -850,6 +967,11 @@ impl Registry {
             pb::Mode::Rejected,
             reason,
         ))
+    }
+
+    /// The safety envelope in force for a device, if served.
+    pub fn envelope_of(&self, id: &str) -> Option<Vec<Limits>> {
+        self.devices.get(id).map(|d| d.envelope.clone())
     }
 
     /// The configuration of a device, if served.

@@ -250,7 +250,10 @@ pub async fn serve(
                     }
                     return;
                 }
-                let pushed = lock(&inbox).push(dev, sample);
+                // A replayed sample of the same run must not push out a newer one.
+                let pushed = lock(&inbox).push_unless_older(dev, sample, |new, old| {
+                    new.run_id == old.run_id && new.seq < old.seq
+                });
                 if pushed == Push::Queued {
                     wake.notify_one();
                 }
@@ -459,6 +462,9 @@ pub async fn serve(
                     }
                 }
             }
+            // A put reaches every service: one that does not serve the device lets it pass,
+            // uncounted, as it does a request for a device served elsewhere.
+            Msg::Reference(dev, _) if !registry.serves(&dev) => {}
             Msg::Reference(dev, bytes) => match decode::<pb::ReferenceUpdate>(&bytes) {
                 Ok(u) => {
                     let reply = registry.set_reference(&dev, &u);
@@ -501,10 +507,22 @@ pub async fn serve(
                     None => read_config(&registry, &dev),
                     Some(bytes) => match decode::<pb::EnvelopeRequest>(&bytes) {
                         Ok(req) => {
+                            let before = registry.envelope_of(&dev);
                             let r = registry.change_envelope(&dev, &req);
-                            if r.accepted {
-                                throttled!(warn.envelope, warn, device = %dev, by = %printable(&req.reason),
-                                    envelope = ?r.config.as_ref().and_then(|c| c.envelope.clone()), "envelope changed");
+                            let after = registry.envelope_of(&dev);
+                            let widened = before
+                                .iter()
+                                .flatten()
+                                .zip(after.iter().flatten())
+                                .any(|(b, a)| b.is_widened_by(a));
+                            if r.accepted && widened {
+                                // Every widening has its own line: it is rare (the file must
+                                // allow it) and it is what an audit looks for.
+                                tracing::warn!(device = %dev, by = %printable(&req.reason),
+                                    envelope = ?r.config.as_ref().and_then(|c| c.envelope.clone()), "envelope WIDENED");
+                            } else if r.accepted {
+                                throttled!(warn.envelope, info, device = %dev, by = %printable(&req.reason),
+                                    envelope = ?r.config.as_ref().and_then(|c| c.envelope.clone()), "envelope narrowed");
                             }
                             r
                         }

@@ -424,6 +424,151 @@ fn a_stray_run_cannot_lock_the_real_plant_out() {
     assert_eq!(modes.last(), Some(&pb::Mode::Control));
 }
 
+/// A heater sample reporting what its actuator holds.
+fn heater(run: u64, seq: u64, t: f64, y: f64, held: f64) -> pb::Sample {
+    pb::Sample {
+        applied: vec![held],
+        ..sample("heater", run, seq, t, &[y])
+    }
+}
+
+/// Drive the heater (100 V/s envelope) as a plant would: apply each command, report it.
+/// Returns the value held after the last one.
+fn drive_heater(r: &mut Registry, run: u64, seqs: std::ops::Range<u64>, held: f64) -> f64 {
+    let mut held = held;
+    for k in seqs {
+        let c = reply(r.handle_sample("heater", &heater(run, k, k as f64 * 0.01, 20.0, held)));
+        assert_eq!(mode(&c), pb::Mode::Control, "seq {k}: {}", c.error);
+        assert!(
+            (c.v[0] - held).abs() <= 1.0 + 2e-9,
+            "seq {k}: {held} -> {}",
+            c.v[0]
+        );
+        held = c.v[0];
+    }
+    held
+}
+
+#[test]
+fn a_leap_of_plant_time_neither_opens_the_rate_limit_nor_locks_the_device() {
+    use controller_service::registry::RESYNC_AFTER;
+    let mut r = registry();
+    let held = drive_heater(&mut r, 1, 1..50, 0.0);
+    // The next sample in sequence, but with the plant's clock a day ahead.
+    let c = reply(r.handle_sample("heater", &heater(1, 50, 86_400.0, 20.0, held)));
+    assert_eq!(mode(&c), pb::Mode::Control);
+    assert!(
+        (c.v[0] - held).abs() <= 100.0 * 2.0 * 0.01 * (1.0 + 2e-9),
+        "a day of plant time opened the rate limit: {held} -> {}",
+        c.v[0]
+    );
+    // The real clock carries on: refused (time does not advance) until RESYNC_AFTER of its
+    // samples in a row, then followed as a new run.
+    let before = r.device_status("heater").unwrap();
+    let mut refused = 0;
+    let mut k = 51;
+    loop {
+        let c = reply(r.handle_sample("heater", &heater(1, k, k as f64 * 0.01, 20.0, held)));
+        if mode(&c) == pb::Mode::Control {
+            break;
+        }
+        assert_eq!(mode(&c), pb::Mode::Rejected);
+        assert!(c.error.contains("does not advance"), "{}", c.error);
+        refused += 1;
+        k += 1;
+        assert!(refused < 10 * RESYNC_AFTER, "the device is locked out");
+    }
+    assert_eq!(refused, RESYNC_AFTER - 1);
+    let after = r.device_status("heater").unwrap();
+    assert_eq!(after.restarts, before.restarts + 1, "followed as a new run");
+    assert_eq!(after.rejected, before.rejected + u64::from(refused));
+}
+
+#[test]
+fn a_sequence_jump_inside_the_bound_locks_out_for_at_most_resync_after() {
+    use controller_service::registry::RESYNC_AFTER;
+    let mut r = registry();
+    run(&mut r, 0, 20);
+    let c = reply(r.handle_sample(
+        "aero-1",
+        &sample("aero-1", 7, MAX_SEQ_JUMP / 2, 0.21, &[0.0, 0.0]),
+    ));
+    assert_eq!(mode(&c), pb::Mode::Control);
+    let mut stale = 0;
+    for k in 21..21 + u64::from(RESYNC_AFTER) {
+        let c = reply(r.handle_sample(
+            "aero-1",
+            &sample("aero-1", 7, k, 0.21 + k as f64 * 0.01, &[0.0, 0.0]),
+        ));
+        if mode(&c) == pb::Mode::Stale {
+            stale += 1;
+        }
+    }
+    assert_eq!(stale, RESYNC_AFTER - 1);
+    // Followed again (a fresh run: the estimators warm up).
+    let c = reply(r.handle_sample(
+        "aero-1",
+        &sample("aero-1", 7, 21 + u64::from(RESYNC_AFTER), 2.0, &[0.0, 0.0]),
+    ));
+    assert_ne!(mode(&c), pb::Mode::Stale);
+    assert_ne!(mode(&c), pb::Mode::Rejected, "{}", c.error);
+}
+
+#[test]
+fn scattered_refusals_never_resync_a_device() {
+    let mut r = registry();
+    run(&mut r, 0, 20);
+    // Old samples replayed out of order (no stream of their own): stale, every one.
+    for k in 0..500u64 {
+        let seq = (k * 7919) % 19;
+        let c = reply(r.handle_sample(
+            "aero-1",
+            &sample("aero-1", 7, seq, seq as f64 * 0.01, &[0.0, 0.0]),
+        ));
+        assert_eq!(mode(&c), pb::Mode::Stale, "replay {k} (seq {seq})");
+    }
+    assert_eq!(r.device_status("aero-1").unwrap().restarts, 1);
+    assert_eq!(mode(&run(&mut r, 20, 1)), pb::Mode::Control);
+}
+
+#[test]
+fn the_first_command_of_a_run_moves_from_what_the_plant_applies() {
+    let mut r = registry();
+    // The plant starts while its own controller holds 12 V: the service's first command
+    // stays there (no period known yet), the next ones move at most 100 V/s * 10 ms.
+    let c = reply(r.handle_sample("heater", &heater(1, 1, 0.01, 20.0, 12.0)));
+    assert_eq!(c.v, vec![12.0]);
+    let held = drive_heater(&mut r, 1, 2..30, 12.0);
+    // The plant restarts (a new run) and reports 3 V: one period's step from there.
+    let c = reply(r.handle_sample("heater", &heater(2, 1, 0.01, 20.0, 3.0)));
+    assert!(
+        (c.v[0] - 3.0).abs() <= 1.0 + 2e-9,
+        "{held} / 3 -> {}",
+        c.v[0]
+    );
+    // Without a report, from rest.
+    let c = reply(r.handle_sample("heater", &sample("heater", 3, 1, 0.01, &[20.0])));
+    assert!(c.v[0] <= 1.0 + 2e-9, "{}", c.v[0]);
+}
+
+#[test]
+fn after_a_restore_the_first_command_moves_from_what_the_plant_applies() {
+    let mut r = registry();
+    let held = drive_heater(&mut r, 1, 1..100, 0.0);
+    let snaps = r.snapshots();
+    let mut fresh = registry();
+    for s in &snaps {
+        fresh.restore(s).unwrap();
+    }
+    // The plant ran on its fallback meanwhile and holds 2 V now.
+    let c = reply(fresh.handle_sample("heater", &heater(1, 130, 1.3, 20.0, 2.0)));
+    assert!(
+        (c.v[0] - 2.0).abs() <= 1.0 + 2e-9,
+        "before the restore {held}, now 2 V -> {}",
+        c.v[0]
+    );
+}
+
 #[test]
 fn a_plant_without_a_run_id_recovers_from_its_restart() {
     let mut r = registry();
@@ -486,7 +631,7 @@ enum Op {
     Sample {
         dev: usize,
         run: u64,
-        seq: u64,
+        seq: Option<u64>,
         dt: f64,
         y: Vec<f64>,
     },
@@ -524,8 +669,10 @@ fn value() -> impl Strategy<Value = f64> {
 fn op() -> impl Strategy<Value = Op> {
     let ids = 0..4usize;
     prop_oneof![
-        8 => (ids.clone(), prop_oneof![Just(1u64), Just(2), any::<u64>()],
-              prop_oneof![4 => 0..1000u64, 1 => any::<u64>()], prop_oneof![Just(0.01), -1.0..1.0f64, Just(f64::NAN)],
+        8 => (ids.clone(), prop_oneof![8 => Just(1u64), 1 => Just(2), 1 => any::<u64>()],
+              // None: the next sequence number, as a plant sends it.
+              prop_oneof![6 => Just(None), 3 => (0..1000u64).prop_map(Some), 1 => any::<u64>().prop_map(Some)],
+              prop_oneof![6 => Just(0.01), 1 => -1.0..1.0f64, 1 => Just(f64::NAN)],
               proptest::collection::vec(value(), 0..4))
             .prop_map(|(dev, run, seq, dt, y)| Op::Sample { dev, run, seq, dt, y }),
         2 => (ids.clone(), 0..3u32, proptest::option::of(value()), proptest::option::of(value()),
@@ -567,12 +714,26 @@ proptest! {
         let mut r = registry();
         let file: Vec<Vec<(f64, f64)>> = IDS.iter().map(|id| limits_of(&r, id)).collect();
         let mut t = [0.0f64; 4];
+        let mut next = [1u64; 4];
+        // What the heater's actuator holds: it applies every CONTROL command and says so.
+        let mut held = 0.0f64;
+        // The heater's samples answered with a command (seq, time), and the largest
+        // interval between two answered consecutive ones: the service's period estimate
+        // (a median of such intervals) is never above it.
+        let mut answered: Option<(u64, f64)> = None;
+        let mut longest = 0.0f64;
         for op in ops {
             match op {
                 Op::Sample { dev, run, seq, dt, y } => {
-                    t[dev] += dt;
+                    let seq = seq.unwrap_or(next[dev]);
+                    next[dev] = seq.wrapping_add(1);
+                    // A NaN time is one bad sample, not a clock broken for good.
+                    let time = if dt.is_nan() { f64::NAN } else { t[dev] += dt; t[dev] };
                     let id = IDS[dev];
-                    let s = sample(id, run, seq, t[dev], &y);
+                    let mut s = sample(id, run, seq, time, &y);
+                    if id == "heater" {
+                        s.applied = vec![held];
+                    }
                     let env = limits_of(&r, id);
                     if let Outcome::Reply(c) = r.handle_sample(id, &s) {
                         prop_assert_eq!(c.seq, seq);
@@ -583,6 +744,29 @@ proptest! {
                             if let Some(f) = file[dev].get(i) {
                                 prop_assert!(f.0 <= *v && *v <= f.1, "{}: {} outside the file's {:?}", id, v, f);
                             }
+                        }
+                        let computed = c.mode == pb::Mode::Control as i32
+                            || c.mode == pb::Mode::WarmingUp as i32;
+                        if id == "heater" && computed {
+                            let resent = answered.is_some_and(|(q, _)| q == seq);
+                            if !resent {
+                                if let Some((q, tq)) = answered {
+                                    if seq == q.wrapping_add(1) {
+                                        longest = longest.max(time - tq);
+                                    }
+                                }
+                                answered = Some((seq, time));
+                            }
+                        }
+                        if id == "heater" && c.mode == pb::Mode::Control as i32 {
+                            // The rate limit (100 V/s) over at most two periods, from what
+                            // the actuator holds, whatever the plant's clock did; unless a
+                            // narrowed envelope forced the command to its edge.
+                            let v = c.v[0];
+                            let inside = env[0].0 <= held && held <= env[0].1;
+                            prop_assert!(!inside || (v - held).abs() <= 100.0 * 2.0 * longest * (1.0 + 2e-9) + 1e-12,
+                                "heater: {} -> {} (longest interval {})", held, v, longest);
+                            held = v;
                         }
                         prop_assert!(c.error.len() < 300);
                     }

@@ -77,9 +77,9 @@ pub struct CaseOptions {
 impl Default for CaseOptions {
     fn default() -> Self {
         Self {
-            hold_periods: crate::harness::DEFAULT_HOLD_PERIODS,
+            hold_periods: plant_agent::safety::SafetyConfig::DEFAULT_HOLD_PERIODS,
             fallback: FallbackPolicy::LocalController,
-            max_age: crate::harness::DEFAULT_MAX_AGE,
+            max_age: plant_agent::safety::SafetyConfig::DEFAULT_MAX_AGE,
         }
     }
 }

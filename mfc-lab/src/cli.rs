@@ -11,7 +11,7 @@ use faultlab::profile::ProfileSet;
 use faultlab::relay::Link;
 use plant_agent::agent::AgentReport;
 use plant_agent::record::write_run;
-use plant_agent::safety::{FallbackPolicy, SafetyConfig};
+use plant_agent::safety::{parse_fallback, FallbackPolicy, SafetyConfig};
 use plant_agent::scenario::{
     load_controller, load_scenario, shipped_controller, ControllerSet, Scenario,
     SHIPPED_CONTROLLERS, SHIPPED_SCENARIOS,
@@ -20,7 +20,7 @@ use plant_agent::scenario::{
 use crate::campaign::{run_case, Campaign, CaseOptions};
 use crate::compare::compare;
 use crate::demo::{demo, DemoOptions};
-use crate::harness::{service_config, DEFAULT_HOLD_PERIODS, DEFAULT_MAX_AGE};
+use crate::harness::service_config;
 use crate::offline::{simulate, Summary};
 use crate::tune::{starting_point, tune, KINDS};
 
@@ -33,14 +33,6 @@ use crate::tune::{starting_point, tune, KINDS};
 struct Cli {
     #[command(subcommand)]
     command: Command,
-}
-
-#[derive(Clone, Copy, clap::ValueEnum)]
-enum Fallback {
-    /// The local controller.
-    Local,
-    /// Zero inputs.
-    SafeStop,
 }
 
 #[derive(Subcommand)]
@@ -79,11 +71,11 @@ enum Command {
         #[arg(long)]
         controller: Option<String>,
         /// Periods to hold the last command before falling back.
-        #[arg(long, default_value_t = DEFAULT_HOLD_PERIODS)]
+        #[arg(long, default_value_t = SafetyConfig::DEFAULT_HOLD_PERIODS)]
         hold_periods: u32,
-        /// What to fall back to.
-        #[arg(long, value_enum, default_value = "local")]
-        fallback: Fallback,
+        /// What to fall back to: `local` (the local controller) or `safe-stop` (zero inputs).
+        #[arg(long, default_value = "local", value_parser = parse_fallback)]
+        fallback: FallbackPolicy,
         /// Output directory (per plant: run.csv, summary.json, plots).
         #[arg(long, default_value = "out/demo")]
         out: PathBuf,
@@ -254,12 +246,9 @@ fn real_main() -> Result<()> {
                     plants,
                     safety: SafetyConfig {
                         period: scenario.period,
-                        max_age: DEFAULT_MAX_AGE,
+                        max_age: SafetyConfig::DEFAULT_MAX_AGE,
                         hold_periods,
-                        fallback: match fallback {
-                            Fallback::Local => FallbackPolicy::LocalController,
-                            Fallback::SafeStop => FallbackPolicy::SafeStop,
-                        },
+                        fallback,
                     },
                     out: Some(out.clone()),
                 },

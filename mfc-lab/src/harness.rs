@@ -11,18 +11,13 @@ use plant_agent::scenario::{ControllerSet, Scenario};
 use transport::ZenohArgs;
 use zenoh::Session;
 
-/// Default oldest command worth applying, in periods (100 ms at 10 ms).
-pub const DEFAULT_MAX_AGE: u32 = 10;
-/// Default periods held before the fallback.
-pub const DEFAULT_HOLD_PERIODS: u32 = 5;
-
-/// The safety settings of the demo and the tests: hold 5 periods, then the local
-/// controller; commands up to 10 periods old are still applied.
+/// The safety settings of the demo and the tests: the agent's defaults (hold 5 periods,
+/// then the local controller; commands up to 10 periods old are still applied).
 pub fn default_safety(scenario: &Scenario) -> SafetyConfig {
     SafetyConfig {
         period: scenario.period,
-        max_age: DEFAULT_MAX_AGE,
-        hold_periods: DEFAULT_HOLD_PERIODS,
+        max_age: SafetyConfig::DEFAULT_MAX_AGE,
+        hold_periods: SafetyConfig::DEFAULT_HOLD_PERIODS,
         fallback: FallbackPolicy::LocalController,
     }
 }
@@ -64,12 +59,24 @@ pub async fn open_session(
     connect: Vec<String>,
     gossip: bool,
 ) -> anyhow::Result<Session> {
+    open_config(loopback_config(listen, connect, gossip)?).await
+}
+
+fn loopback_config(
+    listen: Option<String>,
+    connect: Vec<String>,
+    gossip: bool,
+) -> anyhow::Result<zenoh::Config> {
     let mut config = ZenohArgs::loopback(listen, connect).to_config()?;
     if !gossip {
         config
             .insert_json5("scouting/gossip/enabled", "false")
             .map_err(|e| anyhow::anyhow!("{e}"))?;
     }
+    Ok(config)
+}
+
+async fn open_config(config: zenoh::Config) -> anyhow::Result<Session> {
     zenoh::open(config)
         .await
         .map_err(|e| anyhow::anyhow!("opening a zenoh session: {e}"))
@@ -101,7 +108,10 @@ impl ServiceHandle {
             None => format!("tcp/127.0.0.1:{}", transport::free_local_port()?),
         };
         let registry = Registry::new(config)?;
-        let session = open_session(Some(endpoint.clone()), vec![], gossip).await?;
+        // As the service's own binary: no message larger than it would count is reassembled.
+        let mut zc = loopback_config(Some(endpoint.clone()), vec![], gossip)?;
+        transport::bound_messages(&mut zc, protocol::MAX_TRANSPORT_MESSAGE)?;
+        let session = open_config(zc).await?;
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
         let task = tokio::spawn(service::serve(session, registry, async {
             let _ = rx.await;
@@ -159,11 +169,14 @@ pub async fn run_plant(
     gossip: bool,
 ) -> anyhow::Result<AgentRun> {
     let session = open_session(None, endpoints, gossip).await?;
-    let p = plant_agent::plant::open(
-        &plant.scenario.plant,
+    // Opening a driver plant waits for its `hello` (seconds, for an interpreter): off the
+    // async workers, like every other plant call.
+    let (spec, seed, n) = (
+        plant.scenario.plant.clone(),
         plant.seed,
         plant.scenario.channels.len(),
-    )?;
+    );
+    let p = tokio::task::spawn_blocking(move || plant_agent::plant::open(&spec, seed, n)).await??;
     let out = agent::run_loop(
         &session,
         p,

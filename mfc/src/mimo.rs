@@ -55,6 +55,18 @@ impl<const CAP: usize> MimoController<CAP> {
         }
     }
 
+    /// Check a step's inputs (dimensions, time, values, references) without changing
+    /// anything: what [`MimoController::step`] would refuse. A service validates a sample
+    /// whole with it before it lets the sample move any of the device's state.
+    pub fn check(&self, t: f64, y: &[f64], r: &[Reference]) -> Result<()> {
+        self.dims(y.len())?;
+        self.dims(r.len())?;
+        for ((c, y), r) in self.channels.iter().zip(y).zip(r) {
+            c.check(t, *y, r)?;
+        }
+        Ok(())
+    }
+
     /// Step every channel at time `t`. All inputs are checked before any channel moves, so
     /// an error leaves every channel untouched. Allocation-free.
     pub fn step(
@@ -64,12 +76,8 @@ impl<const CAP: usize> MimoController<CAP> {
         r: &[Reference],
         out: &mut [ChannelOutput],
     ) -> Result<()> {
-        self.dims(y.len())?;
-        self.dims(r.len())?;
+        self.check(t, y, r)?;
         self.dims(out.len())?;
-        for ((c, y), r) in self.channels.iter().zip(y).zip(r) {
-            c.check(t, *y, r)?;
-        }
         for (((c, y), r), o) in self.channels.iter_mut().zip(y).zip(r).zip(out) {
             *o = c.step(t, *y, r)?;
         }

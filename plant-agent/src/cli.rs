@@ -55,9 +55,9 @@ struct RunArgs {
     /// Periods to hold the last command before falling back.
     #[arg(long)]
     hold_periods: Option<u32>,
-    /// What to fall back to.
-    #[arg(long, value_enum)]
-    fallback: Option<Fallback>,
+    /// What to fall back to: `local` (the local controller) or `safe-stop` (zero inputs).
+    #[arg(long, value_parser = crate::safety::parse_fallback)]
+    fallback: Option<FallbackPolicy>,
     /// Oldest command still applied, in periods.
     #[arg(long)]
     max_age: Option<u32>,
@@ -66,14 +66,6 @@ struct RunArgs {
     out: Option<PathBuf>,
     #[command(flatten)]
     zenoh: transport::ZenohArgs,
-}
-
-#[derive(Clone, Copy, clap::ValueEnum)]
-enum Fallback {
-    /// The local controller.
-    Local,
-    /// Zero inputs.
-    SafeStop,
 }
 
 /// Parse the process's arguments, run, and return the exit status.
@@ -118,10 +110,7 @@ fn run(args: RunArgs) -> Result<u8> {
         file.hold_periods = h;
     }
     if let Some(f) = args.fallback {
-        file.fallback = match f {
-            Fallback::Local => FallbackPolicy::LocalController,
-            Fallback::SafeStop => FallbackPolicy::SafeStop,
-        };
+        file.fallback = f;
     }
     if let Some(a) = args.max_age {
         file.max_age = a;
@@ -130,19 +119,22 @@ fn run(args: RunArgs) -> Result<u8> {
         file.out = o;
     }
     let r = file.resolve(&source)?;
-    let plant = crate::plant::open(
-        &r.scenario.plant,
-        r.scenario.seed,
-        r.scenario.channels.len(),
-    )
-    .context("opening the plant")?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?;
     let run = runtime.block_on(async {
-        // Before the session opens, so a stop requested meanwhile is kept (then the plant
-        // gets its safe stop at once).
+        // First, before the plant opens (a driver may take seconds to say hello) and before
+        // the session: a stop requested meanwhile is kept, and the plant gets its safe stop
+        // and the record at once instead of the process dying with nothing written.
         let shutdown = transport::shutdown_signal();
+        let (spec, seed, n) = (
+            r.scenario.plant.clone(),
+            r.scenario.seed,
+            r.scenario.channels.len(),
+        );
+        let plant = tokio::task::spawn_blocking(move || crate::plant::open(&spec, seed, n))
+            .await?
+            .context("opening the plant")?;
         let session = match args.zenoh.open().await {
             Ok(s) => s,
             Err(e) => {

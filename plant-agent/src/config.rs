@@ -85,8 +85,8 @@ impl Default for AgentFile {
             scenario: "2".into(),
             controller: None,
             duration: None,
-            max_age: 10,
-            hold_periods: 5,
+            max_age: SafetyConfig::DEFAULT_MAX_AGE,
+            hold_periods: SafetyConfig::DEFAULT_HOLD_PERIODS,
             fallback: FallbackPolicy::LocalController,
             out: PathBuf::from("out/run"),
         }

@@ -319,9 +319,19 @@ impl Plant for DriverPlant {
         }
     }
     fn stop(&mut self) -> Result<(), PlantError> {
+        // Answers still queued belong to requests that timed out: drop them, so that only
+        // the driver's answer to `stop` itself can confirm the safe stop.
+        while self.lines.try_recv().is_ok() {}
         let a = self.request("stop");
         self.reap();
-        a.map(|_| ())
+        match a {
+            Ok(a) if a.trim() == "ok" => Ok(()),
+            Ok(a) => Err(PlantError::Protocol {
+                request: "stop".into(),
+                answer: a,
+            }),
+            Err(e) => Err(e),
+        }
     }
 }
 

@@ -97,6 +97,11 @@ impl fmt::Display for UnknownPolicy {
 
 impl std::error::Error for UnknownPolicy {}
 
+/// [`FallbackPolicy::from_str`] as a function, for a command line's value parser.
+pub fn parse_fallback(s: &str) -> Result<FallbackPolicy, UnknownPolicy> {
+    s.parse()
+}
+
 impl FromStr for FallbackPolicy {
     type Err = UnknownPolicy;
 
@@ -161,6 +166,13 @@ pub struct SafetyConfig {
 }
 
 impl SafetyConfig {
+    /// Default oldest command still applied, in periods (100 ms at 10 ms): later than that a
+    /// command describes a plant that has moved on.
+    pub const DEFAULT_MAX_AGE: u32 = 10;
+    /// Default periods held before the fallback (50 ms at 10 ms): long enough to ride out a
+    /// lost packet or a scheduling hiccup, short enough that a held voltage does no harm.
+    pub const DEFAULT_HOLD_PERIODS: u32 = 5;
+
     /// Check the settings: a period that is finite and positive, `max_age <= 1000`,
     /// `hold_periods <= 100_000`.
     pub fn validate(&self) -> Result<(), SafetyError> {

@@ -99,18 +99,50 @@ fn summary(out: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap()
 }
 
+fn signal(child: &Child, sig: &str) {
+    let status = Command::new("kill")
+        .args([&format!("-{sig}"), &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+}
+
 #[test]
 fn sigterm_mid_run_stops_the_plant_and_writes_the_record() {
-    let dir = scratch("sigterm");
+    stopped_mid_run("TERM");
+}
+
+#[test]
+fn sigint_mid_run_stops_the_plant_and_writes_the_record() {
+    stopped_mid_run("INT");
+}
+
+/// A stop requested while the driver is still starting (before its `hello`) is kept: the
+/// plant gets its safe stop as soon as it is there, and the record is written.
+#[test]
+fn sigterm_while_the_driver_starts_is_kept() {
+    let dir = scratch("sigterm-start");
+    let log = dir.join("driver.log");
+    let out = dir.join("out");
+    let mut child = agent(&scenario(&dir, &log, &["--hello-delay", "2"]), &out);
+    std::thread::sleep(Duration::from_millis(500));
+    signal(&child, "TERM");
+    assert_eq!(wait(&mut child, Duration::from_secs(30)), 3);
+    let s = summary(&out);
+    assert_eq!(s["end"], "interrupted", "{s}");
+    assert_eq!(s["safe_stop_applied"], true, "{s}");
+    let requests = std::fs::read_to_string(&log).unwrap();
+    assert_eq!(requests.lines().last(), Some("stop"), "{requests}");
+    assert!(out.join("run.csv").is_file());
+}
+
+fn stopped_mid_run(sig: &str) {
+    let dir = scratch(&format!("sig{sig}"));
     let log = dir.join("driver.log");
     let out = dir.join("out");
     let mut child = agent(&scenario(&dir, &log, &[]), &out);
     wait_for_lines(&log, 300); // about 100 periods
-    let status = Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
+    signal(&child, sig);
     // 3: stopped cleanly, but no controller ever answered (there is none here).
     assert_eq!(wait(&mut child, Duration::from_secs(20)), 3);
     let s = summary(&out);

@@ -372,11 +372,27 @@ pub fn reference_to_pb(channels: &[Vec<Piece>], start_time: f64) -> pb::Referenc
     }
 }
 
+/// Most pieces one channel's reference may have. Every piece is evaluated at every sample,
+/// so a request must not be able to make each step of a device slow; the shipped
+/// scenarios use a dozen at most.
+pub const MAX_PIECES: usize = 256;
+
 /// Wire reference to per-channel pieces and start time, checked. The number of channels is
 /// not: only the caller knows the device it is meant for.
 pub fn reference_from_pb(r: &pb::Reference) -> Result<(Vec<Vec<Piece>>, f64), ConvertError> {
     if !r.start_time.is_finite() {
         return Err(err("reference.start_time", "must be finite"));
+    }
+    if let Some((i, c)) = r
+        .channels
+        .iter()
+        .enumerate()
+        .find(|(_, c)| c.pieces.len() > MAX_PIECES)
+    {
+        return Err(err(
+            format!("reference.channels[{i}].pieces"),
+            format!("{} pieces, more than {MAX_PIECES}", c.pieces.len()),
+        ));
     }
     let channels = r
         .channels
@@ -458,6 +474,15 @@ mod tests {
             reference_from_pb(&reference_to_pb(&pieces, 4.0)).unwrap(),
             (pieces, 4.0)
         );
+    }
+
+    #[test]
+    fn a_reference_with_too_many_pieces_is_refused() {
+        let ok = vec![vec![Piece::Constant { value: 1.0 }; MAX_PIECES]];
+        assert!(reference_from_pb(&reference_to_pb(&ok, 0.0)).is_ok());
+        let long = vec![vec![], vec![Piece::Constant { value: 1.0 }; MAX_PIECES + 1]];
+        let e = reference_from_pb(&reference_to_pb(&long, 0.0)).unwrap_err();
+        assert_eq!(e.field, "reference.channels[1].pieces");
     }
 
     #[test]

@@ -23,6 +23,12 @@ pub const PROTOCOL_VERSION: u32 = 1;
 /// unread, before it is copied, so a flood of huge messages costs no memory.
 pub const MAX_PAYLOAD: usize = 64 * 1024;
 
+/// Largest message a controller's Zenoh session reassembles at all (bytes). Between
+/// [`MAX_PAYLOAD`] and this, a message reaches the service and is counted as oversized;
+/// beyond it, zenoh drops it while reassembling, so no peer can make the service hold more
+/// than this per link (zenoh's own default is 1 GiB).
+pub const MAX_TRANSPORT_MESSAGE: usize = 4 * 1024 * 1024;
+
 /// Longest string from the network that is echoed, stored or logged (characters).
 pub const MAX_ECHO: usize = 64;
 

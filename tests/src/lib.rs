@@ -41,6 +41,30 @@ pub fn rms_ratio_bound() -> f64 {
         .unwrap_or(1.3)
 }
 
+/// Bound on the networked over offline RMS ratio of a coupled-lags channel:
+/// `MFC_TEST_LAGS_RATIO`, default 2.0 (see `tests/any_plant.rs` for what it catches and
+/// what an idle and a busy machine give).
+pub fn lags_ratio_bound() -> f64 {
+    std::env::var("MFC_TEST_LAGS_RATIO")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(2.0)
+}
+
+/// A plant for a test that asserts it is served throughout (no fallback): the agent's
+/// default safety, with the hold widened by [`margin_periods`]. What such a test checks
+/// is that the loop is served, and a stall of the machine longer than the default hold
+/// (50 ms) is not a lost controller.
+pub fn served_plant(
+    scenario: &plant_agent::scenario::Scenario,
+    controller: &plant_agent::scenario::ControllerSet,
+    id: &str,
+) -> mfc_lab::harness::PlantSpec {
+    let mut p = mfc_lab::harness::PlantSpec::new(scenario, controller, id);
+    p.loop_config.safety.hold_periods += margin_periods();
+    p
+}
+
 /// Send a query on `key` (with `payload`, if any) and decode its first reply.
 pub async fn query<M: protocol::Versioned>(
     session: &Session,

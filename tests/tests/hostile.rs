@@ -75,15 +75,17 @@ fn within(v: f64, limit: f64) -> bool {
     (-limit..=limit).contains(&v)
 }
 
+/// The resident memory of process `pid` (kB). Panics if it cannot be read: a memory bound
+/// checked against a reading of 0 would pass without measuring anything.
 fn rss_kb(pid: u32) -> u64 {
-    std::fs::read_to_string(format!("/proc/{pid}/status"))
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmRSS:"))
-                .and_then(|l| l.split_whitespace().nth(1)?.parse().ok())
-        })
-        .unwrap_or(0)
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .unwrap_or_else(|e| panic!("reading the service's memory (/proc/{pid}/status): {e}"));
+    status
+        .lines()
+        .find(|l| l.starts_with("VmRSS:"))
+        .and_then(|l| l.split_whitespace().nth(1)?.parse().ok())
+        .filter(|kb| *kb > 0)
+        .unwrap_or_else(|| panic!("no VmRSS in /proc/{pid}/status"))
 }
 
 /// A child process killed when the test ends, passed or panicked: a failed assertion must
@@ -507,12 +509,13 @@ async fn a_hostile_client_cannot_harm_a_plant_or_starve_another() {
         20_202,
         "every flood sample served or superseded"
     );
-    assert_eq!(
-        st.superseded, d.superseded,
-        "only the flooding device was superseded"
-    );
+    // The service's count is the devices' sum. The good device may lose a sample of its
+    // own to its next one when the worker is late by a period (latest wins, by design);
+    // that it is not starved is the 99 % answered below, not a race asserted here.
+    let good_superseded = device(&st, "good-1").superseded;
+    assert_eq!(st.superseded, d.superseded + good_superseded);
     eprintln!(
-        "flood: {} served, {} superseded",
+        "flood: {} served, {} superseded; the good device's superseded: {good_superseded}",
         d.samples - 202,
         d.superseded
     );

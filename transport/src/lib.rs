@@ -59,6 +59,15 @@ fn insert(config: &mut Config, key: &str, value: &str) -> Result<(), TransportEr
         .map_err(|e| TransportError::Config(format!("{key} = {value}: {e}")))
 }
 
+/// Make `config` reassemble no message larger than `bytes` (see [`ZenohArgs::open_bounded`]).
+pub fn bound_messages(config: &mut Config, bytes: usize) -> Result<(), TransportError> {
+    insert(
+        config,
+        "transport/link/rx/max_message_size",
+        &bytes.to_string(),
+    )
+}
+
 fn json_list(items: &[String]) -> String {
     serde_json::to_string(items).unwrap_or_else(|_| "[]".into())
 }
@@ -101,6 +110,22 @@ impl ZenohArgs {
     /// Open a session with this configuration.
     pub async fn open(&self) -> Result<Session, TransportError> {
         let config = self.to_config()?;
+        zenoh::open(config)
+            .await
+            .map_err(|e| TransportError::Open(e.to_string()))
+    }
+
+    /// Open a session that reassembles no message larger than `max_message_size` bytes.
+    ///
+    /// Zenoh reassembles a fragmented message whole before any callback sees it, up to
+    /// `transport/link/rx/max_message_size` (1 GiB by default), so a size check in a
+    /// callback comes too late to bound memory: one peer could make a service hold a
+    /// gigabyte per link. Larger messages are dropped by zenoh's reassembly (it logs them
+    /// at trace level; nothing reaches the application to count). A service passes a
+    /// limit well above what it reads, so that what it refuses by size is still counted.
+    pub async fn open_bounded(&self, max_message_size: usize) -> Result<Session, TransportError> {
+        let mut config = self.to_config()?;
+        bound_messages(&mut config, max_message_size)?;
         zenoh::open(config)
             .await
             .map_err(|e| TransportError::Open(e.to_string()))

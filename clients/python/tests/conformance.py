@@ -21,6 +21,7 @@ import json
 import math
 import os
 import random
+import re
 import signal
 import socket
 import subprocess
@@ -605,6 +606,52 @@ class Conformance:
         self.r.counts["commands_seen"] = self.log.total()
 
 
+def example_plant(report: Report, binary: str, tmp: Path) -> Service:
+    """The shipped example as a user runs it: `examples/first_order_plant.py` (the paced
+    loop of `PlantLink.run`) against a service started from `examples/service.toml`."""
+    examples = Path(__file__).resolve().parents[1] / "examples"
+    sv = Service(binary, tmp, "py-ctl", (examples / "service.toml").read_text())
+    session = mc.connect(connect=[sv.endpoint])
+    try:
+        if report.check("example service up", sv.wait_serving(session, 60.0)):
+            run_example(report, session, sv, examples)
+    finally:
+        session.close()
+    return sv
+
+
+def run_example(report: Report, session: zenoh.Session, sv: Service, examples: Path) -> None:
+    seconds, rate = 3.0, 100.0
+    run = subprocess.run(
+        [sys.executable, str(examples / "first_order_plant.py"), "--connect", sv.endpoint,
+         "--seconds", str(seconds), "--rate", str(rate)],
+        capture_output=True, text=True, timeout=120,
+    )
+    out = run.stdout + run.stderr
+    print("    " + "\n    ".join(out.strip().splitlines()), flush=True)
+    report.check("example plant exits 0 (it was controlled)", run.returncode == 0,
+                 f"exit {run.returncode}")
+    # "commands: N arrived in time (C control, ...)": the paced loop was answered. Counts,
+    # not timing: on a busy machine some answers come after their period, so the bound is
+    # half the periods, where a loop nobody answers gets none.
+    m = re.search(r"commands: (\d+) arrived in time \((\d+) control", out)
+    steps = int(seconds * rate)
+    report.check("example plant: at least half its periods answered in time, a third with CONTROL",
+                 bool(m) and int(m.group(1)) >= steps // 2 and int(m.group(2)) >= steps // 3,
+                 m.group(0) if m else "no summary line")
+    st = device_status(session, "py-1")
+    report.check("the service counted the example's samples",
+                 st is not None and st.samples >= steps // 2 and st.rejected == 0,
+                 f"samples {st.samples if st else None}, rejected {st.rejected if st else None}")
+
+
+def device_status(session: zenoh.Session, device: str) -> pb.DeviceStatus | None:
+    try:
+        return mc.Operator(session).status(device)
+    except mc.MfcError:
+        return None
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--service-bin", required=True, help="path of the controller-service binary")
@@ -632,6 +679,8 @@ def main() -> int:
                                    "\"serving\")", ok, "" if ok else f"exit {sv.proc.poll()}")
             if up:
                 Conformance(session, report).run()
+                print("example plant:", flush=True)
+                services.append(example_plant(report, binary, Path(tmp)))
         except Exception as e:  # noqa: BLE001
             report.crash("harness", e)
         finally:
