@@ -85,6 +85,11 @@ impl<T> Inbox<T> {
         }
     }
 
+    /// Whether device `id` has a slot of its own (it is served).
+    pub fn serves(&self, id: &str) -> bool {
+        self.served.contains(id)
+    }
+
     /// Put a sample of device `id` in.
     pub fn push(&mut self, id: &str, item: T) -> Push {
         self.push_unless_older(id, item, |_, _| false)

@@ -690,6 +690,17 @@ impl Registry {
         }
     }
 
+    /// The templates' patterns, parsed (a pattern that does not parse matches nothing,
+    /// as in [`Registry::handle_sample`]): what zenoh's callbacks check an unknown id
+    /// against before they queue anything for it.
+    pub fn template_patterns(&self) -> Vec<zenoh::key_expr::OwnedKeyExpr> {
+        self.config
+            .templates
+            .iter()
+            .filter_map(|t| zenoh::key_expr::OwnedKeyExpr::try_from(t.pattern.clone()).ok())
+            .collect()
+    }
+
     fn template_for(&self, id: &str) -> Option<&crate::config::TemplateSpec> {
         let ke = zenoh::key_expr::KeyExpr::try_from(id).ok()?;
         self.config.templates.iter().find(|t| {

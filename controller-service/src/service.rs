@@ -3,7 +3,8 @@
 //!
 //! Zenoh's callbacks run on zenoh's receive threads and must never block, so they only
 //! sort messages, and cheaply: a payload over [`MAX_PAYLOAD`] is counted and dropped
-//! before it is copied; a key that names no device is counted and dropped; a sample is
+//! before it is copied; a key that names no device is counted and dropped; so is a sample
+//! for a device neither declared nor matched by a template (as unknown); a sample is
 //! decoded and prechecked ([`precheck`]: version, its key's own id, finite values), and
 //! only then goes to the [`Inbox`] (the latest per device, behind a mutex held only to
 //! push or pop), so garbage on a device's key never pushes out one of its real samples; a
@@ -93,11 +94,27 @@ struct Drops {
     undecodable: AtomicU64,
     bad_key: AtomicU64,
     queue_full: AtomicU64,
+    /// Samples on the key of a device neither declared nor matched by a template: no slot,
+    /// no decoding, just this count (added to the registry's in the status).
+    unknown: AtomicU64,
+    /// The first [`UNKNOWN_NAMED`] of their ids, for the status.
+    unknown_names: Mutex<std::collections::BTreeSet<String>>,
 }
+
+/// Unknown ids named in the status (the registry keeps as many of its own).
+const UNKNOWN_NAMED: usize = 64;
 
 impl Drops {
     fn count(counter: &AtomicU64) {
         counter.fetch_add(1, Ordering::Relaxed);
+    }
+
+    fn unknown(&self, id: &str) {
+        Self::count(&self.unknown);
+        let mut names = lock(&self.unknown_names);
+        if names.len() < UNKNOWN_NAMED && !names.contains(id) {
+            names.insert(printable(id));
+        }
     }
 }
 
@@ -222,6 +239,9 @@ pub async fn serve(
         }
     }
 
+    // Which ids could ever be served: the declared ones (in the inbox's served set) and
+    // those a template matches. The patterns do not change while the service runs.
+    let templates = registry.template_patterns();
     let sub = {
         let (drops, inbox, wake, tx) = (drops.clone(), inbox.clone(), wake.clone(), tx.clone());
         session
@@ -234,6 +254,16 @@ pub async fn serve(
                     Drops::count(&drops.bad_key);
                     return;
                 };
+                // A device nobody serves or could serve: counted here, whatever the load,
+                // and never queued, decoded or answered.
+                let templated = || {
+                    zenoh::key_expr::keyexpr::new(dev)
+                        .is_ok_and(|ke| templates.iter().any(|t| t.includes(ke)))
+                };
+                if !lock(&inbox).serves(dev) && !templated() {
+                    drops.unknown(dev);
+                    return;
+                }
                 let Ok(sample) = decode::<pb::Sample>(&s.payload().to_bytes()) else {
                     Drops::count(&drops.undecodable);
                     return;
@@ -365,7 +395,7 @@ pub async fn serve(
     tracing::info!(controller = %id, devices = registry.device_count(), "serving");
 
     let mut warn = Warnings::default();
-    let mut reported = [0u64; 5];
+    let mut reported = [0u64; 6];
     // One publisher per served device, made at its first command: bounded by the file's
     // `max_devices`, never by what arrives.
     let mut publishers: HashMap<String, Publisher<'static>> = HashMap::new();
@@ -435,11 +465,12 @@ pub async fn serve(
                     drops.queue_full.load(Ordering::Relaxed) + full,
                     superseded,
                     drops.undecodable.load(Ordering::Relaxed),
+                    drops.unknown.load(Ordering::Relaxed),
                 ];
                 let d: Vec<u64> = now.iter().zip(&reported).map(|(a, b)| a - b).collect();
                 if d.iter().any(|&x| x > 0) {
                     tracing::warn!(oversized = d[0], bad_key = d[1], queue_full = d[2], superseded = d[3], undecodable_samples = d[4],
-                        "messages dropped since the last report (every drop is counted in the service status)");
+                        unknown_devices = d[5], "messages dropped since the last report (every drop is counted in the service status)");
                 }
                 reported = now;
                 warn.flush(Instant::now());
@@ -585,6 +616,15 @@ pub async fn serve(
                     let ib = lock(&inbox);
                     (ib.superseded(), ib.full())
                 };
+                s.unknown_samples += drops.unknown.load(Ordering::Relaxed);
+                for name in lock(&drops.unknown_names).iter() {
+                    if s.unknown_devices.len() >= UNKNOWN_NAMED {
+                        break;
+                    }
+                    if !s.unknown_devices.contains(name) {
+                        s.unknown_devices.push(name.clone());
+                    }
+                }
                 s.oversized = drops.oversized.load(Ordering::Relaxed);
                 s.undecodable += drops.undecodable.load(Ordering::Relaxed);
                 s.bad_key = drops.bad_key.load(Ordering::Relaxed);
@@ -619,12 +659,10 @@ pub async fn serve(
     Ok(())
 }
 
-/// The inbox's lock; a panic elsewhere while it was held leaves plain data behind, still
-/// usable, so a poisoned lock is taken as it is.
-fn lock<T>(inbox: &Mutex<Inbox<T>>) -> std::sync::MutexGuard<'_, Inbox<T>> {
-    inbox
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner)
+/// One of the service's locks (the inbox, the unknown ids): a panic elsewhere while it was
+/// held leaves plain data behind, still usable, so a poisoned lock is taken as it is.
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 fn payload(q: &Query) -> Option<Vec<u8>> {
