@@ -208,7 +208,8 @@ async fn bursty_loss_30_stays_bounded() {
 }
 
 /// After a 1 s outage (at 4 s), the loop holds, falls back locally, and remote tracking
-/// is back within 1 s of the link's return.
+/// is back within 1 s of the link's return, tracking within twice its offline twin's
+/// worst error over the same stretch of the reference.
 #[tokio::test(flavor = "multi_thread")]
 async fn one_second_outage_recovers_within_a_second() {
     let _s = SERIAL.lock().await;
@@ -221,6 +222,7 @@ async fn one_second_outage_recovers_within_a_second() {
         }],
         ..Default::default()
     };
+    let offline = mfc_lab::offline::simulate(&s, &c[0], true).unwrap();
     for link in [Link::Udp, Link::Tcp] {
         let opts = options();
         let hold = f64::from(opts.hold_periods) * s.period;
@@ -252,10 +254,16 @@ async fn one_second_outage_recovers_within_a_second() {
             0,
             "{link:?}: fell back again after the link returned"
         );
-        // Tracking after recovery is as good as before the outage.
-        let (before, after) = (worst(rec, 1, 1.0, 3.9), worst(rec, 1, back + 1.0, 10.0));
-        eprintln!("{link:?}: pitch worst before {before:.4}, after {after:.4}");
-        assert!(after < 2.0 * before.max(0.01), "{link:?}");
+        // Tracking after recovery is as good as the offline twin's over the same stretch
+        // of the reference (the complex reference is harder in some stretches than in
+        // others, so the time before the outage is no yardstick for the time after it).
+        let after = worst(rec, 1, back + 1.0, 10.0);
+        let twin = worst(&offline.recording, 1, back + 1.0, 10.0);
+        eprintln!(
+            "{link:?}: pitch worst after recovery {after:.4}, offline twin {twin:.4} (before the outage {:.4})",
+            worst(rec, 1, 1.0, 3.9)
+        );
+        assert!(after < 2.0 * twin.max(0.01), "{link:?}: {after} vs {twin}");
     }
 }
 
