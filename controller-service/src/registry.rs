@@ -66,12 +66,16 @@ const MAX_REASON: usize = 240;
 /// the plant (a jump of `seq` inside [`MAX_SEQ_JUMP`], a glitch of the plant's clock, a
 /// forged sample), the real plant is locked out for at most this many samples.
 pub const RESYNC_AFTER: u32 = 64;
-/// Sample intervals kept per device to estimate its period (their median).
+/// Sample intervals kept per device to estimate its period (their lower median, so that
+/// leaps in fewer than five of the last eight intervals do not move it).
 const PERIOD_WINDOW: usize = 8;
+/// Intervals needed before the estimate counts.
+const PERIOD_MIN_INTERVALS: usize = 3;
 /// The rate limit allows a step of `rate * dt` with `dt` at most this many estimated
 /// periods: plant time comes from the network, and a leap of it must not open the limit.
 const RATE_DT_PERIODS: f64 = 2.0;
-/// ... and at most this long (s) while no period is known yet.
+/// ... and at most this long (s) while no period is known yet (a device's first three
+/// intervals).
 const RATE_DT_UNKNOWN: f64 = 1.0;
 
 /// A reason cut to [`MAX_REASON`] bytes (on a character boundary), so that no input can
@@ -161,6 +165,9 @@ struct Device {
     /// How many of `intervals` are filled, and where the next goes.
     intervals_len: usize,
     intervals_next: usize,
+    /// The values of the last CONTROL command sent, kept across runs (the same actuator):
+    /// where the rate limit runs from when a sample does not say what is applied.
+    held: Option<Vec<f64>>,
     /// Each step's outputs per channel, a buffer reused from sample to sample.
     outputs: Vec<ChannelOutput>,
     /// The references per channel at the current sample, likewise reused.
@@ -188,7 +195,9 @@ struct Device {
     samples_off_remote: u64,
     /// Envelope changes accepted since the service started.
     envelope_changes: u64,
-    /// Commands the final envelope check clipped (0 unless a law or map misbehaves).
+    /// Commands the final envelope check clipped: 0 unless a law or map misbehaves, or a
+    /// rate-limited channel starts (a run, a restore) where the law's first value is not
+    /// within reach of what the actuator holds.
     clamped: u64,
     /// Reference updates refused.
     references_refused: u64,
@@ -240,6 +249,7 @@ impl Device {
             last_time: f64::NEG_INFINITY,
             last_command: None,
             astray: None,
+            held: None,
             intervals: [0.0; PERIOD_WINDOW],
             intervals_len: 0,
             intervals_next: 0,
@@ -286,19 +296,25 @@ impl Device {
         self.restarts += 1;
     }
 
-    /// The sample period, as the median of the recent intervals; `None` before the first.
+    /// The sample period: the lower median of the recent intervals; `None` before
+    /// [`PERIOD_MIN_INTERVALS`] of them.
     fn period(&self) -> Option<f64> {
         let n = self.intervals_len;
-        if n == 0 {
+        if n < PERIOD_MIN_INTERVALS {
             return None;
         }
         let mut v = self.intervals;
         let v = &mut v[..n];
         v.sort_unstable_by(f64::total_cmp);
-        Some(v[n / 2])
+        Some(v[(n - 1) / 2])
     }
 
+    /// Note the interval between two consecutive accepted samples (positive: time must
+    /// advance; finite, or it is not an interval anyone can use).
     fn note_interval(&mut self, dt: f64) {
+        if !(dt.is_finite() && dt > 0.0) {
+            return;
+        }
         self.intervals[self.intervals_next] = dt;
         self.intervals_next = (self.intervals_next + 1) % PERIOD_WINDOW;
         self.intervals_len = (self.intervals_len + 1).min(PERIOD_WINDOW);
@@ -788,11 +804,18 @@ impl Registry {
             let out_of_step = match d.last_seq {
                 Some(last) if s.seq == last => {
                     d.duplicates += 1;
-                    return match &d.last_command {
-                        Some(c) => Outcome::Reply(c.clone()),
-                        // Answered before a restore: nothing cached to send again.
-                        None => stale(d, "already answered (before a restart of the service)"),
-                    };
+                    return Outcome::Reply(match &d.last_command {
+                        Some(c) => c.clone(),
+                        // Answered before a restore: nothing cached to send again (counted
+                        // as a duplicate only).
+                        None => reply(
+                            controller_id,
+                            key_id,
+                            (s.seq, s.sent_unix_ns),
+                            pb::Mode::Stale,
+                            "already answered (before a restart of the service)".into(),
+                        ),
+                    });
                 }
                 Some(last) if s.seq < last => Some(None),
                 Some(last) if s.seq - last > MAX_SEQ_JUMP => Some(Some(format!(
@@ -858,12 +881,24 @@ impl Registry {
         // The plant applied the last command and nothing else since: the rate limit runs
         // from it. Otherwise (a new run, a restore, a gap, a plant holding or on its
         // fallback, a warm-up answer it did not apply) from what the plant says it applies,
-        // or from rest if it does not say.
+        // or from the last command sent to the device, or from rest.
         let follows = d.last_seq == Some(s.seq.wrapping_sub(1))
             && s.flags & plant_trouble == 0
             && d.last_command
                 .as_ref()
                 .is_some_and(|c| c.mode == pb::Mode::Control as i32);
+        // Read before this sample's interval joins the estimate: a leap cannot vouch for
+        // itself.
+        let period = d.period();
+        // Within a run, the time since the last answered sample, at most two periods (a
+        // lost sample in between gives the law that much more room, and the envelope the
+        // same); at the start of a run or after a restore, one period from what is held
+        // (nothing, before a period is known).
+        let rate_dt = if d.last_seq.is_some() && !d.restored {
+            dt.min(period.map_or(RATE_DT_UNKNOWN, |p| RATE_DT_PERIODS * p))
+        } else {
+            period.unwrap_or(0.0)
+        };
         if let Some(last) = d.last_seq {
             // s.seq > last here.
             d.lost += s.seq.saturating_sub(last).saturating_sub(1);
@@ -896,13 +931,6 @@ impl Registry {
             );
             return refuse(d, &mut self.rejected, reason);
         }
-        let period = d.period();
-        let rate_dt = if follows {
-            dt.min(period.map_or(RATE_DT_UNKNOWN, |p| RATE_DT_PERIODS * p))
-        } else {
-            // One period from what is applied now; none at all before a period is known.
-            period.unwrap_or(0.0)
-        };
         let mut v: Vec<f64> = Vec::with_capacity(d.outputs.len());
         let mut clipped = false;
         for (i, o) in d.outputs.iter().enumerate() {
@@ -912,7 +940,7 @@ impl Registry {
                     .applied
                     .get(i)
                     .copied()
-                    .or_else(|| d.last_command.as_ref().and_then(|c| c.v.get(i).copied())),
+                    .or_else(|| d.held.as_ref().and_then(|h| h.get(i).copied())),
             }
             .unwrap_or(0.0);
             let (x, c) = d.envelope[i].clamp(o.v, Some((from, rate_dt)));
@@ -945,6 +973,9 @@ impl Registry {
             error: String::new(),
         };
         d.commands += 1;
+        if command.mode == pb::Mode::Control as i32 {
+            d.held = Some(command.v.clone());
+        }
         d.last_command = Some(command.clone());
         Outcome::Reply(command)
     }

@@ -260,7 +260,8 @@ pub async fn serve(
                     zenoh::key_expr::keyexpr::new(dev)
                         .is_ok_and(|ke| templates.iter().any(|t| t.includes(ke)))
                 };
-                if !lock(&inbox).serves(dev) && !templated() {
+                let served = lock(&inbox).serves(dev);
+                if !served && !templated() {
                     drops.unknown(dev);
                     return;
                 }
@@ -292,7 +293,7 @@ pub async fn serve(
             .map_err(declare_err("sample subscriber"))?
     };
     let ref_sub = {
-        let (tx, drops) = (tx.clone(), drops.clone());
+        let (tx, drops, inbox) = (tx.clone(), drops.clone(), inbox.clone());
         session
             .declare_subscriber(keys::all_devices("reference"))
             .callback(move |s| {
@@ -303,6 +304,11 @@ pub async fn serve(
                     Drops::count(&drops.bad_key);
                     return;
                 };
+                // A put reaches every service: one that does not serve the device lets it
+                // pass, uncounted, before it can take a place in the queue.
+                if !lock(&inbox).serves(dev) {
+                    return;
+                }
                 let msg = Msg::Reference(dev.to_string(), s.payload().to_bytes().into_owned());
                 if tx.try_send(msg).is_err() {
                     Drops::count(&drops.queue_full);

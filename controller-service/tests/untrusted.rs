@@ -467,21 +467,62 @@ fn a_leap_of_plant_time_neither_opens_the_rate_limit_nor_locks_the_device() {
     let before = r.device_status("heater").unwrap();
     let mut refused = 0;
     let mut k = 51;
-    loop {
+    let first = loop {
         let c = reply(r.handle_sample("heater", &heater(1, k, k as f64 * 0.01, 20.0, held)));
         if mode(&c) == pb::Mode::Control {
-            break;
+            break c;
         }
         assert_eq!(mode(&c), pb::Mode::Rejected);
         assert!(c.error.contains("does not advance"), "{}", c.error);
         refused += 1;
         k += 1;
         assert!(refused < 10 * RESYNC_AFTER, "the device is locked out");
-    }
+    };
     assert_eq!(refused, RESYNC_AFTER - 1);
+    // The first command of the resynchronised run: one period's step from what is held.
+    assert!(
+        (first.v[0] - held).abs() <= 1.0 + 2e-9,
+        "{held} -> {}",
+        first.v[0]
+    );
     let after = r.device_status("heater").unwrap();
     assert_eq!(after.restarts, before.restarts + 1, "followed as a new run");
     assert_eq!(after.rejected, before.rejected + u64::from(refused));
+}
+
+#[test]
+fn leaps_in_a_row_do_not_open_the_rate_limit() {
+    let mut r = registry();
+    let mut held = drive_heater(&mut r, 1, 1..30, 0.0);
+    // Four leaps of 1000 s in a row: the period estimate (the lower median of the last
+    // eight intervals) does not move, so each step stays within two periods' worth.
+    let mut t = 0.29;
+    for k in 30..34u64 {
+        t += 1000.0;
+        let c = reply(r.handle_sample("heater", &heater(1, k, t, 20.0, held)));
+        assert_eq!(mode(&c), pb::Mode::Control, "{}", c.error);
+        assert!(
+            (c.v[0] - held).abs() <= 100.0 * 2.0 * 0.01 * (1.0 + 2e-9),
+            "leap {k}: {held} -> {}",
+            c.v[0]
+        );
+        held = c.v[0];
+    }
+}
+
+#[test]
+fn normal_driving_with_a_lost_sample_is_not_clipped() {
+    let mut r = registry();
+    // The first command starts from what is held (0 V) where the PID wants 24 V: clipped.
+    let held = drive_heater(&mut r, 1, 1..2, 0.0);
+    let start = r.device_status("heater").unwrap().clamped;
+    // From then on the law's own rate limit keeps it within reach, a lost sample (seq 50)
+    // included.
+    let held = drive_heater(&mut r, 1, 2..50, held);
+    drive_heater(&mut r, 1, 51..100, held);
+    let st = r.device_status("heater").unwrap();
+    assert_eq!(st.clamped, start, "{st:?}");
+    assert_eq!(st.lost, 1);
 }
 
 #[test]
@@ -546,9 +587,10 @@ fn the_first_command_of_a_run_moves_from_what_the_plant_applies() {
         "{held} / 3 -> {}",
         c.v[0]
     );
-    // Without a report, from rest.
+    // Without a report, from the last command sent to the device.
+    let last = c.v[0];
     let c = reply(r.handle_sample("heater", &sample("heater", 3, 1, 0.01, &[20.0])));
-    assert!(c.v[0] <= 1.0 + 2e-9, "{}", c.v[0]);
+    assert!((c.v[0] - last).abs() <= 1.0 + 2e-9, "{last} -> {}", c.v[0]);
 }
 
 #[test]
@@ -747,6 +789,9 @@ proptest! {
                         }
                         let computed = c.mode == pb::Mode::Control as i32
                             || c.mode == pb::Mode::WarmingUp as i32;
+                        // Plant time since the last answered sample: within a run, before
+                        // a period is known, the limit's time step is that (at most 1 s).
+                        let since = answered.map_or(0.0, |(_, tq)| (time - tq).clamp(0.0, 1.0));
                         if id == "heater" && computed {
                             let resent = answered.is_some_and(|(q, _)| q == seq);
                             if !resent {
@@ -764,8 +809,9 @@ proptest! {
                             // narrowed envelope forced the command to its edge.
                             let v = c.v[0];
                             let inside = env[0].0 <= held && held <= env[0].1;
-                            prop_assert!(!inside || (v - held).abs() <= 100.0 * 2.0 * longest * (1.0 + 2e-9) + 1e-12,
-                                "heater: {} -> {} (longest interval {})", held, v, longest);
+                            let step = 100.0 * (2.0 * longest).max(since);
+                            prop_assert!(!inside || (v - held).abs() <= step * (1.0 + 2e-9) + 1e-12,
+                                "heater: {} -> {} (longest interval {}, since {})", held, v, longest, since);
                             held = v;
                         }
                         prop_assert!(c.error.len() < 300);

@@ -166,6 +166,9 @@ pub struct DriverPlant {
     lines: mpsc::Receiver<String>,
     channels: usize,
     timeout: Duration,
+    /// Answers still owed by the driver: requests that timed out. A slow driver may still
+    /// send them, and they must not pass for the answer to a later request.
+    owed: usize,
 }
 
 impl DriverPlant {
@@ -234,6 +237,7 @@ impl DriverPlant {
             lines,
             channels: 0,
             timeout: hello_timeout,
+            owed: 0,
         };
         let hello = plant.answer("(start)")?;
         plant.timeout = timeout;
@@ -254,10 +258,13 @@ impl DriverPlant {
                 Some(msg) => Err(PlantError::Driver(format!("`{request}`: {msg}"))),
                 None => Ok(line),
             },
-            Err(mpsc::RecvTimeoutError::Timeout) => Err(PlantError::Timeout {
-                request: request.into(),
-                timeout: self.timeout,
-            }),
+            Err(mpsc::RecvTimeoutError::Timeout) => {
+                self.owed += 1;
+                Err(PlantError::Timeout {
+                    request: request.into(),
+                    timeout: self.timeout,
+                })
+            }
             Err(mpsc::RecvTimeoutError::Disconnected) => Err(PlantError::Driver(format!(
                 "exited before answering `{request}`"
             ))),
@@ -319,10 +326,22 @@ impl Plant for DriverPlant {
         }
     }
     fn stop(&mut self) -> Result<(), PlantError> {
-        // Answers still queued belong to requests that timed out: drop them, so that only
-        // the driver's answer to `stop` itself can confirm the safe stop.
-        while self.lines.try_recv().is_ok() {}
-        let a = self.request("stop");
+        // The answers owed for requests that timed out come first, if at all: skip that
+        // many, so that only the driver's answer to `stop` itself confirms the safe stop.
+        let owed = std::mem::take(&mut self.owed);
+        let a = writeln!(self.stdin, "stop")
+            .and_then(|()| self.stdin.flush())
+            .map_err(|e| PlantError::Driver(format!("writing `stop`: {e}")))
+            .and_then(|()| {
+                for _ in 0..owed {
+                    if let Err(mpsc::RecvTimeoutError::Disconnected) =
+                        self.lines.recv_timeout(self.timeout)
+                    {
+                        return Err(PlantError::Driver("exited before answering `stop`".into()));
+                    }
+                }
+                self.answer("stop")
+            });
         self.reap();
         match a {
             Ok(a) if a.trim() == "ok" => Ok(()),

@@ -25,9 +25,10 @@ pub const MAX_PAYLOAD: usize = 64 * 1024;
 
 /// Largest message a controller's Zenoh session reassembles at all (bytes). Between
 /// [`MAX_PAYLOAD`] and this, a message reaches the service and is counted as oversized;
-/// beyond it, zenoh drops it while reassembling, so no peer can make the service hold more
-/// than this per link (zenoh's own default is 1 GiB).
-pub const MAX_TRANSPORT_MESSAGE: usize = 4 * 1024 * 1024;
+/// beyond it, zenoh drops it while reassembling. Zenoh keeps one reassembly buffer per
+/// priority and reliability of each link (16), so a peer can make the service hold at
+/// most 16 times this, where zenoh's own default (1 GiB) would allow 16 GiB.
+pub const MAX_TRANSPORT_MESSAGE: usize = 2 * 1024 * 1024;
 
 /// Longest string from the network that is echoed, stored or logged (characters).
 pub const MAX_ECHO: usize = 64;
