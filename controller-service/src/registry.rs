@@ -27,8 +27,9 @@
 //!    is never sent (`REJECTED`); one outside `[min, max]`, or further than the rate limit
 //!    allows from what the actuator holds, is clipped and counted (`clamped`). The rate
 //!    limit runs from the last command when the plant applied it, otherwise from what the
-//!    sample says the plant applies (or from rest), over at most a couple of periods of
-//!    plant time (the median of recent intervals), so a leap of plant time cannot open it.
+//!    sample says the plant applies, or the last command sent, or rest; over at most two
+//!    periods of plant time (the lower median of recent intervals), so a leap of plant
+//!    time cannot open it.
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
@@ -974,7 +975,11 @@ impl Registry {
         };
         d.commands += 1;
         if command.mode == pb::Mode::Control as i32 {
-            d.held = Some(command.v.clone());
+            // Reusing the buffer: no allocation per sample for this.
+            match &mut d.held {
+                Some(h) => h.clone_from(&command.v),
+                None => d.held = Some(command.v.clone()),
+            }
         }
         d.last_command = Some(command.clone());
         Outcome::Reply(command)

@@ -57,6 +57,10 @@ enum Command {
         /// With --compare: controller files or shipped names, comma-separated.
         #[arg(long, value_delimiter = ',', requires = "compare")]
         controllers: Vec<String>,
+        /// Run length (s), instead of the scenario's: the offline twin of a shortened live
+        /// run (`plant-agent run --duration`).
+        #[arg(long, conflicts_with = "compare")]
+        duration: Option<f64>,
     },
     /// Run the main job: a controller service and N simulated plants over Zenoh on
     /// loopback, in real time.
@@ -188,6 +192,7 @@ fn real_main() -> Result<()> {
             out,
             compare: true,
             controllers,
+            ..
         } => {
             if controller.is_some() {
                 bail!("--compare takes --controllers (a list), not --controller");
@@ -202,9 +207,16 @@ fn real_main() -> Result<()> {
             controller,
             out,
             compare: false,
+            duration,
             ..
         } => {
-            let (scenario, set) = scenario_and_controller(&scenario, controller.as_deref())?;
+            let (mut scenario, set) = scenario_and_controller(&scenario, controller.as_deref())?;
+            if let Some(d) = duration {
+                if !(d.is_finite() && d > 0.0) {
+                    bail!("--duration must be a positive number of seconds, not {d}");
+                }
+                scenario.duration = d;
+            }
             let r = simulate(&scenario, &set, true)?;
             write_run(
                 &out,

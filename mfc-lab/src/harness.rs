@@ -169,14 +169,7 @@ pub async fn run_plant(
     gossip: bool,
 ) -> anyhow::Result<AgentRun> {
     let session = open_session(None, endpoints, gossip).await?;
-    // Opening a driver plant waits for its `hello` (seconds, for an interpreter): off the
-    // async workers, like every other plant call.
-    let (spec, seed, n) = (
-        plant.scenario.plant.clone(),
-        plant.seed,
-        plant.scenario.channels.len(),
-    );
-    let p = tokio::task::spawn_blocking(move || plant_agent::plant::open(&spec, seed, n)).await??;
+    let p = agent::open_plant(&plant.scenario, plant.seed).await?;
     let out = agent::run_loop(
         &session,
         p,

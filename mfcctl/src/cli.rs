@@ -147,6 +147,13 @@ where
     }
 }
 
+/// `devices --json`.
+#[derive(Serialize)]
+struct DevicesJson {
+    services: Vec<pb::ServiceStatus>,
+    plants_up: Vec<String>,
+}
+
 fn out<T: Serialize>(json: bool, value: &T, text: impl FnOnce(&T) -> String) -> Result<String> {
     if json {
         Ok(serde_json::to_string_pretty(value)? + "\n")
@@ -228,7 +235,13 @@ async fn command(
         Command::Devices => {
             let list = ops::services(session, timeout).await?;
             let plants = ops::alive(session, "plant").await?;
-            out(json, &list, |l| render::devices(l, &plants))?
+            // JSON: the services' statuses as `services`, and the plants whose agents are
+            // up (liveliness) as `plants_up`, served or not.
+            let both = DevicesJson {
+                services: list,
+                plants_up: plants,
+            };
+            out(json, &both, |b| render::devices(&b.services, &b.plants_up))?
         }
         Command::Status { device } => {
             let s = ops::device_status(session, device, timeout).await?;

@@ -187,7 +187,10 @@ impl AgentReport {
     pub fn headline(&self) -> String {
         let end = match self.end {
             End::Completed => "completed".to_string(),
-            End::Interrupted => "interrupted".to_string(),
+            End::Interrupted => match &self.error {
+                Some(why) => format!("interrupted ({why})"),
+                None => "interrupted".to_string(),
+            },
             End::PlantFailed => format!(
                 "plant failed: {}",
                 self.error.as_deref().unwrap_or("unknown")
@@ -203,6 +206,9 @@ impl AgentReport {
         };
         let ctl = match (self.link, self.lost_at) {
             (Link::Kept, _) => String::new(),
+            (Link::Never, _) if self.counters.periods == 0 => {
+                "; NO CONTROLLER EVER ANSWERED (check the endpoint, TLS and access control)".into()
+            }
             (Link::Never, _) => "; NO CONTROLLER EVER ANSWERED (check the endpoint, TLS and \
                                  access control): the plant ran on its fallback"
                 .into(),
@@ -253,6 +259,16 @@ enum PlantRequest {
 }
 
 type PlantReply = oneshot::Sender<Result<Vec<f64>, PlantError>>;
+
+/// Open the plant `scenario` names (see [`crate::plant::open`]) on a blocking thread:
+/// a driver's `hello` may take seconds (an interpreter, a vendor SDK), and plant I/O never
+/// runs on an async worker.
+pub async fn open_plant(scenario: &Scenario, seed: u64) -> Result<Box<dyn Plant>, PlantError> {
+    let (source, n) = (scenario.plant.clone(), scenario.channels.len());
+    tokio::task::spawn_blocking(move || crate::plant::open(&source, seed, n))
+        .await
+        .unwrap_or_else(|e| Err(PlantError::Driver(format!("opening the plant: {e}"))))
+}
 
 /// The plant on a thread of its own, driven by async calls: plant I/O may block (a driver
 /// process, a serial line) and must never block an async worker.
@@ -350,6 +366,40 @@ impl LogBudget {
     fn hit(&mut self) -> bool {
         self.0 += 1;
         self.0 <= 5 || self.0 % 1000 == 0
+    }
+}
+
+/// The report and (empty) record of a run stopped before it could start: the plant was
+/// opened and got its safe stop (`stopped` says how that went), but no session ever opened,
+/// so no period ran and no controller was reached. Written like any other record, so that
+/// whoever looks at the device's directory sees what happened.
+pub fn never_started(config: &LoopConfig, stopped: Result<(), PlantError>) -> AgentRun {
+    let names: Vec<String> = config.channels.iter().map(|c| c.name.clone()).collect();
+    let units = config.channels.iter().map(|c| c.unit.clone()).collect();
+    let report = AgentReport {
+        device_id: config.device_id.clone(),
+        scenario: config.scenario.clone(),
+        controller: config.controller.clone(),
+        end: End::Interrupted,
+        error: Some("stopped while waiting for the router: no session, no period ran".into()),
+        safe_stop_applied: stopped.is_ok(),
+        safe_stop_error: stopped.err().map(|e| e.to_string()),
+        controller_reached: false,
+        link: Link::Never,
+        lost_at: None,
+        channels: names
+            .iter()
+            .map(|n| Accumulator::default().finish(n))
+            .collect(),
+        counters: Counters::default(),
+        rtt_p50_us: 0.0,
+        rtt_p99_us: 0.0,
+        overruns: 0,
+        limit_hits: 0,
+    };
+    AgentRun {
+        report,
+        recording: Recording::new(names, units, 0),
     }
 }
 

@@ -28,7 +28,8 @@ enum Command {
     /// or SIGTERM; then apply the plant's safe stop and write the record.
     ///
     /// Exit status: 0 ran (or was stopped) with a controller answering; 3 no controller
-    /// ever answered (the plant ran on its fallback: check endpoint, TLS, access control);
+    /// ever answered (the plant ran on its fallback: check endpoint, TLS, access control;
+    /// also when stopped while still waiting for the router, after the safe stop);
     /// 5 the controller was lost and the run ended on the fallback; 4 the plant failed or
     /// did not confirm its safe stop; 1 the configuration or the session was refused.
     Run(RunArgs),
@@ -126,28 +127,35 @@ fn run(args: RunArgs) -> Result<u8> {
         // First, before the plant opens (a driver may take seconds to say hello) and before
         // the session: a stop requested meanwhile is kept, and the plant gets its safe stop
         // and the record at once instead of the process dying with nothing written.
-        let shutdown = transport::shutdown_signal();
-        let (spec, seed, n) = (
-            r.scenario.plant.clone(),
-            r.scenario.seed,
-            r.scenario.channels.len(),
-        );
-        let plant = tokio::task::spawn_blocking(move || crate::plant::open(&spec, seed, n))
-            .await?
+        let mut shutdown = Box::pin(transport::shutdown_signal());
+        let plant = agent::open_plant(&r.scenario, r.scenario.seed)
+            .await
             .context("opening the plant")?;
-        let session = match args.zenoh.open().await {
-            Ok(s) => s,
-            Err(e) => {
+        // A client of a router retries until the router answers (start order must not
+        // matter), and a stop meanwhile must still be a safe stop, not a hang.
+        let opened = tokio::select! {
+            s = args.zenoh.open() => Some(s),
+            _ = &mut shutdown => None,
+        };
+        let session = match opened {
+            Some(Ok(s)) => s,
+            Some(Err(e)) => {
                 // The plant was opened: give it its safe stop before giving up.
-                let p = agent::PlantThread::spawn(plant);
-                let _ = p.stop().await;
+                let _ = agent::PlantThread::spawn(plant).stop().await;
                 return Err(anyhow::Error::from(e));
+            }
+            None => {
+                let stopped = agent::PlantThread::spawn(plant).stop().await;
+                return Ok(agent::never_started(&r.loop_config, stopped));
             }
         };
         let out = agent::run_loop(&session, plant, &r.loop_config, run_id(), shutdown).await;
         let _ = session.close().await;
         Ok(out?)
-    })?;
+    });
+    // zenoh's open may still be retrying on a worker: do not wait for it.
+    runtime.shutdown_background();
+    let run = run?;
     let title = format!("{} — {} over Zenoh", r.scenario.name, run.report.device_id);
     write_run(&r.out, &title, &run.recording, &run.report)
         .with_context(|| format!("writing the record to {}", r.out.display()))?;

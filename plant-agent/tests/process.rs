@@ -221,3 +221,61 @@ fn bad_configuration_is_refused_before_touching_the_plant() {
     assert_eq!(out.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&out.stderr).contains("device"));
 }
+
+/// An agent whose router is not there yet says so every 5 s instead of hanging in silence,
+/// and a stop while it waits is still a safe stop of the (already opened) plant: exit 3,
+/// and a record of a run that never started.
+#[test]
+fn sigterm_while_waiting_for_the_router_is_a_safe_stop() {
+    let dir = scratch("no-router");
+    let log = dir.join("driver.log");
+    let out = dir.join("out");
+    let zenoh = dir.join("client.json5");
+    // A client that retries forever, as the generated deployment configs do.
+    std::fs::write(
+        &zenoh,
+        format!(
+            r#"{{ mode: "client", connect: {{ endpoints: ["tcp/127.0.0.1:{}"], timeout_ms: -1 }},
+               scouting: {{ multicast: {{ enabled: false }} }} }}"#,
+            free_port()
+        ),
+    )
+    .unwrap();
+    let stderr = dir.join("stderr.log");
+    let stdout = dir.join("stdout.log");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_plant-agent"))
+        .args(["run", "--device", "echo-1", "--scenario"])
+        .arg(scenario(&dir, &log, &[]))
+        .arg("--out")
+        .arg(&out)
+        .arg("--zenoh-config")
+        .arg(&zenoh)
+        .env("RUST_LOG", "warn")
+        .stdout(std::fs::File::create(&stdout).unwrap())
+        .stderr(std::fs::File::create(&stderr).unwrap())
+        .spawn()
+        .unwrap();
+    let until = Instant::now() + Duration::from_secs(30);
+    while !std::fs::read_to_string(&stderr)
+        .unwrap_or_default()
+        .contains("not connected after")
+    {
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the agent exited instead of waiting for its router"
+        );
+        assert!(Instant::now() < until, "no 'not connected' warning in 30 s");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    signal(&child, "TERM");
+    assert_eq!(wait(&mut child, Duration::from_secs(30)), 3);
+    let requests = std::fs::read_to_string(&log).unwrap();
+    assert_eq!(requests.lines().last(), Some("stop"), "{requests}");
+    let s = summary(&out);
+    assert_eq!(s["end"], "interrupted", "{s}");
+    assert_eq!(s["link"], "never", "{s}");
+    assert_eq!(s["safe_stop_applied"], true, "{s}");
+    assert_eq!(s["counters"]["periods"], 0, "{s}");
+    let said = std::fs::read_to_string(&stdout).unwrap();
+    assert!(said.contains("waiting for the router"), "{said}");
+}

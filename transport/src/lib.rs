@@ -109,10 +109,7 @@ impl ZenohArgs {
 
     /// Open a session with this configuration.
     pub async fn open(&self) -> Result<Session, TransportError> {
-        let config = self.to_config()?;
-        zenoh::open(config)
-            .await
-            .map_err(|e| TransportError::Open(e.to_string()))
+        open_logged(self.to_config()?).await
     }
 
     /// Open a session that reassembles no message larger than `max_message_size` bytes.
@@ -126,9 +123,42 @@ impl ZenohArgs {
     pub async fn open_bounded(&self, max_message_size: usize) -> Result<Session, TransportError> {
         let mut config = self.to_config()?;
         bound_messages(&mut config, max_message_size)?;
-        zenoh::open(config)
-            .await
-            .map_err(|e| TransportError::Open(e.to_string()))
+        open_logged(config).await
+    }
+}
+
+/// How often a session still opening says so.
+pub const OPEN_WAIT_LOG: std::time::Duration = std::time::Duration::from_secs(5);
+
+/// Open a session; while zenoh is still trying to connect, say so every [`OPEN_WAIT_LOG`].
+///
+/// A client configured to retry forever (`connect.timeout_ms: -1`, what a deployment
+/// wants so that start order does not matter) waits inside `zenoh::open` until its router
+/// answers, and zenoh says nothing at the default log level, even when the cause is a
+/// refused certificate. Silence there looked like a hang; this names the endpoints and
+/// the usual causes instead.
+pub async fn open_logged(config: Config) -> Result<Session, TransportError> {
+    let endpoints = config
+        .get_json("connect/endpoints")
+        .unwrap_or_else(|_| "[]".into());
+    // On a task of its own: zenoh's open may hold the thread that polls it while it
+    // retries, and the warning below must still fire.
+    let mut open = tokio::spawn(async move { zenoh::open(config).await });
+    let started = std::time::Instant::now();
+    loop {
+        tokio::select! {
+            r = &mut open => {
+                return match r {
+                    Ok(r) => r.map_err(|e| TransportError::Open(e.to_string())),
+                    Err(e) => Err(TransportError::Open(format!("the opening task failed: {e}"))),
+                };
+            }
+            _ = tokio::time::sleep(OPEN_WAIT_LOG) => tracing::warn!(
+                "not connected after {:.0} s to {endpoints}: still trying (is the router up and reachable? \
+                 do this host's certificate, key and CA match the router's? see the router's log)",
+                started.elapsed().as_secs_f64()
+            ),
+        }
     }
 }
 

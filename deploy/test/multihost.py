@@ -1,0 +1,776 @@
+#!/usr/bin/env python3
+"""The multi-host deployment test: deploy/GUIDE.md, followed on separate network hosts.
+
+Hosts are network namespaces joined by veth pairs to a bridge (in a namespace of its own),
+with the guide's addresses: router 10.77.0.1, controller .2, plant-1 .11, plant-2 .12,
+operator .21, and an intruder .66 that the guide does not have. Each host sees its own
+/etc/mfc (`ip netns exec` bind-mounts /etc/netns/NS/mfc there); `scp` is a stand-in that
+copies into it. The router is the real zenohd at the pinned version.
+
+Phase 1 runs the guide's blocks as written (admin blocks in a scratch directory, host
+blocks on their host) and checks that both plants track within MFC_TEST_MULTIHOST_RMS_RATIO
+(default 1.2) of their offline twins and exit 0. A run in which a plant's own 10 ms loop
+started more than MFC_TEST_MULTIHOST_MAX_OVERRUNS (10 %) of its periods late is done again
+(at most 3 times, all reported, with the CPU time the hypervisor stole): the machine, not
+the network, was late then; if no run kept time, that fails too.
+Phase 2 starts the same commands in reverse order (plants, controller, then the router),
+kills the router with SIGKILL mid-run and restarts it, changes a gain from the operator's
+host, and attacks from the intruder host: forged puts, queries and subscriptions with
+aero-1's certificate on aero-2's keys (counted by a witness holding the controller's
+identity: 0 must arrive, against all of them on aero-1's own sample key), a client with no
+certificate, plain TCP and a foreign CA (refused), and no listening socket on the plants.
+
+Needs root, iproute2 and zenohd; without them it prints SKIP and exits 0. Exit 1 on any
+failed check (all are reported). Logs and records: $MFC_MULTIHOST_LOGS (default
+~/.cache/mfc-zenoh/multihost-last).
+
+    sudo python3 deploy/test/multihost.py --bin-dir "$CARGO_TARGET_DIR/debug" [--zenohd PATH]
+"""
+
+import argparse
+import csv
+import json
+import math
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+GUIDE = ROOT / "deploy" / "GUIDE.md"
+UNITS = ROOT / "deploy" / "systemd"
+
+# Guide host -> (namespace, address). The intruder is the test's own.
+HOSTS = {
+    "router": ("mfc-router", "10.77.0.1"),
+    "controller": ("mfc-ctl", "10.77.0.2"),
+    "plant-1": ("mfc-plant1", "10.77.0.11"),
+    "plant-2": ("mfc-plant2", "10.77.0.12"),
+    "operator": ("mfc-op", "10.77.0.21"),
+    "intruder": ("mfc-intruder", "10.77.0.66"),
+}
+SWITCH = "mfc-switch"
+RMS_RATIO = float(os.environ.get("MFC_TEST_MULTIHOST_RMS_RATIO", "1.2"))
+# The gain change (alpha x GAIN_FACTOR on aero-2's azimuth velocity) must raise its tracking
+# error over the end of the run at least this many times above aero-1's, same window.
+GAIN_EFFECT = float(os.environ.get("MFC_TEST_MULTIHOST_GAIN_EFFECT", "2.0"))
+GAIN_FACTOR = 1000.0
+# Phase 1 is run once more when a plant's own loop started more than this fraction of its
+# periods over half a period late: then the machine, not the network, was late. Runs that
+# tracked well had 0.1-6 % here; the one run kept that failed the bound, 11-13 %.
+MAX_OVERRUNS = float(os.environ.get("MFC_TEST_MULTIHOST_MAX_OVERRUNS", "0.10"))
+ATTEMPTS = 3
+FORGED = 50
+
+failures = []
+results = {}
+
+
+def log(msg):
+    print(f"[multihost {time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+def check(ok, what, detail=""):
+    log(("ok   " if ok else "FAIL ") + what + (f": {detail}" if detail else ""))
+    if not ok:
+        failures.append(f"{what}: {detail}")
+    return ok
+
+
+def sh(cmd, check_rc=True, **kw):
+    r = subprocess.run(cmd, shell=isinstance(cmd, str), capture_output=True, text=True, **kw)
+    if check_rc and r.returncode != 0:
+        raise RuntimeError(f"{cmd}: exit {r.returncode}: {r.stderr.strip()}")
+    return r
+
+
+def skip(why):
+    print(f"SKIP multihost deployment test: {why}", flush=True)
+    sys.exit(0)
+
+
+# ---------------------------------------------------------------- network
+
+def teardown_network():
+    for ns, _ in list(HOSTS.values()) + [(SWITCH, None)]:
+        sh(["ip", "netns", "del", ns], check_rc=False)
+        shutil.rmtree(f"/etc/netns/{ns}", ignore_errors=True)
+
+
+def setup_network():
+    teardown_network()
+    sh(["ip", "netns", "add", SWITCH])
+    sh(["ip", "-n", SWITCH, "link", "add", "br0", "type", "bridge"])
+    sh(["ip", "-n", SWITCH, "link", "set", "br0", "up"])
+    for i, (host, (ns, addr)) in enumerate(HOSTS.items()):
+        sh(["ip", "netns", "add", ns])
+        a, b = f"mfcsw{i}", f"mfcif{i}"
+        sh(["ip", "link", "add", a, "type", "veth", "peer", "name", b])
+        sh(["ip", "link", "set", a, "netns", SWITCH])
+        sh(["ip", "link", "set", b, "netns", ns])
+        sh(["ip", "-n", ns, "link", "set", b, "name", "eth0"])
+        sh(["ip", "-n", ns, "addr", "add", f"{addr}/24", "dev", "eth0"])
+        sh(["ip", "-n", ns, "link", "set", "eth0", "up"])
+        sh(["ip", "-n", ns, "link", "set", "lo", "up"])
+        sh(["ip", "-n", SWITCH, "link", "set", a, "master", "br0", "up"])
+        # This host's /etc/mfc.
+        Path(f"/etc/netns/{ns}/mfc").mkdir(parents=True, exist_ok=True)
+
+
+SCP_SHIM = r"""#!/usr/bin/env bash
+# scp stand-in for the multi-host test: SOURCE... [USER@]ADDRESS:/etc/mfc/ copies into that
+# host's /etc/mfc (/etc/netns/NS/mfc, which `ip netns exec NS` mounts on /etc/mfc). Like
+# scp, the directory must exist.
+set -euo pipefail
+args=(); for a in "$@"; do [[ $a == -* ]] || args+=("$a"); done
+dst=${args[-1]}; unset 'args[-1]'
+host=${dst%%:*}; host=${host#*@}; path=${dst#*:}
+ns=$(awk -v h="$host" '$1 == h {print $2}' "$MFC_HOSTS_FILE")
+[[ -n $ns ]] || { echo "scp stand-in: unknown host $host" >&2; exit 1; }
+[[ $path == /etc/mfc/ ]] || { echo "scp stand-in: only /etc/mfc/ is mapped, not $path" >&2; exit 1; }
+[[ -f /etc/netns/$ns/mfc/.made ]] || { echo "scp stand-in: $host:/etc/mfc does not exist" >&2; exit 1; }
+cp -r "${args[@]}" "/etc/netns/$ns/mfc/"
+"""
+
+SSH_SHIM = r"""#!/usr/bin/env bash
+# ssh stand-in for the multi-host test: [USER@]ADDRESS COMMAND... runs COMMAND on that host
+# (in its namespace). `install -d ... /etc/mfc` there marks the host's /etc/mfc as made.
+set -euo pipefail
+host=${1#*@}; shift
+ns=$(awk -v h="$host" '$1 == h {print $2}' "$MFC_HOSTS_FILE")
+[[ -n $ns ]] || { echo "ssh stand-in: unknown host $host" >&2; exit 1; }
+if [[ "$*" == *"install -d"*"/etc/mfc"* ]]; then touch "/etc/netns/$ns/mfc/.made"; fi
+exec ip netns exec "$ns" bash -c "$*"
+"""
+
+
+# ---------------------------------------------------------------- guide
+
+def guide_blocks():
+    text = GUIDE.read_text()
+    blocks = []
+    for m in re.finditer(r"<!-- test: (\S+)([^>]*?)-->\s*```sh\n(.*?)```", text, re.S):
+        host, attrs, body = m.group(1), m.group(2), m.group(3)
+        a = {k: v1 or v2 for k, v1, v2 in re.findall(r'(\w+)=(?:"([^"]*)"|(\S+))', attrs)}
+        if host not in HOSTS and host != "admin":
+            raise RuntimeError(f"GUIDE.md names an unknown host {host!r}")
+        blocks.append({"host": host, "attrs": a, "body": body})
+    return blocks
+
+
+class Env:
+    def __init__(self, args, work, logs):
+        self.work, self.logs = work, logs
+        shim = work / "shim"
+        shim.mkdir(parents=True, exist_ok=True)
+        for name, text in [("scp", SCP_SHIM), ("ssh", SSH_SHIM)]:
+            (shim / name).write_text(text)
+            (shim / name).chmod(0o755)
+        hosts_file = work / "hosts"
+        hosts_file.write_text("".join(f"{addr} {ns}\n" for ns, addr in HOSTS.values()))
+        zdir = str(Path(args.zenohd).parent)
+        self.env = dict(os.environ)
+        self.env["PATH"] = f"{shim}:{args.bin_dir}:{zdir}:/usr/sbin:/usr/bin:/sbin:/bin"
+        self.env["MFC_HOSTS_FILE"] = str(hosts_file)
+        self.env["RUST_LOG"] = "info"
+        self.env["NO_COLOR"] = "1"
+        self.procs = {}
+        self.starts = 0
+
+    def run(self, host, script, timeout=120):
+        cmd = ["bash", "-euo", "pipefail", "-c", script]
+        if host != "admin":
+            cmd = ["ip", "netns", "exec", HOSTS[host][0]] + cmd
+        return subprocess.run(cmd, cwd=self.work, env=self.env, capture_output=True, text=True,
+                              timeout=timeout)
+
+    def start(self, host, name, command):
+        self.starts += 1
+        out = open(self.logs / f"{name}.{self.starts}.log", "w")
+        cmd = ["ip", "netns", "exec", HOSTS[host][0], "bash", "-c", "exec " + command]
+        p = subprocess.Popen(cmd, cwd=self.work, env=self.env, stdout=out, stderr=subprocess.STDOUT,
+                             start_new_session=True)
+        self.procs[name] = (p, out, host, command, out.name)
+        log(f"started {name} on {host} (pid {p.pid}): {command}")
+        return p
+
+    def stop(self, name, sig=signal.SIGTERM, timeout=20):
+        p = self.procs[name][0]
+        if p.poll() is None:
+            p.send_signal(sig)
+            try:
+                p.wait(timeout)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+        return p.returncode
+
+    def wait(self, name, timeout):
+        p = self.procs[name][0]
+        try:
+            return p.wait(timeout)
+        except subprocess.TimeoutExpired:
+            return None
+
+    def log_text(self, name):
+        return Path(self.procs[name][4]).read_text(errors="replace")
+
+    def kill_all(self):
+        for name, (p, out, *_rest) in self.procs.items():
+            if p.poll() is None:
+                p.terminate()
+        deadline = time.time() + 15
+        for name, (p, out, *_rest) in self.procs.items():
+            try:
+                p.wait(max(0.1, deadline - time.time()))
+            except subprocess.TimeoutExpired:
+                p.kill()
+            out.close()
+
+
+# ---------------------------------------------------------------- helpers
+
+def mfcctl(env, *args):
+    r = env.run("operator", "mfcctl --zenoh-config /etc/mfc/alice.json5 --json " +
+                " ".join(args), timeout=30)
+    if r.returncode != 0:
+        return None, r.stderr.strip()
+    try:
+        return json.loads(r.stdout), None
+    except json.JSONDecodeError as e:
+        return None, f"{e}: {r.stdout[:200]}"
+
+
+def devices_up(env):
+    d, err = mfcctl(env, "devices")
+    if d is None:
+        return set(), err
+    served = {dev["device_id"] for svc in d.get("services", []) for dev in svc.get("devices", [])}
+    return served & set(d.get("plants_up", [])), None
+
+
+def wait_devices(env, want, timeout):
+    deadline = time.time() + timeout
+    last = None
+    while time.time() < deadline:
+        up, err = devices_up(env)
+        last = (up, err)
+        if want <= up:
+            return True, last
+        time.sleep(1)
+    return False, last
+
+
+def probe(env, host, config, *args, timeout=60):
+    cmd = "zenoh-probe " + (f"--zenoh-config {config} " if config else "") + " ".join(args)
+    r = env.run(host, cmd, timeout=timeout)
+    line = (r.stdout.strip().splitlines() or ["{}"])[-1]
+    try:
+        return r.returncode, json.loads(line)
+    except json.JSONDecodeError:
+        return r.returncode, {"raw": r.stdout + r.stderr}
+
+
+def read_run(path):
+    with open(path) as f:
+        rows = list(csv.DictReader(f))
+    return rows
+
+
+def rms_err(rows, ch, t0, t1):
+    e = [float(r[f"{ch}_ref"]) - float(r[ch]) for r in rows
+         if r[ch] and r[f"{ch}_ref"] and t0 <= float(r["t"]) <= t1]
+    return math.sqrt(sum(x * x for x in e) / len(e)) if e else float("nan")
+
+
+def steal_since(start):
+    """The CPU time stolen by the hypervisor since `start` (a fraction of all CPU time),
+    or, with None, a new start: on a shared VM, what the machine took from the loops."""
+    f = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    total, steal = sum(f[:8]), f[7] if len(f) > 7 else 0
+    if start is None:
+        return (total, steal)
+    return (steal - start[1]) / max(1, total - start[0])
+
+
+def cert_hashes(fleet):
+    """File name -> content of every certificate and key in the fleet's bundles (not the CA)."""
+    out = {}
+    for f in fleet.glob("*/*/*"):
+        if f.suffix in (".pem", ".key") and f.name != "ca.pem":
+            out[f.name] = f.read_bytes()
+    for f in (fleet / "router").glob("*"):
+        if f.suffix in (".pem", ".key") and f.name != "ca.pem":
+            out[f.name] = f.read_bytes()
+    return out
+
+
+def client_config(path):
+    """A generated json5 config (JSON under // comment lines) as a dict."""
+    return json.loads("\n".join(l for l in Path(path).read_text().splitlines()
+                                if not l.lstrip().startswith("//")))
+
+
+# ---------------------------------------------------------------- the test
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--bin-dir", required=True, help="directory with the workspace's binaries")
+    ap.add_argument("--zenohd", default=shutil.which("zenohd") or
+                    str(Path.home() / ".cache/mfc-zenoh/tools/bin/zenohd"))
+    ap.add_argument("--require", action="store_true",
+                    help="fail instead of skipping when the test cannot run (CI sets it)")
+    args = ap.parse_args()
+    global skip
+    if args.require:
+        def skip(why):  # noqa: F811 -- CI must not go green without the test
+            sys.exit(f"multihost: cannot run, and --require was given: {why}")
+
+    if os.geteuid() != 0:
+        skip("needs root (network namespaces)")
+    if not shutil.which("ip"):
+        skip("needs iproute2 (`ip`)")
+    if not Path(args.zenohd).is_file():
+        skip(f"no zenohd at {args.zenohd} (.ci/run installs it: cargo install zenohd --version 1.10.2)")
+    v = sh([args.zenohd, "--version"], check_rc=False).stdout
+    if "1.10.2" not in v:
+        skip(f"{args.zenohd} is not zenohd 1.10.2, the pinned version: {v.strip()[:80]}")
+    for b in ["controller-service", "plant-agent", "mfcctl", "mfc-deploy", "mfc-lab", "zenoh-probe"]:
+        if not (Path(args.bin_dir) / b).is_file():
+            sys.exit(f"multihost: {b} is not in {args.bin_dir}: cargo build --workspace --bins")
+    r = sh(["ip", "netns", "add", "mfc-probe-ns"], check_rc=False)
+    if r.returncode != 0:
+        skip(f"cannot make network namespaces: {r.stderr.strip()}")
+    sh(["ip", "netns", "del", "mfc-probe-ns"], check_rc=False)
+
+    logs = Path(os.environ.get("MFC_MULTIHOST_LOGS", Path.home() / ".cache/mfc-zenoh/multihost-last"))
+    shutil.rmtree(logs, ignore_errors=True)
+    logs.mkdir(parents=True)
+    work = logs / "admin"
+    work.mkdir()
+    made_etc = not Path("/etc/mfc").exists()
+    Path("/etc/mfc").mkdir(exist_ok=True)
+    for d in ["aero-1", "aero-2"]:
+        shutil.rmtree(f"/var/lib/mfc/{d}", ignore_errors=True)
+    env = None
+    t_start = time.time()
+    try:
+        setup_network()
+        env = Env(args, work, logs)
+        run_test(env, args)
+    except Exception as e:  # a setup step failed: report it as a failure, clean up below
+        check(False, "the test ran to its end", repr(e))
+    finally:
+        if env:
+            env.kill_all()
+        teardown_network()
+        for d in ["aero-1", "aero-2"]:
+            if Path(f"/var/lib/mfc/{d}").exists():
+                shutil.move(f"/var/lib/mfc/{d}", logs / f"var-lib-{d}-last")
+        if made_etc:
+            shutil.rmtree("/etc/mfc", ignore_errors=True)
+    results["seconds"] = round(time.time() - t_start, 1)
+    (logs / "results.json").write_text(json.dumps(results, indent=2) + "\n")
+    log(f"results: {logs / 'results.json'}; logs in {logs}")
+    if failures:
+        print("\nmultihost: FAILED checks:\n  " + "\n  ".join(failures), flush=True)
+        sys.exit(1)
+    log(f"all checks passed in {results['seconds']} s")
+
+
+def run_test(env, args):
+    blocks = guide_blocks()
+    bg = {}
+    # ---------------- units: their ExecStart lines are the guide's commands
+    units = {}
+    for f in UNITS.glob("*.service"):
+        m = re.search(r"^ExecStart=(.*)$", f.read_text(), re.M)
+        units[f.name] = m.group(1).replace("/usr/local/bin/", "") if m else None
+    for b in blocks:
+        if "bg" in b["attrs"]:
+            bg[b["attrs"]["bg"]] = (b["host"], b["body"].strip())
+    expect = {"mfc-router.service": ("router", None), "mfc-controller@.service": ("controller", "controller-1"),
+              "mfc-agent@.service": ("aero-1", "aero-1")}
+    for unit, (name, inst) in expect.items():
+        line = units.get(unit)
+        line = line.replace("%i", inst) if line and inst else line
+        check(line == bg.get(name, (None, None))[1], f"{unit} runs the guide's command",
+              f"{line!r} vs {bg.get(name, (None, None))[1]!r}")
+
+    # The offline twin (same scenario, same duration), before anything runs.
+    r = env.run("admin", "mfc-lab sim --scenario 2 --out offline")
+    check(r.returncode == 0, "offline twin runs", r.stderr[-300:])
+    offline = json.loads((env.work / "offline" / "summary.json").read_text())
+    off = {c["name"]: c["rms"] for c in offline["channels"]}
+    results["offline_rms"] = off
+
+    # ---------------- phase 1: the guide as written
+    log("phase 1: the guide's blocks, in order")
+    steal0 = steal_since(None)
+    for b in blocks:
+        host, a, body = b["host"], b["attrs"], b["body"]
+        if "skip" in a:
+            log(f"skipped a {host} block: {a['skip']}")
+            continue
+        if a.get("phase") == "day2":
+            continue
+        if "bg" in a:
+            env.start(host, a["bg"], body.strip())
+            continue
+        tries = int(a.get("retry", "1"))
+        for i in range(tries):
+            r = env.run(host, body)
+            if r.returncode == 0:
+                break
+            time.sleep(1)
+        (env.logs / f"block-{host}-{blocks.index(b)}.log").write_text(r.stdout + r.stderr)
+        if not check(r.returncode == 0, f"guide block on {host} runs",
+                     f"exit {r.returncode}: {r.stderr.strip()[-400:]}"):
+            raise RuntimeError("the guide's setup failed; later checks would only repeat it")
+    ok, last = wait_devices(env, {"aero-1", "aero-2"}, 30)
+    check(ok, "the operator, through the router, lists both plants up", str(last))
+    status, err = mfcctl(env, "status", "aero-1")
+    check(status is not None, "the operator reads aero-1's status", err or "")
+
+
+    # A run whose own 10 ms loop was starved (the agents count periods started more than
+    # half a period late) measures the machine, not the deployment: such a run is done
+    # once more, and both are reported. The rerun is judged whatever its overruns.
+    for attempt in range(1, ATTEMPTS + 1):
+        codes, summaries = {}, {}
+        for d in ["aero-1", "aero-2"]:
+            codes[d] = env.wait(d, 120)
+            summaries[d] = json.loads(Path(f"/var/lib/mfc/{d}/summary.json").read_text())
+        over = {d: s["overruns"] / max(1, s["counters"]["periods"]) for d, s in summaries.items()}
+        results[f"phase1_attempt{attempt}_overrun_fraction"] = over
+        results[f"phase1_attempt{attempt}_cpu_steal"] = steal_since(steal0)
+        for d in ["aero-1", "aero-2"]:
+            results[f"phase1_attempt{attempt}_{d}_rms_ratio"] = {
+                c["name"]: c["rms"] / off[c["name"]] for c in summaries[d]["channels"]}
+            shutil.move(f"/var/lib/mfc/{d}", env.logs / f"phase1-{d}-attempt{attempt}")
+        if max(over.values()) <= MAX_OVERRUNS:
+            break
+        log(f"phase 1: the plants' own loops overran ({over}; CPU steal "
+            f"{results[f'phase1_attempt{attempt}_cpu_steal']:.0%}): the machine was late")
+        if attempt < ATTEMPTS:
+            steal0 = steal_since(None)
+            for d in ["aero-1", "aero-2"]:
+                env.start(bg[d][0], d, bg[d][1])
+    results["phase1_attempts"] = attempt
+    check(max(over.values()) <= MAX_OVERRUNS,
+          f"phase 1 ran once with the plants' loops on time (overruns at most {MAX_OVERRUNS:.0%})",
+          f"attempt {attempt} of at most {ATTEMPTS}, overruns {over}" +
+          ("" if max(over.values()) <= MAX_OVERRUNS else ": this machine cannot judge tracking now"))
+    for d in ["aero-1", "aero-2"]:
+        check(codes[d] == 0, f"phase 1: {d} exits 0 (a controller answered)", f"exit {codes[d]}")
+        for ch, q in results[f"phase1_attempt{attempt}_{d}_rms_ratio"].items():
+            check(q <= RMS_RATIO, f"phase 1: {d} {ch} tracks within {RMS_RATIO}x of offline",
+                  f"ratio {q:.3f} (attempt {attempt}, loop overruns {over[d]:.1%})")
+
+    # ---------------- phase 2: reverse start order, router restart, gain change, attacks
+    log("phase 2: plants first, then the controller, then the router")
+    env.stop("controller")
+    env.stop("router")
+    for d in ["aero-1", "aero-2"]:
+        env.start(bg[d][0], d, bg[d][1])
+    time.sleep(1)
+    env.start(bg["controller"][0], "controller", bg["controller"][1])
+    time.sleep(6.5)
+    for d in ["aero-1", "aero-2"]:
+        alive = env.procs[d][0].poll() is None
+        check(alive, f"{d} waits for a router that is not there yet (start order)")
+        check("not connected after" in env.log_text(d), f"{d} says it is not connected yet")
+    env.start(bg["router"][0], "router", bg["router"][1])
+    ok, last = wait_devices(env, {"aero-1", "aero-2"}, 30)
+    check(ok, "phase 2: both plants served once the router is up", str(last))
+    # Plants listen on nothing, while they run: no way around the router.
+    plants_running(env, "when their sockets are listed")
+    plant_udp = {}
+    for host in ["plant-1", "plant-2"]:
+        r = env.run(host, "ss -Htuanp")
+        lines = [l for l in r.stdout.splitlines() if l.strip()]
+        results[f"{host}_sockets"] = lines
+        check(any("plant-agent" in l for l in lines),
+              f"control: {host}'s agent has its socket towards the router", "; ".join(lines))
+        check(not any(l.startswith("tcp") and "LISTEN" in l for l in lines),
+              f"no TCP socket listens on {host}", "; ".join(lines))
+        # QUIC's client socket is UDP and unconnected: it must refuse a connection anyway
+        # (checked from the intruder's host below).
+        plant_udp[host] = [l.split()[4].rsplit(":", 1)[1] for l in lines
+                           if l.startswith("udp") and "plant-agent" in l]
+    env.plant_udp = plant_udp
+    time.sleep(2)
+
+    log("router: SIGKILL, back after 2 s")
+    env.stop("router", sig=signal.SIGKILL)
+    time.sleep(2)
+    env.start(bg["router"][0], "router", bg["router"][1])
+    t_back = time.time()
+    ok, last = wait_devices(env, {"aero-1", "aero-2"}, 30)
+    results["router_restart_operator_sees_plants_after_s"] = round(time.time() - t_back, 2)
+    check(ok, "after the router's restart, both plants are served again", str(last))
+    time.sleep(2)
+
+    # A gain change from the operator's host: aero-2's azimuth-velocity alpha x GAIN_FACTOR.
+    cfg, err = mfcctl(env, "config", "aero-2")
+    alpha = None
+    if check(cfg is not None, "the operator reads aero-2's configuration", err or ""):
+        alpha = find_alpha(cfg, 0)
+    if check(alpha is not None, "aero-2 channel 0 has an alpha", json.dumps(cfg)[:300]):
+        new = alpha * GAIN_FACTOR
+        r = env.run("operator", f"mfcctl --zenoh-config /etc/mfc/alice.json5 set aero-2 --channel 0 alpha={new}")
+        check(r.returncode == 0, "the operator changes aero-2's alpha", r.stderr.strip()[-300:])
+        cfg2, err = mfcctl(env, "config", "aero-2")
+        got = find_alpha(cfg2, 0) if cfg2 else None
+        check(got is not None and abs(got - new) <= 1e-9 * abs(new),
+              "the service's configuration shows the new alpha", f"{got} vs {new}")
+        results["alpha_change"] = {"from": alpha, "to": new}
+
+    attacks(env)
+
+    for d in ["aero-1", "aero-2"]:
+        rc = env.wait(d, 120)
+        check(rc == 0, f"phase 2: {d} exits 0 (served at the end)", f"exit {rc}")
+    runs = {d: read_run(f"/var/lib/mfc/{d}/run.csv") for d in ["aero-1", "aero-2"]}
+    for d, rows in runs.items():
+        modes = [r["mode"] for r in rows]
+        first = modes.index("remote") if "remote" in modes else None
+        last_r = len(modes) - 1 - modes[::-1].index("remote") if "remote" in modes else None
+        # The outage: the longest stretch on the local fallback between remote periods.
+        # `holding` (a late command: the last remote one is held) is still remote control.
+        stretches, start = [], None
+        for i in range(first or 0, (last_r or 0) + 1):
+            if modes[i] in ("local", "safe_stop") and start is None:
+                start = i
+            elif modes[i] not in ("local", "safe_stop") and start is not None:
+                stretches.append((start, i))
+                start = None
+        outage = max(stretches, key=lambda s: s[1] - s[0], default=None)
+        n_out = outage[1] - outage[0] if outage else 0
+        results[f"phase2_{d}_fallback_periods"] = n_out
+        check(n_out > 0, f"{d} fell back to its local controller while the router was down",
+              f"{n_out} periods local")
+        after = modes[outage[1]:] if outage else []
+        served = sum(1 for m in after if m in ("remote", "holding"))
+        results[f"phase2_{d}_after_outage"] = {
+            "periods": len(after), "remote": after.count("remote"), "holding": after.count("holding")}
+        check(len(after) >= 500 and served >= 0.98 * len(after),
+              f"{d} came back under remote control and stayed",
+              f"{served}/{len(after)} periods served after the outage "
+              f"({after.count('remote')} remote, {after.count('holding')} holding a late command)")
+    t_end = min(float(rows[-1]["t"]) for rows in runs.values())
+    ch = "azimuth_velocity"
+    e1 = rms_err(runs["aero-1"], ch, t_end - 10, t_end)
+    e2 = rms_err(runs["aero-2"], ch, t_end - 10, t_end)
+    results["gain_change_error_ratio_aero2_over_aero1_last_10s"] = e2 / e1
+    check(e2 >= GAIN_EFFECT * e1, f"the gain change shows in aero-2's tracking ({ch})",
+          f"RMS error over the last 10 s: aero-2 {e2:.3e}, aero-1 {e1:.3e}, ratio {e2 / e1:.2f}")
+    for d in ["aero-1", "aero-2"]:
+        shutil.move(f"/var/lib/mfc/{d}", env.logs / f"phase2-{d}")
+
+    # ---------------- day two: adding a device and rotating one touch nothing else
+    for b in blocks:
+        if b["attrs"].get("phase") != "day2" or "skip" in b["attrs"]:
+            continue
+        before = cert_hashes(env.work / "fleet")
+        r = env.run("admin", b["body"])
+        check(r.returncode == 0, "day-two guide block runs", r.stderr.strip()[-300:])
+        after = cert_hashes(env.work / "fleet")
+        new = {n for n in after if n not in before}
+        changed = {n for n in before if after.get(n) != before[n]}
+        want_new = {f"{x}.{e}" for x in b["attrs"]["issues"].split() for e in ("pem", "key")}
+        want_changed = {f"{x}.{e}" for x in b["attrs"]["reissues"].split() for e in ("pem", "key")}
+        check(new == want_new and changed == want_changed,
+              f"generate issued {sorted(want_new) or 'nothing new'} and reissued {sorted(want_changed) or 'nothing'}",
+              f"new {sorted(new)}, changed {sorted(changed)}")
+    acl = (env.work / "fleet" / "router" / "zenohd.json5").read_text()
+    check("mfc/v1/device/aero-3/sample" in acl, "the router's access control names the new device")
+
+
+def find_alpha(cfg, channel):
+    """alpha of `channel` in mfcctl's JSON configuration, wherever the law puts it."""
+    chans = cfg.get("channels") or cfg.get("config", {}).get("channels") or []
+    if channel >= len(chans):
+        return None
+    found = []
+
+    def walk(v):
+        if isinstance(v, dict):
+            for k, x in v.items():
+                if k == "alpha" and isinstance(x, (int, float)):
+                    found.append(float(x))
+                else:
+                    walk(x)
+        elif isinstance(v, list):
+            for x in v:
+                walk(x)
+    walk(chans[channel])
+    return found[0] if found else None
+
+
+def plants_running(env, what):
+    """Checks made while both plants run are only worth something while they run."""
+    running = all(env.procs[d][0].poll() is None for d in ("aero-1", "aero-2"))
+    check(running, f"both plants still run {what}")
+
+
+def attacks(env):
+    intr = f"/etc/netns/{HOSTS['intruder'][0]}/mfc"
+    # The intruder holds aero-1's bundle (a stolen plant).
+    shutil.copytree(env.work / "fleet" / "devices" / "aero-1", intr, dirs_exist_ok=True)
+    p = "mfc/v1/device"
+    stolen = "/etc/mfc/aero-1.json5"
+    # aero-1's config, giving up at once instead of retrying: the base of the direct dials
+    # and of the refused identities below.
+    good = client_config(f"{intr}/aero-1.json5")
+    good["connect"]["timeout_ms"] = 0
+    Path(f"{intr}/good.json5").write_text(json.dumps(good))
+    env.dials = {}
+    for host, ports in getattr(env, "plant_udp", {}).items():
+        for port in ports:
+            addr = HOSTS[host][1]
+            env.dials[(host, addr, port)] = subprocess.Popen(
+                ["ip", "netns", "exec", HOSTS["intruder"][0], "zenoh-probe", "--zenoh-config",
+                 "/etc/mfc/good.json5", "--connect", f"quic/{addr}:{port}", "--open-timeout", "6",
+                 "open"], env=env.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    watched = [f"{p}/aero-2/sample", f"{p}/aero-2/command", f"{p}/aero-2/reference", f"{p}/aero-1/sample"]
+    # The witnesses: the operator's identity on the operator's host (it may watch samples and
+    # commands), and the controller's on the controller host (the only one that receives
+    # references); the control is aero-1's own sample key.
+    def witness(host, config, keys):
+        return subprocess.Popen(
+            ["ip", "netns", "exec", HOSTS[host][0], "zenoh-probe", "--zenoh-config", config,
+             "sub", "--secs", "20"] + sum([["--key", k] for k in keys], []),
+            env=env.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    witnesses = [witness("operator", "/etc/mfc/alice.json5", watched[:2] + watched[3:]),
+                 witness("controller", "/etc/mfc/controller-1.json5", watched[2:3])]
+    time.sleep(1.5)
+    plants_running(env, "when the attacks start")
+    forged = {}
+    for k in watched:
+        forged[k] = probe(env, "intruder", stolen, "put", "--key", k,
+                          "--count", str(FORGED), "--interval-ms", "5")
+    for k in watched[:3]:
+        forged[k + " (delete)"] = probe(env, "intruder", stolen, "delete", "--key", k, "--count", "10")
+    # An operator may steer and watch, never command.
+    forged["operator command"] = probe(env, "operator", "/etc/mfc/alice.json5", "put", "--key",
+                                       f"{p}/aero-2/command", "--count", str(FORGED),
+                                       "--interval-ms", "5", "--marker", "FORGED-BY-OPERATOR")
+    # The controller witness's control: the operator may put on a reference key.
+    forged["operator reference"] = probe(env, "operator", "/etc/mfc/alice.json5", "put", "--key",
+                                         f"{p}/aero-2/reference", "--count", "10",
+                                         "--interval-ms", "5", "--marker", "OPERATOR")
+    # Watching: aero-2's keys must stay silent, aero-1's own command key (the control) not.
+    rc_sub, seen = probe(env, "intruder", stolen, "sub", "--secs", "3", "--key", f"{p}/aero-2/sample",
+                         "--key", f"{p}/aero-2/command", "--key", f"{p}/aero-1/command")
+    # Serving and announcing in aero-2's name, while the operator asks.
+    fake_q = subprocess.Popen(
+        ["ip", "netns", "exec", HOSTS["intruder"][0], "zenoh-probe", "--zenoh-config", stolen,
+         "queryable", "--key", f"{p}/aero-2/config", "--secs", "5"],
+        env=env.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    fake_t = subprocess.Popen(
+        ["ip", "netns", "exec", HOSTS["intruder"][0], "zenoh-probe", "--zenoh-config", stolen,
+         "token", "--key", "mfc/v1/alive/plant/aero-2-forged", "--secs", "5"],
+        env=env.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(1.5)
+    _, asked = probe(env, "operator", "/etc/mfc/alice.json5", "get", "--key", f"{p}/aero-2/config",
+                     "--count", "3")
+    _, alive = probe(env, "operator", "/etc/mfc/alice.json5", "alive", "--key", "mfc/v1/alive/**")
+    fake_q.communicate(timeout=30)
+    fake_t.communicate(timeout=30)
+    gets = {}
+    for k in [f"{p}/aero-2/config", f"{p}/aero-2/status", f"{p}/aero-1/config"]:
+        gets[k] = probe(env, "intruder", stolen, "get", "--key", k, "--count", "3")
+    plants_running(env, "when the attacks end")
+    per = {}
+    w = []
+    for wp in witnesses:
+        out, err = wp.communicate(timeout=60)
+        try:
+            o = json.loads(out.strip().splitlines()[-1])
+        except (json.JSONDecodeError, IndexError):
+            o = {"error": out + err}
+        w.append(o)
+        per.update(o.get("per_key", {}))
+    results["forgery"] = {"witnesses": w, "forger_sub": seen, "forger_gets": {k: v[1] for k, v in gets.items()},
+                          "operator_asks_aero2_config": asked, "operator_sees_alive": alive}
+    check(rc_sub == 0 and all(rc == 0 for rc, _ in forged.values()),
+          "the forger's sessions open with aero-1's certificate", str(forged))
+    for k in watched[:3]:
+        got = per.get(k, {})
+        check(got.get("marked") == 0, f"forged puts on {k} arriving: 0 (of {FORGED}, and of {FORGED} "
+              "more by the operator on the command key)" if k.endswith("command") else
+              f"forged puts on {k} arriving: 0 of {FORGED}", str(got))
+        check(got.get("deletes") == 0, f"forged deletes on {k} arriving: 0 of 10", str(got))
+        check(got.get("received", 0) >= 10, f"the witness does see {k}'s real traffic", str(got))
+    ctl = per.get(watched[3], {})
+    check(ctl.get("marked", 0) >= 0.9 * FORGED,
+          "control: the same forger's puts on aero-1's own sample key arrive", str(ctl))
+    pk = seen.get("per_key", {})
+    check(pk.get(f"{p}/aero-2/sample", {}).get("received") == 0
+          and pk.get(f"{p}/aero-2/command", {}).get("received") == 0,
+          "the forger subscribed to aero-2's sample and command keys receives 0", str(seen))
+    check(pk.get(f"{p}/aero-1/command", {}).get("received", 0) > 0,
+          "control: the forger's subscription to aero-1's own command key receives commands", str(seen))
+    for k, (rc, o) in gets.items():
+        check(rc == 0 and o.get("replies") == 0 and o.get("error_replies") == 0,
+              f"the forger's queries on {k} get no reply", str(o))
+    check(asked.get("replies", 0) >= 1 and asked.get("marked_replies") == 0,
+          "a queryable declared in aero-2's name answers nobody; the service still does", str(asked))
+    names = alive.get("alive", [])
+    check("mfc/v1/alive/plant/aero-1" in names and not any("forged" in n for n in names),
+          "a liveliness token forged in aero-2's name is not seen; the real ones are", str(names))
+
+    # Refused identities: variants of `good` (aero-1's config, giving up at once).
+    nocert = json.loads(json.dumps(good))
+    tls = nocert["transport"]["link"]["tls"]
+    tls["enable_mtls"] = False
+    del tls["connect_certificate"], tls["connect_private_key"]
+    Path(f"{intr}/nocert.json5").write_text(json.dumps(nocert))
+    r = env.run("admin", "mfc-deploy generate --inventory fleet.toml --out otherfleet")
+    check(r.returncode == 0, "a second, foreign fleet is generated", r.stderr[-300:])
+    shutil.copy(env.work / "otherfleet/devices/aero-1/aero-1.pem", f"{intr}/foreign.pem")
+    shutil.copy(env.work / "otherfleet/devices/aero-1/aero-1.key", f"{intr}/foreign.key")
+    foreign = json.loads(json.dumps(good))
+    foreign["transport"]["link"]["tls"]["connect_certificate"] = "/etc/mfc/foreign.pem"
+    foreign["transport"]["link"]["tls"]["connect_private_key"] = "/etc/mfc/foreign.key"
+    Path(f"{intr}/foreign.json5").write_text(json.dumps(foreign))
+    # A name the router's certificate does not carry: this host resolves it to the router.
+    Path(f"/etc/netns/{HOSTS['intruder'][0]}/hosts").write_text(
+        f"127.0.0.1 localhost\n{HOSTS['router'][1]} not-the-router\n")
+    refused = {}
+    for name, cfg, extra in [
+        ("control: aero-1's own certificate", "/etc/mfc/good.json5", []),
+        ("the router dialled by a name not in its certificate", "/etc/mfc/good.json5",
+         ["--connect", "quic/not-the-router:7447"]),
+        ("no client certificate", "/etc/mfc/nocert.json5", []),
+        ("a certificate from another CA", "/etc/mfc/foreign.json5", []),
+        ("plain TCP", None, ["--mode", "client", "--connect", "tcp/10.77.0.1:7447", "--no-multicast-scouting"]),
+    ]:
+        rc, o = probe(env, "intruder", cfg, *extra, "--open-timeout", "8", "open")
+        refused[name] = {"exit": rc, **o}
+        if name.startswith("control"):
+            check(rc == 0, f"{name} opens a session", str(o))
+        else:
+            check(rc != 0, f"{name} is refused", str(o))
+    # Around the router: a client with a valid certificate dialled each plant's own UDP
+    # port, while the plants ran (started with the attacks, collected here).
+    for (host, addr, port), dial in env.dials.items():
+        out, _ = dial.communicate(timeout=60)
+        try:
+            o = json.loads(out.strip().splitlines()[-1])
+        except (json.JSONDecodeError, IndexError):
+            o = {"raw": out}
+        refused[f"{host} direct quic/{addr}:{port}"] = {"exit": dial.returncode, **o}
+        check(dial.returncode != 0, f"{host} cannot be reached directly (quic/{addr}:{port})", str(o))
+    check(len(env.dials) >= 2, "control: the plants' own UDP ports were found and dialled")
+    results["refused"] = refused
+
+
+
+if __name__ == "__main__":
+    main()

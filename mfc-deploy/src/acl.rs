@@ -1,0 +1,559 @@
+//! The router's access control, generated from the inventory.
+//!
+//! zenoh's access control is enforced by the router, per message, on the link the message
+//! enters (`ingress`) and on the link it leaves by (`egress`), and a message passes only if
+//! an `allow` rule's key expression *includes* its key. It has no per-subject substitution
+//! (no "a device may use its own keys"), so every device gets rules of its own, with its
+//! certificate's common name as the subject. Everything not allowed is denied.
+//!
+//! What each role may do (`*` is one chunk, any device or service):
+//!
+//! | role | sends (ingress) | receives (egress) |
+//! |---|---|---|
+//! | device `d` | put `device/d/sample`; subscribe `device/d/command`; token `alive/plant/d` | put `device/d/command`; the services' subscription `device/*/sample` |
+//! | service `s` | put `device/*/command`, `group/**`; subscribe and serve `device/*/…`, `group/**`; replies; token `alive/controller/s`, queryable `service/s/status` | samples, references, heartbeats, queries, the agents' and operators' declarations |
+//! | operator | query `device/*/{config,status,envelope,reference}`, `service/*/status`; put `device/*/reference`; subscribe samples and commands (watch); liveliness queries | replies, samples, commands, tokens |
+//!
+//! So a device holding its own certificate can neither put on nor watch another device's
+//! keys, cannot command even itself, and cannot change any configuration; an operator can
+//! steer and tune but never puts a command or a sample; only services command.
+//!
+//! Traps this avoids: the service subscribes with a wildcard (`device/*/sample`), so the
+//! wildcard must be allowed explicitly (with per-device rules only, control silently stops:
+//! the plants run on their fallback); and the egress side of every flow needs its own rule.
+
+use serde_json::{json, Value};
+
+use crate::inventory::Inventory;
+
+const P: &str = protocol::keys::PREFIX;
+
+/// The `device/*/…` keys a service serves as queryables and an operator queries.
+const QUERIED: [&str; 4] = ["config", "status", "envelope", "reference"];
+
+fn dev(id: &str, leaf: &str) -> String {
+    format!("{P}/device/{id}/{leaf}")
+}
+
+/// One rule: `messages` on `keys`, in `flows`.
+fn rule(id: String, flows: &[&str], messages: &[&str], keys: Vec<String>) -> Value {
+    json!({
+        "id": id,
+        "permission": "allow",
+        "flows": flows,
+        "messages": messages,
+        "key_exprs": keys,
+    })
+}
+
+/// The `access_control` section of the router's config.
+pub fn access_control(inv: &Inventory) -> Value {
+    let mut rules = Vec::new();
+    let mut subjects = Vec::new();
+    let mut policies = Vec::new();
+    let mut policy = |name: String, cns: Vec<String>, rule_ids: Vec<String>| {
+        subjects.push(json!({ "id": name.clone(), "cert_common_names": cns }));
+        policies.push(json!({ "id": name.clone(), "rules": rule_ids, "subjects": [name] }));
+    };
+
+    // Devices: their own keys only.
+    for d in &inv.devices {
+        let r = |n: &str| format!("device-{d}-{n}");
+        rules.push(rule(
+            r("put-sample"),
+            &["ingress"],
+            &["put"],
+            vec![dev(d, "sample")],
+        ));
+        rules.push(rule(
+            r("sub-command"),
+            &["ingress"],
+            &["declare_subscriber"],
+            vec![dev(d, "command")],
+        ));
+        rules.push(rule(
+            r("token"),
+            &["ingress"],
+            &["liveliness_token"],
+            vec![format!("{P}/alive/plant/{d}")],
+        ));
+        rules.push(rule(
+            r("get-command"),
+            &["egress"],
+            &["put"],
+            vec![dev(d, "command")],
+        ));
+        // The services' wildcard subscription, declared towards the agent: without it the
+        // agent's samples have nowhere to go.
+        rules.push(rule(
+            r("see-subscription"),
+            &["egress"],
+            &["declare_subscriber"],
+            vec![dev("*", "sample")],
+        ));
+        policy(
+            format!("device-{d}"),
+            vec![d.clone()],
+            [
+                "put-sample",
+                "sub-command",
+                "token",
+                "get-command",
+                "see-subscription",
+            ]
+            .iter()
+            .map(|n| r(n))
+            .collect(),
+        );
+    }
+
+    // Services: every device (several services share a fleet, issue 11); their own
+    // liveliness token and status queryable.
+    let served: Vec<String> = QUERIED.iter().map(|l| dev("*", l)).collect();
+    let mut served_and_status = served.clone();
+    served_and_status.push(format!("{P}/service/*/status"));
+    let group = format!("{P}/group/**");
+    let svc_rules = vec![
+        rule(
+            "service-send".into(),
+            &["ingress"],
+            &["put"],
+            vec![dev("*", "command"), group.clone()],
+        ),
+        rule(
+            "service-subscribe".into(),
+            &["ingress"],
+            &["declare_subscriber"],
+            vec![dev("*", "sample"), dev("*", "reference"), group.clone()],
+        ),
+        // The agents' command subscriptions, declared towards the service.
+        rule(
+            "service-see-subscriptions".into(),
+            &["egress"],
+            &["declare_subscriber"],
+            vec![dev("*", "command"), group.clone()],
+        ),
+        rule(
+            "service-serve".into(),
+            &["ingress"],
+            &["declare_queryable", "reply"],
+            served.clone(),
+        ),
+        rule(
+            "service-receive".into(),
+            &["egress"],
+            &["put"],
+            vec![dev("*", "sample"), dev("*", "reference"), group],
+        ),
+        rule(
+            "service-queried".into(),
+            &["egress"],
+            &["query"],
+            served_and_status.clone(),
+        ),
+    ];
+    let mut svc_rule_ids: Vec<String> = svc_rules
+        .iter()
+        .map(|r| r["id"].as_str().unwrap_or_default().to_string())
+        .collect();
+    rules.extend(svc_rules);
+    for s in &inv.services {
+        let own = format!("service-{s}-own");
+        rules.push(rule(
+            own.clone(),
+            &["ingress"],
+            &["declare_queryable", "reply"],
+            vec![format!("{P}/service/{s}/status")],
+        ));
+        let token = format!("service-{s}-token");
+        rules.push(rule(
+            token.clone(),
+            &["ingress"],
+            &["liveliness_token"],
+            vec![format!("{P}/alive/controller/{s}")],
+        ));
+        let mut ids = svc_rule_ids.clone();
+        ids.extend([own, token]);
+        policy(format!("service-{s}"), vec![s.clone()], ids);
+    }
+    svc_rule_ids.clear();
+
+    // Operators: read everything, steer and tune through the services.
+    if !inv.operators.is_empty() {
+        let alive = format!("{P}/alive/**");
+        let watched = vec![dev("*", "sample"), dev("*", "command")];
+        let op_rules = vec![
+            rule(
+                "operator-query".into(),
+                &["ingress"],
+                &["query"],
+                served_and_status.clone(),
+            ),
+            rule(
+                "operator-steer".into(),
+                &["ingress"],
+                &["put"],
+                vec![dev("*", "reference")],
+            ),
+            rule(
+                "operator-watch".into(),
+                &["ingress"],
+                &["declare_subscriber"],
+                watched.clone(),
+            ),
+            rule(
+                "operator-liveliness".into(),
+                &["ingress"],
+                &["liveliness_query", "declare_liveliness_subscriber"],
+                vec![alive.clone()],
+            ),
+            rule(
+                "operator-replies".into(),
+                &["egress"],
+                &["reply", "declare_queryable"],
+                served_and_status,
+            ),
+            rule("operator-see".into(), &["egress"], &["put"], watched),
+            rule(
+                "operator-tokens".into(),
+                &["egress"],
+                &["liveliness_token", "reply"],
+                vec![alive],
+            ),
+            rule(
+                "operator-see-subscription".into(),
+                &["egress"],
+                &["declare_subscriber"],
+                vec![dev("*", "reference")],
+            ),
+        ];
+        let ids: Vec<String> = op_rules
+            .iter()
+            .map(|r| r["id"].as_str().unwrap_or_default().to_string())
+            .collect();
+        rules.extend(op_rules);
+        policy("operators".into(), inv.operators.clone(), ids);
+    }
+
+    json!({
+        "enabled": true,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Whether zenoh's key-expression inclusion would let `rule_key` cover `key` (the
+    /// subset used here: `*` is one chunk, a trailing `**` any rest).
+    fn includes(rule_key: &str, key: &str) -> bool {
+        let (r, k): (Vec<_>, Vec<_>) = (rule_key.split('/').collect(), key.split('/').collect());
+        for (i, c) in r.iter().enumerate() {
+            if *c == "**" {
+                return true;
+            }
+            match k.get(i) {
+                Some(kc) if c == kc || (*c == "*" && *kc != "**") => {}
+                _ => return false,
+            }
+        }
+        r.len() == k.len()
+    }
+
+    /// Whether `cn` may send (`ingress`) or receive (`egress`) `message` on `key`.
+    fn allowed(acl: &Value, cn: &str, flow: &str, message: &str, key: &str) -> bool {
+        let subjects: Vec<&str> = acl["subjects"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|s| {
+                s["cert_common_names"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .any(|c| c == cn)
+            })
+            .map(|s| s["id"].as_str().unwrap())
+            .collect();
+        let rules: Vec<&str> = acl["policies"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|p| {
+                p["subjects"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .any(|s| subjects.contains(&s.as_str().unwrap()))
+            })
+            .flat_map(|p| {
+                p["rules"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|r| r.as_str().unwrap())
+            })
+            .collect();
+        acl["rules"].as_array().unwrap().iter().any(|r| {
+            rules.contains(&r["id"].as_str().unwrap())
+                && r["flows"].as_array().unwrap().iter().any(|f| f == flow)
+                && r["messages"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .any(|m| m == message)
+                && r["key_exprs"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .any(|k| includes(k.as_str().unwrap(), key))
+        })
+    }
+
+    fn fleet() -> Value {
+        let inv = Inventory::parse(
+            "services = [\"ctl\"]\ndevices = [\"aero-1\", \"aero-2\"]\noperators = [\"alice\"]\n[router]\nhosts = [\"10.0.0.1\"]\n",
+        )
+        .unwrap();
+        access_control(&inv)
+    }
+
+    #[test]
+    fn the_control_loop_is_allowed_end_to_end() {
+        let acl = fleet();
+        for d in ["aero-1", "aero-2"] {
+            // A sample: in from the plant, out to the service.
+            assert!(allowed(&acl, d, "ingress", "put", &dev(d, "sample")));
+            assert!(allowed(&acl, "ctl", "egress", "put", &dev(d, "sample")));
+            // A command: in from the service, out to the plant.
+            assert!(allowed(&acl, "ctl", "ingress", "put", &dev(d, "command")));
+            assert!(allowed(&acl, d, "egress", "put", &dev(d, "command")));
+            // The plant's subscription and token.
+            assert!(allowed(
+                &acl,
+                d,
+                "ingress",
+                "declare_subscriber",
+                &dev(d, "command")
+            ));
+            assert!(allowed(
+                &acl,
+                d,
+                "ingress",
+                "liveliness_token",
+                &format!("{P}/alive/plant/{d}")
+            ));
+        }
+        // The trap: the service's wildcard subscription, both ways.
+        let wild = dev("*", "sample");
+        assert!(allowed(&acl, "ctl", "ingress", "declare_subscriber", &wild));
+        assert!(allowed(
+            &acl,
+            "aero-1",
+            "egress",
+            "declare_subscriber",
+            &wild
+        ));
+        assert!(allowed(
+            &acl,
+            "ctl",
+            "ingress",
+            "liveliness_token",
+            &format!("{P}/alive/controller/ctl")
+        ));
+    }
+
+    #[test]
+    fn a_device_cannot_touch_another_devices_keys_nor_command_itself() {
+        let acl = fleet();
+        for leaf in [
+            "sample",
+            "command",
+            "reference",
+            "config",
+            "status",
+            "envelope",
+        ] {
+            let k = dev("aero-2", leaf);
+            for m in [
+                "put",
+                "delete",
+                "declare_subscriber",
+                "query",
+                "declare_queryable",
+                "reply",
+            ] {
+                assert!(!allowed(&acl, "aero-1", "ingress", m, &k), "{m} {k}");
+            }
+        }
+        assert!(!allowed(
+            &acl,
+            "aero-1",
+            "egress",
+            "put",
+            &dev("aero-2", "sample")
+        ));
+        assert!(!allowed(
+            &acl,
+            "aero-1",
+            "egress",
+            "put",
+            &dev("aero-2", "command")
+        ));
+        assert!(!allowed(
+            &acl,
+            "aero-1",
+            "ingress",
+            "put",
+            &dev("aero-1", "command")
+        ));
+        assert!(!allowed(
+            &acl,
+            "aero-1",
+            "ingress",
+            "put",
+            &dev("aero-1", "reference")
+        ));
+        assert!(!allowed(
+            &acl,
+            "aero-1",
+            "ingress",
+            "query",
+            &dev("aero-1", "config")
+        ));
+        assert!(!allowed(
+            &acl,
+            "aero-1",
+            "ingress",
+            "declare_subscriber",
+            &dev("*", "sample")
+        ));
+        assert!(!allowed(
+            &acl,
+            "aero-1",
+            "ingress",
+            "liveliness_token",
+            &format!("{P}/alive/plant/aero-2")
+        ));
+        assert!(!allowed(
+            &acl,
+            "aero-1",
+            "ingress",
+            "liveliness_token",
+            &format!("{P}/alive/controller/ctl")
+        ));
+    }
+
+    #[test]
+    fn operators_steer_and_watch_but_never_command() {
+        let acl = fleet();
+        assert!(allowed(
+            &acl,
+            "alice",
+            "ingress",
+            "query",
+            &dev("aero-1", "config")
+        ));
+        assert!(allowed(
+            &acl,
+            "alice",
+            "ingress",
+            "query",
+            &format!("{P}/service/*/status")
+        ));
+        assert!(allowed(
+            &acl,
+            "ctl",
+            "egress",
+            "query",
+            &format!("{P}/service/*/status")
+        ));
+        assert!(allowed(
+            &acl,
+            "alice",
+            "egress",
+            "reply",
+            &dev("aero-1", "config")
+        ));
+        assert!(allowed(
+            &acl,
+            "alice",
+            "ingress",
+            "put",
+            &dev("aero-1", "reference")
+        ));
+        assert!(allowed(
+            &acl,
+            "ctl",
+            "egress",
+            "put",
+            &dev("aero-1", "reference")
+        ));
+        assert!(allowed(
+            &acl,
+            "alice",
+            "ingress",
+            "declare_subscriber",
+            &dev("aero-1", "sample")
+        ));
+        assert!(allowed(
+            &acl,
+            "alice",
+            "ingress",
+            "liveliness_query",
+            &format!("{P}/alive/plant/*")
+        ));
+        assert!(!allowed(
+            &acl,
+            "alice",
+            "ingress",
+            "put",
+            &dev("aero-1", "command")
+        ));
+        assert!(!allowed(
+            &acl,
+            "alice",
+            "ingress",
+            "put",
+            &dev("aero-1", "sample")
+        ));
+        assert!(!allowed(
+            &acl,
+            "alice",
+            "ingress",
+            "declare_queryable",
+            &dev("aero-1", "config")
+        ));
+        // Unknown names get nothing.
+        assert!(!allowed(
+            &acl,
+            "mallory",
+            "ingress",
+            "put",
+            &dev("aero-1", "sample")
+        ));
+        assert!(!allowed(
+            &acl,
+            "router",
+            "ingress",
+            "put",
+            &dev("aero-1", "sample")
+        ));
+    }
+
+    #[test]
+    fn the_inclusion_model_matches_zenoh_on_the_cases_used() {
+        assert!(includes("mfc/v1/device/*/sample", "mfc/v1/device/a/sample"));
+        assert!(includes("mfc/v1/device/*/sample", "mfc/v1/device/*/sample"));
+        assert!(!includes(
+            "mfc/v1/device/a/sample",
+            "mfc/v1/device/*/sample"
+        ));
+        assert!(includes("mfc/v1/alive/**", "mfc/v1/alive/plant/a"));
+        assert!(!includes("mfc/v1/device/*/sample", "mfc/v1/device/**"));
+    }
+}

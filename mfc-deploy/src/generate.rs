@@ -1,0 +1,446 @@
+//! Write a fleet's bundles: one directory per host role, each holding exactly what that
+//! host needs, and nothing another host's compromise would reveal.
+//!
+//! ```text
+//! OUT/ca/ca.pem ca.key                 the CA (keep ca.key on this machine only)
+//! OUT/router/zenohd.json5 router.pem router.key ca.pem
+//! OUT/services/ID/ID.json5 ID.pem ID.key ca.pem
+//! OUT/devices/ID/…   OUT/operators/ID/…
+//! OUT/acl.json5                        the access control, for review (also in zenohd.json5)
+//! OUT/retired/…                        bundles of names no longer in the inventory
+//! ```
+//!
+//! Every bundle is copied as it is to the inventory's `install_dir` on its host. Running
+//! again keeps every certificate that is still right, so adding a device issues one
+//! certificate and rewrites only the router's config.
+
+use std::fs;
+use std::path::{Path, PathBuf};
+
+use serde::Serialize;
+use time::{Duration, OffsetDateTime};
+
+use crate::inventory::{Inventory, Role};
+use crate::pki::{Ca, Usage};
+use crate::{acl, configs, DeployError};
+
+/// What happened to one certificate.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+#[serde(tag = "action", content = "reason", rename_all = "lowercase")]
+pub enum Action {
+    /// There was none: issued.
+    Issued,
+    /// Still right: kept as it is.
+    Kept,
+    /// Reissued, with the reason (wrong name, other CA, expiring, asked to rotate).
+    Reissued(String),
+}
+
+/// One identity's outcome.
+#[derive(Debug, Clone, Serialize)]
+pub struct Entry {
+    /// Its role.
+    pub role: Role,
+    /// Its name (the certificate's CN).
+    pub name: String,
+    /// What was done.
+    #[serde(flatten)]
+    pub action: Action,
+    /// Whether its zenoh config changed (another router address, port or install_dir; for
+    /// the router, the access control): the bundle must be copied again even if its
+    /// certificate was kept.
+    pub config_changed: bool,
+    /// The bundle to copy to the host's install directory.
+    pub bundle: PathBuf,
+}
+
+impl Entry {
+    /// Whether this bundle must be copied to its host again.
+    pub fn to_copy(&self) -> bool {
+        self.action != Action::Kept || self.config_changed
+    }
+}
+
+/// What a run did.
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    /// The CA: issued or kept.
+    pub ca: Action,
+    /// Every identity, router first.
+    pub entries: Vec<Entry>,
+    /// Bundles moved to `retired/` because their names left the inventory.
+    pub retired: Vec<PathBuf>,
+    /// Where the router's config is (restart zenohd after any change in it).
+    pub router_config: PathBuf,
+}
+
+impl Report {
+    /// Whether the router must be given its new bundle and restarted: its certificate or
+    /// its config (the access control: a name added or removed) changed, or the CA is new.
+    /// A client's rotation alone does not need it (same CA, same name).
+    pub fn router_restart(&self) -> bool {
+        self.ca != Action::Kept
+            || self
+                .entries
+                .iter()
+                .any(|e| e.role == Role::Router && e.to_copy())
+    }
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> DeployError + '_ {
+    move |e| DeployError::Io {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    }
+}
+
+fn write(path: &Path, text: &str, secret: bool) -> Result<(), DeployError> {
+    if let Some(dir) = path.parent() {
+        fs::create_dir_all(dir).map_err(io(dir))?;
+    }
+    // A key is created 0600 before a byte of it is written (an existing file is narrowed
+    // first: `mode` applies only to a file being created).
+    #[cfg(unix)]
+    {
+        use std::io::Write;
+        use std::os::unix::fs::OpenOptionsExt;
+        if secret && path.exists() {
+            use std::os::unix::fs::PermissionsExt;
+            fs::set_permissions(path, fs::Permissions::from_mode(0o600)).map_err(io(path))?;
+        }
+        let mut f = fs::OpenOptions::new()
+            .write(true)
+            .create(true)
+            .truncate(true)
+            .mode(if secret { 0o600 } else { 0o644 })
+            .open(path)
+            .map_err(io(path))?;
+        f.write_all(text.as_bytes()).map_err(io(path))?;
+        if secret {
+            use std::os::unix::fs::PermissionsExt;
+            fs::set_permissions(path, fs::Permissions::from_mode(0o600)).map_err(io(path))?;
+        }
+        Ok(())
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = secret;
+        fs::write(path, text).map_err(io(path))
+    }
+}
+
+fn read(path: &Path) -> Result<Option<String>, DeployError> {
+    match fs::read_to_string(path) {
+        Ok(s) => Ok(Some(s)),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        Err(e) => Err(io(path)(e)),
+    }
+}
+
+/// The bundle directory of an identity.
+pub fn bundle_dir(out: &Path, role: Role, name: &str) -> PathBuf {
+    match role {
+        Role::Router => out.join(role.dir()),
+        _ => out.join(role.dir()).join(name),
+    }
+}
+
+/// Generate (or bring up to date) the bundles of `inv` in `out`. `rotate` names
+/// identities whose key and certificate are replaced even if still right. `now` is the
+/// clock (passed in, so tests can age certificates).
+pub fn generate(
+    inv: &Inventory,
+    out: &Path,
+    rotate: &[String],
+    now: OffsetDateTime,
+) -> Result<Report, DeployError> {
+    let identities = inv.identities();
+    if let Some(unknown) = rotate
+        .iter()
+        .find(|r| !identities.iter().any(|(_, n)| n == *r))
+    {
+        return Err(DeployError::Inventory(format!(
+            "cannot rotate {unknown:?}: not in the inventory"
+        )));
+    }
+
+    // The CA: loaded if present, created if absent, never silently replaced.
+    let (ca_cert, ca_key) = (out.join("ca/ca.pem"), out.join("ca/ca.key"));
+    let (ca, ca_action) = match (read(&ca_cert)?, read(&ca_key)?) {
+        (Some(c), Some(k)) => (Ca::load(&c, &k)?, Action::Kept),
+        (None, None) => {
+            let ca = Ca::create("mfc fleet CA", inv.ca_days, now)?;
+            write(&ca_key, &ca.key_pem, true)?;
+            write(&ca_cert, &ca.cert_pem, false)?;
+            (ca, Action::Issued)
+        }
+        _ => {
+            return Err(DeployError::Pki(format!(
+                "{} and {} must both exist or both be absent (a CA cannot be half restored)",
+                ca_cert.display(),
+                ca_key.display()
+            )))
+        }
+    };
+    if ca.not_after()? - Duration::days(inv.renew_days.into()) <= now {
+        return Err(DeployError::Pki(format!(
+            "the CA expires {}: make a new one (move {} away) and redeploy every bundle",
+            ca.not_after()?.date(),
+            out.join("ca").display()
+        )));
+    }
+
+    let renew = Duration::days(inv.renew_days.into());
+    let mut entries = Vec::new();
+    for (role, name) in &identities {
+        let dir = bundle_dir(out, *role, name);
+        let (cert_path, key_path) = (
+            dir.join(format!("{name}.pem")),
+            dir.join(format!("{name}.key")),
+        );
+        let usage = match role {
+            Role::Router => Usage::Server(&inv.router.hosts),
+            _ => Usage::Client,
+        };
+        let action = if rotate.contains(name) {
+            Action::Reissued("rotated on request".into())
+        } else {
+            match (read(&cert_path)?, read(&key_path)?) {
+                (Some(c), Some(k)) => match ca.check(&c, &k, name, usage, renew, now) {
+                    Ok(()) => Action::Kept,
+                    Err(why) => Action::Reissued(why),
+                },
+                _ => Action::Issued,
+            }
+        };
+        if action != Action::Kept {
+            let leaf = ca.issue(name, usage, inv.leaf_days, now)?;
+            write(&key_path, &leaf.key_pem, true)?;
+            write(&cert_path, &leaf.cert_pem, false)?;
+        }
+        write(&dir.join("ca.pem"), &ca.cert_pem, false)?;
+        let header = format!(
+            "Generated by `mfc-deploy generate` for {role:?} {name:?}; edit the inventory, not this file.\nInstall this directory's files in {} on its host.",
+            inv.install_dir
+        );
+        let (file, config) = match role {
+            Role::Router => (
+                "zenohd.json5".to_string(),
+                configs::router(inv, acl::access_control(inv)),
+            ),
+            _ => (format!("{name}.json5"), configs::client(inv, *role, name)),
+        };
+        let text = configs::to_file(&header, &config);
+        let config_path = dir.join(file);
+        let config_changed = read(&config_path)?.as_deref() != Some(text.as_str());
+        write(&config_path, &text, false)?;
+        entries.push(Entry {
+            role: *role,
+            name: name.clone(),
+            action,
+            config_changed,
+            bundle: dir,
+        });
+    }
+    write(
+        &out.join("acl.json5"),
+        &configs::to_file(
+            "The router's access control (also inside router/zenohd.json5), for review.",
+            &acl::access_control(inv),
+        ),
+        false,
+    )?;
+
+    // Names that left the inventory: their bundles move aside; the access control no
+    // longer names them, so after the router restarts their certificates open nothing.
+    let mut retired = Vec::new();
+    for role in [Role::Service, Role::Device, Role::Operator] {
+        let dir = out.join(role.dir());
+        let Ok(listing) = fs::read_dir(&dir) else {
+            continue;
+        };
+        for e in listing.flatten() {
+            let name = e.file_name().to_string_lossy().into_owned();
+            if identities.iter().any(|(r, n)| *r == role && *n == name) {
+                continue;
+            }
+            let to = out.join("retired").join(role.dir()).join(&name);
+            if let Some(p) = to.parent() {
+                fs::create_dir_all(p).map_err(io(p))?;
+            }
+            let _ = fs::remove_dir_all(&to);
+            fs::rename(e.path(), &to).map_err(io(&to))?;
+            retired.push(to);
+        }
+    }
+    Ok(Report {
+        ca: ca_action,
+        entries,
+        retired,
+        router_config: out.join("router/zenohd.json5"),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn now() -> OffsetDateTime {
+        OffsetDateTime::from_unix_timestamp(1_800_000_000).unwrap()
+    }
+
+    fn inv(devices: &[&str]) -> Inventory {
+        let list: Vec<String> = devices.iter().map(|d| format!("{d:?}")).collect();
+        Inventory::parse(&format!(
+            "services = [\"ctl\"]\noperators = [\"alice\"]\ndevices = [{}]\n[router]\nhosts = [\"10.0.0.1\"]\n",
+            list.join(", ")
+        ))
+        .unwrap()
+    }
+
+    fn actions(r: &Report) -> Vec<(String, Action)> {
+        r.entries
+            .iter()
+            .map(|e| (e.name.clone(), e.action.clone()))
+            .collect()
+    }
+
+    #[test]
+    fn adding_a_device_issues_one_certificate_and_keeps_the_rest() {
+        let out = tempfile::tempdir().unwrap();
+        let first = generate(&inv(&["aero-1"]), out.path(), &[], now()).unwrap();
+        assert_eq!(first.ca, Action::Issued);
+        assert!(first.entries.iter().all(|e| e.action == Action::Issued));
+        let before = fs::read(out.path().join("devices/aero-1/aero-1.pem")).unwrap();
+
+        let second = generate(&inv(&["aero-1", "aero-2"]), out.path(), &[], now()).unwrap();
+        assert_eq!(second.ca, Action::Kept);
+        let issued: Vec<_> = actions(&second)
+            .into_iter()
+            .filter(|(_, a)| *a != Action::Kept)
+            .collect();
+        assert_eq!(issued, [("aero-2".to_string(), Action::Issued)]);
+        assert_eq!(
+            fs::read(out.path().join("devices/aero-1/aero-1.pem")).unwrap(),
+            before
+        );
+        let acl = fs::read_to_string(out.path().join("router/zenohd.json5")).unwrap();
+        assert!(acl.contains("mfc/v1/device/aero-2/sample"));
+        assert!(second.router_restart(), "the access control changed");
+        let copy: Vec<_> = second
+            .entries
+            .iter()
+            .filter(|e| e.to_copy())
+            .map(|e| e.name.as_str())
+            .collect();
+        assert_eq!(copy, ["router", "aero-2"]);
+        // Nothing to do the third time.
+        let third = generate(&inv(&["aero-1", "aero-2"]), out.path(), &[], now()).unwrap();
+        assert!(!third.router_restart(), "{:?}", actions(&third));
+        assert!(third.entries.iter().all(|e| !e.to_copy()));
+    }
+
+    #[test]
+    fn rotation_and_expiry_reissue_exactly_what_they_name() {
+        let out = tempfile::tempdir().unwrap();
+        generate(&inv(&["aero-1", "aero-2"]), out.path(), &[], now()).unwrap();
+        let key = |d: &str| fs::read(out.path().join(format!("devices/{d}/{d}.key"))).unwrap();
+        let (k1, k2) = (key("aero-1"), key("aero-2"));
+        let r = generate(
+            &inv(&["aero-1", "aero-2"]),
+            out.path(),
+            &["aero-1".into()],
+            now(),
+        )
+        .unwrap();
+        assert!(matches!(actions(&r)[2], (ref n, Action::Reissued(_)) if n == "aero-1"));
+        assert_ne!(key("aero-1"), k1, "a rotation makes a new key");
+        assert_eq!(key("aero-2"), k2);
+        assert!(
+            !r.router_restart(),
+            "a client's rotation needs no router restart"
+        );
+        // A year on, everything is within renew_days of expiry and is renewed.
+        let later = now() + Duration::days(380);
+        let r = generate(&inv(&["aero-1", "aero-2"]), out.path(), &[], later).unwrap();
+        assert!(r
+            .entries
+            .iter()
+            .all(|e| matches!(&e.action, Action::Reissued(w) if w.contains("expires"))));
+        let e = generate(&inv(&["aero-1"]), out.path(), &["aero-9".into()], now()).unwrap_err();
+        assert!(e.to_string().contains("not in the inventory"), "{e}");
+    }
+
+    #[test]
+    fn a_new_router_port_rewrites_every_config_and_says_so() {
+        let out = tempfile::tempdir().unwrap();
+        generate(&inv(&["aero-1"]), out.path(), &[], now()).unwrap();
+        let mut moved = inv(&["aero-1"]);
+        moved.router.port = 7448;
+        let r = generate(&moved, out.path(), &[], now()).unwrap();
+        assert!(r
+            .entries
+            .iter()
+            .all(|e| e.action == Action::Kept && e.config_changed));
+        assert!(r.router_restart());
+    }
+
+    #[test]
+    fn removed_names_are_retired_and_lose_their_rules() {
+        let out = tempfile::tempdir().unwrap();
+        generate(&inv(&["aero-1", "aero-2"]), out.path(), &[], now()).unwrap();
+        let r = generate(&inv(&["aero-1"]), out.path(), &[], now()).unwrap();
+        assert_eq!(r.retired, [out.path().join("retired/devices/aero-2")]);
+        assert!(r.router_restart(), "the removed name's rules must go");
+        assert!(!out.path().join("devices/aero-2").exists());
+        let cfg = fs::read_to_string(out.path().join("router/zenohd.json5")).unwrap();
+        assert!(!cfg.contains("aero-2"));
+    }
+
+    #[test]
+    fn keys_are_private_and_a_half_ca_is_refused() {
+        let out = tempfile::tempdir().unwrap();
+        generate(&inv(&["aero-1"]), out.path(), &[], now()).unwrap();
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            for p in [
+                "ca/ca.key",
+                "devices/aero-1/aero-1.key",
+                "router/router.key",
+            ] {
+                let mode = fs::metadata(out.path().join(p))
+                    .unwrap()
+                    .permissions()
+                    .mode();
+                assert_eq!(mode & 0o777, 0o600, "{p}");
+            }
+        }
+        fs::remove_file(out.path().join("ca/ca.key")).unwrap();
+        let e = generate(&inv(&["aero-1"]), out.path(), &[], now()).unwrap_err();
+        assert!(e.to_string().contains("half restored"), "{e}");
+    }
+
+    #[test]
+    fn every_bundle_holds_its_config_certificate_key_and_the_ca() {
+        let out = tempfile::tempdir().unwrap();
+        let r = generate(&inv(&["aero-1"]), out.path(), &[], now()).unwrap();
+        for e in &r.entries {
+            let conf = if e.role == Role::Router {
+                "zenohd.json5".into()
+            } else {
+                format!("{}.json5", e.name)
+            };
+            for f in [
+                conf,
+                format!("{}.pem", e.name),
+                format!("{}.key", e.name),
+                "ca.pem".into(),
+            ] {
+                assert!(e.bundle.join(&f).is_file(), "{}: {f}", e.name);
+            }
+            // No bundle carries the CA's key.
+            assert!(!e.bundle.join("ca.key").exists());
+        }
+    }
+}

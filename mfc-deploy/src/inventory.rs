@@ -1,0 +1,373 @@
+//! The fleet's inventory: who is in it, where the router is, where files land.
+//!
+//! It is the one file an operator edits. Everything else (certificates, zenoh configs,
+//! access control) is generated from it, so adding a device is one line here and one
+//! `mfc-deploy generate`.
+
+use std::collections::BTreeSet;
+use std::net::IpAddr;
+use std::path::Path;
+
+use serde::Deserialize;
+
+use crate::DeployError;
+
+/// The fleet (`fleet.toml`).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Inventory {
+    /// Directory where every host keeps its bundle (default `/etc/mfc`). The zenoh configs
+    /// name their certificates by absolute path, because zenoh resolves relative paths from
+    /// the process's working directory, not from the config file. Bundles have distinct
+    /// file names, so several can share one host (router and service, say).
+    #[serde(default = "default_install_dir")]
+    pub install_dir: String,
+    /// Lifetime of the CA certificate, in days (default 3650).
+    #[serde(default = "default_ca_days")]
+    pub ca_days: u32,
+    /// Lifetime of every other certificate, in days (default 397: what browsers accept,
+    /// and short enough that rotation is practised).
+    #[serde(default = "default_leaf_days")]
+    pub leaf_days: u32,
+    /// A certificate that expires within this many days is renewed by `generate`
+    /// (default 30).
+    #[serde(default = "default_renew_days")]
+    pub renew_days: u32,
+    /// The router everybody dials.
+    pub router: Router,
+    /// Controller services (their `--id`); each may serve every device.
+    pub services: Vec<String>,
+    /// Devices (plant agents' `device_id`): CN of their certificates, and the only keys
+    /// their agents may use.
+    #[serde(default)]
+    pub devices: Vec<String>,
+    /// Operators (people, consoles, scripts): read everything, change configuration and
+    /// references through the services, never put a command or a sample.
+    #[serde(default)]
+    pub operators: Vec<String>,
+}
+
+/// The router (zenohd).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Router {
+    /// Names and addresses clients dial. All go into the router certificate's
+    /// subjectAltName (clients verify the name they dial); the first is the one the
+    /// generated client configs dial.
+    pub hosts: Vec<String>,
+    /// Port (default 7447; UDP for QUIC, TCP for TLS).
+    #[serde(default = "default_port")]
+    pub port: u16,
+    /// The secured link every client uses (default `quic`). Both carry TLS 1.3 with
+    /// certificates on both ends and the same access control. `tls` (TLS over TCP) is
+    /// offered but not the default: zenoh 1.10.2's TLS link reads and writes one rustls
+    /// stream from two threads (eclipse-zenoh/zenoh#2557), and under this project's
+    /// two-way 100 Hz traffic it crashed a process in 3 of 4 multi-host runs (an invalid
+    /// jump in the `tx-0` thread). The QUIC link keeps send and receive apart.
+    #[serde(default)]
+    pub protocol: Protocol,
+    /// Common name of the router certificate (default `router`); no client may use it.
+    #[serde(default = "default_router_name")]
+    pub name: String,
+    /// The endpoint zenohd listens on (default `{protocol}/[::]:{port}`: every address,
+    /// IPv4 included; name one address to listen on one interface only). It must use
+    /// `protocol`.
+    #[serde(default)]
+    pub listen: Option<String>,
+}
+
+fn default_install_dir() -> String {
+    "/etc/mfc".into()
+}
+fn default_ca_days() -> u32 {
+    3650
+}
+fn default_leaf_days() -> u32 {
+    397
+}
+fn default_renew_days() -> u32 {
+    30
+}
+fn default_port() -> u16 {
+    7447
+}
+fn default_router_name() -> String {
+    "router".into()
+}
+
+/// The secured link (see [`Router::protocol`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Protocol {
+    /// QUIC: TLS 1.3 over UDP.
+    #[default]
+    Quic,
+    /// TLS over TCP.
+    Tls,
+}
+
+impl Protocol {
+    /// The zenoh locator prefix.
+    pub fn prefix(self) -> &'static str {
+        match self {
+            Protocol::Quic => "quic",
+            Protocol::Tls => "tls",
+        }
+    }
+}
+
+/// The role an identity plays; its access-control rules follow from it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Role {
+    /// zenohd.
+    Router,
+    /// A controller service.
+    Service,
+    /// A plant agent.
+    Device,
+    /// An operator.
+    Operator,
+}
+
+impl Role {
+    /// The bundle directory of this role under the output directory.
+    pub fn dir(self) -> &'static str {
+        match self {
+            Role::Router => "router",
+            Role::Service => "services",
+            Role::Device => "devices",
+            Role::Operator => "operators",
+        }
+    }
+}
+
+impl Inventory {
+    /// Read and check `path`.
+    pub fn load(path: &Path) -> Result<Self, DeployError> {
+        let text = std::fs::read_to_string(path).map_err(|e| DeployError::Io {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        })?;
+        Self::parse(&text).map_err(|e| match e {
+            DeployError::Inventory(reason) => {
+                DeployError::Inventory(format!("{}: {reason}", path.display()))
+            }
+            e => e,
+        })
+    }
+
+    /// Parse and check an inventory's text.
+    pub fn parse(text: &str) -> Result<Self, DeployError> {
+        let inv: Inventory =
+            toml::from_str(text).map_err(|e| DeployError::Inventory(e.to_string()))?;
+        inv.check()?;
+        Ok(inv)
+    }
+
+    /// Every identity with its role, router first. Names are unique across roles (checked):
+    /// the access control tells roles apart by certificate common name alone.
+    pub fn identities(&self) -> Vec<(Role, String)> {
+        let mut v = vec![(Role::Router, self.router.name.clone())];
+        v.extend(self.services.iter().map(|s| (Role::Service, s.clone())));
+        v.extend(self.devices.iter().map(|s| (Role::Device, s.clone())));
+        v.extend(self.operators.iter().map(|s| (Role::Operator, s.clone())));
+        v
+    }
+
+    /// The endpoint clients dial: `{protocol}/{first host}:{port}` (IPv6 in brackets).
+    pub fn router_endpoint(&self) -> String {
+        let host = &self.router.hosts[0];
+        let p = self.router.protocol.prefix();
+        match host.parse::<IpAddr>() {
+            Ok(IpAddr::V6(a)) => format!("{p}/[{a}]:{}", self.router.port),
+            _ => format!("{p}/{host}:{}", self.router.port),
+        }
+    }
+
+    /// The endpoint zenohd listens on.
+    pub fn router_listen(&self) -> String {
+        self.router.listen.clone().unwrap_or_else(|| {
+            format!(
+                "{}/[::]:{}",
+                self.router.protocol.prefix(),
+                self.router.port
+            )
+        })
+    }
+
+    fn check(&self) -> Result<(), DeployError> {
+        let bad = |m: String| Err(DeployError::Inventory(m));
+        if !self.install_dir.starts_with('/') {
+            return bad(format!(
+                "install_dir {:?} must be absolute (zenoh reads certificate paths from its working directory)",
+                self.install_dir
+            ));
+        }
+        if self.ca_days == 0 || self.leaf_days == 0 {
+            return bad("ca_days and leaf_days must be at least 1".into());
+        }
+        if self.leaf_days > self.ca_days {
+            return bad(format!(
+                "leaf_days ({}) outlives ca_days ({}): certificates would outlive their CA",
+                self.leaf_days, self.ca_days
+            ));
+        }
+        if self.renew_days >= self.leaf_days {
+            return bad(format!(
+                "renew_days ({}) must be below leaf_days ({}), or every run renews everything",
+                self.renew_days, self.leaf_days
+            ));
+        }
+        if self.router.hosts.is_empty() {
+            return bad(
+                "router.hosts is empty: name at least one address or DNS name clients dial".into(),
+            );
+        }
+        for h in &self.router.hosts {
+            if h.parse::<IpAddr>().is_err() && !is_dns_name(h) {
+                return bad(format!(
+                    "router host {h:?} is neither an IP address nor a DNS name"
+                ));
+            }
+        }
+        let prefix = format!("{}/", self.router.protocol.prefix());
+        if !self.router_listen().starts_with(&prefix) {
+            return bad(format!(
+                "router.listen {:?} is not a {prefix} endpoint: the router must accept only the secured link",
+                self.router_listen()
+            ));
+        }
+        if self.router.port == 0 {
+            return bad("router.port must not be 0".into());
+        }
+        if self.services.is_empty() {
+            return bad("services is empty: at least one controller service must be listed".into());
+        }
+        let mut seen = BTreeSet::new();
+        for (role, id) in self.identities() {
+            // Device and service ids become key segments; the same rule keeps every common
+            // name safe in a key expression and in a file name.
+            protocol::keys::check_id(&id)
+                .map_err(|e| DeployError::Inventory(format!("{role:?} {id:?}: {e}")))?;
+            if RESERVED.contains(&id.as_str()) {
+                // Bundles share a host's install_dir: these would overwrite `ca.pem` or
+                // `zenohd.json5`.
+                return bad(format!(
+                    "{role:?} {id:?}: the name is reserved ({RESERVED:?})"
+                ));
+            }
+            if id.starts_with('.') {
+                // Names are also file names in the output: "." and ".." would escape it.
+                return bad(format!("{role:?} {id:?}: a name must not start with '.'"));
+            }
+            if !seen.insert(id.clone()) {
+                return bad(format!(
+                    "{id:?} is listed twice: every router, service, device and operator needs its own name (the access control tells them apart by certificate name)"
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Names no identity may take: they are file names of every bundle (`ca.pem`) or of the
+/// router's (`zenohd.json5`).
+pub const RESERVED: [&str; 2] = ["ca", "zenohd"];
+
+/// A DNS name as certificates carry it: labels of letters, digits and hyphens.
+fn is_dns_name(h: &str) -> bool {
+    !h.is_empty()
+        && h.len() <= 253
+        && h.split('.').all(|l| {
+            !l.is_empty()
+                && l.len() <= 63
+                && !l.starts_with('-')
+                && !l.ends_with('-')
+                && l.chars().all(|c| c.is_ascii_alphanumeric() || c == '-')
+        })
+}
+
+/// An example inventory, printed by `mfc-deploy example`.
+pub const EXAMPLE: &str = r#"# The fleet's inventory. Edit, then `mfc-deploy generate --inventory fleet.toml --out fleet`.
+# Adding a device: add its id to `devices`, generate again (nothing else is reissued),
+# copy its bundle to its host and the router bundle to the router, restart the router.
+
+# Where every host keeps its bundle (certificates are named by absolute path in the configs).
+install_dir = "/etc/mfc"
+# Certificate lifetimes in days, and how close to expiry `generate` renews one.
+ca_days = 3650
+leaf_days = 397
+renew_days = 30
+
+# Controller services (their --id), devices (the agents' device_id), operators.
+services = ["controller-1"]
+devices = ["aero-1", "aero-2"]
+operators = ["alice"]
+
+[router]
+# Addresses or DNS names clients dial; all go into the router certificate. The first is dialled.
+hosts = ["10.0.0.1", "router.example.org"]
+port = 7447          # UDP (QUIC)
+protocol = "quic"    # or "tls" (TCP); see Router::protocol before choosing it
+"#;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_example_parses() {
+        let inv = Inventory::parse(EXAMPLE).unwrap();
+        assert_eq!(inv.devices, ["aero-1", "aero-2"]);
+        assert_eq!(inv.router_endpoint(), "quic/10.0.0.1:7447");
+        assert_eq!(inv.identities().len(), 5);
+    }
+
+    #[test]
+    fn bad_inventories_are_refused_with_the_reason() {
+        let base = "services = [\"c\"]\n[router]\nhosts = [\"10.0.0.1\"]\n";
+        assert!(Inventory::parse(base).is_ok());
+        let cases = [
+            ("devices = [\"c\"]\n", "listed twice"),
+            ("devices = [\"router\"]\n", "listed twice"),
+            ("devices = [\"a/b\"]\n", "Device"),
+            ("devices = [\"a*\"]\n", "Device"),
+            ("devices = [\"..\"]\n", "must not start"),
+            ("devices = [\"ca\"]\n", "reserved"),
+            ("operators = [\"zenohd\"]\n", "reserved"),
+            ("install_dir = \"etc\"\n", "absolute"),
+            ("leaf_days = 5000\n", "outlives"),
+            ("renew_days = 400\n", "renew_days"),
+            ("colour = 1\n", "unknown field"),
+        ];
+        for (extra, want) in cases {
+            let e = Inventory::parse(&format!("{extra}{base}"))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(want), "{extra:?}: {e}");
+        }
+        let e = Inventory::parse("services = []\n[router]\nhosts = [\"h\"]\n").unwrap_err();
+        assert!(e.to_string().contains("services is empty"), "{e}");
+        let plain = "services = [\"c\"]\n[router]\nhosts = [\"h\"]\nlisten = \"tcp/[::]:7447\"\n";
+        let e = Inventory::parse(plain).unwrap_err();
+        assert!(e.to_string().contains("not a quic/"), "{e}");
+        let tls = "services = [\"c\"]\n[router]\nhosts = [\"h\"]\nprotocol = \"tls\"\n";
+        let inv = Inventory::parse(tls).unwrap();
+        assert_eq!(
+            (inv.router_endpoint().as_str(), inv.router_listen().as_str()),
+            ("tls/h:7447", "tls/[::]:7447")
+        );
+        let e = Inventory::parse("services = [\"c\"]\n[router]\nhosts = []\n").unwrap_err();
+        assert!(e.to_string().contains("hosts is empty"), "{e}");
+        let e = Inventory::parse("services = [\"c\"]\n[router]\nhosts = [\"a b\"]\n").unwrap_err();
+        assert!(e.to_string().contains("neither"), "{e}");
+    }
+
+    #[test]
+    fn ipv6_hosts_are_bracketed() {
+        let inv =
+            Inventory::parse("services = [\"c\"]\n[router]\nhosts = [\"fd00::1\"]\n").unwrap();
+        assert_eq!(inv.router_endpoint(), "quic/[fd00::1]:7447");
+    }
+}

@@ -1,0 +1,5 @@
+//! `mfc-deploy`: see `mfc_deploy::cli`.
+
+fn main() -> std::process::ExitCode {
+    mfc_deploy::cli::main()
+}

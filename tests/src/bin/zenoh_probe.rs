@@ -1,0 +1,260 @@
+//! `zenoh-probe`: what an intruder, or a witness, can do with one zenoh identity. The
+//! multi-host test (`deploy/test/multihost.py`) uses it to forge puts and queries with a
+//! device's certificate, to subscribe where that device must not see, and to count what
+//! arrives. It prints one JSON line; it never decodes what it receives (it counts bytes
+//! and a marker), so it is also a probe for any payload.
+
+use std::time::Duration;
+
+use clap::{Parser, Subcommand};
+use serde_json::json;
+use transport::ZenohArgs;
+
+#[derive(Parser)]
+struct Cli {
+    #[command(flatten)]
+    zenoh: ZenohArgs,
+    /// Give up opening the session after this long (s): a refused identity must not hang.
+    #[arg(long, default_value_t = 10.0)]
+    open_timeout: f64,
+    #[command(subcommand)]
+    what: What,
+}
+
+#[derive(Subcommand)]
+enum What {
+    /// Open a session and close it: exit 0 if the router took us, 1 if not.
+    Open,
+    /// Put `count` payloads `MARKER-i` on `key`, one every `interval_ms`.
+    Put {
+        #[arg(long)]
+        key: String,
+        #[arg(long, default_value_t = 100)]
+        count: u32,
+        #[arg(long, default_value_t = 10)]
+        interval_ms: u64,
+        #[arg(long, default_value = "FORGED")]
+        marker: String,
+    },
+    /// Subscribe to each `key` for `secs` and count samples, and those whose payload
+    /// starts with `marker`, per key.
+    Sub {
+        #[arg(long, required = true)]
+        key: Vec<String>,
+        #[arg(long)]
+        secs: f64,
+        #[arg(long, default_value = "FORGED")]
+        marker: String,
+    },
+    /// Send `count` queries on `key` (with `payload_hex` as payload, if given) and count the
+    /// replies: good ones, those whose payload starts with `marker`, and errors.
+    Get {
+        #[arg(long)]
+        key: String,
+        #[arg(long, default_value_t = 10)]
+        count: u32,
+        #[arg(long)]
+        payload_hex: Option<String>,
+        #[arg(long, default_value = "FORGED")]
+        marker: String,
+    },
+    /// Delete `key` `count` times.
+    Delete {
+        #[arg(long)]
+        key: String,
+        #[arg(long, default_value_t = 10)]
+        count: u32,
+    },
+    /// Serve `key` for `secs`, answering every query with `marker`; count the queries.
+    Queryable {
+        #[arg(long)]
+        key: String,
+        #[arg(long)]
+        secs: f64,
+        #[arg(long, default_value = "FORGED")]
+        marker: String,
+    },
+    /// Hold a liveliness token on `key` for `secs`.
+    Token {
+        #[arg(long)]
+        key: String,
+        #[arg(long)]
+        secs: f64,
+    },
+    /// List the liveliness tokens under `key`.
+    Alive {
+        #[arg(long)]
+        key: String,
+    },
+}
+
+fn hex(s: &str) -> anyhow::Result<Vec<u8>> {
+    anyhow::ensure!(s.len() % 2 == 0, "odd hex length");
+    (0..s.len())
+        .step_by(2)
+        .map(|i| Ok(u8::from_str_radix(&s[i..i + 2], 16)?))
+        .collect()
+}
+
+#[tokio::main(flavor = "multi_thread", worker_threads = 2)]
+async fn main() -> std::process::ExitCode {
+    let cli = Cli::parse();
+    match run(cli).await {
+        Ok(v) => {
+            println!("{v}");
+            std::process::ExitCode::SUCCESS
+        }
+        Err(e) => {
+            println!("{}", json!({ "error": format!("{e:#}") }));
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+async fn run(cli: Cli) -> anyhow::Result<serde_json::Value> {
+    let session = tokio::time::timeout(Duration::from_secs_f64(cli.open_timeout), cli.zenoh.open())
+        .await
+        .map_err(|_| anyhow::anyhow!("no session after {} s", cli.open_timeout))??;
+    let out = match cli.what {
+        What::Open => json!({ "opened": true }),
+        What::Put {
+            key,
+            count,
+            interval_ms,
+            marker,
+        } => {
+            let mut errors = 0;
+            for i in 0..count {
+                if session.put(&key, format!("{marker}-{i}")).await.is_err() {
+                    errors += 1;
+                }
+                tokio::time::sleep(Duration::from_millis(interval_ms)).await;
+            }
+            json!({ "put": count, "errors": errors })
+        }
+        What::Sub { key, secs, marker } => {
+            let counts = std::sync::Arc::new(std::sync::Mutex::new(std::collections::BTreeMap::<
+                String,
+                (u64, u64, u64),
+            >::new()));
+            let mut subs = Vec::new();
+            for k in key {
+                counts.lock().unwrap().insert(k.clone(), (0, 0, 0));
+                let (c, m, kk) = (counts.clone(), marker.clone(), k.clone());
+                subs.push(
+                    session
+                        .declare_subscriber(&k)
+                        .callback(move |s| {
+                            let forged = s.payload().to_bytes().starts_with(m.as_bytes());
+                            let delete = s.kind() == zenoh::sample::SampleKind::Delete;
+                            if let Some(e) = c.lock().unwrap().get_mut(&kk) {
+                                e.0 += 1;
+                                e.1 += forged as u64;
+                                e.2 += delete as u64;
+                            }
+                        })
+                        .await
+                        .map_err(|e| anyhow::anyhow!("subscriber {k}: {e}"))?,
+                );
+            }
+            tokio::time::sleep(Duration::from_secs_f64(secs)).await;
+            drop(subs);
+            let counts = counts.lock().unwrap().clone();
+            let per_key: serde_json::Map<String, serde_json::Value> = counts
+                .iter()
+                .map(|(k, (r, m, d))| {
+                    (
+                        k.clone(),
+                        json!({ "received": r, "marked": m, "deletes": d }),
+                    )
+                })
+                .collect();
+            json!({
+                "received": counts.values().map(|c| c.0).sum::<u64>(),
+                "marked": counts.values().map(|c| c.1).sum::<u64>(),
+                "per_key": per_key,
+            })
+        }
+        What::Get {
+            key,
+            count,
+            payload_hex,
+            marker,
+        } => {
+            let payload = payload_hex.as_deref().map(hex).transpose()?;
+            let (mut ok, mut err, mut marked) = (0u64, 0u64, 0u64);
+            for _ in 0..count {
+                let mut get = session.get(&key).timeout(Duration::from_secs(1));
+                if let Some(p) = &payload {
+                    get = get.payload(p.clone());
+                }
+                let replies = get.await.map_err(|e| anyhow::anyhow!("query {key}: {e}"))?;
+                while let Ok(r) = replies.recv_async().await {
+                    match r.result() {
+                        Ok(s) => {
+                            ok += 1;
+                            marked += s.payload().to_bytes().starts_with(marker.as_bytes()) as u64;
+                        }
+                        Err(_) => err += 1,
+                    }
+                }
+            }
+            json!({ "queries": count, "replies": ok, "marked_replies": marked, "error_replies": err })
+        }
+        What::Delete { key, count } => {
+            let mut errors = 0;
+            for _ in 0..count {
+                if session.delete(&key).await.is_err() {
+                    errors += 1;
+                }
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            }
+            json!({ "deleted": count, "errors": errors })
+        }
+        What::Queryable { key, secs, marker } => {
+            let n = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+            let seen = n.clone();
+            let _q = session
+                .declare_queryable(&key)
+                .callback(move |q| {
+                    seen.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    let key = q.key_expr().clone();
+                    let marker = marker.clone();
+                    tokio::spawn(async move {
+                        let _ = q.reply(key, marker).await;
+                    });
+                })
+                .await
+                .map_err(|e| anyhow::anyhow!("queryable {key}: {e}"))?;
+            tokio::time::sleep(Duration::from_secs_f64(secs)).await;
+            json!({ "queries_seen": n.load(std::sync::atomic::Ordering::Relaxed) })
+        }
+        What::Token { key, secs } => {
+            let _t = session
+                .liveliness()
+                .declare_token(&key)
+                .await
+                .map_err(|e| anyhow::anyhow!("token {key}: {e}"))?;
+            tokio::time::sleep(Duration::from_secs_f64(secs)).await;
+            json!({ "token": key })
+        }
+        What::Alive { key } => {
+            let replies = session
+                .liveliness()
+                .get(&key)
+                .timeout(Duration::from_secs(2))
+                .await
+                .map_err(|e| anyhow::anyhow!("liveliness {key}: {e}"))?;
+            let mut keys = Vec::new();
+            while let Ok(r) = replies.recv_async().await {
+                if let Ok(s) = r.result() {
+                    keys.push(s.key_expr().to_string());
+                }
+            }
+            keys.sort();
+            json!({ "alive": keys })
+        }
+    };
+    let _ = session.close().await;
+    Ok(out)
+}
