@@ -55,7 +55,11 @@ where
             return std::process::ExitCode::FAILURE;
         }
     };
-    match runtime.block_on(run(cli)) {
+    let result = runtime.block_on(run(cli));
+    // A stop while zenoh still retries its connection leaves that open on a worker: do not
+    // wait for it.
+    runtime.shutdown_background();
+    match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e:#}");
@@ -67,17 +71,22 @@ where
 /// Run the service described by `cli` until SIGINT or SIGTERM.
 pub async fn run(cli: Cli) -> Result<()> {
     // First: a SIGTERM while the session opens must end the service cleanly, not be lost.
-    let shutdown = transport::shutdown_signal();
+    let mut shutdown = Box::pin(transport::shutdown_signal());
     let mut config = ServiceConfig::load(&cli.config)?;
     if let Some(id) = cli.controller_id {
         config.controller_id = id;
         config.check(&cli.config.display().to_string())?;
     }
     let registry = Registry::new(config).context("building the devices")?;
-    let session = cli
-        .zenoh
-        .open_bounded(protocol::MAX_TRANSPORT_MESSAGE)
-        .await?;
+    // A client of a router retries until the router answers (start order must not matter):
+    // a stop meanwhile ends the service at once instead of waiting for the router.
+    let session = tokio::select! {
+        s = cli.zenoh.open_bounded(protocol::MAX_TRANSPORT_MESSAGE) => s?,
+        _ = &mut shutdown => {
+            tracing::info!("stopped while waiting for the router: nothing was served");
+            return Ok(());
+        }
+    };
     service::serve(session, registry, shutdown).await?;
     Ok(())
 }

@@ -51,6 +51,17 @@ pub fn lags_ratio_bound() -> f64 {
         .unwrap_or(2.0)
 }
 
+/// The largest fraction of periods a networked run may hold a stale command and still have
+/// its tracking judged against its offline twin: `MFC_TEST_MAX_HELD`, default 0.02. A run
+/// over it is the machine missing its deadlines, and is run again (see
+/// `tests/any_plant.rs`).
+pub fn max_held_fraction() -> f64 {
+    std::env::var("MFC_TEST_MAX_HELD")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0.02)
+}
+
 /// A plant for a test that asserts it is served throughout (no fallback): the agent's
 /// default safety, with the hold widened by [`margin_periods`]. What such a test checks
 /// is that the loop is served, and a stall of the machine longer than the default hold
