@@ -174,6 +174,48 @@ pub enum Role {
     Standby,
 }
 
+/// Several service instances sharing one fleet of devices ([`crate::fleet`]): each device
+/// is owned by exactly one live member, chosen by rendezvous hashing over the members
+/// found by liveliness, with no per-instance device list. Every member must have the same
+/// devices and templates in its file (the hash, not the file, decides who serves).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FleetSpec {
+    /// Name shared by the members (a key chunk, the same rules as a device id).
+    pub name: String,
+    /// Warm standbys: the second member in each shard's rank steps its samples too, so it
+    /// takes over a dead owner's devices with their state at once (twice the stepping
+    /// over the fleet). Without, a dead owner's devices restart afresh (a warm-up) on
+    /// their new owner. Default true.
+    #[serde(default = "yes")]
+    pub standby: bool,
+    /// How long an owner outranked by a newcomer keeps answering a shard while it waits
+    /// for the newcomer to ask for it (ms, > 0). Default 1000.
+    #[serde(default = "release_timeout_ms")]
+    pub release_timeout_ms: u64,
+    /// How long a member waits for the previous owner's state before it answers a shard
+    /// with what it has (ms, > 0). Default 500.
+    #[serde(default = "handover_timeout_ms")]
+    pub handover_timeout_ms: u64,
+    /// How long a starting member looks for the others before it decides what it owns
+    /// (ms, > 0). Default 300.
+    #[serde(default = "discover_ms")]
+    pub discover_ms: u64,
+}
+
+fn yes() -> bool {
+    true
+}
+fn release_timeout_ms() -> u64 {
+    1000
+}
+fn handover_timeout_ms() -> u64 {
+    500
+}
+fn discover_ms() -> u64 {
+    300
+}
+
 /// Per-device state snapshots, so that a restarted service carries on where it stopped.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -210,6 +252,10 @@ pub struct ServiceConfig {
     /// Hot standby group, if any (absent: this service is always active).
     #[serde(default)]
     pub standby: Option<StandbySpec>,
+    /// Fleet membership, if several instances share the devices (absent: this service
+    /// serves every device it is configured for). Not with `standby`.
+    #[serde(default)]
+    pub fleet: Option<FleetSpec>,
     /// Where and how often to save device state (absent: nothing is saved, and a restarted
     /// service starts every device afresh).
     #[serde(default)]
@@ -240,6 +286,7 @@ impl Default for ServiceConfig {
             devices: Vec::new(),
             templates: Vec::new(),
             standby: None,
+            fleet: None,
             snapshots: None,
             max_devices: max_devices(),
             allow_remote_widening: false,
@@ -319,6 +366,25 @@ impl ServiceConfig {
                 ));
             }
             check_channels(file, &format!("devices[{i}]"), &d.channels)?;
+        }
+        if let Some(f) = &self.fleet {
+            protocol::keys::check_id(&f.name)
+                .map_err(|e| invalid("fleet.name".into(), e.to_string()))?;
+            if self.standby.is_some() {
+                return Err(invalid(
+                    "fleet".into(),
+                    "a fleet and a hot-standby group exclude each other: a fleet keeps standbys per shard itself".into(),
+                ));
+            }
+            for (field, v) in [
+                ("fleet.release_timeout_ms", f.release_timeout_ms),
+                ("fleet.handover_timeout_ms", f.handover_timeout_ms),
+                ("fleet.discover_ms", f.discover_ms),
+            ] {
+                if v == 0 {
+                    return Err(invalid(field.into(), "must be > 0".into()));
+                }
+            }
         }
         if let Some(sb) = &self.standby {
             protocol::keys::check_id(&sb.group)

@@ -117,6 +117,21 @@ impl Limits {
         Ok(out)
     }
 
+    /// The limits both allow: the higher min, the lower max, the slower rate limit. Used
+    /// when a fleet member takes a device's envelope from another: the result never
+    /// allows more than this member's own file does. Disjoint limits give an empty
+    /// interval, which [`Limits::check`] refuses.
+    pub fn intersect(&self, other: &Limits) -> Limits {
+        Limits {
+            min: self.min.max(other.min),
+            max: self.max.min(other.max),
+            rate_limit: match (self.rate_limit, other.rate_limit) {
+                (Some(a), Some(b)) => Some(a.min(b)),
+                (a, b) => a.or(b),
+            },
+        }
+    }
+
     /// Narrow a map in force into these limits (after the envelope itself changed): the
     /// map keeps what lies inside and takes the envelope's bound where it lay outside.
     pub fn narrow(&self, o: OutputMapConfig) -> OutputMapConfig {

@@ -85,6 +85,14 @@ impl<T> Inbox<T> {
         }
     }
 
+    /// Take device `id`'s own slot away (it is no longer served here); a sample of it
+    /// still pending is dropped.
+    pub fn unserve(&mut self, id: &str) {
+        if self.served.remove(id) && self.pending.remove(id).is_some() {
+            self.ready.retain(|r| r != id);
+        }
+    }
+
     /// Whether device `id` has a slot of its own (it is served).
     pub fn serves(&self, id: &str) -> bool {
         self.served.contains(id)

@@ -13,6 +13,7 @@
 pub mod cli;
 pub mod config;
 pub mod envelope;
+pub mod fleet;
 pub mod inbox;
 pub mod registry;
 pub mod service;

@@ -124,6 +124,9 @@ enum Run {
 /// and the counters of its status.
 #[derive(Debug, Clone)]
 struct Device {
+    /// The shard the device lives in ([`crate::fleet`]): its id's, or its gateway's if its
+    /// samples come in a gateway's batches.
+    home: u32,
     /// Restored from a snapshot and not yet resumed: the first sample decides whether the
     /// data history still holds (no gap) or must be forgotten.
     restored: bool,
@@ -236,6 +239,7 @@ impl Device {
             .collect::<Result<Vec<_>, String>>()?;
         let n = configs.len();
         Ok(Self {
+            home: 0,
             restored: false,
             from_template,
             envelope,
@@ -633,6 +637,8 @@ pub struct Registry {
     rejected: u64,
     /// Configuration, envelope and reference requests refused.
     requests_refused: u64,
+    /// Samples in gateway batches whose device id is not an id.
+    bad_device_ids: u64,
 }
 
 impl Registry {
@@ -640,10 +646,12 @@ impl Registry {
     pub fn new(config: ServiceConfig) -> Result<Self, RegistryError> {
         let mut devices = BTreeMap::new();
         for d in &config.devices {
-            let dev = Device::new(&d.channels, false).map_err(|reason| RegistryError::Device {
-                id: d.id.clone(),
-                reason,
-            })?;
+            let mut dev =
+                Device::new(&d.channels, false).map_err(|reason| RegistryError::Device {
+                    id: d.id.clone(),
+                    reason,
+                })?;
+            dev.home = protocol::shard_of(&d.id);
             devices.insert(d.id.clone(), dev);
         }
         Ok(Self {
@@ -656,12 +664,45 @@ impl Registry {
             undecodable: 0,
             rejected: 0,
             requests_refused: 0,
+            bad_device_ids: 0,
         })
     }
 
     /// The snapshot settings, if any.
     pub fn snapshot_spec(&self) -> Option<&crate::config::SnapshotSpec> {
         self.config.snapshots.as_ref()
+    }
+
+    /// The fleet settings, if any.
+    pub fn fleet(&self) -> Option<&crate::config::FleetSpec> {
+        self.config.fleet.as_ref()
+    }
+
+    /// The state of the devices `ids` (those served), as a one-shard handover of `shard`:
+    /// what an owner sends its standby after a configuration change.
+    pub fn devices_state(&self, shard: u32, ids: &[&str]) -> crate::snapshot::ShardState {
+        let devices = self
+            .snapshots_where(|id, _| ids.contains(&id))
+            .into_iter()
+            .filter_map(|snap| {
+                let d = self.devices.get(&snap.id)?;
+                Some(crate::snapshot::HandedDevice {
+                    home: d.home,
+                    envelope: d
+                        .envelope
+                        .iter()
+                        .map(|l| (l.min, l.max, l.rate_limit))
+                        .collect(),
+                    live_config: true,
+                    snapshot: snap,
+                })
+            })
+            .collect();
+        crate::snapshot::ShardState {
+            version: crate::snapshot::SNAPSHOT_VERSION,
+            shard,
+            devices,
+        }
     }
 
     /// The hot-standby settings, if any.
@@ -697,6 +738,12 @@ impl Registry {
     /// Count a refused request that never reached a device (undecodable, bad key).
     pub fn note_request_refused(&mut self) {
         self.requests_refused += 1;
+    }
+
+    /// Count a sample in a gateway batch whose device id is not a valid id (nothing to
+    /// answer); reported as `bad_device_ids` in the service status.
+    pub fn note_bad_id(&mut self) {
+        self.bad_device_ids += 1;
     }
 
     /// Add `n` superseded samples to device `id`'s status (the service-wide count is the
@@ -738,7 +785,8 @@ impl Registry {
             return Some(Outcome::TableFull);
         }
         match Device::new(&t.channels, true) {
-            Ok(d) => {
+            Ok(mut d) => {
+                d.home = protocol::shard_of(id);
                 self.devices.insert(id.to_string(), d);
                 None
             }
@@ -1136,17 +1184,174 @@ impl Registry {
             rejected: self.rejected,
             device_table_full: self.device_table_full,
             requests_refused: self.requests_refused,
+            bad_device_ids: self.bad_device_ids,
             ..Default::default()
         }
     }
+}
+
+/// Fleet support ([`crate::fleet`]): which shard each device lives in, and the state of a
+/// shard as handed between members.
+impl Registry {
+    /// Record that `id`'s samples come by a path of shard `home` (its own key: its id's
+    /// shard; a gateway's batch: the gateway's). A device already served only.
+    pub fn set_home(&mut self, id: &str, home: u32) {
+        if let Some(d) = self.devices.get_mut(id) {
+            d.home = home;
+        }
+    }
+
+    /// The shard `id` lives in, if served.
+    pub fn home_of(&self, id: &str) -> Option<u32> {
+        self.devices.get(id).map(|d| d.home)
+    }
+
+    /// Ids of the devices served whose shard is in `mask` (bit `s` for shard `s`).
+    pub fn device_ids_in(&self, mask: u64) -> Vec<String> {
+        self.devices
+            .iter()
+            .filter(|(_, d)| mask & (1u64 << (d.home % 64)) != 0)
+            .map(|(id, _)| id.clone())
+            .collect()
+    }
+
+    /// The state of every device of `shard`, for a handover.
+    pub fn shard_state(&self, shard: u32) -> crate::snapshot::ShardState {
+        let devices = self
+            .snapshots_where(|_, d| d.home == shard)
+            .into_iter()
+            .filter_map(|snap| {
+                let d = self.devices.get(&snap.id)?;
+                Some(crate::snapshot::HandedDevice {
+                    home: d.home,
+                    envelope: d
+                        .envelope
+                        .iter()
+                        .map(|l| (l.min, l.max, l.rate_limit))
+                        .collect(),
+                    live_config: true,
+                    snapshot: snap,
+                })
+            })
+            .collect();
+        crate::snapshot::ShardState {
+            version: crate::snapshot::SNAPSHOT_VERSION,
+            shard,
+            devices,
+        }
+    }
+
+    /// Take over a shard's state from another member: every device is restored as the
+    /// previous owner had it (configuration, envelope, estimators, sequence), so the next
+    /// sample continues bumplessly. Returns how many were restored and how many refused
+    /// (each with its reason logged).
+    pub fn restore_shard(&mut self, state: &crate::snapshot::ShardState) -> (usize, usize) {
+        let (mut ok, mut refused) = (0, 0);
+        for h in &state.devices {
+            match self.restore_handed(h) {
+                Ok(()) => ok += 1,
+                Err(reason) => {
+                    refused += 1;
+                    tracing::warn!(device = %printable(&h.snapshot.id), "handed state not restored: {reason}");
+                }
+            }
+        }
+        (ok, refused)
+    }
+
+    fn restore_handed(&mut self, h: &crate::snapshot::HandedDevice) -> Result<(), String> {
+        keys_check(&h.snapshot.id)?;
+        let envelope: Vec<Limits> = h
+            .envelope
+            .iter()
+            .map(|&(min, max, rate_limit)| Limits {
+                min,
+                max,
+                rate_limit,
+            })
+            .collect();
+        for l in &envelope {
+            l.check()?;
+        }
+        // Build the device if this member never saw it, then narrow its envelope to the
+        // handed one: a handover never widens what the file allows here.
+        if !self.devices.contains_key(&h.snapshot.id) {
+            self.provision(&h.snapshot.id)
+                .map_or(Ok(()), |o| Err(format!("cannot serve it here: {o:?}")))?;
+        }
+        let d = self
+            .devices
+            .get_mut(&h.snapshot.id)
+            .ok_or("not served here")?;
+        if envelope.len() != d.envelope.len() {
+            return Err(format!(
+                "{} envelope channels, the device has {}",
+                envelope.len(),
+                d.envelope.len()
+            ));
+        }
+        let narrowed: Vec<Limits> = d
+            .envelope
+            .iter()
+            .zip(&envelope)
+            .map(|(mine, theirs)| mine.intersect(theirs))
+            .collect();
+        for l in &narrowed {
+            l.check()?;
+        }
+        d.envelope = narrowed;
+        d.home = h.home;
+        self.restore_with(&h.snapshot, h.live_config)
+    }
+
+    /// Drop the state of every device of `shard` (this member no longer owns or backs it
+    /// up): template devices are removed (their ids are returned), declared ones rebuilt
+    /// from the file.
+    pub fn forget_shard(&mut self, shard: u32) -> Vec<String> {
+        let mut removed = Vec::new();
+        let ids: Vec<String> = self
+            .devices
+            .iter()
+            .filter(|(_, d)| d.home == shard)
+            .map(|(id, _)| id.clone())
+            .collect();
+        for id in ids {
+            let declared = self.config.devices.iter().find(|d| d.id == id).cloned();
+            match declared.and_then(|spec| Device::new(&spec.channels, false).ok()) {
+                Some(mut fresh) => {
+                    fresh.home = protocol::shard_of(&id);
+                    self.devices.insert(id, fresh);
+                }
+                None => {
+                    self.devices.remove(&id);
+                    removed.push(id);
+                }
+            }
+        }
+        removed
+    }
+}
+
+fn keys_check(id: &str) -> Result<(), String> {
+    protocol::keys::check_id(id)
+        .map(|_| ())
+        .map_err(|e| e.to_string())
 }
 
 impl Registry {
     /// Snapshots of every device (for [`crate::snapshot`]); a device whose control state
     /// does not encode is left out.
     pub fn snapshots(&self) -> Vec<crate::snapshot::DeviceSnapshot> {
+        self.snapshots_where(|_, _| true)
+    }
+
+    fn snapshots_where(
+        &self,
+        keep: impl Fn(&str, &Device) -> bool,
+    ) -> Vec<crate::snapshot::DeviceSnapshot> {
         self.devices
             .iter()
+            .filter(|(id, d)| keep(id, d))
             .filter_map(|(id, d)| {
                 Some(crate::snapshot::DeviceSnapshot {
                     version: crate::snapshot::SNAPSHOT_VERSION,
@@ -1176,6 +1381,17 @@ impl Registry {
     /// the snapshot's laws differ from the configuration in force: a changed configuration
     /// wins over an old state.
     pub fn restore(&mut self, snap: &crate::snapshot::DeviceSnapshot) -> Result<(), String> {
+        self.restore_with(snap, false)
+    }
+
+    /// [`Registry::restore`]; with `live_config`, a declared device takes the snapshot's
+    /// laws even where they differ from the file's (a handover from a member on which they
+    /// were changed remotely). The output maps must still lie inside the envelope.
+    fn restore_with(
+        &mut self,
+        snap: &crate::snapshot::DeviceSnapshot,
+        live_config: bool,
+    ) -> Result<(), String> {
         let mimo: MimoController =
             mfc::snapshot::from_bytes(&snap.mimo).map_err(|e| e.to_string())?;
         let configs: Vec<ChannelConfig> = mimo.channels().iter().map(|c| *c.config()).collect();
@@ -1203,7 +1419,7 @@ impl Registry {
                 d.channels()
             ));
         }
-        if !snap.from_template && configs != d.configs {
+        if !snap.from_template && !live_config && configs != d.configs {
             return Err(format!(
                 "device {:?}: configuration changed since the snapshot",
                 snap.id

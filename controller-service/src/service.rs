@@ -20,12 +20,15 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use protocol::{decode, encode, keys, pb, printable, MAX_PAYLOAD};
+use protocol::{
+    decode, encode, keys, pb, printable, MAX_BATCH_PAYLOAD, MAX_BATCH_SAMPLES, MAX_PAYLOAD,
+};
 use tokio::sync::{mpsc, Notify};
-use zenoh::pubsub::Publisher;
-use zenoh::query::Query;
+use zenoh::pubsub::{Publisher, Subscriber};
+use zenoh::query::{Query, Queryable};
 use zenoh::Session;
 
+use crate::fleet::{Action, Fleet};
 use crate::inbox::{Inbox, Push, Taken};
 use crate::registry::{precheck, Outcome, Registry};
 
@@ -53,6 +56,32 @@ enum Msg {
     Status(Query),
     /// A service status query, answered with the hot-standby state and the drops.
     ServiceStatus(Query),
+    /// A fleet member appeared (`true`) or disappeared.
+    Member(String, bool),
+    /// Another member asks for a shard's state (`release:{id}` or `copy:{id}`).
+    Handover(Query),
+    /// The answer to this member's own handover request for a shard: the state, if any
+    /// came, and whether it was a release (this member then owns the shard).
+    Handed {
+        shard: u32,
+        release: bool,
+        state: Option<Vec<u8>>,
+    },
+    /// An owner's device state after a configuration change, for its standbys.
+    Sync(u32, Vec<u8>),
+}
+
+/// Which shards this member steps and answers, read by zenoh's callbacks (bit `s` for
+/// shard `s`); all of them without a fleet.
+#[derive(Debug)]
+struct Masks {
+    step: AtomicU64,
+}
+
+impl Masks {
+    fn steps(&self, shard: u32) -> bool {
+        self.step.load(Ordering::Relaxed) & (1u64 << (shard % 64)) != 0
+    }
 }
 
 /// Depth of the request queue (messages); when it is full new requests are dropped and
@@ -63,6 +92,14 @@ const OTHERS: usize = 64;
 /// Samples the worker serves before it looks at its other inputs again, so requests and
 /// heartbeats are never starved by a busy fleet.
 const BATCH: usize = 64;
+/// Gateways whose batches may wait at once (one unread batch each): a flood of new gateway
+/// ids fills these and is dropped as `queue_full`, never growing the service.
+const GATEWAYS_PENDING: usize = 256;
+/// Gateways with a publisher of their own; commands to any beyond go through the session
+/// (same options, one declaration less), so the table is bounded whatever arrives.
+const GATEWAY_PUBLISHERS: usize = 1024;
+/// Gateway batches the worker serves per turn (each may hold thousands of samples).
+const GATEWAY_TURN: usize = 4;
 /// Throttled warnings: at most one line per kind per interval.
 const LOG_INTERVAL: Duration = Duration::from_secs(5);
 
@@ -231,6 +268,7 @@ pub async fn serve(
     let (hb_tx, mut hb_rx) = mpsc::channel::<Vec<u8>>(64);
     let drops = Arc::new(Drops::default());
     let inbox = Arc::new(Mutex::new(Inbox::<pb::Sample>::new(OTHERS)));
+    let gateways = Arc::new(Mutex::new(Inbox::<pb::SampleBatch>::new(GATEWAYS_PENDING)));
     let wake = Arc::new(Notify::new());
     {
         let mut ib = lock(&inbox);
@@ -242,56 +280,70 @@ pub async fn serve(
     // Which ids could ever be served: the declared ones (in the inbox's served set) and
     // those a template matches. The patterns do not change while the service runs.
     let templates = registry.template_patterns();
-    let sub = {
+    let fleet_spec = registry.fleet().cloned();
+    let mut pending_actions: Vec<Action> = Vec::new();
+    let masks = Arc::new(Masks {
+        step: AtomicU64::new(if fleet_spec.is_some() { 0 } else { u64::MAX }),
+    });
+    // One callback for every subscription to samples: the key without a shard (every
+    // member receives it and keeps its own shards' samples) and the keys of each shard
+    // (only its owner and standby subscribe: zenoh routes them nothing else).
+    let sample_cb = || {
         let (drops, inbox, wake, tx) = (drops.clone(), inbox.clone(), wake.clone(), tx.clone());
-        session
-            .declare_subscriber(keys::all_devices("sample"))
-            .callback(move |s| {
-                if !fits(s.payload().len(), &drops) {
-                    return;
-                }
-                let Some(dev) = keys::device_of(s.key_expr().as_str()) else {
-                    Drops::count(&drops.bad_key);
-                    return;
+        let (templates, masks) = (templates.clone(), masks.clone());
+        move |s: zenoh::sample::Sample| {
+            if !fits(s.payload().len(), &drops) {
+                return;
+            }
+            let Some(dev) = keys::device_of(s.key_expr().as_str()) else {
+                Drops::count(&drops.bad_key);
+                return;
+            };
+            if !masks.steps(protocol::shard_of(dev)) {
+                // Another fleet member's device, on the key every member receives.
+                return;
+            }
+            // A device nobody serves or could serve: counted here, whatever the load,
+            // and never queued, decoded or answered.
+            let templated = || {
+                zenoh::key_expr::keyexpr::new(dev)
+                    .is_ok_and(|ke| templates.iter().any(|t| t.includes(ke)))
+            };
+            let served = lock(&inbox).serves(dev);
+            if !served && !templated() {
+                drops.unknown(dev);
+                return;
+            }
+            let Ok(sample) = decode::<pb::Sample>(&s.payload().to_bytes()) else {
+                Drops::count(&drops.undecodable);
+                return;
+            };
+            if let Err(reason) = precheck(dev, &sample) {
+                let msg = Msg::Refused {
+                    dev: dev.to_string(),
+                    seq: sample.seq,
+                    sent_unix_ns: sample.sent_unix_ns,
+                    reason,
                 };
-                // A device nobody serves or could serve: counted here, whatever the load,
-                // and never queued, decoded or answered.
-                let templated = || {
-                    zenoh::key_expr::keyexpr::new(dev)
-                        .is_ok_and(|ke| templates.iter().any(|t| t.includes(ke)))
-                };
-                let served = lock(&inbox).serves(dev);
-                if !served && !templated() {
-                    drops.unknown(dev);
-                    return;
+                if tx.try_send(msg).is_err() {
+                    Drops::count(&drops.queue_full);
                 }
-                let Ok(sample) = decode::<pb::Sample>(&s.payload().to_bytes()) else {
-                    Drops::count(&drops.undecodable);
-                    return;
-                };
-                if let Err(reason) = precheck(dev, &sample) {
-                    let msg = Msg::Refused {
-                        dev: dev.to_string(),
-                        seq: sample.seq,
-                        sent_unix_ns: sample.sent_unix_ns,
-                        reason,
-                    };
-                    if tx.try_send(msg).is_err() {
-                        Drops::count(&drops.queue_full);
-                    }
-                    return;
-                }
-                // A replayed sample of the same run must not push out a newer one.
-                let pushed = lock(&inbox).push_unless_older(dev, sample, |new, old| {
-                    new.run_id == old.run_id && new.seq < old.seq
-                });
-                if pushed == Push::Queued {
-                    wake.notify_one();
-                }
-            })
-            .await
-            .map_err(declare_err("sample subscriber"))?
+                return;
+            }
+            // A replayed sample of the same run must not push out a newer one.
+            let pushed = lock(&inbox).push_unless_older(dev, sample, |new, old| {
+                new.run_id == old.run_id && new.seq < old.seq
+            });
+            if pushed == Push::Queued {
+                wake.notify_one();
+            }
+        }
     };
+    let sub = session
+        .declare_subscriber(keys::all_devices("sample"))
+        .callback(sample_cb())
+        .await
+        .map_err(declare_err("sample subscriber"))?;
     let ref_sub = {
         let (tx, drops, inbox) = (tx.clone(), drops.clone(), inbox.clone());
         session
@@ -316,6 +368,66 @@ pub async fn serve(
             })
             .await
             .map_err(declare_err("reference subscriber"))?
+    };
+    // Gateways: one batch per period with the samples of all their plants. Checked here
+    // as a whole (size, count, the key's own gateway id); each sample inside is checked by
+    // the registry, as if it had come alone.
+    let gateway_cb = || {
+        let (drops, gateways, wake, masks) =
+            (drops.clone(), gateways.clone(), wake.clone(), masks.clone());
+        move |s: zenoh::sample::Sample| {
+            if s.payload().len() > MAX_BATCH_PAYLOAD {
+                Drops::count(&drops.oversized);
+                return;
+            }
+            let Some(gw) = keys::gateway_of(s.key_expr().as_str()) else {
+                Drops::count(&drops.bad_key);
+                return;
+            };
+            if !masks.steps(protocol::shard_of(gw)) {
+                return;
+            }
+            let Ok(batch) = decode::<pb::SampleBatch>(&s.payload().to_bytes()) else {
+                Drops::count(&drops.undecodable);
+                return;
+            };
+            if batch.gateway_id != gw {
+                Drops::count(&drops.bad_key);
+                return;
+            }
+            if batch.samples.len() > MAX_BATCH_SAMPLES {
+                Drops::count(&drops.oversized);
+                return;
+            }
+            match lock(&gateways).push(gw, batch) {
+                Push::Queued => wake.notify_one(),
+                Push::Superseded => {}
+                Push::Full => Drops::count(&drops.queue_full),
+            }
+        }
+    };
+    let gw_sub = session
+        .declare_subscriber(keys::all_gateways("samples"))
+        .callback(gateway_cb())
+        .await
+        .map_err(declare_err("gateway subscriber"))?;
+    // Without a fleet, the shard keys are served as they come (every shard is this
+    // service's); with one, each shard's are declared as it is taken (see `Dynamic`).
+    let static_shards = if fleet_spec.is_none() {
+        Some((
+            session
+                .declare_subscriber(format!("{}/shard/*/device/*/sample", keys::PREFIX))
+                .callback(sample_cb())
+                .await
+                .map_err(declare_err("shard sample subscriber"))?,
+            session
+                .declare_subscriber(format!("{}/shard/*/gateway/*/samples", keys::PREFIX))
+                .callback(gateway_cb())
+                .await
+                .map_err(declare_err("shard gateway subscriber"))?,
+        ))
+    } else {
+        None
     };
     // Every queryable sorts the same way: oversized payloads are dropped (the querier gets
     // no reply, as from a lost message), the rest is queued for the worker.
@@ -357,6 +469,129 @@ pub async fn serve(
         Msg::ServiceStatus,
     )
     .await?;
+    // The same requests on the shard keys: `mfc/v1/shard/{s}/device/{id}/{leaf}`, one
+    // queryable per shard, sorted by leaf.
+    let query_cb = || {
+        let (tx, drops) = (tx.clone(), drops.clone());
+        move |q: Query| {
+            if !fits(q.payload().map_or(0, |p| p.len()), &drops) {
+                return;
+            }
+            let msg = match q.key_expr().as_str().rsplit('/').next() {
+                Some("config") => Msg::Config(q),
+                Some("envelope") => Msg::Envelope(q),
+                Some("reference") => Msg::ReferenceQuery(q),
+                Some("status") => Msg::Status(q),
+                _ => {
+                    Drops::count(&drops.bad_key);
+                    return;
+                }
+            };
+            if tx.try_send(msg).is_err() {
+                Drops::count(&drops.queue_full);
+            }
+        }
+    };
+    let static_shard_queries = if fleet_spec.is_none() {
+        Some(
+            session
+                .declare_queryable(format!("{}/shard/*/device/*/*", keys::PREFIX))
+                .callback(query_cb())
+                .await
+                .map_err(declare_err("shard queryable"))?,
+        )
+    } else {
+        None
+    };
+    // A fleet: membership by liveliness, handover requests, and the owners' updates for
+    // their standbys. The members' events queue for the worker like requests do.
+    let mut fleet: Option<Fleet> = None;
+    let mut fleet_decls: Vec<Box<dyn std::any::Any + Send>> = Vec::new();
+    if let Some(f) = &fleet_spec {
+        let members_sub = {
+            let (tx, drops) = (tx.clone(), drops.clone());
+            session
+                .liveliness()
+                .declare_subscriber(keys::fleet_members(&f.name))
+                .callback(move |s| {
+                    let Some(m) = keys::member_of(s.key_expr().as_str()) else {
+                        return;
+                    };
+                    let alive = s.kind() == zenoh::sample::SampleKind::Put;
+                    if tx.try_send(Msg::Member(m.to_string(), alive)).is_err() {
+                        Drops::count(&drops.queue_full);
+                    }
+                })
+                .await
+                .map_err(declare_err("fleet member subscriber"))?
+        };
+        fleet_decls.push(Box::new(members_sub));
+        let handover_q = {
+            let (tx, drops) = (tx.clone(), drops.clone());
+            session
+                .declare_queryable(format!("{}/shard/*", keys::fleet_member(&f.name, &id)))
+                .callback(move |q| {
+                    if tx.try_send(Msg::Handover(q)).is_err() {
+                        Drops::count(&drops.queue_full);
+                    }
+                })
+                .await
+                .map_err(declare_err("handover queryable"))?
+        };
+        fleet_decls.push(Box::new(handover_q));
+        let sync_sub = {
+            let (tx, drops, masks) = (tx.clone(), drops.clone(), masks.clone());
+            session
+                .declare_subscriber(format!("{}/fleet/{}/sync/*", keys::PREFIX, f.name))
+                .callback(move |s| {
+                    let Some(shard) = keys::last_shard(s.key_expr().as_str()) else {
+                        return;
+                    };
+                    if !masks.steps(shard) {
+                        return;
+                    }
+                    let msg = Msg::Sync(shard, s.payload().to_bytes().into_owned());
+                    if tx.try_send(msg).is_err() {
+                        Drops::count(&drops.queue_full);
+                    }
+                })
+                .await
+                .map_err(declare_err("fleet sync subscriber"))?
+        };
+        fleet_decls.push(Box::new(sync_sub));
+        // Who is there already: what was theirs stays theirs until they hand it over.
+        let mut others = Vec::new();
+        if let Ok(replies) = session
+            .liveliness()
+            .get(keys::fleet_members(&f.name))
+            .timeout(Duration::from_millis(f.discover_ms))
+            .await
+        {
+            while let Ok(r) = replies.recv_async().await {
+                if let Ok(sample) = r.result() {
+                    if let Some(m) = keys::member_of(sample.key_expr().as_str()) {
+                        if m != id {
+                            others.push(m.to_string());
+                        }
+                    }
+                }
+            }
+        }
+        // The token before any request: a member that hears from this one can also hear
+        // it leave.
+        let member_token = session
+            .liveliness()
+            .declare_token(keys::fleet_member(&f.name, &id))
+            .await
+            .map_err(declare_err("fleet member token"))?;
+        fleet_decls.push(Box::new(member_token));
+        let mut fl = Fleet::new(&id, f.standby);
+        let actions = fl.start(others.clone());
+        tracing::info!(controller = %id, fleet = %f.name, others = ?others, "joining the fleet");
+        fleet = Some(fl);
+        pending_actions = actions;
+    }
+    let mut dynamic = Dynamic::default();
     // Hot standby: heartbeats of the group, on their own queue.
     let standby = registry.standby().cloned();
     let hb_sub = match &standby {
@@ -391,7 +626,10 @@ pub async fn serve(
         None => None,
     };
     let mut ha = HotStandby::new(standby.as_ref());
-    drop(tx);
+    // Handover results come back through the queue from tasks of their own.
+    // (`tx` itself stays alive with the callback factories: the queue never closes, the
+    // loop ends on `shutdown`.)
+    let internal_tx = tx.clone();
     drop(hb_tx);
     let token = session
         .liveliness()
@@ -405,6 +643,7 @@ pub async fn serve(
     // One publisher per served device, made at its first command: bounded by the file's
     // `max_devices`, never by what arrives.
     let mut publishers: HashMap<String, Publisher<'static>> = HashMap::new();
+    let mut gw_publishers: HashMap<String, Publisher<'static>> = HashMap::new();
     let mut tick = tokio::time::interval(ha.heartbeat);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     let mut snap_tick = tokio::time::interval(Duration::from_millis(
@@ -413,15 +652,77 @@ pub async fn serve(
     snap_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     let mut report_tick = tokio::time::interval(LOG_INTERVAL);
     report_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    // Fleet changes: start the handover requests the change asks for, drop the state of
+    // shards no longer held, and make the shard subscriptions and queryables match.
+    macro_rules! fleet_apply {
+        ($actions:expr) => {{
+            let actions: Vec<Action> = $actions;
+            if let (Some(fl), Some(spec)) = (fleet.as_ref(), fleet_spec.as_ref()) {
+                for a in &actions {
+                    match a {
+                        Action::Acquire { shard, from } | Action::Copy { shard, from } => {
+                            spawn_handover(
+                                session.clone(),
+                                internal_tx.clone(),
+                                (&spec.name, &id),
+                                from.clone(),
+                                *shard,
+                                matches!(a, Action::Acquire { .. }),
+                                Duration::from_millis(spec.handover_timeout_ms),
+                            );
+                        }
+                        Action::Unsubscribe(shard) => {
+                            let gone = registry.forget_shard(*shard);
+                            let mut ib = lock(&inbox);
+                            for d in &gone {
+                                ib.unserve(d);
+                            }
+                        }
+                        Action::Subscribe(_) => {}
+                    }
+                }
+                masks.step.store(fl.step_mask(), Ordering::Relaxed);
+                dynamic
+                    .sync(&session, fl, &sample_cb, &gateway_cb, &query_cb)
+                    .await;
+            }
+        }};
+    }
+    // After a configuration change accepted by the owner: the device's state to its
+    // standby, so a takeover keeps the change.
+    macro_rules! sync_device {
+        ($dev:expr) => {{
+            let dev: &str = $dev;
+            if let (Some(spec), Some(home)) = (fleet_spec.as_ref(), registry.home_of(dev)) {
+                let st = registry.devices_state(home, &[dev]);
+                if let Ok(bytes) = crate::snapshot::encode_shard(&st) {
+                    let _ = session.put(keys::fleet_sync(&spec.name, home), bytes).await;
+                }
+            }
+        }};
+    }
+    fleet_apply!(std::mem::take(&mut pending_actions));
+    if let Some(fl) = &fleet {
+        tracing::info!(controller = %id, owned = fl.answer_mask().count_ones(), stepped = fl.step_mask().count_ones(), "fleet shards at start");
+    }
+    let mut releasing_since: HashMap<u32, Instant> = HashMap::new();
+    let mut fleet_tick = tokio::time::interval(Duration::from_millis(20));
+    fleet_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     tokio::pin!(shutdown);
     loop {
         let msg = tokio::select! {
             () = wake.notified() => {
                 for _ in 0..BATCH {
                     let Some(taken) = lock(&inbox).pop() else { break };
-                    serve_sample(&session, &mut registry, &ha, &mut publishers, &inbox, &mut warn, taken).await;
+                    let answers = ha.active && fleet.as_ref().is_none_or(|f| f.answers(protocol::shard_of(&taken.id)));
+                    serve_sample(&session, &mut registry, answers, &mut publishers, &inbox, &mut warn, taken).await;
                 }
-                if !lock(&inbox).is_empty() {
+                for _ in 0..GATEWAY_TURN {
+                    let Some(taken) = lock(&gateways).pop() else { break };
+                    let answers = ha.active && fleet.as_ref().is_none_or(|f| f.answers(protocol::shard_of(&taken.id)));
+                    serve_batch(&session, &mut registry, answers, &mut gw_publishers, &inbox, &mut warn, taken).await;
+                }
+                if !lock(&inbox).is_empty() || !lock(&gateways).is_empty() {
                     // More waits: come back after the other inputs had their turn.
                     wake.notify_one();
                 }
@@ -465,6 +766,7 @@ pub async fn serve(
                 // The callbacks' drops cannot log themselves (they run on zenoh's threads,
                 // possibly thousands of times a second): one line per interval, if any.
                 let (superseded, full) = { let ib = lock(&inbox); (ib.superseded(), ib.full()) };
+                let full = full + lock(&gateways).full();
                 let now = [
                     drops.oversized.load(Ordering::Relaxed),
                     drops.bad_key.load(Ordering::Relaxed),
@@ -480,6 +782,28 @@ pub async fn serve(
                 }
                 reported = now;
                 warn.flush(Instant::now());
+                continue;
+            }
+            _ = fleet_tick.tick(), if fleet.is_some() => {
+                // Releases nobody asked for end after their timeout.
+                let now = Instant::now();
+                let timeout = Duration::from_millis(fleet_spec.as_ref().map_or(1000, |f| f.release_timeout_ms));
+                let mut expired = Vec::new();
+                if let Some(fl) = fleet.as_mut() {
+                    let rel: Vec<u32> = fl.releasing().collect();
+                    releasing_since.retain(|s, _| rel.contains(s));
+                    for s in rel {
+                        let since = *releasing_since.entry(s).or_insert(now);
+                        if now.duration_since(since) > timeout {
+                            tracing::warn!(shard = s, "nobody asked for a released shard: no longer answering it");
+                            expired.extend(fl.release_expired(s));
+                            releasing_since.remove(&s);
+                        }
+                    }
+                }
+                if !expired.is_empty() {
+                    fleet_apply!(expired);
+                }
                 continue;
             }
             () = &mut shutdown => break,
@@ -502,6 +826,13 @@ pub async fn serve(
             // A put reaches every service: one that does not serve the device lets it pass,
             // uncounted, as it does a request for a device served elsewhere.
             Msg::Reference(dev, _) if !registry.serves(&dev) => {}
+            Msg::Reference(dev, _)
+                if fleet
+                    .as_ref()
+                    .is_some_and(|f| !registry.home_of(&dev).is_some_and(|h| f.steps(h))) =>
+            {
+                // Another member's device: a put reaches every member.
+            }
             Msg::Reference(dev, bytes) => match decode::<pb::ReferenceUpdate>(&bytes) {
                 Ok(u) => {
                     let reply = registry.set_reference(&dev, &u);
@@ -515,7 +846,7 @@ pub async fn serve(
                 }
             },
             Msg::Config(q) => {
-                let Some(dev) = served_device(&q, &mut registry, &id).await else {
+                let Some(dev) = served_device(&q, &mut registry, &id, fleet.as_ref()).await else {
                     continue;
                 };
                 let reply = match payload(&q) {
@@ -534,10 +865,13 @@ pub async fn serve(
                 if !reply.accepted {
                     throttled!(warn.refused, warn, device = %printable(&dev), "configuration refused: {}", reply.reason);
                 }
-                let _ = q.reply(keys::config(&dev), encode(&reply)).await;
+                let _ = q.reply(q.key_expr().clone(), encode(&reply)).await;
+                if reply.accepted && payload(&q).is_some() {
+                    sync_device!(&dev);
+                }
             }
             Msg::Envelope(q) => {
-                let Some(dev) = served_device(&q, &mut registry, &id).await else {
+                let Some(dev) = served_device(&q, &mut registry, &id, fleet.as_ref()).await else {
                     continue;
                 };
                 let reply = match payload(&q) {
@@ -569,10 +903,13 @@ pub async fn serve(
                 if !reply.accepted {
                     throttled!(warn.refused, warn, device = %printable(&dev), "envelope change refused: {}", reply.reason);
                 }
-                let _ = q.reply(keys::envelope(&dev), encode(&reply)).await;
+                let _ = q.reply(q.key_expr().clone(), encode(&reply)).await;
+                if reply.accepted && payload(&q).is_some() {
+                    sync_device!(&dev);
+                }
             }
             Msg::ReferenceQuery(q) => {
-                let Some(dev) = served_device(&q, &mut registry, &id).await else {
+                let Some(dev) = served_device(&q, &mut registry, &id, fleet.as_ref()).await else {
                     continue;
                 };
                 let reply = match payload(&q) {
@@ -585,25 +922,49 @@ pub async fn serve(
                 if !reply.accepted {
                     throttled!(warn.refused, warn, device = %printable(&dev), "reference refused: {}", reply.reason);
                 }
-                let _ = q.reply(keys::reference(&dev), encode(&reply)).await;
+                let _ = q.reply(q.key_expr().clone(), encode(&reply)).await;
+                if reply.accepted && payload(&q).is_some() {
+                    sync_device!(&dev);
+                }
             }
             Msg::Status(q) => {
+                let sharded = q
+                    .key_expr()
+                    .as_str()
+                    .starts_with(&format!("{}/shard/", keys::PREFIX));
+                let answers = |registry: &Registry, d: &str| {
+                    fleet
+                        .as_ref()
+                        .is_none_or(|f| registry.home_of(d).is_some_and(|h| f.answers(h)))
+                };
                 if q.key_expr().as_str().contains('*') {
-                    // A wildcard: one reply per device served, each on its own key.
+                    // A wildcard: one reply per device answered here, each on its own key.
                     let ids: Vec<String> = registry.device_ids().map(str::to_string).collect();
                     for d in ids {
-                        let wanted = zenoh::key_expr::KeyExpr::try_from(keys::status(&d))
+                        if !answers(&registry, &d) {
+                            continue;
+                        }
+                        let key = match (sharded, registry.home_of(&d)) {
+                            (true, Some(h)) => {
+                                format!("{}/shard/{h}/device/{d}/status", keys::PREFIX)
+                            }
+                            _ => keys::status(&d),
+                        };
+                        let wanted = zenoh::key_expr::KeyExpr::try_from(key.clone())
                             .is_ok_and(|k| q.key_expr().intersects(&k));
                         if let (true, Some(s)) = (wanted, registry.device_status(&d)) {
-                            let _ = q.reply(keys::status(&d), encode(&s)).await;
+                            let _ = q.reply(key, encode(&s)).await;
                         }
                     }
                     continue;
                 }
                 match keys::device_of(q.key_expr().as_str()) {
+                    Some(d) if fleet.is_some() && !answers(&registry, d) => {
+                        // Another member's device: its owner answers, the others stay silent.
+                    }
                     Some(d) => match registry.device_status(d) {
                         Some(s) => {
-                            let _ = q.reply(keys::status(d), encode(&s)).await;
+                            let _ = q.reply(q.key_expr().clone(), encode(&s)).await;
                         }
                         None => {
                             let _ = q
@@ -616,12 +977,128 @@ pub async fn serve(
                     }
                 }
             }
+            Msg::Member(m, alive) => {
+                let Some(fl) = fleet.as_mut() else { continue };
+                let actions = if alive { fl.join(&m) } else { fl.leave(&m) };
+                if m != id {
+                    tracing::info!(controller = %id, member = %m, alive, owned = fl.answer_mask().count_ones(), "fleet member {}", if alive { "joined" } else { "left" });
+                }
+                fleet_apply!(actions);
+            }
+            Msg::Handover(q) => {
+                let Some(fl) = fleet.as_mut() else {
+                    let _ = q.reply_err("not a fleet member").await;
+                    continue;
+                };
+                let shard = keys::last_shard(q.key_expr().as_str());
+                let body = payload(&q)
+                    .and_then(|b| String::from_utf8(b).ok())
+                    .unwrap_or_default();
+                let (kind, asker) = body.split_once(':').unwrap_or(("", ""));
+                let (Some(shard), true, Ok(asker)) = (
+                    shard,
+                    kind == "release" || kind == "copy",
+                    keys::check_id(asker),
+                ) else {
+                    registry.note_request_refused();
+                    let _ = q
+                        .reply_err(
+                            "a handover request is release:{id} or copy:{id} on a shard's key",
+                        )
+                        .await;
+                    continue;
+                };
+                let actions = if kind == "release" {
+                    fl.release(shard, asker).1
+                } else {
+                    Vec::new()
+                };
+                // The role changed before the state is taken: every sample answered here
+                // is in the state, and none is answered here after it.
+                let st = registry.shard_state(shard);
+                match crate::snapshot::encode_shard(&st) {
+                    Ok(bytes) => {
+                        let _ = q.reply(q.key_expr().clone(), bytes).await;
+                    }
+                    Err(e) => {
+                        let _ = q.reply_err(e.to_string()).await;
+                    }
+                }
+                tracing::debug!(controller = %id, shard, to = %asker, kind, devices = st.devices.len(), "handed a shard's state over");
+                fleet_apply!(actions);
+            }
+            Msg::Handed {
+                shard,
+                release,
+                state,
+            } => {
+                let mut restored = 0;
+                match state.as_deref().map(crate::snapshot::decode_shard) {
+                    Some(Ok(st)) if st.shard == shard => {
+                        if fleet.as_ref().is_some_and(|f| f.steps(shard)) {
+                            let (ok, refused) = registry.restore_shard(&st);
+                            let mut ib = lock(&inbox);
+                            for d in &st.devices {
+                                if registry.serves(&d.snapshot.id) {
+                                    ib.serve(&d.snapshot.id);
+                                }
+                            }
+                            restored = ok;
+                            if refused > 0 {
+                                tracing::warn!(
+                                    shard,
+                                    refused,
+                                    "some handed devices were not restored"
+                                );
+                            }
+                        }
+                    }
+                    Some(Ok(_)) => {
+                        tracing::warn!(shard, "a handover reply for another shard: ignored")
+                    }
+                    Some(Err(e)) => {
+                        tracing::warn!(shard, "a handover reply that does not decode: {e}")
+                    }
+                    None => tracing::warn!(
+                        shard,
+                        "no state came for the shard: serving it with what this member has"
+                    ),
+                }
+                if let Some(fl) = fleet.as_mut() {
+                    if release {
+                        fl.acquired(shard);
+                    }
+                }
+                tracing::debug!(controller = %id, shard, release, restored, "took a shard's state");
+                fleet_apply!(Vec::new());
+            }
+            Msg::Sync(shard, bytes) => {
+                // Only a member that steps the shard without answering it takes an owner's
+                // update: the owner itself, and members outside the shard, ignore it.
+                let follows = fleet
+                    .as_ref()
+                    .is_some_and(|f| f.steps(shard) && !f.answers(shard));
+                if follows {
+                    match crate::snapshot::decode_shard(&bytes) {
+                        Ok(st) if st.shard == shard => {
+                            registry.restore_shard(&st);
+                        }
+                        _ => registry.note_undecodable(),
+                    }
+                }
+            }
             Msg::ServiceStatus(q) => {
                 let mut s = registry.service_status(started.elapsed().as_secs_f64());
                 let (superseded, full) = {
                     let ib = lock(&inbox);
                     (ib.superseded(), ib.full())
                 };
+                let (superseded_batches, gw_full) = {
+                    let g = lock(&gateways);
+                    (g.superseded(), g.full())
+                };
+                let full = full + gw_full;
+                s.superseded_batches = superseded_batches;
                 s.unknown_samples += drops.unknown.load(Ordering::Relaxed);
                 for name in lock(&drops.unknown_names).iter() {
                     if s.unknown_devices.len() >= UNKNOWN_NAMED {
@@ -638,6 +1115,12 @@ pub async fn serve(
                 s.superseded = superseded;
                 s.active = ha.active;
                 s.term = ha.term;
+                if let Some(f) = &fleet {
+                    s.devices
+                        .retain(|d| registry.home_of(&d.device_id).is_some_and(|h| f.answers(h)));
+                    s.owned_shards = (0..protocol::SHARDS).filter(|&x| f.answers(x)).collect();
+                    s.fleet_members = f.members().iter().cloned().collect();
+                }
                 // On its own key, so that a wildcard query over several services gets one
                 // reply from each, each telling which service it is.
                 let _ = q.reply(keys::service_status(&id), encode(&s)).await;
@@ -655,6 +1138,12 @@ pub async fn serve(
     drop(hb_pub);
     drop(sub);
     drop(ref_sub);
+    drop(gw_sub);
+    drop(gw_publishers);
+    drop(static_shards);
+    drop(static_shard_queries);
+    drop(dynamic);
+    drop(fleet_decls);
     drop(q_config);
     drop(q_envelope);
     drop(q_reference);
@@ -680,12 +1169,27 @@ fn payload(q: &Query) -> Option<Vec<u8>> {
 /// bad id) is counted as refused; a device served elsewhere is not, since with several
 /// services that is every other service's normal answer (the client takes the good reply
 /// of the one that serves it).
-async fn served_device(q: &Query, registry: &mut Registry, controller: &str) -> Option<String> {
+async fn served_device(
+    q: &Query,
+    registry: &mut Registry,
+    controller: &str,
+    fleet: Option<&Fleet>,
+) -> Option<String> {
     let Some(dev) = keys::device_of(q.key_expr().as_str()).map(str::to_string) else {
         registry.note_request_refused();
         let _ = q.reply_err("not the key of one device").await;
         return None;
     };
+    if let Some(f) = fleet {
+        // In a fleet, only the owner answers; the others stay silent, so a client gets
+        // exactly one reply and never another member's "does not serve".
+        let home = registry
+            .home_of(&dev)
+            .unwrap_or_else(|| protocol::shard_of(&dev));
+        if !f.answers(home) {
+            return None;
+        }
+    }
     if !registry.serves(&dev) {
         let _ = q
             .reply_err(format!(
@@ -732,7 +1236,7 @@ fn undecodable_request(
 async fn serve_sample(
     session: &Session,
     registry: &mut Registry,
-    ha: &HotStandby,
+    answers: bool,
     publishers: &mut HashMap<String, Publisher<'static>>,
     inbox: &Mutex<Inbox<pb::Sample>>,
     warn: &mut Warnings,
@@ -750,6 +1254,7 @@ async fn serve_sample(
         tracing::info!(device = %dev, "provisioned from a template");
         lock(inbox).serve(dev);
     }
+    registry.set_home(dev, protocol::shard_of(dev));
     let cmd = match outcome {
         Outcome::Reply(cmd) => cmd,
         Outcome::Unknown => {
@@ -764,8 +1269,88 @@ async fn serve_sample(
     if cmd.mode == pb::Mode::Rejected as i32 {
         throttled!(warn.rejected, warn, device = %dev, seq = cmd.seq, "sample refused: {}", cmd.error);
     }
-    if ha.active {
+    if answers {
         publish(session, publishers, dev, &cmd).await;
+    }
+}
+
+/// Answer one gateway batch with one batch: every sample is handled exactly as a lone
+/// sample of its device would be (the registry's rules, per device), and every answer goes
+/// back in one [`pb::CommandBatch`] on the gateway's command key.
+async fn serve_batch(
+    session: &Session,
+    registry: &mut Registry,
+    answers: bool,
+    publishers: &mut HashMap<String, Publisher<'static>>,
+    inbox: &Mutex<Inbox<pb::Sample>>,
+    warn: &mut Warnings,
+    taken: Taken<pb::SampleBatch>,
+) {
+    let gw = taken.id;
+    let home = protocol::shard_of(&gw);
+    let batch = taken.item;
+    let mut out = pb::CommandBatch {
+        version: protocol::PROTOCOL_VERSION,
+        gateway_id: gw.clone(),
+        commands: Vec::with_capacity(batch.samples.len()),
+        controller_id: registry.controller_id().to_string(),
+    };
+    for sample in &batch.samples {
+        let dev = sample.device_id.as_str();
+        if keys::check_id(dev).is_err() {
+            // No device to answer: an id that could not even be a key.
+            registry.note_bad_id();
+            throttled!(warn.rejected, warn, gateway = %gw, device = %printable(dev), "sample in a batch with an invalid device id: dropped");
+            continue;
+        }
+        let was_served = registry.serves(dev);
+        let outcome = registry.handle_sample(dev, sample);
+        if !was_served && registry.serves(dev) {
+            tracing::info!(device = %dev, gateway = %gw, "provisioned from a template");
+            lock(inbox).serve(dev);
+        }
+        registry.set_home(dev, home);
+        match outcome {
+            Outcome::Reply(cmd) => {
+                if cmd.mode == pb::Mode::Rejected as i32 {
+                    throttled!(warn.rejected, warn, device = %dev, seq = cmd.seq, "sample refused: {}", cmd.error);
+                }
+                out.commands.push(cmd);
+            }
+            Outcome::Unknown => {
+                throttled!(warn.unknown, warn, device = %dev, gateway = %gw, "sample from a device this service does not serve (no template matches): dropped");
+            }
+            Outcome::TableFull => {
+                throttled!(warn.table_full, warn, device = %dev, "a template matches but the device table is full (max_devices): dropped");
+            }
+        }
+    }
+    if !answers || out.commands.is_empty() {
+        return;
+    }
+    let payload = encode(&out);
+    let key = keys::gateway_commands(&gw);
+    if !publishers.contains_key(&gw) && publishers.len() < GATEWAY_PUBLISHERS {
+        match transport::control_publisher(session, key.clone()).await {
+            Ok(p) => {
+                publishers.insert(gw.clone(), p);
+            }
+            Err(e) => tracing::error!(gateway = %gw, "{e}"),
+        }
+    }
+    let sent = match publishers.get(&gw) {
+        Some(p) => p.put(payload).await,
+        None => {
+            session
+                .put(key, payload)
+                .congestion_control(zenoh::qos::CongestionControl::Drop)
+                .priority(zenoh::qos::Priority::RealTime)
+                .express(true)
+                .await
+        }
+    };
+    if let Err(e) = sent {
+        tracing::warn!(gateway = %gw, "publishing a command batch: {e}");
     }
 }
 
@@ -789,6 +1374,104 @@ async fn publish(
     if let Err(e) = publisher.put(encode(cmd)).await {
         tracing::warn!(device = %dev, "publishing a command: {e}");
     }
+}
+
+/// The shard subscriptions and queryables of a fleet member, declared as it takes shards
+/// and dropped as it gives them up, so that zenoh routes it only its own shards' traffic.
+#[derive(Default)]
+struct Dynamic {
+    subs: HashMap<u32, (Subscriber<()>, Subscriber<()>)>,
+    queryables: HashMap<u32, Queryable<()>>,
+}
+
+impl Dynamic {
+    /// Make the declarations match `fleet`'s masks. A declaration that fails is logged
+    /// and retried at the next change.
+    async fn sync<S, G, Q, FS, FG, FQ>(
+        &mut self,
+        session: &Session,
+        fleet: &Fleet,
+        sample_cb: &FS,
+        gateway_cb: &FG,
+        query_cb: &FQ,
+    ) where
+        S: Fn(zenoh::sample::Sample) + Send + Sync + 'static,
+        G: Fn(zenoh::sample::Sample) + Send + Sync + 'static,
+        Q: Fn(Query) + Send + Sync + 'static,
+        FS: Fn() -> S,
+        FG: Fn() -> G,
+        FQ: Fn() -> Q,
+    {
+        let (step, answer) = (fleet.step_mask(), fleet.answer_mask());
+        self.subs.retain(|s, _| step & (1u64 << s) != 0);
+        self.queryables.retain(|s, _| answer & (1u64 << s) != 0);
+        for shard in 0..protocol::SHARDS {
+            if step & (1u64 << shard) != 0 && !self.subs.contains_key(&shard) {
+                let a = session
+                    .declare_subscriber(keys::shard_devices(shard, "sample"))
+                    .callback(sample_cb())
+                    .await;
+                let b = session
+                    .declare_subscriber(keys::shard_gateways(shard))
+                    .callback(gateway_cb())
+                    .await;
+                match (a, b) {
+                    (Ok(a), Ok(b)) => {
+                        self.subs.insert(shard, (a, b));
+                    }
+                    (Err(e), _) | (_, Err(e)) => {
+                        tracing::error!(shard, "subscribing to a shard: {e}");
+                    }
+                }
+            }
+            if answer & (1u64 << shard) != 0 && !self.queryables.contains_key(&shard) {
+                match session
+                    .declare_queryable(keys::shard_devices(shard, "*"))
+                    .callback(query_cb())
+                    .await
+                {
+                    Ok(q) => {
+                        self.queryables.insert(shard, q);
+                    }
+                    Err(e) => tracing::error!(shard, "declaring a shard's queryable: {e}"),
+                }
+            }
+        }
+    }
+}
+
+/// Ask member `from` for shard `shard`'s state (a release, or a copy for a standby), on a
+/// task of its own; the answer, or none after `timeout`, comes back as [`Msg::Handed`].
+fn spawn_handover(
+    session: Session,
+    tx: mpsc::Sender<Msg>,
+    (fleet, me): (&str, &str),
+    from: String,
+    shard: u32,
+    release: bool,
+    timeout: Duration,
+) {
+    let key = keys::fleet_handover(fleet, &from, shard);
+    let body = format!("{}:{me}", if release { "release" } else { "copy" });
+    tokio::spawn(async move {
+        let state = async {
+            let replies = session.get(key).payload(body).timeout(timeout).await.ok()?;
+            while let Ok(r) = replies.recv_async().await {
+                if let Ok(s) = r.result() {
+                    return Some(s.payload().to_bytes().into_owned());
+                }
+            }
+            None
+        }
+        .await;
+        let _ = tx
+            .send(Msg::Handed {
+                shard,
+                release,
+                state,
+            })
+            .await;
+    });
 }
 
 /// The hot-standby state machine (no I/O).

@@ -72,3 +72,45 @@ pub fn decode(bytes: &[u8]) -> Result<DeviceSnapshot, SnapshotError> {
     }
     Ok(s)
 }
+
+/// One device as handed from one fleet member to another ([`crate::fleet`]): its snapshot,
+/// the shard it lives in (its gateway's, if it came through one), and its envelope in
+/// force (`min`, `max`, `rate_limit` per channel), which a snapshot file leaves to the
+/// service's configuration but a live handover must carry (it may have been narrowed).
+#[derive(Debug, Clone, Encode, Decode)]
+pub struct HandedDevice {
+    pub snapshot: DeviceSnapshot,
+    pub home: u32,
+    pub envelope: Vec<(f64, f64, Option<f64>)>,
+    /// Whether the live configuration (laws, maps) is to be taken as it is, even where it
+    /// differs from the file's (a remote change made on the previous owner).
+    pub live_config: bool,
+}
+
+/// The state of one shard, in a handover reply.
+#[derive(Debug, Clone, Encode, Decode)]
+pub struct ShardState {
+    /// [`SNAPSHOT_VERSION`].
+    pub version: u32,
+    pub shard: u32,
+    pub devices: Vec<HandedDevice>,
+}
+
+/// Largest shard state a member decodes (bytes): thousands of devices fit; a bigger or
+/// hostile reply is refused before it is allocated.
+pub const MAX_SHARD_STATE: usize = 64 << 20;
+
+/// Encode a shard's state.
+pub fn encode_shard(s: &ShardState) -> Result<Vec<u8>, SnapshotError> {
+    Ok(bincode::encode_to_vec(s, bincode::config::standard())?)
+}
+
+/// Decode a shard's state; never panics, never allocates past [`MAX_SHARD_STATE`].
+pub fn decode_shard(bytes: &[u8]) -> Result<ShardState, SnapshotError> {
+    let cfg = bincode::config::standard().with_limit::<MAX_SHARD_STATE>();
+    let (s, _): (ShardState, usize) = bincode::decode_from_slice(bytes, cfg)?;
+    if s.version != SNAPSHOT_VERSION {
+        return Err(SnapshotError::Version(s.version));
+    }
+    Ok(s)
+}

@@ -70,6 +70,19 @@ failures = []
 results = {}
 
 
+def shard_of(device_id):
+    """The device's shard, as protocol::shard_of: 64-bit FNV-1a of the id, modulo 64."""
+    h = 0xcbf29ce484222325
+    for b in device_id.encode():
+        h = ((h ^ b) * 0x100000001b3) & 0xFFFFFFFFFFFFFFFF
+    return h % 64
+
+
+def sample_key(device_id):
+    """Where an agent publishes its samples: the key with the device's shard in it."""
+    return f"mfc/v1/shard/{shard_of(device_id)}/device/{device_id}/sample"
+
+
 def log(msg):
     print(f"[multihost {time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
@@ -637,7 +650,7 @@ def attacks(env):
                 ["ip", "netns", "exec", HOSTS["intruder"][0], "zenoh-probe", "--zenoh-config",
                  "/etc/mfc/good.json5", "--connect", f"quic/{addr}:{port}", "--open-timeout", "6",
                  "open"], env=env.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    watched = [f"{p}/aero-2/sample", f"{p}/aero-2/command", f"{p}/aero-2/reference", f"{p}/aero-1/sample"]
+    watched = [sample_key("aero-2"), f"{p}/aero-2/command", f"{p}/aero-2/reference", sample_key("aero-1")]
     # The witnesses: the operator's identity on the operator's host (it may watch samples and
     # commands), and the controller's on the controller host (the only one that receives
     # references); the control is aero-1's own sample key.
@@ -665,7 +678,7 @@ def attacks(env):
                                          f"{p}/aero-2/reference", "--count", "10",
                                          "--interval-ms", "5", "--marker", "OPERATOR")
     # Watching: aero-2's keys must stay silent, aero-1's own command key (the control) not.
-    rc_sub, seen = probe(env, "intruder", stolen, "sub", "--secs", "3", "--key", f"{p}/aero-2/sample",
+    rc_sub, seen = probe(env, "intruder", stolen, "sub", "--secs", "3", "--key", sample_key("aero-2"),
                          "--key", f"{p}/aero-2/command", "--key", f"{p}/aero-1/command")
     # Serving and announcing in aero-2's name, while the operator asks.
     fake_q = subprocess.Popen(
@@ -711,7 +724,7 @@ def attacks(env):
     check(ctl.get("marked", 0) >= 0.9 * FORGED,
           "control: the same forger's puts on aero-1's own sample key arrive", str(ctl))
     pk = seen.get("per_key", {})
-    check(pk.get(f"{p}/aero-2/sample", {}).get("received") == 0
+    check(pk.get(sample_key("aero-2"), {}).get("received") == 0
           and pk.get(f"{p}/aero-2/command", {}).get("received") == 0,
           "the forger subscribed to aero-2's sample and command keys receives 0", str(seen))
     check(pk.get(f"{p}/aero-1/command", {}).get("received", 0) > 0,

@@ -10,8 +10,8 @@
 //!
 //! | role | sends (ingress) | receives (egress) |
 //! |---|---|---|
-//! | device `d` | put `device/d/sample`; subscribe `device/d/command`; token `alive/plant/d` | put `device/d/command`; the services' subscription `device/*/sample` |
-//! | service `s` | put `device/*/command`, `group/**`; subscribe and serve `device/*/…`, `group/**`; replies; token `alive/controller/s`, queryable `service/s/status` | samples, references, heartbeats, queries, the agents' and operators' declarations |
+//! | device `d` | put `device/d/sample` and `shard/{s}/device/d/sample` (`s` its shard, where the agent publishes); subscribe `device/d/command`; token `alive/plant/d` | put `device/d/command`; the services' subscriptions `device/*/sample`, `shard/*/device/*/sample` |
+//! | service `s` | put `device/*/command`, `gateway/*/commands`, `group/**`, `fleet/**`; subscribe and serve `device/*/…`, `shard/*/…`, `gateway/*/samples`, `group/**`, `fleet/**`; replies; tokens `alive/controller/s`, `fleet/**`; queryable `service/s/status` | samples, batches, references, heartbeats, fleet traffic, queries, the agents' and operators' declarations |
 //! | operator | query `device/*/{config,status,envelope,reference}`, `service/*/status`; put `device/*/reference`; subscribe samples and commands (watch); liveliness queries | replies, samples, commands, tokens |
 //!
 //! So a device holding its own certificate can neither put on nor watch another device's
@@ -33,6 +33,15 @@ const QUERIED: [&str; 4] = ["config", "status", "envelope", "reference"];
 
 fn dev(id: &str, leaf: &str) -> String {
     format!("{P}/device/{id}/{leaf}")
+}
+
+/// `shard/{s}/device/{id}/{leaf}` with `s` the id's shard, or `*` for a wildcard id.
+fn sdev(id: &str, leaf: &str) -> String {
+    if id == "*" {
+        format!("{P}/shard/*/device/*/{leaf}")
+    } else {
+        protocol::keys::shard_device(id, leaf)
+    }
 }
 
 /// One rule: `messages` on `keys`, in `flows`.
@@ -63,7 +72,7 @@ pub fn access_control(inv: &Inventory) -> Value {
             r("put-sample"),
             &["ingress"],
             &["put"],
-            vec![dev(d, "sample")],
+            vec![dev(d, "sample"), sdev(d, "sample")],
         ));
         rules.push(rule(
             r("sub-command"),
@@ -89,7 +98,7 @@ pub fn access_control(inv: &Inventory) -> Value {
             r("see-subscription"),
             &["egress"],
             &["declare_subscriber"],
-            vec![dev("*", "sample")],
+            vec![dev("*", "sample"), sdev("*", "sample")],
         ));
         policy(
             format!("device-{d}"),
@@ -109,22 +118,57 @@ pub fn access_control(inv: &Inventory) -> Value {
 
     // Services: every device (several services share a fleet, issue 11); their own
     // liveliness token and status queryable.
-    let served: Vec<String> = QUERIED.iter().map(|l| dev("*", l)).collect();
+    let mut served: Vec<String> = QUERIED.iter().map(|l| dev("*", l)).collect();
+    served.extend(QUERIED.iter().map(|l| sdev("*", l)));
+    // A service without a fleet serves every shard with one queryable.
+    served.push(sdev("*", "*"));
     let mut served_and_status = served.clone();
     served_and_status.push(format!("{P}/service/*/status"));
     let group = format!("{P}/group/**");
+    let fleet = format!("{P}/fleet/**");
+    let gw_samples = format!("{P}/gateway/*/samples");
+    let shard_gw_samples = format!("{P}/shard/*/gateway/*/samples");
     let svc_rules = vec![
         rule(
             "service-send".into(),
             &["ingress"],
             &["put"],
-            vec![dev("*", "command"), group.clone()],
+            vec![
+                dev("*", "command"),
+                format!("{P}/gateway/*/commands"),
+                group.clone(),
+                fleet.clone(),
+            ],
         ),
         rule(
             "service-subscribe".into(),
             &["ingress"],
-            &["declare_subscriber"],
-            vec![dev("*", "sample"), dev("*", "reference"), group.clone()],
+            &["declare_subscriber", "declare_liveliness_subscriber"],
+            vec![
+                dev("*", "sample"),
+                sdev("*", "sample"),
+                gw_samples.clone(),
+                shard_gw_samples.clone(),
+                dev("*", "reference"),
+                group.clone(),
+                fleet.clone(),
+            ],
+        ),
+        // Members of a fleet: tokens, handover queries and replies among themselves.
+        rule(
+            "service-fleet".into(),
+            &["ingress", "egress"],
+            &[
+                "liveliness_token",
+                "liveliness_query",
+                "declare_queryable",
+                "query",
+                "reply",
+                "put",
+                "declare_subscriber",
+                "declare_liveliness_subscriber",
+            ],
+            vec![fleet.clone()],
         ),
         // The agents' command subscriptions, declared towards the service.
         rule(
@@ -143,7 +187,14 @@ pub fn access_control(inv: &Inventory) -> Value {
             "service-receive".into(),
             &["egress"],
             &["put"],
-            vec![dev("*", "sample"), dev("*", "reference"), group],
+            vec![
+                dev("*", "sample"),
+                sdev("*", "sample"),
+                gw_samples,
+                shard_gw_samples,
+                dev("*", "reference"),
+                group,
+            ],
         ),
         rule(
             "service-queried".into(),
@@ -181,7 +232,7 @@ pub fn access_control(inv: &Inventory) -> Value {
     // Operators: read everything, steer and tune through the services.
     if !inv.operators.is_empty() {
         let alive = format!("{P}/alive/**");
-        let watched = vec![dev("*", "sample"), dev("*", "command")];
+        let watched = vec![dev("*", "sample"), sdev("*", "sample"), dev("*", "command")];
         let op_rules = vec![
             rule(
                 "operator-query".into(),

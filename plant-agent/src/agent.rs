@@ -457,7 +457,7 @@ async fn declare_and_run(
             what: format!("subscriber {}", keys::command(id)),
             reason: e.to_string(),
         })?;
-    let publisher = transport::control_publisher(session, keys::sample(id)).await?;
+    let publisher = transport::control_publisher(session, keys::shard_sample(id)).await?;
     let _token = session
         .liveliness()
         .declare_token(keys::alive_plant(id))

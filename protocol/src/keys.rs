@@ -12,6 +12,14 @@
 //! | `mfc/v1/group/{group}/heartbeat` | active controller → its group | [`Heartbeat`](crate::pb::Heartbeat), hot standby |
 //! | `mfc/v1/alive/controller/{controller}` | liveliness token | a controller is up |
 //! | `mfc/v1/alive/plant/{id}` | liveliness token | a plant agent is up |
+//! | `mfc/v1/shard/{s}/device/{id}/sample` | plant → controller, pub/sub | the same [`Sample`](crate::pb::Sample) with the device's shard `s` ([`shard_of`](crate::shard_of)) in the key, so that zenoh routes it only to the fleet member owning that shard; the agent publishes here |
+//! | `mfc/v1/shard/{s}/device/{id}/{config,status,envelope,reference}` | queryables on the shard's owner only | as the keys without `shard/{s}`, which every member declares and only the owner answers |
+//! | `mfc/v1/shard/{s}/gateway/{gateway}/samples` | gateway → controller | a [`SampleBatch`](crate::pb::SampleBatch), `s` the gateway's shard |
+//! | `mfc/v1/fleet/{fleet}/member/{controller}` | liveliness token | a member of a fleet of service instances is up |
+//! | `mfc/v1/fleet/{fleet}/member/{controller}/shard/{s}` | queryable on each member | handover of a shard's state to another member |
+//! | `mfc/v1/fleet/{fleet}/sync/{s}` | owner → standby | a device's state after a configuration change |
+//! | `mfc/v1/gateway/{gateway}/samples` | gateway → controller, pub/sub | [`SampleBatch`](crate::pb::SampleBatch): the samples of all its plants, every period |
+//! | `mfc/v1/gateway/{gateway}/commands` | controller → gateway, pub/sub | [`CommandBatch`](crate::pb::CommandBatch) answering a batch |
 //!
 //! The version is in the prefix so that two incompatible generations never exchange a
 //! byte. Device and controller ids are single key chunks: letters, digits, `-`, `_`, `.`.
@@ -82,16 +90,129 @@ pub fn alive_plant(id: &str) -> String {
     format!("{PREFIX}/alive/plant/{id}")
 }
 
+/// `mfc/v1/gateway/{gateway}/samples`.
+pub fn gateway_samples(gateway: &str) -> String {
+    format!("{PREFIX}/gateway/{gateway}/samples")
+}
+/// `mfc/v1/gateway/{gateway}/commands`.
+pub fn gateway_commands(gateway: &str) -> String {
+    format!("{PREFIX}/gateway/{gateway}/commands")
+}
+/// Every gateway's `leaf` key: `mfc/v1/gateway/*/{leaf}`.
+pub fn all_gateways(leaf: &str) -> String {
+    format!("{PREFIX}/gateway/*/{leaf}")
+}
+/// The gateway id in a key `mfc/v1/[shard/{s}/]gateway/{gateway}/{leaf}`, if the key has
+/// that shape (see [`gateway_key`]).
+pub fn gateway_of(key: &str) -> Option<&str> {
+    gateway_key(key).map(|(id, _)| id)
+}
+
+/// `mfc/v1/shard/{s}/device/{id}/{leaf}`, `s` the id's shard: where a plant agent
+/// publishes its samples, so that zenoh routes them to their owner only.
+pub fn shard_device(id: &str, leaf: &str) -> String {
+    format!("{PREFIX}/shard/{}/device/{id}/{leaf}", crate::shard_of(id))
+}
+/// `mfc/v1/shard/{s}/device/{id}/sample`.
+pub fn shard_sample(id: &str) -> String {
+    shard_device(id, "sample")
+}
+/// Every device's `leaf` key in shard `s`: `mfc/v1/shard/{s}/device/*/{leaf}`.
+pub fn shard_devices(shard: u32, leaf: &str) -> String {
+    format!("{PREFIX}/shard/{shard}/device/*/{leaf}")
+}
+/// `mfc/v1/shard/{s}/gateway/{gateway}/samples`, `s` the gateway's shard.
+pub fn shard_gateway_samples(gateway: &str) -> String {
+    format!(
+        "{PREFIX}/shard/{}/gateway/{gateway}/samples",
+        crate::shard_of(gateway)
+    )
+}
+/// Every gateway's batches in shard `s`: `mfc/v1/shard/{s}/gateway/*/samples`.
+pub fn shard_gateways(shard: u32) -> String {
+    format!("{PREFIX}/shard/{shard}/gateway/*/samples")
+}
+/// `mfc/v1/fleet/{fleet}/member/{controller}`: a member's liveliness token.
+pub fn fleet_member(fleet: &str, controller: &str) -> String {
+    format!("{PREFIX}/fleet/{fleet}/member/{controller}")
+}
+/// `mfc/v1/fleet/{fleet}/member/*`.
+pub fn fleet_members(fleet: &str) -> String {
+    format!("{PREFIX}/fleet/{fleet}/member/*")
+}
+/// `mfc/v1/fleet/{fleet}/member/{controller}/shard/{s}`: a member's handover queryable.
+pub fn fleet_handover(fleet: &str, controller: &str, shard: u32) -> String {
+    format!("{PREFIX}/fleet/{fleet}/member/{controller}/shard/{shard}")
+}
+/// `mfc/v1/fleet/{fleet}/sync/{s}`.
+pub fn fleet_sync(fleet: &str, shard: u32) -> String {
+    format!("{PREFIX}/fleet/{fleet}/sync/{shard}")
+}
+/// The member id in a key `mfc/v1/fleet/{fleet}/member/{controller}[/...]`.
+pub fn member_of(key: &str) -> Option<&str> {
+    let rest = key.strip_prefix(PREFIX)?.strip_prefix("/fleet/")?;
+    let (_fleet, rest) = rest.split_once('/')?;
+    let rest = rest.strip_prefix("member/")?;
+    let id = rest.split('/').next()?;
+    check_id(id).ok()
+}
+/// The shard in a key whose last chunk is a shard number (`.../shard/{s}`, `.../sync/{s}`),
+/// if below [`SHARDS`](crate::SHARDS).
+pub fn last_shard(key: &str) -> Option<u32> {
+    let n: u32 = key.rsplit('/').next()?.parse().ok()?;
+    (n < crate::SHARDS).then_some(n)
+}
+
+/// Strip an optional `shard/{s}/` after the prefix: `Some((shard, rest))`, `rest` starting
+/// at `/device/` or `/gateway/`. A shard that is not a number below [`SHARDS`](crate::SHARDS)
+/// gives `None`.
+fn unshard(key: &str) -> Option<(Option<u32>, &str)> {
+    let rest = key.strip_prefix(PREFIX)?;
+    match rest.strip_prefix("/shard/") {
+        Some(r) => {
+            let slash = r.find('/')?;
+            let n: u32 = r[..slash].parse().ok()?;
+            (n < crate::SHARDS).then_some((Some(n), &r[slash..]))
+        }
+        None => Some((None, rest)),
+    }
+}
+
+/// The device id and shard segment of `mfc/v1/device/{id}/{leaf}` or
+/// `mfc/v1/shard/{s}/device/{id}/{leaf}`. A shard segment that is not the id's own shard
+/// makes the key invalid (`None`): a plant cannot steer its traffic to another owner.
+pub fn device_key(key: &str) -> Option<(&str, Option<u32>)> {
+    let (shard, rest) = unshard(key)?;
+    let rest = rest.strip_prefix("/device/")?;
+    let (id, _leaf) = rest.split_once('/')?;
+    let id = check_id(id).ok()?;
+    match shard {
+        Some(s) if s != crate::shard_of(id) => None,
+        _ => Some((id, shard)),
+    }
+}
+
+/// The gateway id of `mfc/v1/[shard/{s}/]gateway/{gateway}/{leaf}`, with the same rule.
+pub fn gateway_key(key: &str) -> Option<(&str, Option<u32>)> {
+    let (shard, rest) = unshard(key)?;
+    let rest = rest.strip_prefix("/gateway/")?;
+    let (id, _leaf) = rest.split_once('/')?;
+    let id = check_id(id).ok()?;
+    match shard {
+        Some(s) if s != crate::shard_of(id) => None,
+        _ => Some((id, shard)),
+    }
+}
+
 /// Every device's `leaf` key (`sample`, `config`, ...): `mfc/v1/device/*/{leaf}`.
 pub fn all_devices(leaf: &str) -> String {
     format!("{PREFIX}/device/*/{leaf}")
 }
 
-/// The device id in a key `mfc/v1/device/{id}/{leaf}`, if the key has that shape.
+/// The device id in a key `mfc/v1/device/{id}/{leaf}` or
+/// `mfc/v1/shard/{s}/device/{id}/{leaf}` (see [`device_key`]), if the key has that shape.
 pub fn device_of(key: &str) -> Option<&str> {
-    let rest = key.strip_prefix(PREFIX)?.strip_prefix("/device/")?;
-    let (id, _leaf) = rest.split_once('/')?;
-    check_id(id).ok()
+    device_key(key).map(|(id, _)| id)
 }
 
 #[cfg(test)]
@@ -108,5 +229,33 @@ mod tests {
             assert!(check_id(bad).is_err(), "{bad:?}");
         }
         assert!(check_id("AERO_2.left").is_ok());
+        assert_eq!(gateway_samples("cell-3"), "mfc/v1/gateway/cell-3/samples");
+        assert_eq!(gateway_of(&gateway_commands("cell-3")), Some("cell-3"));
+        assert_eq!(gateway_of("mfc/v1/device/x/sample"), None);
+        // Shard segments: the id's own shard only.
+        let k = shard_sample("aero-1");
+        let s = crate::shard_of("aero-1");
+        assert_eq!(k, format!("mfc/v1/shard/{s}/device/aero-1/sample"));
+        assert_eq!(device_key(&k), Some(("aero-1", Some(s))));
+        let wrong = format!(
+            "mfc/v1/shard/{}/device/aero-1/sample",
+            (s + 1) % crate::SHARDS
+        );
+        assert_eq!(device_of(&wrong), None);
+        assert_eq!(device_of("mfc/v1/shard/64/device/aero-1/sample"), None);
+        assert_eq!(device_of("mfc/v1/shard/x/device/aero-1/sample"), None);
+        assert_eq!(
+            device_key("mfc/v1/device/aero-1/sample"),
+            Some(("aero-1", None))
+        );
+        let g = shard_gateway_samples("cell-3");
+        assert_eq!(
+            gateway_key(&g),
+            Some(("cell-3", Some(crate::shard_of("cell-3"))))
+        );
+        assert_eq!(member_of(&fleet_member("main", "c-2")), Some("c-2"));
+        assert_eq!(member_of(&fleet_handover("main", "c-2", 7)), Some("c-2"));
+        assert_eq!(last_shard(&fleet_handover("main", "c-2", 7)), Some(7));
+        assert_eq!(last_shard(&fleet_sync("main", 64)), None);
     }
 }

@@ -30,6 +30,30 @@ pub const MAX_PAYLOAD: usize = 64 * 1024;
 /// most 16 times this, where zenoh's own default (1 GiB) would allow 16 GiB.
 pub const MAX_TRANSPORT_MESSAGE: usize = 2 * 1024 * 1024;
 
+/// Largest [`pb::SampleBatch`] payload a controller reads (bytes): 4096 samples of a few
+/// channels fit. Larger batches are dropped unread (`oversized`).
+pub const MAX_BATCH_PAYLOAD: usize = 1024 * 1024;
+
+/// Most samples one [`pb::SampleBatch`] may carry; a batch with more is refused whole
+/// (`oversized`), before any device state changes.
+pub const MAX_BATCH_SAMPLES: usize = 4096;
+
+/// Number of shards device state is spread over (inside one service, over its workers).
+/// Fixed by the protocol so that every process computes the same [`shard_of`].
+pub const SHARDS: u32 = 64;
+
+/// The shard of an id (a device's, or a gateway's for the plants it hosts): FNV-1a, so
+/// it is the same on every platform and easy to compute in any language (64-bit FNV-1a
+/// of the UTF-8 bytes, modulo [`SHARDS`]).
+pub fn shard_of(id: &str) -> u32 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for b in id.bytes() {
+        h ^= u64::from(b);
+        h = h.wrapping_mul(0x0000_0100_0000_01b3);
+    }
+    (h % u64::from(SHARDS)) as u32
+}
+
 /// Longest string from the network that is echoed, stored or logged (characters).
 pub const MAX_ECHO: usize = 64;
 
@@ -98,7 +122,9 @@ versioned!(
     EnvelopeRequest,
     DeviceStatus,
     ServiceStatus,
-    Heartbeat
+    Heartbeat,
+    SampleBatch,
+    CommandBatch
 );
 
 /// Decode a versioned message; never panics, whatever the bytes.
@@ -151,6 +177,8 @@ mod tests {
             let _ = decode::<pb::DeviceStatus>(&bytes);
             let _ = decode::<pb::ServiceStatus>(&bytes);
             let _ = decode::<pb::Heartbeat>(&bytes);
+            let _ = decode::<pb::SampleBatch>(&bytes);
+            let _ = decode::<pb::CommandBatch>(&bytes);
         }
 
         /// Mutations of a valid sample decode or fail, never panic, and a decoded config
@@ -182,6 +210,23 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn shards_are_stable_and_spread() {
+        // Fixed values: another implementation must compute the same shards.
+        assert_eq!(shard_of(""), (0xcbf2_9ce4_8422_2325u64 % 64) as u32);
+        // The same values as deploy/test/multihost.py's shard_of.
+        assert_eq!(
+            (shard_of("aero-1"), shard_of("aero-2"), shard_of("load-0")),
+            (22, 35, 52)
+        );
+        let mut seen = [0u32; SHARDS as usize];
+        for i in 0..6400 {
+            seen[shard_of(&format!("load-{i}")) as usize] += 1;
+        }
+        // 100 expected per shard: every shard used, none with more than twice its share.
+        assert!(seen.iter().all(|&n| n > 0 && n < 200), "{seen:?}");
     }
 
     #[test]

@@ -1,0 +1,205 @@
+//! The command line: `loadgen echo`, `loadgen run`, `loadgen bench`. It lives in the
+//! library so that the binary is one line.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::{Context, Result};
+use clap::{Parser, Subcommand};
+use transport::ZenohArgs;
+
+#[derive(Parser)]
+#[command(
+    name = "loadgen",
+    version,
+    about = "Load generator and benchmark for the controller service"
+)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub cmd: Cmd,
+}
+
+#[derive(Subcommand)]
+pub enum Cmd {
+    /// Serve as the echo anchor: answer every sample (or batch) with a command of the same seq.
+    Echo {
+        #[command(flatten)]
+        zenoh: ZenohArgs,
+    },
+    /// Run simulated plants against a controller already on the network and report.
+    Run {
+        /// Number of plants (ids load-0 ... load-{N-1}).
+        #[arg(long, default_value_t = 100)]
+        devices: usize,
+        /// Samples per plant per second.
+        #[arg(long, default_value_t = 100.0)]
+        rate: f64,
+        /// 0: each plant on its own key; otherwise the number of gateways sharing them.
+        #[arg(long, default_value_t = 0)]
+        gateways: usize,
+        /// Warm-up before counting (s).
+        #[arg(long, default_value_t = 3.0)]
+        warmup: f64,
+        /// Counted window (s).
+        #[arg(long, default_value_t = 10.0)]
+        measure: f64,
+        /// Print the report as JSON.
+        #[arg(long)]
+        json: bool,
+        #[command(flatten)]
+        zenoh: ZenohArgs,
+    },
+    /// The benchmark: the service and the echo anchor side by side, swept over fleet sizes,
+    /// per device and through gateways. Writes bench.json and bench.md.
+    Bench {
+        /// Where the results go.
+        #[arg(long, default_value = "loadgen-results")]
+        out: PathBuf,
+        /// The controller-service binary (default: beside this program).
+        #[arg(long)]
+        service_bin: Option<PathBuf>,
+        #[arg(long, default_value_t = 100.0)]
+        rate: f64,
+        #[arg(long, default_value_t = 3.0)]
+        warmup: f64,
+        #[arg(long, default_value_t = 10.0)]
+        measure: f64,
+        /// Fleet sizes of the per-device sweep.
+        #[arg(long, value_delimiter = ',', default_value = "100,150,200,250,300")]
+        per_device: Vec<usize>,
+        /// Fleet sizes of the gateway sweep.
+        #[arg(
+            long,
+            value_delimiter = ',',
+            default_value = "2000,5000,10000,15000,20000"
+        )]
+        gateway_devices: Vec<usize>,
+        /// Plants per gateway.
+        #[arg(long, default_value_t = 1000)]
+        per_gateway: usize,
+        /// Bisection steps after each grid.
+        #[arg(long, default_value_t = 2)]
+        refine: usize,
+        /// Fraction of commands back within the period for a size to hold.
+        #[arg(long, default_value_t = 0.999)]
+        inside: f64,
+    },
+}
+
+/// Parse `args`, run, and return the exit code.
+pub fn main_with_args<I, T>(args: I) -> std::process::ExitCode
+where
+    I: IntoIterator<Item = T>,
+    T: Into<std::ffi::OsString> + Clone,
+{
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| "info,zenoh=warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .try_init();
+    let cli = match Cli::try_parse_from(args) {
+        Ok(c) => c,
+        Err(e) => e.exit(),
+    };
+    let runtime = match tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return std::process::ExitCode::FAILURE;
+        }
+    };
+    let result = runtime.block_on(run(cli));
+    runtime.shutdown_background();
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn secs(what: &str, s: f64) -> Result<Duration> {
+    Duration::try_from_secs_f64(s)
+        .with_context(|| format!("--{what} must be a duration in seconds"))
+}
+
+async fn run(cli: Cli) -> Result<()> {
+    match cli.cmd {
+        Cmd::Echo { zenoh } => {
+            let stop = transport::shutdown_signal();
+            let session = zenoh.open().await?;
+            crate::echo::serve(session, stop)
+                .await
+                .map_err(|e| anyhow::anyhow!("echo: {e}"))?;
+        }
+        Cmd::Run {
+            devices,
+            rate,
+            gateways,
+            warmup,
+            measure,
+            json,
+            zenoh,
+        } => {
+            let session = zenoh.open().await?;
+            let spec = crate::gen::Spec {
+                devices,
+                rate_hz: rate,
+                gateways,
+                prefix: "load".into(),
+                warmup: secs("warmup", warmup)?,
+                measure: secs("measure", measure)?,
+            };
+            let r = crate::gen::run(&session, &spec).await?;
+            let _ = session.close().await;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&r)?);
+            } else {
+                println!(
+                    "{} devices, {} gateways: sent {}, answered {:.3} %, within the period {:.3} %, control {}, duplicates {}, p50/p99/p99.9 {:?}/{:?}/{:?} us, generator late {}",
+                    r.devices, r.gateways, r.sent, 100.0 * r.answered_fraction(), 100.0 * r.within_fraction(),
+                    r.control, r.duplicates, r.p50_us, r.p99_us, r.p999_us, r.generator_late
+                );
+            }
+        }
+        Cmd::Bench {
+            out,
+            service_bin,
+            rate,
+            warmup,
+            measure,
+            per_device,
+            gateway_devices,
+            per_gateway,
+            refine,
+            inside,
+        } => {
+            let me = std::env::current_exe().context("locating this program")?;
+            let service_bin =
+                service_bin.unwrap_or_else(|| me.with_file_name("controller-service"));
+            let spec = crate::bench::BenchSpec {
+                service_bin,
+                loadgen_bin: me,
+                rate_hz: rate,
+                warmup: secs("warmup", warmup)?,
+                measure: secs("measure", measure)?,
+                per_device,
+                gateway_devices,
+                per_gateway,
+                refine,
+                inside,
+                out: out.clone(),
+            };
+            let r = crate::bench::run(&spec).await?;
+            println!("{}", crate::bench::markdown(&r));
+            eprintln!("results in {}", out.display());
+        }
+    }
+    Ok(())
+}

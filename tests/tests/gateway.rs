@@ -1,0 +1,281 @@
+//! A gateway's batches through the real service in a process of its own, on real Zenoh
+//! sessions: every per-device rule holds per device inside a batch, every sample the
+//! service does not answer lands in exactly one counter, and a single-rig plant on its own
+//! key is served beside the gateway as before.
+//!
+//! The gateway runs in lockstep (each batch waits for its answer), so the test asserts
+//! exact counts and modes with no timing in it.
+
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+use protocol::{decode, encode, keys, pb, PROTOCOL_VERSION};
+use system_tests::{query, scratch_dir, SERIAL};
+use zenoh::Session;
+
+const CONFIG: &str = r#"
+controller_id = "c-gw"
+max_devices = 8
+
+[[devices]]
+id = "solo-1"
+[[devices.channels]]
+law = { law = "pid", params = { kp = 2.0, ki = 1.0 } }
+output = { min = -5.0, max = 5.0 }
+reference = [{ kind = "constant", value = 1.0 }]
+
+[[templates]]
+pattern = "cell-$*"
+[[templates.channels]]
+law = { law = "pid", params = { kp = 2.0, ki = 1.0 } }
+output = { min = -5.0, max = 5.0 }
+reference = [{ kind = "constant", value = 1.0 }]
+"#;
+const LIMIT: f64 = 5.0;
+
+/// Killed when the test ends, passed or not.
+struct Reaped(Child);
+impl Drop for Reaped {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn sample(id: &str, seq: u64, y: f64) -> pb::Sample {
+    pb::Sample {
+        version: PROTOCOL_VERSION,
+        device_id: id.into(),
+        seq,
+        plant_time: seq as f64 * 0.01,
+        outputs: vec![y],
+        applied: vec![],
+        flags: 0,
+        sent_unix_ns: protocol::unix_ns(),
+        last_rtt_us: 0,
+        run_id: 7,
+    }
+}
+
+fn batch(gw: &str, samples: Vec<pb::Sample>) -> Vec<u8> {
+    encode(&pb::SampleBatch {
+        version: PROTOCOL_VERSION,
+        gateway_id: gw.into(),
+        samples,
+    })
+}
+
+fn mode(c: &pb::Command) -> pb::Mode {
+    pb::Mode::try_from(c.mode).unwrap_or(pb::Mode::Unspecified)
+}
+
+/// Send `payload` as gateway gw-1's batch and wait for its answer.
+async fn exchange(
+    s: &Session,
+    replies: &zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>,
+    payload: Vec<u8>,
+) -> pb::CommandBatch {
+    s.put(keys::gateway_samples("gw-1"), payload).await.unwrap();
+    let r = tokio::time::timeout(Duration::from_secs(10), replies.recv_async())
+        .await
+        .expect("an answer to the batch within 10 s")
+        .unwrap();
+    decode::<pb::CommandBatch>(&r.payload().to_bytes()).unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn every_rule_holds_per_device_inside_a_batch() {
+    let _s = SERIAL.lock().await;
+    let dir = scratch_dir("gateway");
+    std::fs::write(dir.join("service.toml"), CONFIG).unwrap();
+    let port = transport::free_local_port().unwrap();
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let _service = Reaped(
+        Command::new(env!("CARGO_BIN_EXE_service-under-test"))
+            .args(["--config", dir.join("service.toml").to_str().unwrap()])
+            .args(["--listen", &endpoint, "--no-multicast-scouting"])
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(dir.join("service.log")).unwrap())
+            .spawn()
+            .unwrap(),
+    );
+    let s = transport::ZenohArgs::loopback(None, vec![endpoint])
+        .open()
+        .await
+        .unwrap();
+    assert!(
+        transport::wait_for_token(&s, &keys::alive_controller("c-gw"), Duration::from_secs(20))
+            .await,
+        "the service came up"
+    );
+    let replies = s
+        .declare_subscriber(keys::gateway_commands("gw-1"))
+        .await
+        .unwrap();
+    let solo = s.declare_subscriber(keys::command("solo-1")).await.unwrap();
+    // Declarations travel in order on the one link: a query after them finds them in place.
+    let _: pb::ServiceStatus = query(&s, keys::service_status("c-gw"), None).await.unwrap();
+
+    let mut every_v = Vec::new();
+    let cells: Vec<String> = (0..4).map(|i| format!("cell-{i}")).collect();
+    // 30 ordinary periods: four plants through the gateway, one on its own key.
+    for k in 1..=30u64 {
+        s.put(keys::sample("solo-1"), encode(&sample("solo-1", k, 0.0)))
+            .await
+            .unwrap();
+        let b = exchange(
+            &s,
+            &replies,
+            batch("gw-1", cells.iter().map(|c| sample(c, k, 0.0)).collect()),
+        )
+        .await;
+        assert_eq!(b.controller_id, "c-gw");
+        let got: Vec<(&str, u64, pb::Mode)> = b
+            .commands
+            .iter()
+            .map(|c| (c.device_id.as_str(), c.seq, mode(c)))
+            .collect();
+        let want: Vec<(&str, u64, pb::Mode)> = cells
+            .iter()
+            .map(|c| (c.as_str(), k, pb::Mode::Control))
+            .collect();
+        assert_eq!(got, want, "period {k}");
+        every_v.extend(b.commands.iter().flat_map(|c| c.v.clone()));
+        let c = tokio::time::timeout(Duration::from_secs(10), solo.recv_async())
+            .await
+            .unwrap()
+            .unwrap();
+        let c = decode::<pb::Command>(&c.payload().to_bytes()).unwrap();
+        assert_eq!(
+            (c.seq, mode(&c)),
+            (k, pb::Mode::Control),
+            "the single-rig plant, period {k}"
+        );
+        every_v.extend(c.v);
+    }
+
+    // One batch with every kind of sample a gateway may carry.
+    let mut nan = sample("cell-1", 31, 0.0);
+    nan.outputs = vec![f64::NAN];
+    let b = exchange(
+        &s,
+        &replies,
+        batch(
+            "gw-1",
+            vec![
+                sample("cell-0", 31, 0.0),
+                sample("cell-0", 31, 0.0), // the same sample again: answered again, the same
+                nan,                       // refused, changing nothing
+                sample("cell-2", 29, 0.0), // older than one answered: stale
+                sample("cell-3", 31, 0.0),
+                sample("bad id!", 31, 0.0), // no device to answer
+                sample("other-1", 31, 0.0), // no template: not served
+            ],
+        ),
+    )
+    .await;
+    let got: Vec<(&str, u64, pb::Mode)> = b
+        .commands
+        .iter()
+        .map(|c| (c.device_id.as_str(), c.seq, mode(c)))
+        .collect();
+    assert_eq!(
+        got,
+        vec![
+            ("cell-0", 31, pb::Mode::Control),
+            ("cell-0", 31, pb::Mode::Control),
+            ("cell-1", 31, pb::Mode::Rejected),
+            ("cell-2", 29, pb::Mode::Stale),
+            ("cell-3", 31, pb::Mode::Control),
+        ]
+    );
+    assert_eq!(
+        b.commands[0].v, b.commands[1].v,
+        "a duplicate gets the same command"
+    );
+    assert!(
+        b.commands[2].error.contains("non-finite"),
+        "{}",
+        b.commands[2].error
+    );
+    every_v.extend(b.commands.iter().flat_map(|c| c.v.clone()));
+
+    // The device table holds 8: solo-1 and cell-0..3 are in, so three of six new ones fit.
+    let news: Vec<pb::Sample> = (4..10)
+        .map(|i| sample(&format!("cell-{i}"), 32, 0.0))
+        .collect();
+    let mut all: Vec<pb::Sample> = cells.iter().map(|c| sample(c, 32, 0.0)).collect();
+    all.extend(news);
+    let b = exchange(&s, &replies, batch("gw-1", all)).await;
+    let ids: Vec<&str> = b.commands.iter().map(|c| c.device_id.as_str()).collect();
+    assert_eq!(
+        ids,
+        ["cell-0", "cell-1", "cell-2", "cell-3", "cell-4", "cell-5", "cell-6"]
+    );
+    assert!(b
+        .commands
+        .iter()
+        .all(|c| mode(c) == pb::Mode::Control && c.seq == 32));
+    every_v.extend(b.commands.iter().flat_map(|c| c.v.clone()));
+
+    // Batches refused whole, with no answer: another gateway's id on gw-1's key, too many
+    // samples, garbage.
+    s.put(
+        keys::gateway_samples("gw-1"),
+        batch("gw-2", vec![sample("cell-0", 33, 0.0)]),
+    )
+    .await
+    .unwrap();
+    let huge: Vec<pb::Sample> = (0..=protocol::MAX_BATCH_SAMPLES as u64)
+        .map(|i| sample("cell-0", 40 + i, 0.0))
+        .collect();
+    s.put(keys::gateway_samples("gw-1"), batch("gw-1", huge))
+        .await
+        .unwrap();
+    s.put(keys::gateway_samples("gw-1"), vec![0xff, 0x01, 0x02])
+        .await
+        .unwrap();
+    // A good batch after them: its answer comes after they were sorted (one link, in order).
+    let b = exchange(&s, &replies, batch("gw-1", vec![sample("cell-0", 33, 0.0)])).await;
+    assert_eq!(
+        (b.commands.len(), b.commands[0].seq),
+        (1, 33),
+        "nothing of the refused batches reached cell-0"
+    );
+
+    assert!(
+        every_v.iter().all(|v| (-LIMIT..=LIMIT).contains(v)),
+        "every command inside the envelope"
+    );
+
+    let st: pb::ServiceStatus = query(&s, keys::service_status("c-gw"), None).await.unwrap();
+    assert_eq!(
+        (
+            st.bad_key,
+            st.oversized,
+            st.undecodable,
+            st.bad_device_ids,
+            st.unknown_samples,
+            st.device_table_full,
+            st.rejected
+        ),
+        (1, 1, 1, 1, 1, 3, 1),
+        "each refusal in its counter: {st:?}"
+    );
+    let dev = |id: &str| {
+        st.devices
+            .iter()
+            .find(|d| d.device_id == id)
+            .unwrap_or_else(|| panic!("{id} in the status"))
+            .clone()
+    };
+    let c0 = dev("cell-0");
+    assert_eq!((c0.samples, c0.duplicates, c0.last_seq), (34, 1, 33));
+    let c1 = dev("cell-1");
+    assert_eq!((c1.samples, c1.rejected, c1.last_seq), (32, 1, 32));
+    let c2 = dev("cell-2");
+    assert_eq!((c2.stale, c2.last_seq), (1, 32));
+    assert_eq!(dev("solo-1").commands, 30);
+    assert_eq!(st.devices.len(), 8, "the table never grew past max_devices");
+    let _ = s.close().await;
+}
