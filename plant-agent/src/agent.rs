@@ -468,7 +468,81 @@ async fn declare_and_run(
         })?;
     let initial = plant.write(vec![0.0; n]).await?;
     let supervisor = Supervisor::new(config.safety, &config.local, initial)?;
-    Ok(periods(plant, config, supervisor, rx, &publisher, run_id, stop).await)
+    let out = SampleOut::Own(&publisher);
+    Ok(periods(plant, config, supervisor, rx, &out, run_id, stop).await)
+}
+
+/// Where a loop's samples go: its own key, or its gateway's batch.
+pub enum SampleOut<'a> {
+    /// A single-rig agent: each sample on the device's shard key.
+    Own(&'a zenoh::pubsub::Publisher<'a>),
+    /// A plant hosted by a gateway ([`crate::gateway`]): the gateway sends it with the
+    /// samples of its other plants, in one batch per period.
+    Gateway(mpsc::Sender<pb::Sample>),
+}
+
+impl SampleOut<'_> {
+    async fn send(&self, sample: pb::Sample) -> Result<(), String> {
+        match self {
+            SampleOut::Own(p) => p.put(encode(&sample)).await.map_err(|e| e.to_string()),
+            // Never wait on the batcher: a full queue is a lost sample, as on the network.
+            SampleOut::Gateway(tx) => tx.try_send(sample).map_err(|e| e.to_string()),
+        }
+    }
+}
+
+/// Run one plant hosted by a gateway: the same loop and the same safety as a single-rig
+/// agent ([`run_loop`]), with its samples handed to the gateway's batcher and its commands
+/// taken from the gateway's dispatcher instead of keys of its own.
+pub async fn run_hosted(
+    session: &Session,
+    plant: Box<dyn Plant>,
+    config: &LoopConfig,
+    run_id: u64,
+    stop: impl Future<Output = ()>,
+    samples: mpsc::Sender<pb::Sample>,
+    commands: mpsc::Receiver<(Instant, Vec<u8>)>,
+) -> Result<AgentRun, AgentError> {
+    let plant = PlantThread::spawn(plant);
+    let started = async {
+        let n = plant.channels();
+        if config.local.len() != n || config.channels.len() != n {
+            return Err(AgentError::Config(format!(
+                "{}: the plant has {n} channel(s), the local controller {} and the scenario {}",
+                config.device_id,
+                config.local.len(),
+                config.channels.len()
+            )));
+        }
+        config.safety.validate()?;
+        protocol::keys::check_id(&config.device_id)
+            .map_err(|e| AgentError::Config(e.to_string()))?;
+        // Each hosted plant announces itself as a single rig would.
+        let token = session
+            .liveliness()
+            .declare_token(keys::alive_plant(&config.device_id))
+            .await
+            .map_err(|e| transport::TransportError::Declare {
+                what: "liveliness token".into(),
+                reason: e.to_string(),
+            })?;
+        let initial = plant.write(vec![0.0; n]).await?;
+        let supervisor = Supervisor::new(config.safety, &config.local, initial)?;
+        Ok((token, supervisor))
+    }
+    .await;
+    match started {
+        Ok((_token, supervisor)) => {
+            let out = SampleOut::Gateway(samples);
+            Ok(periods(&plant, config, supervisor, commands, &out, run_id, stop).await)
+        }
+        Err(e) => {
+            if let Err(stop_err) = plant.stop().await {
+                tracing::error!(device = %config.device_id, "safe stop failed: {stop_err}");
+            }
+            Err(e)
+        }
+    }
 }
 
 /// The periodic part. Never fails: whatever happens ends the run with a report.
@@ -477,7 +551,7 @@ async fn periods(
     config: &LoopConfig,
     mut sup: Supervisor,
     mut rx: mpsc::Receiver<(Instant, Vec<u8>)>,
-    publisher: &zenoh::pubsub::Publisher<'_>,
+    publisher: &SampleOut<'_>,
     run_id: u64,
     stop: impl Future<Output = ()>,
 ) -> AgentRun {
@@ -561,7 +635,7 @@ async fn periods(
         if sent_at.len() > config.safety.max_age as usize + 2 {
             sent_at.pop_front();
         }
-        if let Err(e) = publisher.put(encode(&sample)).await {
+        if let Err(e) = publisher.send(sample).await {
             tracing::warn!(device = id, "publishing sample {k}: {e}");
         }
         let answered_once = {

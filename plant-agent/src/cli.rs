@@ -33,6 +33,20 @@ enum Command {
     /// 5 the controller was lost and the run ended on the fallback; 4 the plant failed or
     /// did not confirm its safe stop; 1 the configuration or the session was refused.
     Run(RunArgs),
+    /// Host many plants in one process (a cell, a building): every plant keeps its own
+    /// loop and safety; their samples go out in one batch per period and their commands
+    /// come back in one. Exit status: the worst of the plants' (as for `run`).
+    Gateway(GatewayArgs),
+}
+
+#[derive(clap::Args)]
+struct GatewayArgs {
+    /// The gateway's file (TOML): `gateway`, `out`, and `[[plants]]` entries with the
+    /// fields of a single agent's file.
+    #[arg(long, short)]
+    config: PathBuf,
+    #[command(flatten)]
+    zenoh: transport::ZenohArgs,
 }
 
 #[derive(clap::Args)]
@@ -80,8 +94,11 @@ pub fn main() -> std::process::ExitCode {
         // Colour codes only for a terminal: not into files or the journal.
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .try_init();
-    let Command::Run(args) = Cli::parse().command;
-    match run(args) {
+    let result = match Cli::parse().command {
+        Command::Run(args) => run(args),
+        Command::Gateway(args) => gateway(args),
+    };
+    match result {
         Ok(code) => std::process::ExitCode::from(code),
         Err(e) => {
             eprintln!("error: {e:#}");
@@ -169,6 +186,65 @@ fn run(args: RunArgs) -> Result<u8> {
 
 /// A run id that differs between runs: the service rebuilds a device's state when it
 /// changes (a restarted plant). Never 0, which the protocol reserves for "not set".
+fn gateway(args: GatewayArgs) -> Result<u8> {
+    let g = crate::gateway::GatewayFile::load(&args.config)?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?;
+    let runs = runtime.block_on(async {
+        let shutdown = Box::pin(transport::shutdown_signal());
+        let mut plants = Vec::with_capacity(g.plants.len());
+        for r in &g.plants {
+            match agent::open_plant(&r.scenario, r.scenario.seed).await {
+                Ok(p) => plants.push((p, r.loop_config.clone())),
+                Err(e) => {
+                    // The ones already open get their safe stop before giving up.
+                    for (p, _) in plants {
+                        let _ = agent::PlantThread::spawn(p).stop().await;
+                    }
+                    return Err(anyhow::anyhow!(
+                        "opening the plant of {}: {e}",
+                        r.loop_config.device_id
+                    ));
+                }
+            }
+        }
+        let session = match args.zenoh.open().await {
+            Ok(s) => s,
+            Err(e) => {
+                for (p, _) in plants {
+                    let _ = agent::PlantThread::spawn(p).stop().await;
+                }
+                return Err(anyhow::Error::from(e));
+            }
+        };
+        tracing::info!(gateway = %g.gateway, plants = plants.len(), "hosting");
+        let runs = crate::gateway::run_gateway(&session, &g.gateway, plants, run_id, shutdown).await;
+        let _ = session.close().await;
+        Ok(runs?)
+    });
+    runtime.shutdown_background();
+    let mut code = 0u8;
+    for (r, run) in g.plants.iter().zip(runs?) {
+        match run {
+            Ok(run) => {
+                let out = g.out.join(&run.report.device_id);
+                let title = format!("{} — {} via gateway {}", r.scenario.name, run.report.device_id, g.gateway);
+                write_run(&out, &title, &run.recording, &run.report)
+                    .with_context(|| format!("writing the record to {}", out.display()))?;
+                print_report(&run.report);
+                code = code.max(run.report.exit_code());
+            }
+            Err(e) => {
+                eprintln!("{}: {e}", r.loop_config.device_id);
+                code = code.max(4);
+            }
+        }
+    }
+    println!("wrote {}/{{device}}/{{run.csv, summary.json, *.png, *.svg}}", g.out.display());
+    Ok(code)
+}
+
 pub fn run_id() -> u64 {
     (protocol::unix_ns() ^ u64::from(std::process::id()).rotate_left(32)).max(1)
 }

@@ -20,6 +20,7 @@
 pub mod agent;
 pub mod cli;
 pub mod config;
+pub mod gateway;
 pub mod plant;
 pub mod record;
 pub mod safety;

@@ -1,0 +1,278 @@
+//! A gateway: one agent process hosting many plants (a cell of machines, a building).
+//!
+//! Each plant runs exactly the loop and the safety of a single-rig agent
+//! ([`crate::agent::run_hosted`]): its own supervisor, hold, fallback and safe stop. What
+//! the gateway changes is the network: the samples of all its plants leave in one
+//! [`pb::SampleBatch`] per period, on `mfc/v1/shard/{s}/gateway/{gateway}/samples`, and
+//! their commands come back in one [`pb::CommandBatch`] on
+//! `mfc/v1/gateway/{gateway}/commands`, which the gateway splits among its plants. Zenoh
+//! costs tens of microseconds per message and a controller about one per sample, so a
+//! gateway of a thousand plants costs the network two messages a period instead of two
+//! thousand.
+//!
+//! The batcher sends a period's batch as soon as every plant has given its sample, or
+//! [`FLUSH_AFTER`] after the first, whichever comes first: a plant whose driver is slow
+//! delays its neighbours by at most that.
+//!
+//! ```toml
+//! gateway = "cell-1"      # gateway id (key chunk); required
+//! out = "out/cell-1"      # records go to {out}/{device}/
+//! [[plants]]              # one entry per plant: the fields of a single agent's file
+//! device = "heater-1"
+//! scenario = "plants/heater/scenarios/step.toml"
+//! [[plants]]
+//! device = "heater-2"
+//! scenario = "plants/heater/scenarios/step.toml"
+//! ```
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use protocol::{decode, encode, keys, pb, PROTOCOL_VERSION};
+use serde::{Deserialize, Serialize};
+use tokio::sync::{mpsc, watch};
+use tokio::time::Instant;
+use zenoh::Session;
+
+use crate::agent::{self, AgentError, AgentRun};
+use crate::config::{AgentFile, ConfigError, Resolved};
+use crate::plant::Plant;
+
+/// Longest a period's batch waits for a late plant after its first sample.
+pub const FLUSH_AFTER: Duration = Duration::from_millis(2);
+
+/// Most plants one gateway hosts: one batch must stay under the protocol's bounds.
+pub const MAX_PLANTS: usize = protocol::MAX_BATCH_SAMPLES;
+
+/// The gateway's file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GatewayFile {
+    /// Gateway id (key chunk; the same rules as a device id). Required.
+    pub gateway: String,
+    /// Where the records go: one directory per plant under it. Default `out/{gateway}`.
+    #[serde(default)]
+    pub out: Option<PathBuf>,
+    /// The plants, each as a single agent's file would describe it (`device` required;
+    /// its `out` is ignored). At least one, at most [`MAX_PLANTS`], unique ids, one period.
+    pub plants: Vec<AgentFile>,
+}
+
+/// A checked gateway file.
+#[derive(Debug)]
+pub struct ResolvedGateway {
+    pub gateway: String,
+    pub out: PathBuf,
+    pub plants: Vec<Resolved>,
+}
+
+impl GatewayFile {
+    /// Read and check a gateway file; scenario paths are relative to it.
+    pub fn load(path: &Path) -> Result<ResolvedGateway, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
+            file: path.to_path_buf(),
+            source,
+        })?;
+        let file: GatewayFile = toml::from_str(&text).map_err(|e| ConfigError::Parse {
+            file: path.to_path_buf(),
+            message: e.to_string().trim_end().into(),
+        })?;
+        file.resolve(path)
+    }
+
+    /// Check the file and resolve every plant.
+    pub fn resolve(&self, path: &Path) -> Result<ResolvedGateway, ConfigError> {
+        let invalid = |field: &'static str, reason: String| ConfigError::Invalid {
+            file: path.to_path_buf(),
+            field,
+            reason,
+        };
+        keys::check_id(&self.gateway).map_err(|e| invalid("gateway", e.to_string()))?;
+        if self.plants.is_empty() || self.plants.len() > MAX_PLANTS {
+            return Err(invalid(
+                "plants",
+                format!("between 1 and {MAX_PLANTS} plants, not {}", self.plants.len()),
+            ));
+        }
+        let mut plants = Vec::with_capacity(self.plants.len());
+        let mut seen = std::collections::HashSet::new();
+        for p in &self.plants {
+            let r = p.resolve(path)?;
+            if !seen.insert(r.loop_config.device_id.clone()) {
+                return Err(invalid(
+                    "plants",
+                    format!("device {:?} appears twice", r.loop_config.device_id),
+                ));
+            }
+            plants.push(r);
+        }
+        let h = plants[0].loop_config.safety.period;
+        if let Some(p) = plants.iter().find(|p| p.loop_config.safety.period != h) {
+            return Err(invalid(
+                "plants",
+                format!(
+                    "one period for every plant of a gateway: {} has {} s, {} has {h} s",
+                    p.loop_config.device_id,
+                    p.loop_config.safety.period,
+                    plants[0].loop_config.device_id
+                ),
+            ));
+        }
+        Ok(ResolvedGateway {
+            out: self
+                .out
+                .clone()
+                .unwrap_or_else(|| PathBuf::from("out").join(&self.gateway)),
+            gateway: self.gateway.clone(),
+            plants,
+        })
+    }
+}
+
+/// Run every plant of a gateway until its scenario ends or `stop` resolves; each gets its
+/// safe stop, and its run comes back (an error for a plant that could not start).
+pub async fn run_gateway(
+    session: &Session,
+    gateway: &str,
+    plants: Vec<(Box<dyn Plant>, agent::LoopConfig)>,
+    run_id: impl Fn() -> u64,
+    stop: impl std::future::Future<Output = ()>,
+) -> Result<Vec<Result<AgentRun, AgentError>>, AgentError> {
+    keys::check_id(gateway).map_err(|e| AgentError::Config(e.to_string()))?;
+    let n = plants.len();
+    // Commands: split the batch among the plants, each to its loop's queue.
+    let mut routes: HashMap<String, mpsc::Sender<(Instant, Vec<u8>)>> = HashMap::new();
+    let mut receivers = Vec::with_capacity(n);
+    for (_, cfg) in &plants {
+        let (tx, rx) = mpsc::channel(256);
+        routes.insert(cfg.device_id.clone(), tx);
+        receivers.push(rx);
+    }
+    let gw = gateway.to_string();
+    let _commands = session
+        .declare_subscriber(keys::gateway_commands(gateway))
+        .callback(move |s| {
+            let now = Instant::now();
+            let Ok(batch) = decode::<pb::CommandBatch>(&s.payload().to_bytes()) else {
+                return;
+            };
+            if batch.gateway_id != gw {
+                return;
+            }
+            for c in batch.commands {
+                if let Some(tx) = routes.get(&c.device_id) {
+                    // A full queue drops the command: the supervisor counts it as lost.
+                    let _ = tx.try_send((now, encode(&c)));
+                }
+            }
+        })
+        .await
+        .map_err(|e| transport::TransportError::Declare {
+            what: format!("subscriber {}", keys::gateway_commands(gateway)),
+            reason: e.to_string(),
+        })?;
+    let publisher =
+        transport::control_publisher(session, keys::shard_gateway_samples(gateway)).await?;
+    let (sample_tx, sample_rx) = mpsc::channel::<pb::Sample>(4 * n + 16);
+    let batcher = batcher(&publisher, gateway, n, sample_rx);
+
+    let (stop_tx, stop_rx) = watch::channel(false);
+    // Each plant's loop is a task of its own, so a thousand plants cost a thousand wakes a
+    // period, not a thousand polls each.
+    let handles: Vec<_> = plants
+        .into_iter()
+        .zip(receivers)
+        .map(|((plant, cfg), rx)| {
+            let (samples, mut stopped) = (sample_tx.clone(), stop_rx.clone());
+            let (session, id) = (session.clone(), run_id());
+            tokio::spawn(async move {
+                let stop = async move {
+                    let _ = stopped.wait_for(|s| *s).await;
+                };
+                agent::run_hosted(&session, plant, &cfg, id, stop, samples, rx).await
+            })
+        })
+        .collect();
+    drop(sample_tx);
+    let all = async move {
+        let mut runs = Vec::with_capacity(handles.len());
+        for h in handles {
+            runs.push(h.await.unwrap_or_else(|e| {
+                Err(AgentError::Config(format!("a plant's loop ended abnormally: {e}")))
+            }));
+        }
+        runs
+    };
+    tokio::pin!(all, stop, batcher);
+    let mut stop_sent = false;
+    loop {
+        tokio::select! {
+            runs = &mut all => return Ok(runs),
+            () = &mut stop, if !stop_sent => {
+                let _ = stop_tx.send(true);
+                stop_sent = true;
+            }
+            () = &mut batcher => {}
+        }
+    }
+}
+
+/// Collect the plants' samples and send one batch per period.
+async fn batcher(
+    publisher: &zenoh::pubsub::Publisher<'_>,
+    gateway: &str,
+    plants: usize,
+    mut rx: mpsc::Receiver<pb::Sample>,
+) {
+    let mut pending: Vec<pb::Sample> = Vec::with_capacity(plants);
+    let mut seq: Option<u64> = None;
+    let mut deadline = Instant::now();
+    let send = |batch: Vec<pb::Sample>| {
+        let payload = encode(&pb::SampleBatch {
+            version: PROTOCOL_VERSION,
+            gateway_id: gateway.to_string(),
+            samples: batch,
+        });
+        async move {
+            if let Err(e) = publisher.put(payload).await {
+                tracing::warn!("publishing a gateway batch: {e}");
+            }
+        }
+    };
+    loop {
+        let next = if pending.is_empty() {
+            rx.recv().await
+        } else {
+            match tokio::time::timeout_at(deadline, rx.recv()).await {
+                Ok(s) => s,
+                Err(_) => {
+                    send(std::mem::take(&mut pending)).await;
+                    seq = None;
+                    continue;
+                }
+            }
+        };
+        let Some(sample) = next else {
+            if !pending.is_empty() {
+                send(std::mem::take(&mut pending)).await;
+            }
+            // Every loop ended: nothing more will come.
+            std::future::pending::<()>().await;
+            return;
+        };
+        if seq.is_some_and(|s| s != sample.seq) {
+            // A new period began before the last one filled: send what it has.
+            send(std::mem::take(&mut pending)).await;
+        }
+        if pending.is_empty() {
+            deadline = Instant::now() + FLUSH_AFTER;
+        }
+        seq = Some(sample.seq);
+        pending.push(sample);
+        if pending.len() >= plants {
+            send(std::mem::take(&mut pending)).await;
+            seq = None;
+        }
+    }
+}
