@@ -21,6 +21,9 @@ pub struct Cli {
     /// Override the controller id of the file.
     #[arg(long)]
     pub controller_id: Option<String>,
+    /// Override the file's `workers` (device state sharded over this many workers).
+    #[arg(long)]
+    pub workers: Option<usize>,
     #[command(flatten)]
     pub zenoh: ZenohArgs,
 }
@@ -77,7 +80,15 @@ pub async fn run(cli: Cli) -> Result<()> {
         config.controller_id = id;
         config.check(&cli.config.display().to_string())?;
     }
-    let registry = Registry::new(config).context("building the devices")?;
+    if let Some(w) = cli.workers {
+        config.workers = w;
+        config.check(&cli.config.display().to_string())?;
+    }
+    let configs = config.worker_configs();
+    let mut registries = Vec::with_capacity(configs.len());
+    for c in configs {
+        registries.push(Registry::new(c).context("building the devices")?);
+    }
     // A client of a router retries until the router answers (start order must not matter):
     // a stop meanwhile ends the service at once instead of waiting for the router.
     let session = tokio::select! {
@@ -87,7 +98,30 @@ pub async fn run(cli: Cli) -> Result<()> {
             return Ok(());
         }
     };
-    service::serve(session, registry, shutdown).await?;
+    if registries.len() == 1 {
+        let registry = registries.pop().context("one registry")?;
+        service::serve(session, registry, shutdown).await?;
+        return Ok(());
+    }
+    // Several workers: each serves its own shards on its own task (the runtime runs them on
+    // every core), all on this one session; one signal stops them all.
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let mut tasks = Vec::new();
+    for registry in registries {
+        let mut stopped = stop_rx.clone();
+        tasks.push(tokio::spawn(service::serve(
+            session.clone(),
+            registry,
+            async move {
+                let _ = stopped.wait_for(|s| *s).await;
+            },
+        )));
+    }
+    shutdown.await;
+    let _ = stop_tx.send(true);
+    for t in tasks {
+        t.await??;
+    }
     Ok(())
 }
 

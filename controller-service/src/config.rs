@@ -206,6 +206,9 @@ pub struct FleetSpec {
 fn yes() -> bool {
     true
 }
+fn one() -> usize {
+    1
+}
 fn release_timeout_ms() -> u64 {
     1000
 }
@@ -252,6 +255,15 @@ pub struct ServiceConfig {
     /// Hot standby group, if any (absent: this service is always active).
     #[serde(default)]
     pub standby: Option<StandbySpec>,
+    /// Workers that device state is sharded over, each on a task of its own, so that one
+    /// process uses every core (at least 1; default 1). With more than one, each worker
+    /// is a member of a fleet inside the process (`{controller_id}.w{i}`, without
+    /// standbys): the shards are split among them as among instances, each worker
+    /// subscribes to its own shards only, and no state or lock is shared between them.
+    /// Its status, liveliness token and commands carry the worker's id. With a `fleet`,
+    /// every worker is a member of it.
+    #[serde(default = "one")]
+    pub workers: usize,
     /// Fleet membership, if several instances share the devices (absent: this service
     /// serves every device it is configured for). Not with `standby`.
     #[serde(default)]
@@ -287,6 +299,7 @@ impl Default for ServiceConfig {
             templates: Vec::new(),
             standby: None,
             fleet: None,
+            workers: 1,
             snapshots: None,
             max_devices: max_devices(),
             allow_remote_widening: false,
@@ -326,6 +339,33 @@ fn check_channels(file: &str, at: &str, channels: &[DeviceChannel]) -> Result<()
 }
 
 impl ServiceConfig {
+    /// The configuration of each worker (see `workers`): this one for a single worker;
+    /// otherwise one per worker, each a fleet member with its own id, in this file's fleet
+    /// or, without one, in a fleet of the process's own workers with no standbys (they
+    /// would die with the process anyway).
+    pub fn worker_configs(&self) -> Vec<ServiceConfig> {
+        if self.workers <= 1 {
+            return vec![self.clone()];
+        }
+        (0..self.workers)
+            .map(|i| {
+                let mut c = self.clone();
+                c.controller_id = format!("{}.w{i}", self.controller_id);
+                c.workers = 1;
+                if c.fleet.is_none() {
+                    c.fleet = Some(FleetSpec {
+                        name: format!("{}.workers", self.controller_id),
+                        standby: false,
+                        release_timeout_ms: release_timeout_ms(),
+                        handover_timeout_ms: handover_timeout_ms(),
+                        discover_ms: discover_ms(),
+                    });
+                }
+                c
+            })
+            .collect()
+    }
+
     /// Read and check a configuration file.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
         let file = path.display().to_string();
@@ -366,6 +406,30 @@ impl ServiceConfig {
                 ));
             }
             check_channels(file, &format!("devices[{i}]"), &d.channels)?;
+        }
+        if self.workers == 0 || self.workers > 64 {
+            return Err(invalid("workers".into(), "between 1 and 64".into()));
+        }
+        if self.workers > 1 {
+            protocol::keys::check_id(&format!("{}.w{}", self.controller_id, self.workers - 1))
+                .map_err(|e| {
+                    invalid(
+                        "controller_id".into(),
+                        format!("with its workers' suffix: {e}"),
+                    )
+                })?;
+        }
+        if self.workers > 1 && self.standby.is_some() {
+            return Err(invalid(
+                "workers".into(),
+                "several workers and a hot-standby group exclude each other (use a fleet)".into(),
+            ));
+        }
+        if self.workers > 1 && self.snapshots.is_some() {
+            return Err(invalid(
+                "workers".into(),
+                "several workers and snapshot files exclude each other for now: each worker would write every device it ever held".into(),
+            ));
         }
         if let Some(f) = &self.fleet {
             protocol::keys::check_id(&f.name)

@@ -1303,13 +1303,11 @@ async fn serve_batch(
             throttled!(warn.rejected, warn, gateway = %gw, device = %printable(dev), "sample in a batch with an invalid device id: dropped");
             continue;
         }
-        let was_served = registry.serves(dev);
-        let outcome = registry.handle_sample(dev, sample);
-        if !was_served && registry.serves(dev) {
+        let (outcome, provisioned) = registry.handle_sample_from(dev, sample, Some(home));
+        if provisioned && matches!(outcome, Outcome::Reply(_)) {
             tracing::info!(device = %dev, gateway = %gw, "provisioned from a template");
             lock(inbox).serve(dev);
         }
-        registry.set_home(dev, home);
         match outcome {
             Outcome::Reply(cmd) => {
                 if cmd.mode == pb::Mode::Rejected as i32 {

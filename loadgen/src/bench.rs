@@ -35,6 +35,8 @@ pub enum Target {
 pub struct BenchSpec {
     /// The controller-service binary.
     pub service_bin: PathBuf,
+    /// The service's workers (`--workers`).
+    pub service_workers: usize,
     /// This program (for `loadgen echo`).
     pub loadgen_bin: PathBuf,
     pub rate_hz: f64,
@@ -79,6 +81,7 @@ impl Trial {
 #[derive(Debug, Clone, Serialize)]
 pub struct Results {
     pub rate_hz: f64,
+    pub service_workers: usize,
     pub inside: f64,
     pub warmup_s: f64,
     pub measure_s: f64,
@@ -109,6 +112,7 @@ impl Running {
             Target::Service => {
                 let mut c = Command::new(&spec.service_bin);
                 c.arg("--config").arg(dir.join("service.toml"));
+                c.args(["--workers", &spec.service_workers.to_string()]);
                 c
             }
             Target::Echo => {
@@ -324,6 +328,7 @@ pub async fn run(spec: &BenchSpec) -> anyhow::Result<Results> {
     let (gs, ge) = sweep(spec, dir.path(), &spec.gateway_devices, true, &mut trials).await?;
     let results = Results {
         rate_hz: spec.rate_hz,
+        service_workers: spec.service_workers,
         inside: spec.inside,
         warmup_s: spec.warmup.as_secs_f64(),
         measure_s: spec.measure.as_secs_f64(),
@@ -348,8 +353,8 @@ pub fn markdown(r: &Results) -> String {
     let mut s = String::new();
     let f = |x: Option<f64>| x.map_or("-".into(), |v| format!("{v:.0}"));
     s += &format!(
-        "Rate {} Hz; a size holds when {:.1} % of its commands are back within the period (warm-up {} s, window {} s).\n\n",
-        r.rate_hz, 100.0 * r.inside, r.warmup_s, r.measure_s
+        "Rate {} Hz; service workers {}; a size holds when {:.1} % of its commands are back within the period (warm-up {} s, window {} s).\n\n",
+        r.rate_hz, r.service_workers, 100.0 * r.inside, r.warmup_s, r.measure_s
     );
     s += "| path | devices | target | answered | within period | p50 us | p99 us | CPU us/sample | CPU cores | RSS/device |\n|---|---:|---|---:|---:|---:|---:|---:|---:|---:|\n";
     for t in &r.trials {

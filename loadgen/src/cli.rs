@@ -58,6 +58,9 @@ pub enum Cmd {
         /// The controller-service binary (default: beside this program).
         #[arg(long)]
         service_bin: Option<PathBuf>,
+        /// The service's workers (default: one per core).
+        #[arg(long)]
+        service_workers: Option<usize>,
         #[arg(long, default_value_t = 100.0)]
         rate: f64,
         #[arg(long, default_value_t = 3.0)]
@@ -171,6 +174,7 @@ async fn run(cli: Cli) -> Result<()> {
         Cmd::Bench {
             out,
             service_bin,
+            service_workers,
             rate,
             warmup,
             measure,
@@ -185,6 +189,8 @@ async fn run(cli: Cli) -> Result<()> {
                 service_bin.unwrap_or_else(|| me.with_file_name("controller-service"));
             let spec = crate::bench::BenchSpec {
                 service_bin,
+                service_workers: service_workers
+                    .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, usize::from)),
                 loadgen_bin: me,
                 rate_hz: rate,
                 warmup: secs("warmup", warmup)?,

@@ -141,7 +141,7 @@ impl EstimatorConfig {
     }
 
     /// Intervals the window holds for this configuration.
-    fn intervals(&self) -> usize {
+    pub(crate) fn intervals(&self) -> usize {
         match self.kind {
             // Two intervals serve both orders' minimal kernels.
             EstimatorKind::LowPass { .. } => 2,
@@ -420,18 +420,25 @@ impl<const CAP: usize> Estimator<CAP> {
         Ok(())
     }
 
+    /// Ring slots in use: the window's intervals, not the whole capacity, so that a
+    /// service holding thousands of estimators touches (and keeps resident) only a
+    /// window's worth of memory for each, and a step stays in a few cache lines.
+    fn slots(&self) -> usize {
+        self.config.intervals().clamp(1, CAP)
+    }
+
     fn evict(&mut self) {
         let old = self.ring[self.head];
         let m = Moments::of(&old, self.primary.anchor);
         self.primary.sums.add(&m, -1.0);
-        self.head = (self.head + 1) % CAP;
+        self.head = (self.head + 1) % self.slots();
         self.len -= 1;
     }
 
     fn insert(&mut self, iv: Interval) {
         let index = self.next_index;
         self.next_index += 1;
-        let slot = (self.head + self.len) % CAP;
+        let slot = (self.head + self.len) % self.slots();
         self.ring[slot] = iv;
         self.len += 1;
         if self.len == 1 {
@@ -458,7 +465,7 @@ impl<const CAP: usize> Estimator<CAP> {
     }
 
     fn interval(&self, k: usize) -> &Interval {
-        &self.ring[(self.head + k) % CAP]
+        &self.ring[(self.head + k) % self.slots()]
     }
 
     fn update_lowpass(&mut self) {

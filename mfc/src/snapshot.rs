@@ -34,7 +34,7 @@ macro_rules! snapshot_struct {
 }
 
 snapshot_struct!(Estimator { config, ring, head, len, next_index, last, primary, shadow, lowpass }
-check |e: &Estimator<CAP>| if e.head < CAP.max(1) && e.len <= CAP && e.next_index >= e.len as u64 {
+check |e: &Estimator<CAP>| if e.head < e.config.intervals().clamp(1, CAP) && e.len <= e.config.intervals().min(CAP) && e.next_index >= e.len as u64 {
     Ok(())
 } else {
     Err(DecodeError::Other("estimator ring indices out of range"))

@@ -219,7 +219,8 @@ fn gateway(args: GatewayArgs) -> Result<u8> {
             }
         };
         tracing::info!(gateway = %g.gateway, plants = plants.len(), "hosting");
-        let runs = crate::gateway::run_gateway(&session, &g.gateway, plants, run_id, shutdown).await;
+        let runs =
+            crate::gateway::run_gateway(&session, &g.gateway, plants, run_id, shutdown).await;
         let _ = session.close().await;
         Ok(runs?)
     });
@@ -229,7 +230,10 @@ fn gateway(args: GatewayArgs) -> Result<u8> {
         match run {
             Ok(run) => {
                 let out = g.out.join(&run.report.device_id);
-                let title = format!("{} — {} via gateway {}", r.scenario.name, run.report.device_id, g.gateway);
+                let title = format!(
+                    "{} — {} via gateway {}",
+                    r.scenario.name, run.report.device_id, g.gateway
+                );
                 write_run(&out, &title, &run.recording, &run.report)
                     .with_context(|| format!("writing the record to {}", out.display()))?;
                 print_report(&run.report);
@@ -241,7 +245,10 @@ fn gateway(args: GatewayArgs) -> Result<u8> {
             }
         }
     }
-    println!("wrote {}/{{device}}/{{run.csv, summary.json, *.png, *.svg}}", g.out.display());
+    println!(
+        "wrote {}/{{device}}/{{run.csv, summary.json, *.png, *.svg}}",
+        g.out.display()
+    );
     Ok(code)
 }
 

@@ -92,7 +92,10 @@ impl GatewayFile {
         if self.plants.is_empty() || self.plants.len() > MAX_PLANTS {
             return Err(invalid(
                 "plants",
-                format!("between 1 and {MAX_PLANTS} plants, not {}", self.plants.len()),
+                format!(
+                    "between 1 and {MAX_PLANTS} plants, not {}",
+                    self.plants.len()
+                ),
             ));
         }
         let mut plants = Vec::with_capacity(self.plants.len());
@@ -199,7 +202,9 @@ pub async fn run_gateway(
         let mut runs = Vec::with_capacity(handles.len());
         for h in handles {
             runs.push(h.await.unwrap_or_else(|e| {
-                Err(AgentError::Config(format!("a plant's loop ended abnormally: {e}")))
+                Err(AgentError::Config(format!(
+                    "a plant's loop ended abnormally: {e}"
+                )))
             }));
         }
         runs

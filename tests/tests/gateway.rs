@@ -327,7 +327,11 @@ async fn a_gateway_agent_serves_its_plants_in_one_batch_per_period() {
         assert_eq!(r.link, plant_agent::agent::Link::Kept, "{r:?}");
         let k = &r.counters;
         assert_eq!(k.periods as usize, sc.steps());
-        assert_eq!(k.duplicates + k.malformed + k.future + k.rejected, 0, "{k:?}");
+        assert_eq!(
+            k.duplicates + k.malformed + k.future + k.rejected,
+            0,
+            "{k:?}"
+        );
         let dev = status
             .devices
             .iter()
@@ -341,7 +345,11 @@ async fn a_gateway_agent_serves_its_plants_in_one_batch_per_period() {
             for (net, off) in r.channels.iter().zip(&offline.channels) {
                 let ratio = net.rms / off.rms;
                 eprintln!("{} {}: ratio {ratio:.3}", r.device_id, net.name);
-                assert!(ratio < system_tests::rms_ratio_bound(), "{}: {ratio}", net.name);
+                assert!(
+                    ratio < system_tests::rms_ratio_bound(),
+                    "{}: {ratio}",
+                    net.name
+                );
             }
         } else {
             eprintln!(

@@ -1,0 +1,97 @@
+//! What the service's own rules cost per sample, without the network: a thousand devices
+//! (one iP channel each, as the load generator's), every one stepped once per iteration,
+//! the way a gateway's batch is served. Run: `cargo bench -p controller-service`.
+
+use controller_service::{Registry, ServiceConfig};
+use protocol::{pb, PROTOCOL_VERSION};
+
+const CONFIG: &str = r#"
+controller_id = "bench"
+max_devices = 100000
+[[templates]]
+pattern = "load-$*"
+[[templates.channels]]
+law = { law = "intelligent", params = { kind = "ip", alpha = 2.0, kp = 5.0 }, estimator = { window = 10 } }
+output = { min = -10.0, max = 10.0 }
+reference = [{ kind = "constant", value = 1.0 }]
+"#;
+
+const DEVICES: usize = 1000;
+
+fn main() {
+    divan::main();
+}
+
+fn samples(k: u64) -> Vec<pb::Sample> {
+    (0..DEVICES)
+        .map(|i| pb::Sample {
+            version: PROTOCOL_VERSION,
+            device_id: format!("load-{i}"),
+            seq: k,
+            plant_time: k as f64 * 0.01,
+            outputs: vec![0.5],
+            applied: vec![1.0],
+            flags: 0,
+            sent_unix_ns: 1,
+            last_rtt_us: 0,
+            run_id: 7,
+        })
+        .collect()
+}
+
+/// One batch of a thousand samples through `Registry::handle_sample` (divide by 1000 for
+/// the cost per sample).
+#[divan::bench]
+fn thousand_samples(b: divan::Bencher) {
+    let mut r = Registry::new(ServiceConfig::parse("bench", CONFIG).unwrap()).unwrap();
+    let mut k = 1;
+    for _ in 0..20 {
+        for s in samples(k) {
+            r.handle_sample(&s.device_id.clone(), &s);
+        }
+        k += 1;
+    }
+    let mut batch = samples(k);
+    b.bench_local(|| {
+        for s in &mut batch {
+            s.seq = k;
+            s.plant_time = k as f64 * 0.01;
+        }
+        for s in &batch {
+            divan::black_box(r.handle_sample(&s.device_id, s));
+        }
+        k += 1;
+    });
+}
+
+/// Decoding a thousand-sample batch and encoding its thousand commands: the protobuf part
+/// of a batch, for comparison.
+#[divan::bench]
+fn thousand_decode_encode(b: divan::Bencher) {
+    let bytes = protocol::encode(&pb::SampleBatch {
+        version: PROTOCOL_VERSION,
+        gateway_id: "gw".into(),
+        samples: samples(1),
+    });
+    b.bench_local(|| {
+        let batch: pb::SampleBatch = protocol::decode(&bytes).unwrap();
+        let out = pb::CommandBatch {
+            version: PROTOCOL_VERSION,
+            gateway_id: batch.gateway_id.clone(),
+            commands: batch
+                .samples
+                .iter()
+                .map(|s| pb::Command {
+                    version: PROTOCOL_VERSION,
+                    device_id: s.device_id.clone(),
+                    seq: s.seq,
+                    u: vec![0.0],
+                    v: vec![0.0],
+                    ..Default::default()
+                })
+                .collect(),
+            controller_id: String::new(),
+        };
+        divan::black_box(protocol::encode(&out));
+    });
+}
