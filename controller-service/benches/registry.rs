@@ -1,6 +1,6 @@
-//! What the service's own rules cost per sample, without the network: a thousand devices
+//! What the service's own rules cost per sample, without the network: thousands of devices
 //! (one iP channel each, as the load generator's), every one stepped once per iteration,
-//! the way a gateway's batch is served. Run: `cargo bench -p controller-service`.
+//! the way gateways' batches are served. Run: `cargo bench -p controller-service`.
 
 use controller_service::{Registry, ServiceConfig};
 use protocol::{pb, PROTOCOL_VERSION};
@@ -16,14 +16,13 @@ output = { min = -10.0, max = 10.0 }
 reference = [{ kind = "constant", value = 1.0 }]
 "#;
 
-const DEVICES: usize = 1000;
 
 fn main() {
     divan::main();
 }
 
-fn samples(k: u64) -> Vec<pb::Sample> {
-    (0..DEVICES)
+fn samples(devices: usize, k: u64) -> Vec<pb::Sample> {
+    (0..devices)
         .map(|i| pb::Sample {
             version: PROTOCOL_VERSION,
             device_id: format!("load-{i}"),
@@ -39,19 +38,20 @@ fn samples(k: u64) -> Vec<pb::Sample> {
         .collect()
 }
 
-/// One batch of a thousand samples through `Registry::handle_sample` (divide by 1000 for
-/// the cost per sample).
-#[divan::bench]
-fn thousand_samples(b: divan::Bencher) {
+/// Every device's sample once through `Registry::handle_sample`, for a thousand and for ten
+/// thousand devices (divide by the count for the cost per sample): the difference is what
+/// the devices' state costs once it no longer fits the caches.
+#[divan::bench(args = [1000, 10000])]
+fn every_device_once(b: divan::Bencher, devices: usize) {
     let mut r = Registry::new(ServiceConfig::parse("bench", CONFIG).unwrap()).unwrap();
     let mut k = 1;
     for _ in 0..20 {
-        for s in samples(k) {
+        for s in samples(devices, k) {
             r.handle_sample(&s.device_id.clone(), &s);
         }
         k += 1;
     }
-    let mut batch = samples(k);
+    let mut batch = samples(devices, k);
     b.bench_local(|| {
         for s in &mut batch {
             s.seq = k;
@@ -71,7 +71,7 @@ fn thousand_decode_encode(b: divan::Bencher) {
     let bytes = protocol::encode(&pb::SampleBatch {
         version: PROTOCOL_VERSION,
         gateway_id: "gw".into(),
-        samples: samples(1),
+        samples: samples(1000, 1),
     });
     b.bench_local(|| {
         let batch: pb::SampleBatch = protocol::decode(&bytes).unwrap();

@@ -4,6 +4,7 @@
 use std::path::PathBuf;
 
 use crate::{service, Registry, ServiceConfig};
+use protocol::keys;
 use anyhow::{Context, Result};
 use clap::Parser;
 use transport::ZenohArgs;
@@ -104,24 +105,33 @@ pub async fn run(cli: Cli) -> Result<()> {
         return Ok(());
     }
     // Several workers: each serves its own shards on its own task (the runtime runs them on
-    // every core), all on this one session; one signal stops them all.
+    // every core), all on this one session; one signal stops them all. They start one after
+    // the other, each once the previous one's fleet token is seen: a worker that finds the
+    // others there takes its shards by handover, never by believing itself alone.
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     let mut tasks = Vec::new();
     for registry in registries {
+        let member = registry
+            .fleet()
+            .map(|f| keys::fleet_member(&f.name, registry.controller_id()));
         let mut stopped = stop_rx.clone();
-        tasks.push(tokio::spawn(service::serve(
+        tasks.push(tokio::spawn(service::serve_shared(
             session.clone(),
             registry,
             async move {
                 let _ = stopped.wait_for(|s| *s).await;
             },
         )));
+        if let Some(key) = member {
+            transport::wait_for_token(&session, &key, std::time::Duration::from_secs(10)).await;
+        }
     }
     shutdown.await;
     let _ = stop_tx.send(true);
     for t in tasks {
         t.await??;
     }
+    let _ = session.close().await;
     Ok(())
 }
 

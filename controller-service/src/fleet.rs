@@ -63,6 +63,22 @@ pub enum Action {
     Acquire { shard: u32, from: String },
     /// Ask the owner `from` for a copy of the shard's state (a new standby).
     Copy { shard: u32, from: String },
+    /// Tell `to`, which now outranks this member for the shard, that this member still
+    /// answers it. If `to` already owns it (two members started together, each believing
+    /// itself alone), call [`Fleet::release_expired`] at once; otherwise `to` will ask.
+    Offer { shard: u32, to: String },
+}
+
+/// The answer to a request to release a shard ([`Fleet::release`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Release {
+    /// This member held the shard and no longer answers it: reply with its state, then
+    /// carry out the actions.
+    Granted(Vec<Action>),
+    /// This member did not hold it (a copy of what it has may be sent), then the actions.
+    NotHeld(Vec<Action>),
+    /// Refused (why): reply with an error; the asker asks again.
+    Refused(&'static str),
 }
 
 /// Rendezvous weight of `member` for `shard`: FNV-1a over the member's id and the shard,
@@ -235,8 +251,15 @@ impl Fleet {
                     }
                 }
                 (Role::Owner, t) => {
-                    // Outranked by a newcomer: it will ask; answer until then.
+                    // Outranked by a newcomer: it will ask; answer until then. Say so, in
+                    // case it believes it owns the shard already.
                     self.after[i] = t;
+                    if let Some(o) = owner(s, &next) {
+                        out.push(Action::Offer {
+                            shard: s,
+                            to: o.to_string(),
+                        });
+                    }
                     Role::Releasing
                 }
                 (Role::None, Role::Standby) => {
@@ -268,49 +291,51 @@ impl Fleet {
         out
     }
 
-    /// `by` asks this member to release `shard`. Returns whether this member held it
-    /// (then the caller sends the shard's state in the reply, *after* this call, so that
-    /// no sample is answered by both), and the actions that follow.
-    pub fn release(&mut self, shard: u32, by: &str) -> (bool, Vec<Action>) {
+    /// `by` asks this member to release `shard`.
+    ///
+    /// Granted only to a member in this view (its liveliness token is seen: it travels
+    /// before its requests) that ranks first for the shard: a stray or forged request, or
+    /// one from a member this view has not caught up with, is refused and changes nothing,
+    /// and the asker asks again. When granted, the caller sends the shard's state in the
+    /// reply *after* this call, so that no sample is answered by both.
+    pub fn release(&mut self, shard: u32, by: &str) -> Release {
         let i = shard as usize;
         if i >= SHARDS as usize {
-            return (false, Vec::new());
+            return Release::Refused("no such shard");
         }
+        let known = self.members.contains(by) && by != self.me;
         match self.roles[i] {
             Role::Owner | Role::Releasing => {
-                // The asker may be ahead of this view; count it in.
-                if !self.members.contains(by) {
-                    let mut next = self.members.clone();
-                    next.insert(by.to_string());
-                    self.members = next;
+                if !known {
+                    return Release::Refused("the asker is not a member in this view (yet)");
+                }
+                if owner(shard, &self.members) != Some(by) {
+                    return Release::Refused("the asker does not rank first for this shard");
                 }
                 let t = self.target(shard, &self.members);
-                let t = if t == Role::Owner { Role::Standby } else { t };
                 self.roles[i] = t;
-                let actions = if t == Role::None {
+                Release::Granted(if t == Role::None {
                     vec![Action::Unsubscribe(shard)]
                 } else {
                     Vec::new()
-                };
-                (true, actions)
+                })
             }
             Role::Acquiring => {
-                // Two members starting together may each wait for the other: the asker's
-                // claim is checked against this view with the asker in it, and whoever
-                // does not rank first gives up its claim, so one owner remains.
-                let mut with = self.members.clone();
-                with.insert(by.to_string());
-                let t = self.target(shard, &with);
-                self.members = with;
+                // Two members starting together may each wait for the other: whoever does
+                // not rank first gives up its claim, so one owner remains.
+                if !known {
+                    return Release::Refused("the asker is not a member in this view (yet)");
+                }
+                let t = self.target(shard, &self.members);
                 if t != Role::Owner {
                     self.roles[i] = t;
                     if t == Role::None {
-                        return (false, vec![Action::Unsubscribe(shard)]);
+                        return Release::NotHeld(vec![Action::Unsubscribe(shard)]);
                     }
                 }
-                (false, Vec::new())
+                Release::NotHeld(Vec::new())
             }
-            _ => (false, Vec::new()),
+            _ => Release::NotHeld(Vec::new()),
         }
     }
 
@@ -326,6 +351,12 @@ impl Fleet {
         } else {
             Vec::new()
         }
+    }
+
+    /// Another member offers `shard` (it still answers it, see [`Action::Offer`]): whether
+    /// this member owns it already, so that the other must stop at once.
+    pub fn owns(&self, shard: u32) -> bool {
+        self.role(shard) == Role::Owner
     }
 
     /// The previous owner's state arrived (or the request failed): answer from now on.
@@ -402,7 +433,7 @@ mod tests {
         a.start([]);
         let mut b = Fleet::new("b", true);
         let acts = b.start(["a".to_string()]);
-        a.join("b");
+        let offers = a.join("b");
         // b acquires every shard it now ranks first, from a; a answers them until asked.
         let wanted: Vec<u32> = (0..SHARDS)
             .filter(|&s| owner(s, &set(&["a", "b"])) == Some("b"))
@@ -415,12 +446,21 @@ mod tests {
             }));
             assert_eq!(b.role(s), Role::Acquiring);
             assert_eq!(a.role(s), Role::Releasing);
+            assert!(offers.contains(&Action::Offer { shard: s, to: "b".into() }));
+            assert!(!b.owns(s), "b acquires: it will ask, a keeps answering until then");
         }
         // At every step, at most one answers each shard.
         assert!(owners(&[&a, &b]).iter().all(|&n| n <= 1));
+        // A stray or forged request changes nothing.
         for &s in &wanted {
-            let (held, _) = a.release(s, "b");
-            assert!(held);
+            assert!(matches!(a.release(s, "mallory"), Release::Refused(_)));
+            assert_eq!(a.role(s), Role::Releasing);
+        }
+        let other = (0..SHARDS).find(|s| !wanted.contains(s)).unwrap();
+        assert!(matches!(a.release(other, "b"), Release::Refused(_)), "b does not outrank a there");
+        assert!(a.answers(other));
+        for &s in &wanted {
+            assert!(matches!(a.release(s, "b"), Release::Granted(_)));
             assert!(owners(&[&a, &b]).iter().all(|&n| n <= 1));
             b.acquired(s);
         }
@@ -481,6 +521,36 @@ mod tests {
                 .any(|x| matches!(x, Action::Acquire { shard, .. } if *shard == s)));
         }
         assert_eq!(owners(&[a, c]), vec![1; SHARDS as usize]);
+    }
+
+    #[test]
+    fn two_members_that_started_alone_settle_on_one_owner() {
+        let (mut a, mut b) = (Fleet::new("a", true), Fleet::new("b", true));
+        a.start([]);
+        b.start([]);
+        assert_eq!(owners(&[&a, &b]), vec![2; SHARDS as usize], "both believe they are alone");
+        let offers_a = a.join("b");
+        let offers_b = b.join("a");
+        // Each offers the other the shards the other outranks it in; the other owns them
+        // already, so the offerer stops at once.
+        let shards = |offers: Vec<Action>| -> Vec<u32> {
+            offers
+                .into_iter()
+                .filter_map(|a| match a {
+                    Action::Offer { shard, .. } => Some(shard),
+                    _ => None,
+                })
+                .collect()
+        };
+        let (from_a, from_b) = (shards(offers_a), shards(offers_b));
+        assert!(from_a.iter().all(|&s| b.owns(s)) && from_b.iter().all(|&s| a.owns(s)));
+        for s in from_a {
+            a.release_expired(s);
+        }
+        for s in from_b {
+            b.release_expired(s);
+        }
+        assert_eq!(owners(&[&a, &b]), vec![1; SHARDS as usize]);
     }
 
     #[test]

@@ -28,7 +28,7 @@ use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::query::{Query, Queryable};
 use zenoh::Session;
 
-use crate::fleet::{Action, Fleet};
+use crate::fleet::{Action, Fleet, Release};
 use crate::inbox::{Inbox, Push, Taken};
 use crate::registry::{precheck, Outcome, Registry};
 
@@ -69,6 +69,8 @@ enum Msg {
     },
     /// An owner's device state after a configuration change, for its standbys.
     Sync(u32, Vec<u8>),
+    /// The member this one offered a shard to owns it already: stop answering it now.
+    Owned(u32),
 }
 
 /// Which shards this member steps and answers, read by zenoh's callbacks (bit `s` for
@@ -251,8 +253,21 @@ fn fits(len: usize, drops: &Drops) -> bool {
 }
 
 /// Run the service on `session` until `shutdown` resolves; then undeclare everything
-/// (the liveliness token disappears at once, so plants and standbys see a clean exit).
+/// (the liveliness token disappears at once, so plants and standbys see a clean exit) and
+/// close the session.
 pub async fn serve(
+    session: Session,
+    registry: Registry,
+    shutdown: impl std::future::Future<Output = ()>,
+) -> Result<(), ServiceError> {
+    let result = serve_shared(session.clone(), registry, shutdown).await;
+    let _ = session.close().await;
+    result
+}
+
+/// [`serve`] on a session other workers share: everything this worker declared is
+/// undeclared at the end, and the session stays open for the others.
+pub async fn serve_shared(
     session: Session,
     mut registry: Registry,
     shutdown: impl std::future::Future<Output = ()>,
@@ -668,6 +683,19 @@ pub async fn serve(
                                 from.clone(),
                                 *shard,
                                 matches!(a, Action::Acquire { .. }),
+                                (
+                                    Duration::from_millis(spec.handover_timeout_ms),
+                                    Duration::from_millis(spec.release_timeout_ms),
+                                ),
+                            );
+                        }
+                        Action::Offer { shard, to } => {
+                            spawn_offer(
+                                session.clone(),
+                                internal_tx.clone(),
+                                keys::fleet_handover(&spec.name, to, *shard),
+                                format!("offer:{id}"),
+                                *shard,
                                 Duration::from_millis(spec.handover_timeout_ms),
                             );
                         }
@@ -1009,7 +1037,13 @@ pub async fn serve(
                     continue;
                 };
                 let actions = if kind == "release" {
-                    fl.release(shard, asker).1
+                    match fl.release(shard, asker) {
+                        Release::Granted(a) | Release::NotHeld(a) => a,
+                        Release::Refused(why) => {
+                            let _ = q.reply_err(why).await;
+                            continue;
+                        }
+                    }
                 } else {
                     Vec::new()
                 };
@@ -1071,6 +1105,14 @@ pub async fn serve(
                 }
                 tracing::debug!(controller = %id, shard, release, restored, "took a shard's state");
                 fleet_apply!(Vec::new());
+            }
+            Msg::Owned(shard) => {
+                let mut acts = Vec::new();
+                if let Some(fl) = fleet.as_mut() {
+                    acts = fl.release_expired(shard);
+                }
+                tracing::debug!(controller = %id, shard, "the shard's new owner has it already: no longer answering it");
+                fleet_apply!(acts);
             }
             Msg::Sync(shard, bytes) => {
                 // Only a member that steps the shard without answering it takes an owner's
@@ -1150,7 +1192,6 @@ pub async fn serve(
     drop(q_status);
     drop(q_service);
     drop(publishers);
-    let _ = session.close().await;
     Ok(())
 }
 
@@ -1439,7 +1480,9 @@ impl Dynamic {
 }
 
 /// Ask member `from` for shard `shard`'s state (a release, or a copy for a standby), on a
-/// task of its own; the answer, or none after `timeout`, comes back as [`Msg::Handed`].
+/// task of its own; the answer comes back as [`Msg::Handed`]: the state, or none if the
+/// member did not answer within `timeout` (it is gone). A refusal is asked again every
+/// 50 ms, up to `timeout` plus the owner's `release_timeout`.
 fn spawn_handover(
     session: Session,
     tx: mpsc::Sender<Msg>,
@@ -1447,21 +1490,39 @@ fn spawn_handover(
     from: String,
     shard: u32,
     release: bool,
-    timeout: Duration,
+    (timeout, release_timeout): (Duration, Duration),
 ) {
     let key = keys::fleet_handover(fleet, &from, shard);
     let body = format!("{}:{me}", if release { "release" } else { "copy" });
     tokio::spawn(async move {
-        let state = async {
-            let replies = session.get(key).payload(body).timeout(timeout).await.ok()?;
-            while let Ok(r) = replies.recv_async().await {
-                if let Ok(s) = r.result() {
-                    return Some(s.payload().to_bytes().into_owned());
+        // A refusal (the owner's view has not caught up with this member yet) is asked
+        // again; silence (the owner is gone) ends the wait. Past the owner's own release
+        // timeout it no longer answers the shard, so this member takes it then at the latest.
+        let give_up = std::time::Instant::now() + timeout + release_timeout;
+        let state = loop {
+            let mut refused = false;
+            let mut got = None;
+            if let Ok(replies) = session
+                .get(key.clone())
+                .payload(body.clone())
+                .timeout(timeout)
+                .await
+            {
+                while let Ok(r) = replies.recv_async().await {
+                    match r.result() {
+                        Ok(s) => {
+                            got = Some(s.payload().to_bytes().into_owned());
+                            break;
+                        }
+                        Err(_) => refused = true,
+                    }
                 }
             }
-            None
-        }
-        .await;
+            if got.is_some() || !refused || std::time::Instant::now() > give_up {
+                break got;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        };
         let _ = tx
             .send(Msg::Handed {
                 shard,
@@ -1469,6 +1530,29 @@ fn spawn_handover(
                 state,
             })
             .await;
+    });
+}
+
+/// Offer a shard to the member that now outranks this one ([`Action::Offer`]); if it owns
+/// the shard already, [`Msg::Owned`] comes back.
+fn spawn_offer(
+    session: Session,
+    tx: mpsc::Sender<Msg>,
+    key: String,
+    body: String,
+    shard: u32,
+    timeout: Duration,
+) {
+    tokio::spawn(async move {
+        let Ok(replies) = session.get(key).payload(body).timeout(timeout).await else {
+            return;
+        };
+        while let Ok(r) = replies.recv_async().await {
+            if r.result().is_ok_and(|s| s.payload().to_bytes().as_ref() == b"owned") {
+                let _ = tx.send(Msg::Owned(shard)).await;
+                return;
+            }
+        }
     });
 }
 

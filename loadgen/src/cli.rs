@@ -58,9 +58,10 @@ pub enum Cmd {
         /// The controller-service binary (default: beside this program).
         #[arg(long)]
         service_bin: Option<PathBuf>,
-        /// The service's workers (default: one per core).
-        #[arg(long)]
-        service_workers: Option<usize>,
+        /// The service's workers (`--workers`). Default 1: on two cores shared with the
+        /// generator and the anchor, a second worker costs more in scheduling than it gives.
+        #[arg(long, default_value_t = 1)]
+        service_workers: usize,
         #[arg(long, default_value_t = 100.0)]
         rate: f64,
         #[arg(long, default_value_t = 3.0)]
