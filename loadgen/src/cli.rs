@@ -190,8 +190,7 @@ async fn run(cli: Cli) -> Result<()> {
                 service_bin.unwrap_or_else(|| me.with_file_name("controller-service"));
             let spec = crate::bench::BenchSpec {
                 service_bin,
-                service_workers: service_workers
-                    .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, usize::from)),
+                service_workers,
                 loadgen_bin: me,
                 rate_hz: rate,
                 warmup: secs("warmup", warmup)?,
