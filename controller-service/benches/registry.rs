@@ -16,7 +16,6 @@ output = { min = -10.0, max = 10.0 }
 reference = [{ kind = "constant", value = 1.0 }]
 "#;
 
-
 fn main() {
     divan::main();
 }

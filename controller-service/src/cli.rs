@@ -4,9 +4,9 @@
 use std::path::PathBuf;
 
 use crate::{service, Registry, ServiceConfig};
-use protocol::keys;
 use anyhow::{Context, Result};
 use clap::Parser;
+use protocol::keys;
 use transport::ZenohArgs;
 
 #[derive(Parser)]

@@ -446,8 +446,14 @@ mod tests {
             }));
             assert_eq!(b.role(s), Role::Acquiring);
             assert_eq!(a.role(s), Role::Releasing);
-            assert!(offers.contains(&Action::Offer { shard: s, to: "b".into() }));
-            assert!(!b.owns(s), "b acquires: it will ask, a keeps answering until then");
+            assert!(offers.contains(&Action::Offer {
+                shard: s,
+                to: "b".into()
+            }));
+            assert!(
+                !b.owns(s),
+                "b acquires: it will ask, a keeps answering until then"
+            );
         }
         // At every step, at most one answers each shard.
         assert!(owners(&[&a, &b]).iter().all(|&n| n <= 1));
@@ -457,7 +463,10 @@ mod tests {
             assert_eq!(a.role(s), Role::Releasing);
         }
         let other = (0..SHARDS).find(|s| !wanted.contains(s)).unwrap();
-        assert!(matches!(a.release(other, "b"), Release::Refused(_)), "b does not outrank a there");
+        assert!(
+            matches!(a.release(other, "b"), Release::Refused(_)),
+            "b does not outrank a there"
+        );
         assert!(a.answers(other));
         for &s in &wanted {
             assert!(matches!(a.release(s, "b"), Release::Granted(_)));
@@ -528,7 +537,11 @@ mod tests {
         let (mut a, mut b) = (Fleet::new("a", true), Fleet::new("b", true));
         a.start([]);
         b.start([]);
-        assert_eq!(owners(&[&a, &b]), vec![2; SHARDS as usize], "both believe they are alone");
+        assert_eq!(
+            owners(&[&a, &b]),
+            vec![2; SHARDS as usize],
+            "both believe they are alone"
+        );
         let offers_a = a.join("b");
         let offers_b = b.join("a");
         // Each offers the other the shards the other outranks it in; the other owns them

@@ -1548,7 +1548,9 @@ fn spawn_offer(
             return;
         };
         while let Ok(r) = replies.recv_async().await {
-            if r.result().is_ok_and(|s| s.payload().to_bytes().as_ref() == b"owned") {
+            if r.result()
+                .is_ok_and(|s| s.payload().to_bytes().as_ref() == b"owned")
+            {
                 let _ = tx.send(Msg::Owned(shard)).await;
                 return;
             }
