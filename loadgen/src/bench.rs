@@ -167,6 +167,30 @@ output = { min = -10.0, max = 10.0 }
 reference = [{ kind = "constant", value = 1.0 }]
 "#;
 
+/// Attempts of a trial whose generator fell behind (a hiccup of the machine, not of the
+/// target): such a run says nothing about the target, so it is run again.
+const ATTEMPTS: usize = 3;
+
+/// A trial, run again (at most [`ATTEMPTS`] times) while the generator itself fell behind;
+/// every attempt is printed.
+async fn trial_valid(
+    spec: &BenchSpec,
+    dir: &Path,
+    target: Target,
+    devices: usize,
+    gateways: usize,
+) -> anyhow::Result<Trial> {
+    let mut t = trial(spec, dir, target, devices, gateways).await?;
+    for _ in 1..ATTEMPTS {
+        if t.report.generator_late == 0 {
+            break;
+        }
+        eprintln!("{}  (run again)", line(&t));
+        t = trial(spec, dir, target, devices, gateways).await?;
+    }
+    Ok(t)
+}
+
 async fn trial(
     spec: &BenchSpec,
     dir: &Path,
@@ -268,7 +292,7 @@ async fn sweep(
             if fails[k].is_some() {
                 continue;
             }
-            let t = trial(spec, dir, target, n, gws(n)).await?;
+            let t = trial_valid(spec, dir, target, n, gws(n)).await?;
             eprintln!("{}", line(&t));
             if t.holds(spec.inside) {
                 caps[k] = Some(n);
@@ -286,7 +310,7 @@ async fn sweep(
             if mid <= lo || hi - lo <= (hi / 20).max(1) {
                 break;
             }
-            let t = trial(spec, dir, target, mid, gws(mid)).await?;
+            let t = trial_valid(spec, dir, target, mid, gws(mid)).await?;
             eprintln!("{}", line(&t));
             if t.holds(spec.inside) {
                 lo = mid;

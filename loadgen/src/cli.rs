@@ -69,13 +69,13 @@ pub enum Cmd {
         #[arg(long, default_value_t = 10.0)]
         measure: f64,
         /// Fleet sizes of the per-device sweep.
-        #[arg(long, value_delimiter = ',', default_value = "100,150,200,250,300")]
+        #[arg(long, value_delimiter = ',', default_value = "50,75,100,150,200")]
         per_device: Vec<usize>,
         /// Fleet sizes of the gateway sweep.
         #[arg(
             long,
             value_delimiter = ',',
-            default_value = "2000,5000,10000,15000,20000"
+            default_value = "2500,5000,7500,10000,12500,15000,20000"
         )]
         gateway_devices: Vec<usize>,
         /// Plants per gateway.
