@@ -683,27 +683,13 @@ impl Registry {
     /// The state of the devices `ids` (those served), as a one-shard handover of `shard`:
     /// what an owner sends its standby after a configuration change.
     pub fn devices_state(&self, shard: u32, ids: &[&str]) -> crate::snapshot::ShardState {
-        let devices = self
-            .snapshots_where(|id, _| ids.contains(&id))
-            .into_iter()
-            .filter_map(|snap| {
-                let d = self.devices.get(&snap.id)?;
-                Some(crate::snapshot::HandedDevice {
-                    home: d.home,
-                    envelope: d
-                        .envelope
-                        .iter()
-                        .map(|l| (l.min, l.max, l.rate_limit))
-                        .collect(),
-                    live_config: true,
-                    snapshot: snap,
-                })
-            })
-            .collect();
         crate::snapshot::ShardState {
             version: crate::snapshot::SNAPSHOT_VERSION,
             shard,
-            devices,
+            devices: ids
+                .iter()
+                .filter_map(|id| Self::handed(id, self.devices.get(*id)?))
+                .collect(),
         }
     }
 
@@ -811,8 +797,9 @@ impl Registry {
         self.handle_sample_from(key_id, s, None).0
     }
 
-    /// [`Registry::handle_sample`] for a sample that came by a path of shard `home` (see
-    /// [`Registry::set_home`]; `None`: leave it as it is); also says whether this sample
+    /// [`Registry::handle_sample`] for a sample that came by a path of shard `home` (its own
+    /// key: its id's shard; a gateway's batch: the gateway's; `None`: leave it as it is),
+    /// which is where the device's state is handed over from; also says whether this sample
     /// provisioned its device from a template. The hot path of a gateway's batch: one
     /// lookup of the device when it is known, besides the step itself.
     pub fn handle_sample_from(
@@ -1261,14 +1248,6 @@ impl Registry {
 /// Fleet support ([`crate::fleet`]): which shard each device lives in, and the state of a
 /// shard as handed between members.
 impl Registry {
-    /// Record that `id`'s samples come by a path of shard `home` (its own key: its id's
-    /// shard; a gateway's batch: the gateway's). A device already served only.
-    pub fn set_home(&mut self, id: &str, home: u32) {
-        if let Some(d) = self.devices.get_mut(id) {
-            d.home = home;
-        }
-    }
-
     /// The shard `id` lives in, if served.
     pub fn home_of(&self, id: &str) -> Option<u32> {
         self.devices.get(id).map(|d| d.home)
@@ -1285,27 +1264,15 @@ impl Registry {
 
     /// The state of every device of `shard`, for a handover.
     pub fn shard_state(&self, shard: u32) -> crate::snapshot::ShardState {
-        let devices = self
-            .snapshots_where(|_, d| d.home == shard)
-            .into_iter()
-            .filter_map(|snap| {
-                let d = self.devices.get(&snap.id)?;
-                Some(crate::snapshot::HandedDevice {
-                    home: d.home,
-                    envelope: d
-                        .envelope
-                        .iter()
-                        .map(|l| (l.min, l.max, l.rate_limit))
-                        .collect(),
-                    live_config: true,
-                    snapshot: snap,
-                })
-            })
-            .collect();
         crate::snapshot::ShardState {
             version: crate::snapshot::SNAPSHOT_VERSION,
             shard,
-            devices,
+            devices: self
+                .sorted()
+                .into_iter()
+                .filter(|(_, d)| d.home == shard)
+                .filter_map(|(id, d)| Self::handed(id, d))
+                .collect(),
         }
     }
 
@@ -1420,29 +1387,46 @@ impl Registry {
         self.sorted()
             .into_iter()
             .filter(|(id, d)| keep(id, d))
-            .filter_map(|(id, d)| {
-                Some(crate::snapshot::DeviceSnapshot {
-                    version: crate::snapshot::SNAPSHOT_VERSION,
-                    id: id.clone(),
-                    mimo: mfc::snapshot::to_bytes(&d.mimo).ok()?,
-                    reference: d.reference.clone(),
-                    reference_start: d.reference_start,
-                    run_id: d.run_id,
-                    last_seq: d.last_seq,
-                    last_time: d.last_time,
-                    counters: [
-                        d.samples,
-                        d.commands,
-                        d.lost,
-                        d.duplicates,
-                        d.stale,
-                        d.rejected,
-                        d.samples_off_remote,
-                    ],
-                    from_template: d.from_template,
-                })
-            })
+            .filter_map(|(id, d)| Self::snapshot_of(id, d))
             .collect()
+    }
+
+    /// One device's snapshot; `None` if its control state does not encode.
+    fn snapshot_of(id: &str, d: &Device) -> Option<crate::snapshot::DeviceSnapshot> {
+        Some(crate::snapshot::DeviceSnapshot {
+            version: crate::snapshot::SNAPSHOT_VERSION,
+            id: id.to_string(),
+            mimo: mfc::snapshot::to_bytes(&d.mimo).ok()?,
+            reference: d.reference.clone(),
+            reference_start: d.reference_start,
+            run_id: d.run_id,
+            last_seq: d.last_seq,
+            last_time: d.last_time,
+            counters: [
+                d.samples,
+                d.commands,
+                d.lost,
+                d.duplicates,
+                d.stale,
+                d.rejected,
+                d.samples_off_remote,
+            ],
+            from_template: d.from_template,
+        })
+    }
+
+    /// One device as handed to another fleet member: its snapshot, shard and envelope.
+    fn handed(id: &str, d: &Device) -> Option<crate::snapshot::HandedDevice> {
+        Some(crate::snapshot::HandedDevice {
+            snapshot: Self::snapshot_of(id, d)?,
+            home: d.home,
+            envelope: d
+                .envelope
+                .iter()
+                .map(|l| (l.min, l.max, l.rate_limit))
+                .collect(),
+            live_config: true,
+        })
     }
 
     /// Restore a device from its snapshot. Refused (and the device left as configured) if

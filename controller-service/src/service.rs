@@ -1285,17 +1285,16 @@ async fn serve_sample(
 ) {
     let dev = taken.id.as_str();
     let sample = taken.item;
-    let was_served = registry.serves(dev);
     // Every member follows every sample (a standby stays warm); only the active one answers.
-    let outcome = registry.handle_sample(dev, &sample);
+    let (outcome, provisioned) =
+        registry.handle_sample_from(dev, &sample, Some(protocol::shard_of(dev)));
     if taken.superseded > 0 {
         registry.note_superseded(dev, taken.superseded);
     }
-    if !was_served && registry.serves(dev) {
+    if provisioned && matches!(outcome, Outcome::Reply(_)) {
         tracing::info!(device = %dev, "provisioned from a template");
         lock(inbox).serve(dev);
     }
-    registry.set_home(dev, protocol::shard_of(dev));
     let cmd = match outcome {
         Outcome::Reply(cmd) => cmd,
         Outcome::Unknown => {

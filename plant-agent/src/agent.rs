@@ -433,15 +433,7 @@ async fn declare_and_run(
     stop: impl Future<Output = ()>,
 ) -> Result<AgentRun, AgentError> {
     let n = plant.channels();
-    if config.local.len() != n || config.channels.len() != n {
-        return Err(AgentError::Config(format!(
-            "the plant has {n} channel(s), the local controller {} and the scenario {}",
-            config.local.len(),
-            config.channels.len()
-        )));
-    }
-    config.safety.validate()?;
-    protocol::keys::check_id(&config.device_id).map_err(|e| AgentError::Config(e.to_string()))?;
+    check_loop(config, n)?;
     let id = config.device_id.as_str();
 
     let (tx, rx) = mpsc::channel::<(Instant, Vec<u8>)>(256);
@@ -458,18 +450,41 @@ async fn declare_and_run(
             reason: e.to_string(),
         })?;
     let publisher = transport::control_publisher(session, keys::shard_sample(id)).await?;
-    let _token = session
+    let _token = declare_alive(session, id).await?;
+    let initial = plant.write(vec![0.0; n]).await?;
+    let supervisor = Supervisor::new(config.safety, &config.local, initial)?;
+    let out = SampleOut::Own(&publisher);
+    Ok(periods(plant, config, supervisor, rx, &out, run_id, stop).await)
+}
+
+/// The checks before a loop starts: channel counts agree, safety settings and id are valid.
+fn check_loop(config: &LoopConfig, n: usize) -> Result<(), AgentError> {
+    if config.local.len() != n || config.channels.len() != n {
+        return Err(AgentError::Config(format!(
+            "{}: the plant has {n} channel(s), the local controller {} and the scenario {}",
+            config.device_id,
+            config.local.len(),
+            config.channels.len()
+        )));
+    }
+    config.safety.validate()?;
+    protocol::keys::check_id(&config.device_id).map_err(|e| AgentError::Config(e.to_string()))?;
+    Ok(())
+}
+
+/// The plant's liveliness token (`mfc/v1/alive/plant/{id}`), held while its loop runs.
+async fn declare_alive(
+    session: &Session,
+    id: &str,
+) -> Result<zenoh::liveliness::LivelinessToken, AgentError> {
+    Ok(session
         .liveliness()
         .declare_token(keys::alive_plant(id))
         .await
         .map_err(|e| transport::TransportError::Declare {
             what: "liveliness token".into(),
             reason: e.to_string(),
-        })?;
-    let initial = plant.write(vec![0.0; n]).await?;
-    let supervisor = Supervisor::new(config.safety, &config.local, initial)?;
-    let out = SampleOut::Own(&publisher);
-    Ok(periods(plant, config, supervisor, rx, &out, run_id, stop).await)
+        })?)
 }
 
 /// Where a loop's samples go: its own key, or its gateway's batch.
@@ -506,26 +521,9 @@ pub async fn run_hosted(
     let plant = PlantThread::spawn(plant);
     let started = async {
         let n = plant.channels();
-        if config.local.len() != n || config.channels.len() != n {
-            return Err(AgentError::Config(format!(
-                "{}: the plant has {n} channel(s), the local controller {} and the scenario {}",
-                config.device_id,
-                config.local.len(),
-                config.channels.len()
-            )));
-        }
-        config.safety.validate()?;
-        protocol::keys::check_id(&config.device_id)
-            .map_err(|e| AgentError::Config(e.to_string()))?;
+        check_loop(config, n)?;
         // Each hosted plant announces itself as a single rig would.
-        let token = session
-            .liveliness()
-            .declare_token(keys::alive_plant(&config.device_id))
-            .await
-            .map_err(|e| transport::TransportError::Declare {
-                what: "liveliness token".into(),
-                reason: e.to_string(),
-            })?;
+        let token = declare_alive(session, &config.device_id).await?;
         let initial = plant.write(vec![0.0; n]).await?;
         let supervisor = Supervisor::new(config.safety, &config.local, initial)?;
         Ok((token, supervisor))

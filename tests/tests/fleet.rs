@@ -23,18 +23,14 @@ use protocol::{keys, pb};
 use system_tests::{margin_periods, query, scratch_dir, SERIAL};
 use zenoh::Session;
 
-const CONFIG: &str = r#"
-controller_id = "c-0"
-max_devices = 1000
-[fleet]
-name = "test-fleet"
-[[templates]]
-pattern = "load-$*"
-[[templates.channels]]
-law = { law = "intelligent", params = { kind = "ip", alpha = 2.0, kp = 5.0 }, estimator = { window = 10 } }
-output = { min = -10.0, max = 10.0 }
-reference = [{ kind = "constant", value = 1.0 }]
-"#;
+/// The benchmark's service file (every `load-*` device, one iP channel tuned to the
+/// generator's plant), as members of one fleet.
+fn config() -> String {
+    format!(
+        "{}\n[fleet]\nname = \"test-fleet\"\n",
+        loadgen::bench::SERVICE_TOML
+    )
+}
 
 /// Plants in the test.
 const DEVICES: usize = 60;
@@ -172,7 +168,7 @@ async fn generator(listen: &str, endpoints: &[&str]) -> Session {
 async fn instances_split_take_over_and_hand_over_without_double_answers() {
     let _s = SERIAL.lock().await;
     let dir = scratch_dir("fleet");
-    std::fs::write(dir.join("service.toml"), CONFIG).unwrap();
+    std::fs::write(dir.join("service.toml"), config()).unwrap();
     let c0 = start(&dir, "c-0", &[]);
     let c1 = start(&dir, "c-1", &[&c0.endpoint]);
     let c2 = start(&dir, "c-2", &[&c0.endpoint, &c1.endpoint]);
