@@ -16,6 +16,10 @@ output = { min = -10.0, max = 10.0 }
 reference = [{ kind = "constant", value = 1.0 }]
 "#;
 
+/// The service binary's allocator, so that the figures are the service's.
+#[global_allocator]
+static ALLOC: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 fn main() {
     divan::main();
 }

@@ -31,6 +31,7 @@
 //!    periods of plant time (the lower median of recent intervals), so a leap of plant
 //!    time cannot open it.
 
+use smallvec::SmallVec;
 use std::collections::{BTreeSet, HashMap, VecDeque};
 
 use mfc::trajectory::{evaluate, Piece};
@@ -97,6 +98,104 @@ fn capped(mut reason: String) -> String {
 /// starting that run again.
 const RETIRED_RUNS: usize = 4;
 
+/// Per-channel values kept inline in a device's state: a plant has one or two channels (the
+/// AERO has two), and a value that lives beside the rest of the device costs no pointer
+/// chase, where a separate allocation per field costs a cache miss per sample once
+/// thousands of devices no longer fit the caches (`docs/scale.md`). More channels spill to
+/// the heap and work the same.
+type PerChannel<T> = SmallVec<[T; 2]>;
+
+/// The last CONTROL or WARMING_UP answer, kept to send again verbatim for a duplicate: the
+/// values of the command without its ids (the device's key and the controller's own),
+/// inline rather than a whole [`pb::Command`] with five allocations of its own.
+#[derive(Debug, Clone)]
+struct Answer {
+    seq: u64,
+    mode: i32,
+    controller_unix_ns: u64,
+    sample_sent_unix_ns: u64,
+    u: PerChannel<f64>,
+    v: PerChannel<f64>,
+    f_est: PerChannel<f64>,
+}
+
+impl Answer {
+    fn command(&self, controller_id: &str, device_id: &str) -> pb::Command {
+        pb::Command {
+            version: PROTOCOL_VERSION,
+            device_id: device_id.into(),
+            seq: self.seq,
+            u: self.u.to_vec(),
+            v: self.v.to_vec(),
+            controller_unix_ns: self.controller_unix_ns,
+            f_est: self.f_est.to_vec(),
+            mode: self.mode,
+            sample_sent_unix_ns: self.sample_sent_unix_ns,
+            controller_id: controller_id.into(),
+            error: String::new(),
+        }
+    }
+}
+
+/// A device's id as the device table's key. Ids of up to [`INLINE_ID`] bytes (`aero-1`,
+/// `load-1234`) live inside the table's own slot, so that finding a device among thousands
+/// reads the table and nothing else: with the id behind a pointer, every lookup missed the
+/// caches once more for the comparison. Longer ids are kept on the heap and work the same.
+#[derive(Debug, Clone)]
+enum DeviceKey {
+    Inline { len: u8, bytes: [u8; INLINE_ID] },
+    Heap(Box<str>),
+}
+
+/// Bytes of an id kept inline in [`DeviceKey`]: the key is then 24 bytes, as a `String`.
+const INLINE_ID: usize = 22;
+
+impl DeviceKey {
+    fn new(id: &str) -> Self {
+        if id.len() <= INLINE_ID {
+            let mut bytes = [0; INLINE_ID];
+            bytes[..id.len()].copy_from_slice(id.as_bytes());
+            Self::Inline {
+                len: id.len() as u8,
+                bytes,
+            }
+        } else {
+            Self::Heap(id.into())
+        }
+    }
+
+    fn as_str(&self) -> &str {
+        match self {
+            // Whole bytes of a `&str`: always UTF-8, so never the empty fallback.
+            Self::Inline { len, bytes } => {
+                std::str::from_utf8(&bytes[..*len as usize]).unwrap_or("")
+            }
+            Self::Heap(s) => s,
+        }
+    }
+}
+
+impl std::borrow::Borrow<str> for DeviceKey {
+    fn borrow(&self) -> &str {
+        self.as_str()
+    }
+}
+
+// Hash and equality are the id's, as `Borrow<str>` requires.
+impl std::hash::Hash for DeviceKey {
+    fn hash<H: std::hash::Hasher>(&self, state: &mut H) {
+        self.as_str().hash(state);
+    }
+}
+
+impl PartialEq for DeviceKey {
+    fn eq(&self, other: &Self) -> bool {
+        self.as_str() == other.as_str()
+    }
+}
+
+impl Eq for DeviceKey {}
+
 /// What to do with a sample.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Outcome {
@@ -134,13 +233,13 @@ struct Device {
     /// snapshot rebuild the device although no declaration names it.
     from_template: bool,
     /// The safety envelope per channel. Every output map in `configs` lies inside it.
-    envelope: Vec<Limits>,
+    envelope: PerChannel<Limits>,
     /// Laws and output maps in force (changed by `configure`); a snapshot of a declared
     /// device is restored only if its laws equal these.
     configs: Vec<ChannelConfig>,
     mimo: MimoController,
     /// Reference pieces per channel, evaluated at `plant_time - reference_start`.
-    reference: Vec<Vec<Piece>>,
+    reference: PerChannel<Vec<Piece>>,
     /// Plant time (s) at which the reference starts: 0 from the file, moved by a live
     /// reference update.
     reference_start: f64,
@@ -159,7 +258,7 @@ struct Device {
     last_time: f64,
     /// The command answering `last_seq`, sent again verbatim for a duplicate. `None` after a
     /// restart or a restore.
-    last_command: Option<pb::Command>,
+    last_command: Option<Answer>,
     /// The samples refused as out of step since the last answered one, if they form a
     /// consistent stream: its last sequence and time, and how many ([`RESYNC_AFTER`]).
     astray: Option<(u64, f64, u32)>,
@@ -171,11 +270,11 @@ struct Device {
     intervals_next: usize,
     /// The values of the last CONTROL command sent, kept across runs (the same actuator):
     /// where the rate limit runs from when a sample does not say what is applied.
-    held: Option<Vec<f64>>,
+    held: Option<PerChannel<f64>>,
     /// Each step's outputs per channel, a buffer reused from sample to sample.
-    outputs: Vec<ChannelOutput>,
+    outputs: PerChannel<ChannelOutput>,
     /// The references per channel at the current sample, likewise reused.
-    refs: Vec<Reference>,
+    refs: PerChannel<Reference>,
     /// Samples for this device, counted before any check.
     samples: u64,
     /// Commands computed (CONTROL or WARMING_UP); not resends for duplicates, not REJECTED
@@ -211,7 +310,7 @@ struct Device {
     /// 0 (no round trip yet) is not kept.
     rtts: VecDeque<u32>,
     /// The last F estimate per channel; NaN until a step gives one.
-    f_est: Vec<f64>,
+    f_est: PerChannel<f64>,
     /// Why the last refused sample or request was refused (already cut to printable
     /// length); a later good one does not clear it.
     last_error: String,
@@ -219,7 +318,7 @@ struct Device {
 
 impl Device {
     fn new(channels: &[DeviceChannel], from_template: bool) -> Result<Self, String> {
-        let envelope: Vec<Limits> = channels.iter().map(DeviceChannel::limits).collect();
+        let envelope: PerChannel<Limits> = channels.iter().map(DeviceChannel::limits).collect();
         // The file's check already did this; a configuration built in code must not get
         // past it either (a NaN limit would make the last check meaningless).
         for (i, e) in envelope.iter().enumerate() {
@@ -258,8 +357,8 @@ impl Device {
             intervals: [0.0; PERIOD_WINDOW],
             intervals_len: 0,
             intervals_next: 0,
-            outputs: vec![ChannelOutput::default(); n],
-            refs: vec![Reference::default(); n],
+            outputs: smallvec::smallvec![ChannelOutput::default(); n],
+            refs: smallvec::smallvec![Reference::default(); n],
             samples: 0,
             commands: 0,
             lost: 0,
@@ -273,7 +372,7 @@ impl Device {
             references_refused: 0,
             restarts: 0,
             rtts: VecDeque::with_capacity(RTT_WINDOW),
-            f_est: vec![f64::NAN; n],
+            f_est: smallvec::smallvec![f64::NAN; n],
             last_error: String::new(),
         })
     }
@@ -422,7 +521,7 @@ impl Device {
             rejected: self.rejected,
             samples_off_remote: self.samples_off_remote,
             loop_rtt: Some(latency(&self.rtts)),
-            f_est: self.f_est.clone(),
+            f_est: self.f_est.to_vec(),
             last_error: self.last_error.clone(),
             from_template: self.from_template,
             superseded: self.superseded,
@@ -626,7 +725,10 @@ pub struct Registry {
     config: ServiceConfig,
     /// A hash map: a gateway's batch looks up thousands of devices a period. Whatever
     /// lists them sorts them first, so listings stay in id order.
-    devices: HashMap<String, Device>,
+    ///
+    /// Each device is boxed: the table itself stays small enough for the caches (its slots
+    /// hold the key and a pointer), and a lookup reads only it.
+    devices: HashMap<DeviceKey, Box<Device>>,
     /// Samples whose id is neither declared nor matched by a template.
     unknown_samples: u64,
     /// The first `UNKNOWN_KEPT` of those ids.
@@ -654,7 +756,7 @@ impl Registry {
                     reason,
                 })?;
             dev.home = protocol::shard_of(&d.id);
-            devices.insert(d.id.clone(), dev);
+            devices.insert(DeviceKey::new(&d.id), Box::new(dev));
         }
         Ok(Self {
             controller_id: config.controller_id.clone(),
@@ -705,14 +807,18 @@ impl Registry {
 
     /// Ids of the devices served now: the declared ones and those provisioned so far.
     pub fn device_ids(&self) -> impl Iterator<Item = &str> {
-        let mut ids: Vec<&str> = self.devices.keys().map(String::as_str).collect();
+        let mut ids: Vec<&str> = self.devices.keys().map(DeviceKey::as_str).collect();
         ids.sort_unstable();
         ids.into_iter()
     }
 
     /// The devices in id order.
-    fn sorted(&self) -> Vec<(&String, &Device)> {
-        let mut v: Vec<(&String, &Device)> = self.devices.iter().collect();
+    fn sorted(&self) -> Vec<(&str, &Device)> {
+        let mut v: Vec<(&str, &Device)> = self
+            .devices
+            .iter()
+            .map(|(k, d)| (k.as_str(), &**d))
+            .collect();
         v.sort_unstable_by(|a, b| a.0.cmp(b.0));
         v
     }
@@ -784,7 +890,7 @@ impl Registry {
         match Device::new(&t.channels, true) {
             Ok(mut d) => {
                 d.home = protocol::shard_of(id);
-                self.devices.insert(id.to_string(), d);
+                self.devices.insert(DeviceKey::new(id), Box::new(d));
                 None
             }
             Err(_) => Some(Outcome::Unknown),
@@ -808,21 +914,20 @@ impl Registry {
         s: &pb::Sample,
         home: Option<u32>,
     ) -> (Outcome, bool) {
-        let mut provisioned = false;
-        if let Some(d) = self.devices.get_mut(key_id) {
-            if let Some(h) = home {
-                d.home = h;
-            }
-        } else {
-            provisioned = true;
+        let provisioned = !self.devices.contains_key(key_id);
+        if provisioned {
             if let Some(outcome) = self.provision_outcome(key_id) {
                 return (outcome, false);
             }
-            if let (Some(h), Some(d)) = (home, self.devices.get_mut(key_id)) {
-                d.home = h;
-            }
         }
-        (self.step_sample(key_id, s), provisioned)
+        let Some(d) = self.devices.get_mut(key_id) else {
+            return (Outcome::Unknown, false);
+        };
+        if let Some(h) = home {
+            d.home = h;
+        }
+        let outcome = step_sample(&self.controller_id, &mut self.rejected, d, key_id, s);
+        (outcome, provisioned)
     }
 
     /// Count and answer a sample whose device cannot be served (rule 1).
@@ -841,249 +946,231 @@ impl Registry {
         }
         None
     }
+}
 
-    /// Rules 2-6 for a served device.
-    fn step_sample(&mut self, key_id: &str, s: &pb::Sample) -> Outcome {
-        let controller_id = self.controller_id.as_str();
-        let Some(d) = self.devices.get_mut(key_id) else {
-            return Outcome::Unknown;
-        };
-        d.samples += 1;
-        let refuse = |d: &mut Device, rejected: &mut u64, reason: String| {
-            let reason = capped(reason);
-            d.rejected += 1;
-            *rejected += 1;
-            d.last_error.clone_from(&reason);
-            Outcome::Reply(reply(
-                controller_id,
-                key_id,
-                (s.seq, s.sent_unix_ns),
-                pb::Mode::Rejected,
-                reason,
-            ))
-        };
-        let stale = |d: &mut Device, why: &str| {
-            d.stale += 1;
-            Outcome::Reply(reply(
-                controller_id,
-                key_id,
-                (s.seq, s.sent_unix_ns),
-                pb::Mode::Stale,
-                why.into(),
-            ))
-        };
-        // Rule 2.
-        if let Err(reason) = precheck(key_id, s).and_then(|()| d.check_values(s)) {
-            return refuse(d, &mut self.rejected, reason);
-        }
-        // Rule 3.
-        d.run_samples = d.run_samples.saturating_add(1);
-        let mut new_run = match d.run_of(s) {
-            Run::Same => false,
-            Run::New => true,
-            Run::Retired => return stale(d, "a sample of an earlier run of the plant"),
-        };
-        // Rule 4, within the run in force.
-        if !new_run {
-            let out_of_step = match d.last_seq {
-                Some(last) if s.seq == last => {
-                    d.duplicates += 1;
-                    return Outcome::Reply(match &d.last_command {
-                        Some(c) => c.clone(),
-                        // Answered before a restore: nothing cached to send again (counted
-                        // as a duplicate only).
-                        None => reply(
-                            controller_id,
-                            key_id,
-                            (s.seq, s.sent_unix_ns),
-                            pb::Mode::Stale,
-                            "already answered (before a restart of the service)".into(),
-                        ),
-                    });
-                }
-                Some(last) if s.seq < last => Some(None),
-                Some(last) if s.seq - last > MAX_SEQ_JUMP => Some(Some(format!(
-                    "sequence jumps from {last} to {}, more than {MAX_SEQ_JUMP}",
-                    s.seq
-                ))),
-                _ if s.plant_time <= d.last_time => Some(Some(format!(
-                    "plant time {:?} does not advance past {:?}",
-                    s.plant_time, d.last_time
-                ))),
-                _ => None,
-            };
-            if let Some(why) = out_of_step {
-                if !d.out_of_step(s) {
-                    return match why {
-                        None => stale(d, ""),
-                        Some(reason) => refuse(d, &mut self.rejected, reason),
-                    };
-                }
-                // A consistent stream the device has refused RESYNC_AFTER times: the plant
-                // is there and the device is out of step with it, so follow the plant.
-                new_run = true;
-            }
-        }
-        // Rule 5, checked before anything moves: the step's inputs (a new run is checked
-        // against the fresh state it would start from).
-        for (r, pieces) in d.refs.iter_mut().zip(&d.reference) {
-            *r = evaluate(pieces, s.plant_time - d.reference_start);
-        }
-        let fresh = if new_run {
-            match MimoController::new(&d.configs) {
-                Ok(m) => Some(m),
-                Err(e) => return refuse(d, &mut self.rejected, e.to_string()),
-            }
-        } else {
-            None
-        };
-        if let Err(e) = fresh
-            .as_ref()
-            .unwrap_or(&d.mimo)
-            .check(s.plant_time, &s.outputs, &d.refs)
-        {
-            return refuse(d, &mut self.rejected, e.to_string());
-        }
-        // The sample is good: from here on it may change state.
-        if let Some(m) = fresh {
-            d.start_run(s.run_id, m);
-        }
-        d.astray = None;
-        if s.last_rtt_us > 0 {
-            if d.rtts.len() == RTT_WINDOW {
-                d.rtts.pop_front();
-            }
-            d.rtts.push_back(s.last_rtt_us);
-        }
-        let plant_trouble = pb::SampleFlags::Holding as u32
-            | pb::SampleFlags::Fallback as u32
-            | pb::SampleFlags::SafeStop as u32;
-        if s.flags & plant_trouble != 0 {
-            d.samples_off_remote += 1;
-        }
-        let dt = s.plant_time - d.last_time;
-        // The plant applied the last command and nothing else since: the rate limit runs
-        // from it. Otherwise (a new run, a restore, a gap, a plant holding or on its
-        // fallback, a warm-up answer it did not apply) from what the plant says it applies,
-        // or from the last command sent to the device, or from rest.
-        let follows = d.last_seq == Some(s.seq.wrapping_sub(1))
-            && s.flags & plant_trouble == 0
-            && d.last_command
-                .as_ref()
-                .is_some_and(|c| c.mode == pb::Mode::Control as i32);
-        // Read before this sample's interval joins the estimate: a leap cannot vouch for
-        // itself.
-        let period = d.period();
-        // Within a run, the time since the last answered sample, at most two periods (a
-        // lost sample in between gives the law that much more room, and the envelope the
-        // same); at the start of a run or after a restore, one period from what is held
-        // (nothing, before a period is known).
-        let rate_dt = if d.last_seq.is_some() && !d.restored {
-            dt.min(period.map_or(RATE_DT_UNKNOWN, |p| RATE_DT_PERIODS * p))
-        } else {
-            period.unwrap_or(0.0)
-        };
-        if let Some(last) = d.last_seq {
-            // s.seq > last here.
-            d.lost += s.seq.saturating_sub(last).saturating_sub(1);
-            if s.seq - last == 1 {
-                d.note_interval(dt);
-            }
-        }
-        if d.last_seq.is_some() && !s.applied.is_empty() {
-            // Checked finite above, so this cannot fail.
-            let _ = d.mimo.report_applied(&s.applied);
-        }
-        if std::mem::take(&mut d.restored) && dt > RESUME_GAP {
-            // Restarted from a snapshot after a gap: the estimators' history does not reach
-            // across it. Keep gains and the reference phase, and start bumplessly from what
-            // the plant applies now (its local fallback's output, reported above).
-            d.mimo.forget_windows();
-        }
-        if let Err(e) = d
-            .mimo
-            .step(s.plant_time, &s.outputs, &d.refs, &mut d.outputs)
-        {
-            // Not reached: the same inputs passed `check` above.
-            return refuse(d, &mut self.rejected, e.to_string());
-        }
-        // Rule 6: the last check before anything leaves.
-        if let Some(bad) = d.outputs.iter().find(|o| !o.v.is_finite()) {
-            let reason = format!(
-                "the controller produced a non-finite command ({:?}): check the gains",
-                bad.v
-            );
-            return refuse(d, &mut self.rejected, reason);
-        }
-        let mut v: Vec<f64> = Vec::with_capacity(d.outputs.len());
-        let mut clipped = false;
-        for (i, o) in d.outputs.iter().enumerate() {
-            let from = match &d.last_command {
-                Some(c) if follows => c.v.get(i).copied(),
-                _ => s
-                    .applied
-                    .get(i)
-                    .copied()
-                    .or_else(|| d.held.as_ref().and_then(|h| h.get(i).copied())),
-            }
-            .unwrap_or(0.0);
-            let (x, c) = d.envelope[i].clamp(o.v, Some((from, rate_dt)));
-            clipped |= c;
-            v.push(x);
-        }
-        if clipped {
-            d.clamped += 1;
-        }
-        d.last_seq = Some(s.seq);
-        d.last_time = s.plant_time;
-        for (f, o) in d.f_est.iter_mut().zip(&d.outputs) {
-            *f = o.f_est.unwrap_or(f64::NAN);
-        }
-        let command = pb::Command {
-            version: PROTOCOL_VERSION,
-            device_id: key_id.into(),
-            seq: s.seq,
-            u: d.outputs.iter().map(|o| o.u).collect(),
-            v,
-            controller_unix_ns: protocol::unix_ns(),
-            f_est: d.f_est.clone(),
-            mode: if d.outputs.iter().any(|o| o.warming_up) {
-                pb::Mode::WarmingUp
-            } else {
-                pb::Mode::Control
-            } as i32,
-            sample_sent_unix_ns: s.sent_unix_ns,
-            controller_id: controller_id.into(),
-            error: String::new(),
-        };
-        d.commands += 1;
-        if command.mode == pb::Mode::Control as i32 {
-            // Reusing the buffer: no allocation per sample for this.
-            match &mut d.held {
-                Some(h) => h.clone_from(&command.v),
-                None => d.held = Some(command.v.clone()),
-            }
-        }
-        // Kept for a duplicate, in buffers reused from sample to sample.
-        match &mut d.last_command {
-            Some(c) => {
-                c.version = command.version;
-                c.device_id.clone_from(&command.device_id);
-                c.seq = command.seq;
-                c.u.clone_from(&command.u);
-                c.v.clone_from(&command.v);
-                c.controller_unix_ns = command.controller_unix_ns;
-                c.f_est.clone_from(&command.f_est);
-                c.mode = command.mode;
-                c.sample_sent_unix_ns = command.sample_sent_unix_ns;
-                c.controller_id.clone_from(&command.controller_id);
-                c.error.clone_from(&command.error);
-            }
-            None => d.last_command = Some(command.clone()),
-        }
-        Outcome::Reply(command)
+/// Rules 2-6 for a served device `d` (`rejected`: the service-wide count).
+fn step_sample(
+    controller_id: &str,
+    rejected: &mut u64,
+    d: &mut Device,
+    key_id: &str,
+    s: &pb::Sample,
+) -> Outcome {
+    d.samples += 1;
+    let refuse = |d: &mut Device, rejected: &mut u64, reason: String| {
+        let reason = capped(reason);
+        d.rejected += 1;
+        *rejected += 1;
+        d.last_error.clone_from(&reason);
+        Outcome::Reply(reply(
+            controller_id,
+            key_id,
+            (s.seq, s.sent_unix_ns),
+            pb::Mode::Rejected,
+            reason,
+        ))
+    };
+    let stale = |d: &mut Device, why: &str| {
+        d.stale += 1;
+        Outcome::Reply(reply(
+            controller_id,
+            key_id,
+            (s.seq, s.sent_unix_ns),
+            pb::Mode::Stale,
+            why.into(),
+        ))
+    };
+    // Rule 2.
+    if let Err(reason) = precheck(key_id, s).and_then(|()| d.check_values(s)) {
+        return refuse(d, rejected, reason);
     }
+    // Rule 3.
+    d.run_samples = d.run_samples.saturating_add(1);
+    let mut new_run = match d.run_of(s) {
+        Run::Same => false,
+        Run::New => true,
+        Run::Retired => return stale(d, "a sample of an earlier run of the plant"),
+    };
+    // Rule 4, within the run in force.
+    if !new_run {
+        let out_of_step = match d.last_seq {
+            Some(last) if s.seq == last => {
+                d.duplicates += 1;
+                return Outcome::Reply(match &d.last_command {
+                    Some(c) => c.command(controller_id, key_id),
+                    // Answered before a restore: nothing cached to send again (counted
+                    // as a duplicate only).
+                    None => reply(
+                        controller_id,
+                        key_id,
+                        (s.seq, s.sent_unix_ns),
+                        pb::Mode::Stale,
+                        "already answered (before a restart of the service)".into(),
+                    ),
+                });
+            }
+            Some(last) if s.seq < last => Some(None),
+            Some(last) if s.seq - last > MAX_SEQ_JUMP => Some(Some(format!(
+                "sequence jumps from {last} to {}, more than {MAX_SEQ_JUMP}",
+                s.seq
+            ))),
+            _ if s.plant_time <= d.last_time => Some(Some(format!(
+                "plant time {:?} does not advance past {:?}",
+                s.plant_time, d.last_time
+            ))),
+            _ => None,
+        };
+        if let Some(why) = out_of_step {
+            if !d.out_of_step(s) {
+                return match why {
+                    None => stale(d, ""),
+                    Some(reason) => refuse(d, rejected, reason),
+                };
+            }
+            // A consistent stream the device has refused RESYNC_AFTER times: the plant
+            // is there and the device is out of step with it, so follow the plant.
+            new_run = true;
+        }
+    }
+    // Rule 5, checked before anything moves: the step's inputs (a new run is checked
+    // against the fresh state it would start from).
+    for (r, pieces) in d.refs.iter_mut().zip(&d.reference) {
+        *r = evaluate(pieces, s.plant_time - d.reference_start);
+    }
+    let fresh = if new_run {
+        match MimoController::new(&d.configs) {
+            Ok(m) => Some(m),
+            Err(e) => return refuse(d, rejected, e.to_string()),
+        }
+    } else {
+        None
+    };
+    if let Err(e) = fresh
+        .as_ref()
+        .unwrap_or(&d.mimo)
+        .check(s.plant_time, &s.outputs, &d.refs)
+    {
+        return refuse(d, rejected, e.to_string());
+    }
+    // The sample is good: from here on it may change state.
+    if let Some(m) = fresh {
+        d.start_run(s.run_id, m);
+    }
+    d.astray = None;
+    if s.last_rtt_us > 0 {
+        if d.rtts.len() == RTT_WINDOW {
+            d.rtts.pop_front();
+        }
+        d.rtts.push_back(s.last_rtt_us);
+    }
+    let plant_trouble = pb::SampleFlags::Holding as u32
+        | pb::SampleFlags::Fallback as u32
+        | pb::SampleFlags::SafeStop as u32;
+    if s.flags & plant_trouble != 0 {
+        d.samples_off_remote += 1;
+    }
+    let dt = s.plant_time - d.last_time;
+    // The plant applied the last command and nothing else since: the rate limit runs
+    // from it. Otherwise (a new run, a restore, a gap, a plant holding or on its
+    // fallback, a warm-up answer it did not apply) from what the plant says it applies,
+    // or from the last command sent to the device, or from rest.
+    let follows = d.last_seq == Some(s.seq.wrapping_sub(1))
+        && s.flags & plant_trouble == 0
+        && d.last_command
+            .as_ref()
+            .is_some_and(|c| c.mode == pb::Mode::Control as i32);
+    // Read before this sample's interval joins the estimate: a leap cannot vouch for
+    // itself.
+    let period = d.period();
+    // Within a run, the time since the last answered sample, at most two periods (a
+    // lost sample in between gives the law that much more room, and the envelope the
+    // same); at the start of a run or after a restore, one period from what is held
+    // (nothing, before a period is known).
+    let rate_dt = if d.last_seq.is_some() && !d.restored {
+        dt.min(period.map_or(RATE_DT_UNKNOWN, |p| RATE_DT_PERIODS * p))
+    } else {
+        period.unwrap_or(0.0)
+    };
+    if let Some(last) = d.last_seq {
+        // s.seq > last here.
+        d.lost += s.seq.saturating_sub(last).saturating_sub(1);
+        if s.seq - last == 1 {
+            d.note_interval(dt);
+        }
+    }
+    if d.last_seq.is_some() && !s.applied.is_empty() {
+        // Checked finite above, so this cannot fail.
+        let _ = d.mimo.report_applied(&s.applied);
+    }
+    if std::mem::take(&mut d.restored) && dt > RESUME_GAP {
+        // Restarted from a snapshot after a gap: the estimators' history does not reach
+        // across it. Keep gains and the reference phase, and start bumplessly from what
+        // the plant applies now (its local fallback's output, reported above).
+        d.mimo.forget_windows();
+    }
+    if let Err(e) = d
+        .mimo
+        .step(s.plant_time, &s.outputs, &d.refs, &mut d.outputs)
+    {
+        // Not reached: the same inputs passed `check` above.
+        return refuse(d, rejected, e.to_string());
+    }
+    // Rule 6: the last check before anything leaves.
+    if let Some(bad) = d.outputs.iter().find(|o| !o.v.is_finite()) {
+        let reason = format!(
+            "the controller produced a non-finite command ({:?}): check the gains",
+            bad.v
+        );
+        return refuse(d, rejected, reason);
+    }
+    let mut v: PerChannel<f64> = PerChannel::with_capacity(d.outputs.len());
+    let mut clipped = false;
+    for (i, o) in d.outputs.iter().enumerate() {
+        let from = match &d.last_command {
+            Some(c) if follows => c.v.get(i).copied(),
+            _ => s
+                .applied
+                .get(i)
+                .copied()
+                .or_else(|| d.held.as_ref().and_then(|h| h.get(i).copied())),
+        }
+        .unwrap_or(0.0);
+        let (x, c) = d.envelope[i].clamp(o.v, Some((from, rate_dt)));
+        clipped |= c;
+        v.push(x);
+    }
+    if clipped {
+        d.clamped += 1;
+    }
+    d.last_seq = Some(s.seq);
+    d.last_time = s.plant_time;
+    for (f, o) in d.f_est.iter_mut().zip(&d.outputs) {
+        *f = o.f_est.unwrap_or(f64::NAN);
+    }
+    let answer = Answer {
+        seq: s.seq,
+        mode: if d.outputs.iter().any(|o| o.warming_up) {
+            pb::Mode::WarmingUp
+        } else {
+            pb::Mode::Control
+        } as i32,
+        controller_unix_ns: protocol::unix_ns(),
+        sample_sent_unix_ns: s.sent_unix_ns,
+        u: d.outputs.iter().map(|o| o.u).collect(),
+        v,
+        f_est: d.f_est.clone(),
+    };
+    d.commands += 1;
+    if answer.mode == pb::Mode::Control as i32 {
+        d.held = Some(answer.v.clone());
+    }
+    let command = answer.command(controller_id, key_id);
+    // Kept for a duplicate, inline in the device.
+    d.last_command = Some(answer);
+    Outcome::Reply(command)
+}
 
+impl Registry {
     /// Answer a sample that [`precheck`] refused before it reached the inbox: REJECTED with
     /// `reason` if the key's device is served, else counted as unknown (a malformed
     /// sample never provisions a device).
@@ -1117,7 +1204,7 @@ impl Registry {
 
     /// The safety envelope in force for a device, if served.
     pub fn envelope_of(&self, id: &str) -> Option<Vec<Limits>> {
-        self.devices.get(id).map(|d| d.envelope.clone())
+        self.devices.get(id).map(|d| d.envelope.to_vec())
     }
 
     /// The configuration of a device, if served.
@@ -1140,7 +1227,7 @@ impl Registry {
         let applied = planned.map(|(configs, reference)| {
             d.configs = configs;
             if let Some((pieces, start)) = reference {
-                d.reference = pieces;
+                d.reference = pieces.into();
                 d.reference_start = start;
             }
         });
@@ -1207,7 +1294,7 @@ impl Registry {
             Ok((limits, configs))
         })();
         let applied = planned.map(|(limits, configs)| {
-            d.envelope = limits;
+            d.envelope = limits.into();
             d.configs = configs;
             d.envelope_changes += 1;
         });
@@ -1258,7 +1345,7 @@ impl Registry {
         self.devices
             .iter()
             .filter(|(_, d)| mask & (1u64 << (d.home % 64)) != 0)
-            .map(|(id, _)| id.clone())
+            .map(|(id, _)| id.as_str().to_string())
             .collect()
     }
 
@@ -1310,13 +1397,13 @@ impl Registry {
         }
         // Build the device if this member never saw it, then narrow its envelope to the
         // handed one: a handover never widens what the file allows here.
-        if !self.devices.contains_key(&h.snapshot.id) {
+        if !self.devices.contains_key(h.snapshot.id.as_str()) {
             self.provision(&h.snapshot.id)
                 .map_or(Ok(()), |o| Err(format!("cannot serve it here: {o:?}")))?;
         }
         let d = self
             .devices
-            .get_mut(&h.snapshot.id)
+            .get_mut(h.snapshot.id.as_str())
             .ok_or("not served here")?;
         if envelope.len() != d.envelope.len() {
             return Err(format!(
@@ -1334,7 +1421,7 @@ impl Registry {
         for l in &narrowed {
             l.check()?;
         }
-        d.envelope = narrowed;
+        d.envelope = narrowed.into();
         d.home = h.home;
         self.restore_with(&h.snapshot, h.live_config)
     }
@@ -1348,17 +1435,17 @@ impl Registry {
             .devices
             .iter()
             .filter(|(_, d)| d.home == shard)
-            .map(|(id, _)| id.clone())
+            .map(|(id, _)| id.as_str().to_string())
             .collect();
         for id in ids {
             let declared = self.config.devices.iter().find(|d| d.id == id).cloned();
             match declared.and_then(|spec| Device::new(&spec.channels, false).ok()) {
                 Some(mut fresh) => {
                     fresh.home = protocol::shard_of(&id);
-                    self.devices.insert(id, fresh);
+                    self.devices.insert(DeviceKey::new(&id), Box::new(fresh));
                 }
                 None => {
-                    self.devices.remove(&id);
+                    self.devices.remove(id.as_str());
                     removed.push(id);
                 }
             }
@@ -1397,7 +1484,7 @@ impl Registry {
             version: crate::snapshot::SNAPSHOT_VERSION,
             id: id.to_string(),
             mimo: mfc::snapshot::to_bytes(&d.mimo).ok()?,
-            reference: d.reference.clone(),
+            reference: d.reference.to_vec(),
             reference_start: d.reference_start,
             run_id: d.run_id,
             last_seq: d.last_seq,
@@ -1447,7 +1534,7 @@ impl Registry {
         let mimo: MimoController =
             mfc::snapshot::from_bytes(&snap.mimo).map_err(|e| e.to_string())?;
         let configs: Vec<ChannelConfig> = mimo.channels().iter().map(|c| *c.config()).collect();
-        let d = match self.devices.get_mut(&snap.id) {
+        let d = match self.devices.get_mut(snap.id.as_str()) {
             Some(d) => d,
             None if snap.from_template => {
                 // Rebuilt from the template that matches it now, for its envelope; a device
@@ -1459,7 +1546,9 @@ impl Registry {
                     return Err(format!("device {:?}: the device table is full", snap.id));
                 }
                 let d = Device::new(&t.channels, true)?;
-                self.devices.entry(snap.id.clone()).or_insert(d)
+                self.devices
+                    .entry(DeviceKey::new(&snap.id))
+                    .or_insert(Box::new(d))
             }
             None => return Err(format!("device {:?} is no longer configured", snap.id)),
         };
@@ -1498,12 +1587,12 @@ impl Registry {
                 snap.id
             ));
         }
-        d.outputs = vec![ChannelOutput::default(); configs.len()];
-        d.refs = vec![Reference::default(); configs.len()];
-        d.f_est = vec![f64::NAN; configs.len()];
+        d.outputs = smallvec::smallvec![ChannelOutput::default(); configs.len()];
+        d.refs = smallvec::smallvec![Reference::default(); configs.len()];
+        d.f_est = smallvec::smallvec![f64::NAN; configs.len()];
         d.configs = configs;
         d.mimo = mimo;
-        d.reference = snap.reference.clone();
+        d.reference = snap.reference.iter().cloned().collect();
         d.reference_start = snap.reference_start;
         d.run_id = snap.run_id;
         d.last_seq = snap.last_seq;
@@ -1566,5 +1655,36 @@ impl Registry {
             }
         }
         (ok, refused)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::hash_map::RandomState;
+    use std::hash::BuildHasher;
+
+    #[test]
+    fn a_device_key_is_its_id_inline_or_not() {
+        let short = "load-1234";
+        let edge = "a".repeat(INLINE_ID);
+        let long = "cell-7/a-rather-long-device-id-9";
+        assert!(matches!(DeviceKey::new(short), DeviceKey::Inline { .. }));
+        assert!(matches!(DeviceKey::new(&edge), DeviceKey::Inline { .. }));
+        assert!(matches!(DeviceKey::new(long), DeviceKey::Heap(_)));
+        let mut table: HashMap<DeviceKey, u32> = HashMap::new();
+        for (i, id) in [short, edge.as_str(), long, "é-ü", ""].iter().enumerate() {
+            table.insert(DeviceKey::new(id), i as u32);
+            assert_eq!(DeviceKey::new(id).as_str(), *id);
+            // `Borrow<str>` requires the same hash as the id's own.
+            let h = RandomState::new();
+            assert_eq!(h.hash_one(DeviceKey::new(id)), h.hash_one(*id));
+        }
+        assert_eq!(table.get(short), Some(&0));
+        assert_eq!(table.get(edge.as_str()), Some(&1));
+        assert_eq!(table.get(long), Some(&2));
+        assert_eq!(table.get("é-ü"), Some(&3));
+        assert_eq!(table.get("load-123"), None);
+        assert_eq!(table.get(&edge[1..]), None);
     }
 }
