@@ -120,21 +120,46 @@ struct Answer {
 }
 
 impl Answer {
-    fn command(&self, controller_id: &str, device_id: &str) -> pb::Command {
-        pb::Command {
-            version: PROTOCOL_VERSION,
-            device_id: device_id.into(),
-            seq: self.seq,
-            u: self.u.to_vec(),
-            v: self.v.to_vec(),
-            controller_unix_ns: self.controller_unix_ns,
-            f_est: self.f_est.to_vec(),
-            mode: self.mode,
-            sample_sent_unix_ns: self.sample_sent_unix_ns,
-            controller_id: controller_id.into(),
-            error: String::new(),
-        }
+    /// Write this answer into `out`, reusing its buffers: a batch's commands are kept
+    /// from one batch to the next, so answering allocates nothing.
+    fn write_into(&self, controller_id: &str, device_id: &str, out: &mut pb::Command) {
+        out.version = PROTOCOL_VERSION;
+        out.device_id.clear();
+        out.device_id.push_str(device_id);
+        out.seq = self.seq;
+        out.u.clear();
+        out.u.extend_from_slice(&self.u);
+        out.v.clear();
+        out.v.extend_from_slice(&self.v);
+        out.controller_unix_ns = self.controller_unix_ns;
+        out.f_est.clear();
+        out.f_est.extend_from_slice(&self.f_est);
+        out.mode = self.mode;
+        out.sample_sent_unix_ns = self.sample_sent_unix_ns;
+        out.controller_id.clear();
+        out.controller_id.push_str(controller_id);
+        out.error.clear();
     }
+}
+
+/// How a sample was answered, inside the registry.
+enum Answered {
+    /// With the device's cached answer (`last_command`): a new one, or the same again for
+    /// a duplicate.
+    Cached,
+    /// With this command (a refusal, a stale answer).
+    Reply(pb::Command),
+}
+
+/// What [`Registry::handle_sample_into`] did with a sample.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Served {
+    /// The command to publish is in `out`.
+    Answered,
+    /// As [`Outcome::Unknown`].
+    Unknown,
+    /// As [`Outcome::TableFull`].
+    TableFull,
 }
 
 /// A device's id as the device table's key. Ids of up to [`INLINE_ID`] bytes (`aero-1`,
@@ -914,20 +939,59 @@ impl Registry {
         s: &pb::Sample,
         home: Option<u32>,
     ) -> (Outcome, bool) {
-        let provisioned = !self.devices.contains_key(key_id);
-        if provisioned {
-            if let Some(outcome) = self.provision_outcome(key_id) {
-                return (outcome, false);
-            }
+        let mut command = pb::Command::default();
+        let (served, provisioned) = self.handle_sample_into(key_id, s, home, &mut command);
+        let outcome = match served {
+            Served::Answered => Outcome::Reply(command),
+            Served::Unknown => Outcome::Unknown,
+            Served::TableFull => Outcome::TableFull,
+        };
+        (outcome, provisioned)
+    }
+
+    /// [`Registry::handle_sample_from`], writing the command into `out` (reusing its
+    /// buffers) instead of returning a new one: what a gateway's batch uses, with one
+    /// command per sample kept from batch to batch.
+    pub fn handle_sample_into(
+        &mut self,
+        key_id: &str,
+        s: &pb::Sample,
+        home: Option<u32>,
+        out: &mut pb::Command,
+    ) -> (Served, bool) {
+        if let Some(d) = self.devices.get_mut(key_id) {
+            let served = answer(
+                &self.controller_id,
+                &mut self.rejected,
+                d,
+                key_id,
+                s,
+                home,
+                out,
+            );
+            return (served, false);
+        }
+        // Not served yet: a template may provision it (the rare path).
+        if let Some(outcome) = self.provision_outcome(key_id) {
+            let served = match outcome {
+                Outcome::TableFull => Served::TableFull,
+                _ => Served::Unknown,
+            };
+            return (served, false);
         }
         let Some(d) = self.devices.get_mut(key_id) else {
-            return (Outcome::Unknown, false);
+            return (Served::Unknown, false);
         };
-        if let Some(h) = home {
-            d.home = h;
-        }
-        let outcome = step_sample(&self.controller_id, &mut self.rejected, d, key_id, s);
-        (outcome, provisioned)
+        let served = answer(
+            &self.controller_id,
+            &mut self.rejected,
+            d,
+            key_id,
+            s,
+            home,
+            out,
+        );
+        (served, true)
     }
 
     /// Count and answer a sample whose device cannot be served (rule 1).
@@ -948,6 +1012,39 @@ impl Registry {
     }
 }
 
+/// Step device `d` with a sample that came by a path of shard `home`, and write the
+/// command into `out`.
+fn answer(
+    controller_id: &str,
+    rejected: &mut u64,
+    d: &mut Device,
+    key_id: &str,
+    s: &pb::Sample,
+    home: Option<u32>,
+    out: &mut pb::Command,
+) -> Served {
+    if let Some(h) = home {
+        d.home = h;
+    }
+    match step_sample(controller_id, rejected, d, key_id, s) {
+        Answered::Cached => match &d.last_command {
+            Some(a) => a.write_into(controller_id, key_id, out),
+            // Not reached: a cached answer is always there.
+            None => {
+                *out = reply(
+                    controller_id,
+                    key_id,
+                    (s.seq, s.sent_unix_ns),
+                    pb::Mode::Stale,
+                    String::new(),
+                )
+            }
+        },
+        Answered::Reply(c) => *out = c,
+    }
+    Served::Answered
+}
+
 /// Rules 2-6 for a served device `d` (`rejected`: the service-wide count).
 fn step_sample(
     controller_id: &str,
@@ -955,14 +1052,14 @@ fn step_sample(
     d: &mut Device,
     key_id: &str,
     s: &pb::Sample,
-) -> Outcome {
+) -> Answered {
     d.samples += 1;
     let refuse = |d: &mut Device, rejected: &mut u64, reason: String| {
         let reason = capped(reason);
         d.rejected += 1;
         *rejected += 1;
         d.last_error.clone_from(&reason);
-        Outcome::Reply(reply(
+        Answered::Reply(reply(
             controller_id,
             key_id,
             (s.seq, s.sent_unix_ns),
@@ -972,7 +1069,7 @@ fn step_sample(
     };
     let stale = |d: &mut Device, why: &str| {
         d.stale += 1;
-        Outcome::Reply(reply(
+        Answered::Reply(reply(
             controller_id,
             key_id,
             (s.seq, s.sent_unix_ns),
@@ -996,18 +1093,18 @@ fn step_sample(
         let out_of_step = match d.last_seq {
             Some(last) if s.seq == last => {
                 d.duplicates += 1;
-                return Outcome::Reply(match &d.last_command {
-                    Some(c) => c.command(controller_id, key_id),
+                return match &d.last_command {
+                    Some(_) => Answered::Cached,
                     // Answered before a restore: nothing cached to send again (counted
                     // as a duplicate only).
-                    None => reply(
+                    None => Answered::Reply(reply(
                         controller_id,
                         key_id,
                         (s.seq, s.sent_unix_ns),
                         pb::Mode::Stale,
                         "already answered (before a restart of the service)".into(),
-                    ),
-                });
+                    )),
+                };
             }
             Some(last) if s.seq < last => Some(None),
             Some(last) if s.seq - last > MAX_SEQ_JUMP => Some(Some(format!(
@@ -1164,10 +1261,9 @@ fn step_sample(
     if answer.mode == pb::Mode::Control as i32 {
         d.held = Some(answer.v.clone());
     }
-    let command = answer.command(controller_id, key_id);
-    // Kept for a duplicate, inline in the device.
+    // Kept for a duplicate, inline in the device; the caller writes it out.
     d.last_command = Some(answer);
-    Outcome::Reply(command)
+    Answered::Cached
 }
 
 impl Registry {

@@ -30,7 +30,7 @@ use zenoh::Session;
 
 use crate::fleet::{Action, Fleet, Release};
 use crate::inbox::{Inbox, Push, Taken};
-use crate::registry::{precheck, Outcome, Registry};
+use crate::registry::{precheck, Outcome, Registry, Served};
 
 /// Messages from zenoh's callbacks to the worker, other than samples.
 enum Msg {
@@ -734,6 +734,8 @@ pub async fn serve_shared(
         tracing::info!(controller = %id, owned = fl.answer_mask().count_ones(), stepped = fl.step_mask().count_ones(), "fleet shards at start");
     }
     let mut releasing_since: HashMap<u32, Instant> = HashMap::new();
+    // The commands of the last batch, kept with their buffers for the next one.
+    let mut command_pool: Vec<pb::Command> = Vec::new();
     let mut fleet_tick = tokio::time::interval(Duration::from_millis(20));
     fleet_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     tokio::pin!(shutdown);
@@ -748,7 +750,7 @@ pub async fn serve_shared(
                 for _ in 0..GATEWAY_TURN {
                     let Some(taken) = lock(&gateways).pop() else { break };
                     let answers = ha.active && fleet.as_ref().is_none_or(|f| f.answers(protocol::shard_of(&taken.id)));
-                    serve_batch(&session, &mut registry, answers, &mut gw_publishers, &inbox, &mut warn, taken).await;
+                    serve_batch(&session, &mut registry, answers, &mut gw_publishers, &inbox, &mut warn, &mut command_pool, taken).await;
                 }
                 if !lock(&inbox).is_empty() || !lock(&gateways).is_empty() {
                     // More waits: come back after the other inputs had their turn.
@@ -1316,7 +1318,10 @@ async fn serve_sample(
 
 /// Answer one gateway batch with one batch: every sample is handled exactly as a lone
 /// sample of its device would be (the registry's rules, per device), and every answer goes
-/// back in one [`pb::CommandBatch`] on the gateway's command key.
+/// back in one [`pb::CommandBatch`] on the gateway's command key. The commands are written
+/// into `pool`'s, kept from batch to batch, so that answering thousands of samples a period
+/// allocates nothing.
+#[allow(clippy::too_many_arguments)]
 async fn serve_batch(
     session: &Session,
     registry: &mut Registry,
@@ -1324,17 +1329,14 @@ async fn serve_batch(
     publishers: &mut HashMap<String, Publisher<'static>>,
     inbox: &Mutex<Inbox<pb::Sample>>,
     warn: &mut Warnings,
+    pool: &mut Vec<pb::Command>,
     taken: Taken<pb::SampleBatch>,
 ) {
     let gw = taken.id;
     let home = protocol::shard_of(&gw);
     let batch = taken.item;
-    let mut out = pb::CommandBatch {
-        version: protocol::PROTOCOL_VERSION,
-        gateway_id: gw.clone(),
-        commands: Vec::with_capacity(batch.samples.len()),
-        controller_id: registry.controller_id().to_string(),
-    };
+    let mut commands = std::mem::take(pool);
+    let mut n = 0;
     for sample in &batch.samples {
         let dev = sample.device_id.as_str();
         if keys::check_id(dev).is_err() {
@@ -1343,30 +1345,45 @@ async fn serve_batch(
             throttled!(warn.rejected, warn, gateway = %gw, device = %printable(dev), "sample in a batch with an invalid device id: dropped");
             continue;
         }
-        let (outcome, provisioned) = registry.handle_sample_from(dev, sample, Some(home));
-        if provisioned && matches!(outcome, Outcome::Reply(_)) {
+        if commands.len() == n {
+            commands.push(pb::Command::default());
+        }
+        let (served, provisioned) =
+            registry.handle_sample_into(dev, sample, Some(home), &mut commands[n]);
+        if provisioned && served == Served::Answered {
             tracing::info!(device = %dev, gateway = %gw, "provisioned from a template");
             lock(inbox).serve(dev);
         }
-        match outcome {
-            Outcome::Reply(cmd) => {
+        match served {
+            Served::Answered => {
+                let cmd = &commands[n];
                 if cmd.mode == pb::Mode::Rejected as i32 {
                     throttled!(warn.rejected, warn, device = %dev, seq = cmd.seq, "sample refused: {}", cmd.error);
                 }
-                out.commands.push(cmd);
+                n += 1;
             }
-            Outcome::Unknown => {
+            Served::Unknown => {
                 throttled!(warn.unknown, warn, device = %dev, gateway = %gw, "sample from a device this service does not serve (no template matches): dropped");
             }
-            Outcome::TableFull => {
+            Served::TableFull => {
                 throttled!(warn.table_full, warn, device = %dev, "a template matches but the device table is full (max_devices): dropped");
             }
         }
     }
-    if !answers || out.commands.is_empty() {
+    // Only the answered ones go out; the spare ones keep their buffers for the next batch.
+    let spare = commands.split_off(n);
+    let out = pb::CommandBatch {
+        version: protocol::PROTOCOL_VERSION,
+        gateway_id: gw.clone(),
+        commands,
+        controller_id: registry.controller_id().to_string(),
+    };
+    let payload = (answers && n > 0).then(|| encode(&out));
+    *pool = out.commands;
+    pool.extend(spare);
+    let Some(payload) = payload else {
         return;
-    }
-    let payload = encode(&out);
+    };
     let key = keys::gateway_commands(&gw);
     if !publishers.contains_key(&gw) && publishers.len() < GATEWAY_PUBLISHERS {
         match transport::control_publisher(session, key.clone()).await {

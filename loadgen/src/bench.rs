@@ -5,10 +5,12 @@
 //! be read from `/proc`, and no state leaks between trials), connects a fresh generator
 //! session to it on loopback (peers, multicast scouting off), runs the warm-up and the
 //! measured window, and stops the target. At each fleet size the service and the anchor
-//! run one after the other, so a busy machine hurts both alike. The capacity of a target is
-//! the largest fleet with at least [`BenchSpec::inside`] of its commands back within the
-//! period; after the grid, a few bisection steps between the last size that held and the
-//! first that did not refine it.
+//! run one after the other, in [`BenchSpec::rounds`] rounds whose order alternates, so a
+//! busy machine hurts both alike and one hiccup decides nothing: a target holds a size when
+//! the median of its rounds has at least [`BenchSpec::inside`] of its commands back within
+//! the period, and its round trip at a size is the median of its rounds' percentiles. The
+//! capacity of a target is the largest fleet it holds; after the grid, a few bisection steps
+//! between the last size that held and the first that did not refine it.
 
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
@@ -52,6 +54,11 @@ pub struct BenchSpec {
     pub refine: usize,
     /// Fraction of commands that must be back within the period for a size to hold.
     pub inside: f64,
+    /// Rounds at each size (each runs both targets, in alternating order); the medians
+    /// decide.
+    pub rounds: usize,
+    /// The per-device fleet size whose round trips are compared (the issue's: 100).
+    pub p99_at: usize,
     /// Where results go (`bench.json`, `bench.md`).
     pub out: PathBuf,
 }
@@ -60,6 +67,8 @@ pub struct BenchSpec {
 #[derive(Debug, Clone, Serialize)]
 pub struct Trial {
     pub target: Target,
+    /// Which round at this size (0-based).
+    pub round: usize,
     pub path: &'static str,
     pub report: Report,
     /// Target CPU time over the window per answered sample (us).
@@ -71,12 +80,6 @@ pub struct Trial {
     pub rss_bytes: Option<u64>,
 }
 
-impl Trial {
-    fn holds(&self, inside: f64) -> bool {
-        self.report.within_fraction() >= inside && self.report.generator_late == 0
-    }
-}
-
 /// All trials and what they show.
 #[derive(Debug, Clone, Serialize)]
 pub struct Results {
@@ -86,13 +89,67 @@ pub struct Results {
     pub warmup_s: f64,
     pub measure_s: f64,
     pub per_gateway: usize,
+    pub rounds: usize,
+    /// The per-device size whose round trips the summary compares.
+    pub p99_at: usize,
     pub trials: Vec<Trial>,
+    /// Per size, path and target, the medians of its rounds.
+    pub points: Vec<Point>,
     /// Largest per-device fleet that held, per target.
     pub capacity_service: Option<usize>,
     pub capacity_echo: Option<usize>,
     /// Largest gateway fleet that held, per target.
     pub gateway_capacity_service: Option<usize>,
     pub gateway_capacity_echo: Option<usize>,
+}
+
+/// The medians of one target's rounds at one size.
+#[derive(Debug, Clone, Serialize)]
+pub struct Point {
+    pub target: Target,
+    pub path: &'static str,
+    pub devices: usize,
+    /// Rounds whose generator kept up (the others say nothing about the target).
+    pub valid_rounds: usize,
+    pub within: Option<f64>,
+    pub p99_us: Option<f64>,
+    pub cpu_us_per_sample: Option<f64>,
+    pub holds: bool,
+}
+
+/// The median of `v` (the mean of the middle two for an even count); `None` if empty.
+pub fn median(mut v: Vec<f64>) -> Option<f64> {
+    v.retain(|x| x.is_finite());
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_unstable_by(f64::total_cmp);
+    let n = v.len();
+    Some(if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    })
+}
+
+impl Point {
+    fn of(trials: &[&Trial], inside: f64) -> Self {
+        let valid: Vec<&&Trial> = trials
+            .iter()
+            .filter(|t| t.report.generator_late == 0)
+            .collect();
+        let within = median(valid.iter().map(|t| t.report.within_fraction()).collect());
+        Self {
+            target: trials[0].target,
+            path: trials[0].path,
+            devices: trials[0].report.devices,
+            valid_rounds: valid.len(),
+            within,
+            p99_us: median(valid.iter().filter_map(|t| t.report.p99_us).collect()),
+            cpu_us_per_sample: median(valid.iter().filter_map(|t| t.cpu_us_per_sample).collect()),
+            holds: within.is_some_and(|w| w >= inside),
+        }
+    }
 }
 
 fn free_port() -> anyhow::Result<u16> {
@@ -179,16 +236,61 @@ async fn trial_valid(
     target: Target,
     devices: usize,
     gateways: usize,
+    round: usize,
 ) -> anyhow::Result<Trial> {
-    let mut t = trial(spec, dir, target, devices, gateways).await?;
+    let mut t = trial(spec, dir, target, devices, gateways, round).await?;
     for _ in 1..ATTEMPTS {
         if t.report.generator_late == 0 {
             break;
         }
         eprintln!("{}  (run again)", line(&t));
-        t = trial(spec, dir, target, devices, gateways).await?;
+        t = trial(spec, dir, target, devices, gateways, round).await?;
     }
     Ok(t)
+}
+
+/// Every round of `targets` at one size; returns each target's medians, in `targets`'
+/// order. Odd rounds run the targets in reverse order.
+async fn size_point(
+    spec: &BenchSpec,
+    dir: &Path,
+    targets: &[Target],
+    devices: usize,
+    gateways: usize,
+    trials: &mut Vec<Trial>,
+) -> anyhow::Result<Vec<Point>> {
+    let mut mine: Vec<Trial> = Vec::new();
+    for round in 0..spec.rounds.max(1) {
+        let mut order = targets.to_vec();
+        if round % 2 == 1 {
+            order.reverse();
+        }
+        for target in order {
+            let t = trial_valid(spec, dir, target, devices, gateways, round).await?;
+            eprintln!("{}", line(&t));
+            mine.push(t);
+        }
+    }
+    let points = targets
+        .iter()
+        .map(|&target| {
+            let of: Vec<&Trial> = mine.iter().filter(|t| t.target == target).collect();
+            let p = Point::of(&of, spec.inside);
+            eprintln!(
+                "{:>7} {:>10} {:>6} devices: median of {} rounds: within {} %, p99 {} us -> {}",
+                format!("{target:?}").to_lowercase(),
+                p.path,
+                devices,
+                p.valid_rounds,
+                p.within.map_or("-".into(), |w| format!("{:.3}", 100.0 * w)),
+                p.p99_us.map_or("-".into(), |v| format!("{v:.0}")),
+                if p.holds { "holds" } else { "does not hold" }
+            );
+            p
+        })
+        .collect();
+    trials.extend(mine);
+    Ok(points)
 }
 
 async fn trial(
@@ -197,6 +299,7 @@ async fn trial(
     target: Target,
     devices: usize,
     gateways: usize,
+    round: usize,
 ) -> anyhow::Result<Trial> {
     let running = Running::start(spec, target, dir)?;
     let pid = running.pid();
@@ -232,6 +335,7 @@ async fn trial(
         let served = report.answered as f64 * took.as_secs_f64() / measure.as_secs_f64();
         anyhow::Ok(Trial {
             target,
+            round,
             path: if gateways == 0 {
                 "per-device"
             } else {
@@ -276,6 +380,7 @@ async fn sweep(
     grid: &[usize],
     gateway_path: bool,
     trials: &mut Vec<Trial>,
+    points: &mut Vec<Point>,
 ) -> anyhow::Result<(Option<usize>, Option<usize>)> {
     let gws = |n: usize| {
         if gateway_path {
@@ -288,18 +393,23 @@ async fn sweep(
     let mut fails: [Option<usize>; 2] = [None, None];
     let targets = [Target::Service, Target::Echo];
     for &n in grid {
-        for (k, &target) in targets.iter().enumerate() {
-            if fails[k].is_some() {
-                continue;
-            }
-            let t = trial_valid(spec, dir, target, n, gws(n)).await?;
-            eprintln!("{}", line(&t));
-            if t.holds(spec.inside) {
+        let live: Vec<Target> = targets
+            .iter()
+            .enumerate()
+            .filter(|(k, _)| fails[*k].is_none())
+            .map(|(_, t)| *t)
+            .collect();
+        if live.is_empty() {
+            break;
+        }
+        for p in size_point(spec, dir, &live, n, gws(n), trials).await? {
+            let k = targets.iter().position(|t| *t == p.target).unwrap_or(0);
+            if p.holds {
                 caps[k] = Some(n);
             } else {
                 fails[k] = Some(n);
             }
-            trials.push(t);
+            points.push(p);
         }
     }
     for (k, &target) in targets.iter().enumerate() {
@@ -310,15 +420,16 @@ async fn sweep(
             if mid <= lo || hi - lo <= (hi / 20).max(1) {
                 break;
             }
-            let t = trial_valid(spec, dir, target, mid, gws(mid)).await?;
-            eprintln!("{}", line(&t));
-            if t.holds(spec.inside) {
+            let p = size_point(spec, dir, &[target], mid, gws(mid), trials)
+                .await?
+                .remove(0);
+            if p.holds {
                 lo = mid;
                 caps[k] = Some(mid);
             } else {
                 hi = mid;
             }
-            trials.push(t);
+            points.push(p);
         }
     }
     Ok((caps[0], caps[1]))
@@ -340,16 +451,33 @@ pub async fn run(spec: &BenchSpec) -> anyhow::Result<Results> {
     std::fs::write(dir.path().join("service.toml"), SERVICE_TOML)?;
     std::fs::create_dir_all(&spec.out)?;
     let mut trials = Vec::new();
+    let mut points = Vec::new();
     eprintln!(
         "per-device path: one message per device per period, {} Hz",
         spec.rate_hz
     );
-    let (cs, ce) = sweep(spec, dir.path(), &spec.per_device, false, &mut trials).await?;
+    let (cs, ce) = sweep(
+        spec,
+        dir.path(),
+        &spec.per_device,
+        false,
+        &mut trials,
+        &mut points,
+    )
+    .await?;
     eprintln!(
         "gateway path: {} plants per gateway, one batch per gateway per period",
         spec.per_gateway
     );
-    let (gs, ge) = sweep(spec, dir.path(), &spec.gateway_devices, true, &mut trials).await?;
+    let (gs, ge) = sweep(
+        spec,
+        dir.path(),
+        &spec.gateway_devices,
+        true,
+        &mut trials,
+        &mut points,
+    )
+    .await?;
     let results = Results {
         rate_hz: spec.rate_hz,
         service_workers: spec.service_workers,
@@ -357,7 +485,10 @@ pub async fn run(spec: &BenchSpec) -> anyhow::Result<Results> {
         warmup_s: spec.warmup.as_secs_f64(),
         measure_s: spec.measure.as_secs_f64(),
         per_gateway: spec.per_gateway,
+        rounds: spec.rounds.max(1),
+        p99_at: spec.p99_at,
         trials,
+        points,
         capacity_service: cs,
         capacity_echo: ce,
         gateway_capacity_service: gs,
@@ -372,22 +503,42 @@ pub async fn run(spec: &BenchSpec) -> anyhow::Result<Results> {
     Ok(results)
 }
 
-/// The results as the README shows them.
+/// The results as the README shows them: the medians per size, then every round.
 pub fn markdown(r: &Results) -> String {
     let mut s = String::new();
     let f = |x: Option<f64>| x.map_or("-".into(), |v| format!("{v:.0}"));
+    let pct = |x: Option<f64>| x.map_or("-".into(), |v| format!("{:.3} %", 100.0 * v));
+    let name = |t: Target| format!("{t:?}").to_lowercase();
     s += &format!(
-        "Rate {} Hz; service workers {}; a size holds when {:.1} % of its commands are back within the period (warm-up {} s, window {} s).\n\n",
-        r.rate_hz, r.service_workers, 100.0 * r.inside, r.warmup_s, r.measure_s
+        "Rate {} Hz; service workers {}; {} rounds per size, the targets in alternating order; a size holds when the median round has {:.1} % of its commands back within the period (warm-up {} s, window {} s).\n\n",
+        r.rate_hz, r.service_workers, r.rounds, 100.0 * r.inside, r.warmup_s, r.measure_s
     );
-    s += "| path | devices | target | answered | within period | p50 us | p99 us | CPU us/sample | CPU cores | RSS/device |\n|---|---:|---|---:|---:|---:|---:|---:|---:|---:|\n";
+    s += "Medians over the rounds:\n\n| path | devices | target | valid rounds | within period | p99 us | CPU us/sample | holds |\n|---|---:|---|---:|---:|---:|---:|---|\n";
+    let mut points: Vec<&Point> = r.points.iter().collect();
+    points.sort_by_key(|p| (p.path, p.devices, name(p.target)));
+    for p in points {
+        s += &format!(
+            "| {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            p.path,
+            p.devices,
+            name(p.target),
+            p.valid_rounds,
+            pct(p.within),
+            f(p.p99_us),
+            p.cpu_us_per_sample
+                .map_or("-".into(), |v| format!("{v:.1}")),
+            if p.holds { "yes" } else { "no" }
+        );
+    }
+    s += "\nEvery round:\n\n| path | devices | target | round | answered | within period | p50 us | p99 us | CPU us/sample | CPU cores | RSS/device | generator late |\n|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n";
     for t in &r.trials {
         let rp = &t.report;
         s += &format!(
-            "| {} | {} | {} | {:.3} % | {:.3} % | {} | {} | {} | {} | {} |\n",
+            "| {} | {} | {} | {} | {:.3} % | {:.3} % | {} | {} | {} | {} | {} | {} |\n",
             t.path,
             rp.devices,
-            format!("{:?}", t.target).to_lowercase(),
+            name(t.target),
+            t.round,
             100.0 * rp.answered_fraction(),
             100.0 * rp.within_fraction(),
             f(rp.p50_us),
@@ -397,6 +548,7 @@ pub fn markdown(r: &Results) -> String {
             t.cpu_cores.map_or("-".into(), |v| format!("{v:.2}")),
             t.rss_bytes_per_device
                 .map_or("-".into(), |v| format!("{:.1} KiB", v / 1024.0)),
+            rp.generator_late,
         );
     }
     let cap = |x: Option<usize>| x.map_or("none held".into(), |n| n.to_string());
@@ -417,27 +569,108 @@ pub fn markdown(r: &Results) -> String {
         cap(r.gateway_capacity_echo),
         ratio(r.gateway_capacity_service, r.gateway_capacity_echo)
     );
-    // The p99 ratio at the smallest per-device size both ran.
-    let at = |target: Target, n: usize| {
-        r.trials
-            .iter()
-            .find(|t| t.target == target && t.path == "per-device" && t.report.devices == n)
-    };
-    if let Some(n) = r
-        .trials
-        .iter()
-        .filter(|t| t.path == "per-device")
-        .map(|t| t.report.devices)
-        .min()
-    {
-        if let (Some(a), Some(b)) = (at(Target::Service, n), at(Target::Echo, n)) {
-            if let (Some(pa), Some(pb)) = (a.report.p99_us, b.report.p99_us) {
-                s += &format!(
-                    "p99 at {n} devices: service {pa:.0} us, echo {pb:.0} us (ratio {:.2}x).\n",
-                    pa / pb
-                );
-            }
-        }
+    if let Some((a, b)) = p99_pair(r) {
+        s += &format!(
+            "p99 at {} devices (median of the rounds): service {a:.0} us, echo {b:.0} us (ratio {:.2}x).\n",
+            r.p99_at,
+            a / b
+        );
+    }
+    if let Some(m) = rss_per_device(r) {
+        s += &format!(
+            "Service resident memory per device, largest gateway fleet it held: {:.1} KiB.\n",
+            m / 1024.0
+        );
     }
     s
+}
+
+/// The service's and the anchor's median p99 at [`Results::p99_at`] devices, per device.
+pub fn p99_pair(r: &Results) -> Option<(f64, f64)> {
+    let at = |target: Target| {
+        r.points
+            .iter()
+            .find(|p| p.target == target && p.path == "per-device" && p.devices == r.p99_at)
+            .and_then(|p| p.p99_us)
+    };
+    Some((at(Target::Service)?, at(Target::Echo)?))
+}
+
+/// The service's resident memory per device at the largest gateway fleet it held (the
+/// median of its rounds).
+pub fn rss_per_device(r: &Results) -> Option<f64> {
+    let n = r.gateway_capacity_service?;
+    median(
+        r.trials
+            .iter()
+            .filter(|t| t.target == Target::Service && t.path == "gateway" && t.report.devices == n)
+            .filter_map(|t| t.rss_bytes_per_device)
+            .collect(),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn round(target: Target, within: u64, p99: f64, late: u64) -> Trial {
+        Trial {
+            target,
+            round: 0,
+            path: "per-device",
+            report: Report {
+                devices: 100,
+                sent: 1000,
+                answered: 1000,
+                within,
+                p99_us: Some(p99),
+                generator_late: late,
+                ..Report::default()
+            },
+            cpu_us_per_sample: None,
+            cpu_cores: None,
+            rss_bytes_per_device: None,
+            rss_bytes: None,
+        }
+    }
+
+    #[test]
+    fn the_median_of_odd_and_even_counts() {
+        assert_eq!(median(vec![]), None);
+        assert_eq!(median(vec![3.0, 1.0, 2.0]), Some(2.0));
+        assert_eq!(median(vec![4.0, 1.0, 3.0, 2.0]), Some(2.5));
+        assert_eq!(median(vec![f64::NAN, 5.0]), Some(5.0));
+    }
+
+    #[test]
+    fn one_bad_round_of_three_decides_nothing_and_late_rounds_do_not_count() {
+        let s = Target::Service;
+        // Two rounds at 100 %, one at 98 %: the median holds.
+        let t = [
+            round(s, 1000, 300.0, 0),
+            round(s, 980, 900.0, 0),
+            round(s, 1000, 320.0, 0),
+        ];
+        let p = Point::of(&t.iter().collect::<Vec<_>>(), 0.999);
+        assert!(p.holds);
+        assert_eq!(p.p99_us, Some(320.0));
+        assert_eq!(p.valid_rounds, 3);
+        // Two bad rounds of three: it does not.
+        let t = [
+            round(s, 990, 300.0, 0),
+            round(s, 980, 900.0, 0),
+            round(s, 1000, 320.0, 0),
+        ];
+        assert!(!Point::of(&t.iter().collect::<Vec<_>>(), 0.999).holds);
+        // A round whose generator fell behind is left out, good or bad.
+        let t = [round(s, 1000, 300.0, 3), round(s, 990, 900.0, 0)];
+        let p = Point::of(&t.iter().collect::<Vec<_>>(), 0.999);
+        assert_eq!(p.valid_rounds, 1);
+        assert!(!p.holds);
+        // No valid round: nothing holds.
+        let t = [round(s, 1000, 300.0, 1)];
+        let p = Point::of(&t.iter().collect::<Vec<_>>(), 0.999);
+        assert!(!p.holds);
+        assert_eq!(p.within, None);
+    }
 }

@@ -87,6 +87,13 @@ pub enum Cmd {
         /// Fraction of commands back within the period for a size to hold.
         #[arg(long, default_value_t = 0.999)]
         inside: f64,
+        /// Rounds at each size, both targets in each (alternating order); the medians of
+        /// the rounds decide.
+        #[arg(long, default_value_t = 3)]
+        rounds: usize,
+        /// The per-device fleet size whose p99 round trips are compared.
+        #[arg(long, default_value_t = 100)]
+        p99_at: usize,
     },
 }
 
@@ -184,6 +191,8 @@ async fn run(cli: Cli) -> Result<()> {
             per_gateway,
             refine,
             inside,
+            rounds,
+            p99_at,
         } => {
             let me = std::env::current_exe().context("locating this program")?;
             let service_bin =
@@ -200,6 +209,8 @@ async fn run(cli: Cli) -> Result<()> {
                 per_gateway,
                 refine,
                 inside,
+                rounds,
+                p99_at,
                 out: out.clone(),
             };
             let r = crate::bench::run(&spec).await?;

@@ -44,7 +44,7 @@ pub struct Spec {
 
 /// What came back. Times are round trips measured on this process's clock (sample sent to
 /// command received), in microseconds.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Default, Serialize)]
 pub struct Report {
     pub devices: usize,
     pub gateways: usize,

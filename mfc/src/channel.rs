@@ -159,13 +159,17 @@ pub struct ChannelOutput {
 }
 
 /// A control law and its output map: one output of the plant.
+///
+/// In declaration order, the law (with its estimator's ring) last, so that what a step
+/// reads sits together (see [`crate::Estimator`]).
 #[derive(Debug, Clone)]
+#[repr(C)]
 pub struct Channel<const CAP: usize = DEFAULT_CAPACITY> {
-    pub(crate) law: Law<CAP>,
     pub(crate) config: ChannelConfig,
     pub(crate) map: OutputMap,
     pub(crate) last_t: Option<f64>,
     pub(crate) last_v: f64,
+    pub(crate) law: Law<CAP>,
 }
 
 impl<const CAP: usize> Channel<CAP> {

@@ -310,10 +310,14 @@ impl Accumulator {
 /// received since the previous sample (after dead-zone mapping and saturation, or the held
 /// command when a new one was lost), then ask for [`estimate`](Self::estimate). No
 /// allocation; `push` and `estimate` cost the same whatever the window length.
+///
+/// Laid out in declaration order with the ring last: a step reads the small fields and the
+/// window's first slots, which then share a few cache lines instead of sitting on both
+/// sides of the whole capacity (a service steps thousands of these from memory).
 #[derive(Debug, Clone)]
+#[repr(C)]
 pub struct Estimator<const CAP: usize = DEFAULT_CAPACITY> {
     pub(crate) config: EstimatorConfig,
-    pub(crate) ring: [Interval; CAP],
     pub(crate) head: usize,
     pub(crate) len: usize,
     pub(crate) next_index: u64,
@@ -322,6 +326,7 @@ pub struct Estimator<const CAP: usize = DEFAULT_CAPACITY> {
     pub(crate) shadow: Accumulator,
     /// Low-pass states for n = 1 and n = 2 (both kept so the order can change live).
     pub(crate) lowpass: [Option<LinearEstimate>; 2],
+    pub(crate) ring: [Interval; CAP],
 }
 
 impl<const CAP: usize> Estimator<CAP> {

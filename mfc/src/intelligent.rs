@@ -109,11 +109,14 @@ pub struct IntelligentOutput {
 }
 
 /// One intelligent controller (one output of the plant).
+///
+/// In declaration order, the estimator (and its ring) last: the fields a step reads sit
+/// together, before the ring (see [`Estimator`]).
 #[derive(Debug, Clone)]
+#[repr(C)]
 pub struct IntelligentController<const CAP: usize = DEFAULT_CAPACITY> {
     pub(crate) params: IntelligentParams,
     pub(crate) pending: Option<IntelligentParams>,
-    pub(crate) estimator: Estimator<CAP>,
     pub(crate) integral: f64,
     pub(crate) derivative: DerivativeFilter,
     pub(crate) last_t: Option<f64>,
@@ -126,6 +129,7 @@ pub struct IntelligentController<const CAP: usize = DEFAULT_CAPACITY> {
     /// Fade-out offset left by a change (or a bumpless start).
     pub(crate) bump: f64,
     pub(crate) bumpless_start: bool,
+    pub(crate) estimator: Estimator<CAP>,
 }
 
 impl<const CAP: usize> IntelligentController<CAP> {
