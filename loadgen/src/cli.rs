@@ -69,20 +69,20 @@ pub enum Cmd {
         #[arg(long, default_value_t = 10.0)]
         measure: f64,
         /// Fleet sizes of the per-device sweep.
-        #[arg(long, value_delimiter = ',', default_value = "50,75,100,150,200")]
+        #[arg(long, value_delimiter = ',', default_value = "50,75,100,150")]
         per_device: Vec<usize>,
         /// Fleet sizes of the gateway sweep.
         #[arg(
             long,
             value_delimiter = ',',
-            default_value = "2500,5000,7500,10000,12500,15000,20000"
+            default_value = "5000,7500,10000,12500,15000,17500,20000"
         )]
         gateway_devices: Vec<usize>,
         /// Plants per gateway.
         #[arg(long, default_value_t = 1000)]
         per_gateway: usize,
         /// Bisection steps after each grid.
-        #[arg(long, default_value_t = 2)]
+        #[arg(long, default_value_t = 1)]
         refine: usize,
         /// Fraction of commands back within the period for a size to hold.
         #[arg(long, default_value_t = 0.999)]
@@ -106,7 +106,7 @@ where
     let _ = tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| "info,zenoh=warn".into()),
+                .unwrap_or_else(|_| "info,zenoh=error".into()),
         )
         .with_writer(std::io::stderr)
         .try_init();
