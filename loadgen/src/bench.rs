@@ -393,10 +393,13 @@ async fn sweep(
     let mut fails: [Option<usize>; 2] = [None, None];
     let targets = [Target::Service, Target::Echo];
     for &n in grid {
+        // A target that failed a smaller size is not run again, except at the size whose
+        // round trips the summary compares, which both always run.
+        let compared = !gateway_path && n == spec.p99_at;
         let live: Vec<Target> = targets
             .iter()
             .enumerate()
-            .filter(|(k, _)| fails[*k].is_none())
+            .filter(|(k, _)| fails[*k].is_none() || compared)
             .map(|(_, t)| *t)
             .collect();
         if live.is_empty() {
@@ -404,10 +407,12 @@ async fn sweep(
         }
         for p in size_point(spec, dir, &live, n, gws(n), trials).await? {
             let k = targets.iter().position(|t| *t == p.target).unwrap_or(0);
-            if p.holds {
-                caps[k] = Some(n);
-            } else {
-                fails[k] = Some(n);
+            if fails[k].is_none() {
+                if p.holds {
+                    caps[k] = Some(n);
+                } else {
+                    fails[k] = Some(n);
+                }
             }
             points.push(p);
         }

@@ -35,6 +35,12 @@ fn path(inv: &Inventory, file: &str) -> String {
     format!("{}/{file}", inv.install_dir.trim_end_matches('/'))
 }
 
+/// Batches a link may queue for real-time traffic (samples and commands), where zenoh's
+/// default is 2: the value the project's sessions use without a file
+/// (`transport::REAL_TIME_QUEUE`, which says why), so that a deployment's short stalls on
+/// a busy host do not drop commands either.
+pub const REAL_TIME_QUEUE: usize = 16;
+
 /// zenohd's config: a router listening on the secured link only (QUIC or TLS, both TLS 1.3
 /// with certificates on both ends; the `tls` section configures both), no scouting, the
 /// generated access control.
@@ -45,7 +51,7 @@ pub fn router(inv: &Inventory, access_control: Value) -> Value {
         "listen": { "endpoints": [with_link_options(inv, inv.router_listen())] },
         // Nothing is discovered: every client names the router, and nobody else is a router.
         "scouting": { "multicast": { "enabled": false }, "gossip": { "enabled": false } },
-        "transport": { "link": { "tx": { "lease": LEASE_MS }, "tls": {
+        "transport": { "link": { "tx": { "lease": LEASE_MS, "queue": { "size": { "real_time": REAL_TIME_QUEUE } } }, "tls": {
             "root_ca_certificate": path(inv, "ca.pem"),
             "listen_certificate": path(inv, &format!("{name}.pem")),
             "listen_private_key": path(inv, &format!("{name}.key")),
@@ -79,7 +85,7 @@ pub fn client(inv: &Inventory, role: Role, name: &str) -> Value {
         // A client that listens could be reached around the router and its access control.
         "listen": { "endpoints": [] },
         "scouting": { "multicast": { "enabled": false }, "gossip": { "enabled": false } },
-        "transport": { "link": { "tx": { "lease": LEASE_MS }, "tls": {
+        "transport": { "link": { "tx": { "lease": LEASE_MS, "queue": { "size": { "real_time": REAL_TIME_QUEUE } } }, "tls": {
             "root_ca_certificate": path(inv, "ca.pem"),
             // Without it the client presents no certificate and the router refuses it.
             "enable_mtls": true,

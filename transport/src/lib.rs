@@ -72,6 +72,21 @@ fn json_list(items: &[String]) -> String {
     serde_json::to_string(items).unwrap_or_else(|_| "[]".into())
 }
 
+/// Batches zenoh may queue per link for real-time traffic (samples and commands): 16, the
+/// most zenoh allows, where its default is 2.
+///
+/// Why: a sample or command goes out express, one batch each, and with `Drop` congestion
+/// control a message that finds the queue full waits at most 1 ms, then is dropped. Two
+/// batches are two messages: on a busy host, where zenoh's sending task is off the CPU for
+/// a few hundred microseconds now and then, a service answering a hundred plants lost about
+/// one command in a thousand that way (so did the benchmark's echo anchor). Sixteen ride
+/// out such a stall; a message is still dropped, not queued for ever, when the link itself
+/// cannot keep up. Set only on zenoh's own defaults: a `--zenoh-config` file decides for
+/// itself (`transport.link.tx.queue.size.real_time`; `deploy/GUIDE.md`).
+pub const REAL_TIME_QUEUE: usize = 16;
+
+const REAL_TIME_QUEUE_KEY: &str = "transport/link/tx/queue/size/real_time";
+
 impl ZenohArgs {
     /// A peer on loopback: listen on `listen` (if any), connect to `connect`, no multicast
     /// scouting. What the tests and the demo use.
@@ -90,7 +105,11 @@ impl ZenohArgs {
         let mut config = match &self.zenoh_config {
             Some(path) => Config::from_file(path)
                 .map_err(|e| TransportError::Config(format!("{}: {e}", path.display())))?,
-            None => Config::default(),
+            None => {
+                let mut c = Config::default();
+                insert(&mut c, REAL_TIME_QUEUE_KEY, &REAL_TIME_QUEUE.to_string())?;
+                c
+            }
         };
         if let Some(mode) = &self.mode {
             insert(&mut config, "mode", &format!("{mode:?}"))?;
@@ -311,6 +330,14 @@ mod tests {
             .unwrap()
             .contains("127.0.0.1:1"));
         assert_eq!(c.get_json("scouting/multicast/enabled").unwrap(), "false");
+        // The file says nothing of the real-time queue: zenoh's default stays.
+        assert_eq!(c.get_json(REAL_TIME_QUEUE_KEY).unwrap(), "2");
+        // Without a file, the project's.
+        let c = ZenohArgs::loopback(None, vec![]).to_config().unwrap();
+        assert_eq!(
+            c.get_json(REAL_TIME_QUEUE_KEY).unwrap(),
+            REAL_TIME_QUEUE.to_string()
+        );
         let bad = ZenohArgs {
             listen: vec!["nonsense".into()],
             ..ZenohArgs::default()
