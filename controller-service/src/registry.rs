@@ -149,6 +149,8 @@ enum Answered {
     Cached,
     /// With this command (a refusal, a stale answer).
     Reply(pb::Command),
+    /// Not at all ([`Outcome::AlreadyAnswered`]).
+    Not,
 }
 
 /// What [`Registry::handle_sample_into`] did with a sample.
@@ -160,6 +162,8 @@ pub enum Served {
     Unknown,
     /// As [`Outcome::TableFull`].
     TableFull,
+    /// As [`Outcome::AlreadyAnswered`]: nothing in `out`.
+    AlreadyAnswered,
 }
 
 /// A device's id as the device table's key. Ids of up to [`INLINE_ID`] bytes (`aero-1`,
@@ -233,6 +237,11 @@ pub enum Outcome {
     /// A template matches but the device table is full: nothing to publish (counted in
     /// `device_table_full`).
     TableFull,
+    /// A sample answered before this state was restored (by this service before a
+    /// restart, or by the fleet member that handed the device over): its answer went out
+    /// then, so nothing is published again (counted in `duplicates`). Answering it, even
+    /// STALE, would make two answers to one sample, from two instances in a handover.
+    AlreadyAnswered,
 }
 
 /// How a sample relates to the run in force.
@@ -945,6 +954,7 @@ impl Registry {
             Served::Answered => Outcome::Reply(command),
             Served::Unknown => Outcome::Unknown,
             Served::TableFull => Outcome::TableFull,
+            Served::AlreadyAnswered => Outcome::AlreadyAnswered,
         };
         (outcome, provisioned)
     }
@@ -971,7 +981,8 @@ impl Registry {
             );
             return (served, false);
         }
-        // Not served yet: a template may provision it (the rare path).
+        // Not served yet (the rare path): a template may provision it, and then it is
+        // served as any other.
         if let Some(outcome) = self.provision_outcome(key_id) {
             let served = match outcome {
                 Outcome::TableFull => Served::TableFull,
@@ -979,19 +990,10 @@ impl Registry {
             };
             return (served, false);
         }
-        let Some(d) = self.devices.get_mut(key_id) else {
+        if !self.devices.contains_key(key_id) {
             return (Served::Unknown, false);
-        };
-        let served = answer(
-            &self.controller_id,
-            &mut self.rejected,
-            d,
-            key_id,
-            s,
-            home,
-            out,
-        );
-        (served, true)
+        }
+        (self.handle_sample_into(key_id, s, home, out).0, true)
     }
 
     /// Count and answer a sample whose device cannot be served (rule 1).
@@ -1041,6 +1043,7 @@ fn answer(
             }
         },
         Answered::Reply(c) => *out = c,
+        Answered::Not => return Served::AlreadyAnswered,
     }
     Served::Answered
 }
@@ -1095,15 +1098,9 @@ fn step_sample(
                 d.duplicates += 1;
                 return match &d.last_command {
                     Some(_) => Answered::Cached,
-                    // Answered before a restore: nothing cached to send again (counted
-                    // as a duplicate only).
-                    None => Answered::Reply(reply(
-                        controller_id,
-                        key_id,
-                        (s.seq, s.sent_unix_ns),
-                        pb::Mode::Stale,
-                        "already answered (before a restart of the service)".into(),
-                    )),
+                    // Answered before a restore or a handover: nothing cached to send
+                    // again, and the answer went out then (counted as a duplicate only).
+                    None => Answered::Not,
                 };
             }
             Some(last) if s.seq < last => Some(None),

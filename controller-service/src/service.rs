@@ -1307,6 +1307,8 @@ async fn serve_sample(
             throttled!(warn.table_full, warn, device = %dev, "a template matches but the device table is full (max_devices): dropped");
             return;
         }
+        // Answered before a restore or by the member that handed it over: once is enough.
+        Outcome::AlreadyAnswered => return,
     };
     if cmd.mode == pb::Mode::Rejected as i32 {
         throttled!(warn.rejected, warn, device = %dev, seq = cmd.seq, "sample refused: {}", cmd.error);
@@ -1368,6 +1370,7 @@ async fn serve_batch(
             Served::TableFull => {
                 throttled!(warn.table_full, warn, device = %dev, "a template matches but the device table is full (max_devices): dropped");
             }
+            Served::AlreadyAnswered => {}
         }
     }
     // Only the answered ones go out; the spare ones keep their buffers for the next batch.

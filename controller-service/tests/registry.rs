@@ -258,6 +258,23 @@ fn snapshots_restore_state_and_reference_phase() {
         a.device_status("aero-1").unwrap().samples,
         b.device_status("aero-1").unwrap().samples
     );
+    // A sample answered before the state was saved (by this service before a restart,
+    // or by the member that handed the device over) is not answered a second time,
+    // even STALE: it counts as a duplicate and moves nothing.
+    let mut c = registry();
+    assert_eq!(c.load_snapshots(&dir), (1, 0));
+    let before = c.device_status("aero-1").unwrap();
+    let last = sample("aero-1", 49, 0.49, &[4.9, 0.2]);
+    assert_eq!(c.handle_sample("aero-1", &last), Outcome::AlreadyAnswered);
+    let st = c.device_status("aero-1").unwrap();
+    assert_eq!(
+        (st.duplicates, st.last_seq, st.commands),
+        (before.duplicates + 1, 49, before.commands)
+    );
+    let next = sample("aero-1", 50, 0.50, &[5.0, 0.2]);
+    assert_eq!(command(c.handle_sample("aero-1", &next)).seq, 50);
+    // Once this service has answered a sample, a duplicate of it gets that answer again.
+    assert_eq!(command(c.handle_sample("aero-1", &next)).seq, 50);
     // Corrupt files and a changed configuration are refused, with the device left as is.
     std::fs::write(dir.join("junk.snap"), b"not a snapshot").unwrap();
     let changed = CONFIG.replace("kp = 2.0", "kp = 3.0");
