@@ -14,7 +14,9 @@
 //!    `STALE` (later, that run is taken to be back, so one stray sample can never lock the
 //!    real plant out); a plant that sends no `run_id` is recognised as restarted when its
 //!    sequence goes back far, or to 0 or 1;
-//! 4. within a run: the last sequence again is a duplicate (the cached command again);
+//! 4. within a run: the last sequence again is a duplicate (the cached command again, or
+//!    nothing if it was answered before a restore or by the member that handed the device
+//!    over: [`Outcome::AlreadyAnswered`]);
 //!    older is `STALE`; a forward jump of more than [`MAX_SEQ_JUMP`] is `REJECTED`; plant
 //!    time must advance (else `REJECTED`). After [`RESYNC_AFTER`] such refusals in a row
 //!    that form a consistent stream of their own, the device follows that stream as a new
