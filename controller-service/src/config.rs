@@ -109,6 +109,41 @@ impl DeviceChannel {
     }
 }
 
+/// What a device's commands predict beyond their own period, for plants on lossy or slow
+/// links (packetized predictive control, `docs/results.md`). Off by default: a command
+/// then carries its own outputs only, as before.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Prediction {
+    /// Periods of future outputs each command carries, predicted with the ultra-local model
+    /// (or ADRC's observer) and the reference known ahead; the agent plays them while
+    /// commands are lost or late. At most [`MAX_HORIZON`]. Default 0: none.
+    #[serde(default)]
+    pub horizon: u32,
+    /// Predict from the state the plant will be in when the command lands: the model is
+    /// driven, over the measured round trip (the median of the plant's recent reports, in
+    /// periods), by the outputs already on their way, and the horizon is lengthened to
+    /// reach the landing period. Default false.
+    #[serde(default)]
+    pub delay_compensation: bool,
+}
+
+/// Longest horizon a command carries (periods), with or without delay compensation: a
+/// prediction a second ahead at 100 Hz has long stopped meaning anything.
+pub const MAX_HORIZON: u32 = 100;
+
+impl Prediction {
+    fn check(&self, field: &str) -> Result<(), String> {
+        if self.horizon > MAX_HORIZON {
+            return Err(format!(
+                "{field}.horizon {} is above {MAX_HORIZON} periods",
+                self.horizon
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// A declared device: built when the service starts, before its first sample, so it shows
 /// in the status at once and a snapshot of it is restored only while it stays declared.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -121,6 +156,9 @@ pub struct DeviceSpec {
     /// One entry per plant output, in the plant's channel order; at least one. Every sample
     /// must carry exactly this many outputs.
     pub channels: Vec<DeviceChannel>,
+    /// Horizon and delay compensation of its commands. Default: none.
+    #[serde(default)]
+    pub prediction: Prediction,
 }
 
 /// A template that provisions unknown devices on their first sample.
@@ -133,6 +171,9 @@ pub struct TemplateSpec {
     /// Channels of every device the pattern provisions (at least one); each such device
     /// gets its own control state built from them.
     pub channels: Vec<DeviceChannel>,
+    /// Horizon and delay compensation of its devices' commands. Default: none.
+    #[serde(default)]
+    pub prediction: Prediction,
 }
 
 /// Hot standby: several services of one group serve the same devices; one is active.
@@ -406,6 +447,9 @@ impl ServiceConfig {
                 ));
             }
             check_channels(file, &format!("devices[{i}]"), &d.channels)?;
+            d.prediction
+                .check("prediction")
+                .map_err(|r| invalid(format!("devices[{i}].prediction.horizon"), r))?;
         }
         if self.workers == 0 || self.workers > 64 {
             return Err(invalid("workers".into(), "between 1 and 64".into()));
@@ -482,6 +526,9 @@ impl ServiceConfig {
             zenoh::key_expr::KeyExpr::try_from(t.pattern.as_str())
                 .map_err(|e| invalid(format!("templates[{i}].pattern"), e.to_string()))?;
             check_channels(file, &format!("templates[{i}]"), &t.channels)?;
+            t.prediction
+                .check("prediction")
+                .map_err(|r| invalid(format!("templates[{i}].prediction.horizon"), r))?;
         }
         Ok(())
     }

@@ -139,6 +139,7 @@ impl Limits {
         let max = o.max.min(self.max).max(self.min);
         OutputMapConfig {
             dead_zone: o.dead_zone,
+            smoothing: o.smoothing,
             min,
             max,
             rate_limit: match (o.rate_limit, self.rate_limit) {

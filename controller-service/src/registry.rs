@@ -43,7 +43,7 @@ use protocol::convert::{
 };
 use protocol::{pb, printable, PROTOCOL_VERSION};
 
-use crate::config::{DeviceChannel, ServiceConfig};
+use crate::config::{DeviceChannel, Prediction, ServiceConfig, MAX_HORIZON};
 use crate::envelope::Limits;
 
 /// A gap longer than this (s) between a snapshot and the next sample makes the restored
@@ -100,6 +100,10 @@ fn capped(mut reason: String) -> String {
 /// starting that run again.
 const RETIRED_RUNS: usize = 4;
 
+/// Round-trip reports the delay compensation takes its median over: the most recent ones,
+/// so that it follows a link whose delay changes.
+const DELAY_WINDOW: usize = 32;
+
 /// Per-channel values kept inline in a device's state: a plant has one or two channels (the
 /// AERO has two), and a value that lives beside the rest of the device costs no pointer
 /// chase, where a separate allocation per field costs a cache miss per sample once
@@ -119,6 +123,8 @@ struct Answer {
     u: PerChannel<f64>,
     v: PerChannel<f64>,
     f_est: PerChannel<f64>,
+    /// The packetized horizon (empty without prediction), as [`pb::Command::horizon`].
+    horizon: Vec<f64>,
 }
 
 impl Answer {
@@ -136,6 +142,8 @@ impl Answer {
         out.controller_unix_ns = self.controller_unix_ns;
         out.f_est.clear();
         out.f_est.extend_from_slice(&self.f_est);
+        out.horizon.clear();
+        out.horizon.extend_from_slice(&self.horizon);
         out.mode = self.mode;
         out.sample_sent_unix_ns = self.sample_sent_unix_ns;
         out.controller_id.clear();
@@ -350,10 +358,58 @@ struct Device {
     /// Why the last refused sample or request was refused (already cut to printable
     /// length); a later good one does not clear it.
     last_error: String,
+    /// Horizon and delay compensation of its commands (from the file).
+    prediction: Prediction,
+    /// With delay compensation: what the plant will apply in each coming period, as this
+    /// device's commands already sent will have it.
+    schedule: Option<Box<Schedule>>,
+}
+
+/// What the plant will apply in each period, as far as the commands already sent decide
+/// it: a ring over the coming periods (absolute sequence numbers), `n` channels each. The
+/// delay compensation drives its prediction with these until its own command lands.
+#[derive(Debug, Clone)]
+struct Schedule {
+    n: usize,
+    /// The period each slot holds (`u64::MAX`: none).
+    period: Vec<u64>,
+    values: Vec<f64>,
+}
+
+impl Schedule {
+    const SLOTS: usize = MAX_HORIZON as usize + 1;
+
+    fn new(n: usize) -> Self {
+        Self {
+            n,
+            period: vec![u64::MAX; Self::SLOTS],
+            values: vec![0.0; Self::SLOTS * n],
+        }
+    }
+
+    fn get(&self, k: u64, i: usize) -> Option<f64> {
+        let slot = (k % Self::SLOTS as u64) as usize;
+        (self.period[slot] == k).then(|| self.values[slot * self.n + i])
+    }
+
+    fn set(&mut self, k: u64, values: impl Iterator<Item = f64>) {
+        let slot = (k % Self::SLOTS as u64) as usize;
+        self.period[slot] = k;
+        for (x, v) in self.values[slot * self.n..(slot + 1) * self.n]
+            .iter_mut()
+            .zip(values)
+        {
+            *x = v;
+        }
+    }
 }
 
 impl Device {
-    fn new(channels: &[DeviceChannel], from_template: bool) -> Result<Self, String> {
+    fn new(
+        channels: &[DeviceChannel],
+        prediction: Prediction,
+        from_template: bool,
+    ) -> Result<Self, String> {
         let envelope: PerChannel<Limits> = channels.iter().map(DeviceChannel::limits).collect();
         // The file's check already did this; a configuration built in code must not get
         // past it either (a NaN limit would make the last check meaningless).
@@ -410,6 +466,10 @@ impl Device {
             rtts: VecDeque::with_capacity(RTT_WINDOW),
             f_est: smallvec::smallvec![f64::NAN; n],
             last_error: String::new(),
+            prediction,
+            schedule: prediction
+                .delay_compensation
+                .then(|| Box::new(Schedule::new(n))),
         })
     }
 
@@ -434,6 +494,9 @@ impl Device {
         self.last_command = None;
         self.astray = None;
         self.restarts += 1;
+        if let Some(s) = &mut self.schedule {
+            **s = Schedule::new(s.n);
+        }
     }
 
     /// The sample period: the lower median of the recent intervals; `None` before
@@ -786,11 +849,12 @@ impl Registry {
     pub fn new(config: ServiceConfig) -> Result<Self, RegistryError> {
         let mut devices = HashMap::new();
         for d in &config.devices {
-            let mut dev =
-                Device::new(&d.channels, false).map_err(|reason| RegistryError::Device {
+            let mut dev = Device::new(&d.channels, d.prediction, false).map_err(|reason| {
+                RegistryError::Device {
                     id: d.id.clone(),
                     reason,
-                })?;
+                }
+            })?;
             dev.home = protocol::shard_of(&d.id);
             devices.insert(DeviceKey::new(&d.id), Box::new(dev));
         }
@@ -923,7 +987,7 @@ impl Registry {
         if self.devices.len() >= self.config.max_devices {
             return Some(Outcome::TableFull);
         }
-        match Device::new(&t.channels, true) {
+        match Device::new(&t.channels, t.prediction, true) {
             Ok(mut d) => {
                 d.home = protocol::shard_of(id);
                 self.devices.insert(DeviceKey::new(id), Box::new(d));
@@ -1243,6 +1307,13 @@ fn step_sample(
     for (f, o) in d.f_est.iter_mut().zip(&d.outputs) {
         *f = o.f_est.unwrap_or(f64::NAN);
     }
+    let control = !d.outputs.iter().any(|o| o.warming_up);
+    let buffer = d.last_command.take().map(|a| a.horizon).unwrap_or_default();
+    let horizon = if control {
+        predict(d, s, &v, period, buffer)
+    } else {
+        Vec::new()
+    };
     let answer = Answer {
         seq: s.seq,
         mode: if d.outputs.iter().any(|o| o.warming_up) {
@@ -1255,6 +1326,7 @@ fn step_sample(
         u: d.outputs.iter().map(|o| o.u).collect(),
         v,
         f_est: d.f_est.clone(),
+        horizon,
     };
     d.commands += 1;
     if answer.mode == pb::Mode::Control as i32 {
@@ -1263,6 +1335,77 @@ fn step_sample(
     // Kept for a duplicate, inline in the device; the caller writes it out.
     d.last_command = Some(answer);
     Answered::Cached
+}
+
+/// Rule 7, for a device with a horizon or delay compensation: the outputs its command
+/// predicts for the periods after the sample's, period-major (`[j * n + i]`: channel `i`
+/// in period `seq + 1 + j`), each through the envelope with the rate limit from the one
+/// before, so that whatever the agent plays stays inside it. Written into `out`'s buffer
+/// (kept from the last answer). Empty without prediction or before the period is known.
+fn predict(
+    d: &mut Device,
+    s: &pb::Sample,
+    v: &[f64],
+    period: Option<f64>,
+    mut out: Vec<f64>,
+) -> Vec<f64> {
+    out.clear();
+    let p = d.prediction;
+    let Some(h) = period.filter(|h| *h > 0.0 && h.is_finite()) else {
+        return out;
+    };
+    // The round trip in periods: the command for `seq` lands in period `seq + m`.
+    let m = if p.delay_compensation {
+        let mut recent: Vec<u32> = d.rtts.iter().rev().take(DELAY_WINDOW).copied().collect();
+        if recent.is_empty() {
+            0
+        } else {
+            let mid = recent.len() / 2;
+            let (_, median, _) = recent.select_nth_unstable(mid);
+            ((f64::from(*median) * 1e-6 / h).round() as u32).min(MAX_HORIZON)
+        }
+    } else {
+        0
+    };
+    let len = p.horizon.max(m).min(MAX_HORIZON) as usize;
+    if len == 0 {
+        return out;
+    }
+    let n = v.len();
+    out.resize(len * n, 0.0);
+    let mut refs = Vec::with_capacity(len);
+    let mut applied = Vec::with_capacity(m as usize);
+    let mut elements = vec![0.0; len];
+    for i in 0..n {
+        refs.clear();
+        refs.extend((1..=len).map(|j| {
+            evaluate(
+                &d.reference[i],
+                s.plant_time + j as f64 * h - d.reference_start,
+            )
+        }));
+        applied.clear();
+        if let Some(sched) = &d.schedule {
+            applied.extend((0..u64::from(m)).map(|j| sched.get(s.seq + j, i).unwrap_or(f64::NAN)));
+        }
+        let mut last = d.outputs[i];
+        last.v = v[i];
+        d.mimo.channels()[i].plan(&last, h, &refs, &applied, &mut elements);
+        let mut prev = v[i];
+        for (j, e) in elements.iter().enumerate() {
+            let (x, _) = d.envelope[i].clamp(*e, Some((prev, h)));
+            out[j * n + i] = x;
+            prev = x;
+        }
+    }
+    if let Some(sched) = &mut d.schedule {
+        // From the period it lands in on, this command drives the plant until the next
+        // one lands.
+        for j in m.max(1) as usize..=len {
+            sched.set(s.seq + j as u64, out[(j - 1) * n..j * n].iter().copied());
+        }
+    }
+    out
 }
 
 impl Registry {
@@ -1534,7 +1677,8 @@ impl Registry {
             .collect();
         for id in ids {
             let declared = self.config.devices.iter().find(|d| d.id == id).cloned();
-            match declared.and_then(|spec| Device::new(&spec.channels, false).ok()) {
+            match declared.and_then(|spec| Device::new(&spec.channels, spec.prediction, false).ok())
+            {
                 Some(mut fresh) => {
                     fresh.home = protocol::shard_of(&id);
                     self.devices.insert(DeviceKey::new(&id), Box::new(fresh));
@@ -1640,7 +1784,7 @@ impl Registry {
                 if self.devices.len() >= self.config.max_devices {
                     return Err(format!("device {:?}: the device table is full", snap.id));
                 }
-                let d = Device::new(&t.channels, true)?;
+                let d = Device::new(&t.channels, t.prediction, true)?;
                 self.devices
                     .entry(DeviceKey::new(&snap.id))
                     .or_insert(Box::new(d))

@@ -12,7 +12,7 @@ use mfc::trajectory::Piece;
 /// Bumped whenever the layout changes; a file of another version is refused and its
 /// device starts from the configuration. 2: the estimators' rings span their window
 /// only (files of 1 would be read with the wrong layout).
-pub const SNAPSHOT_VERSION: u32 = 2;
+pub const SNAPSHOT_VERSION: u32 = 3;
 
 /// What a device snapshot holds.
 #[derive(Debug, Clone, Encode, Decode)]

@@ -319,3 +319,98 @@ fn hot_standby_state_machine() {
     // Without a group the service is simply active.
     assert!(HotStandby::new(None).active);
 }
+
+/// A device whose commands carry a horizon: an iPD (n = 2) with a smooth dead-zone map on
+/// channel 0, a PID on channel 1, an envelope with a rate limit.
+const PREDICTING: &str = r#"
+controller_id = "c1"
+[[devices]]
+id = "rig-1"
+prediction = { horizon = 6 }
+[[devices.channels]]
+law = { law = "intelligent", params = { kind = "ipd", order = "two", alpha = 0.2, kp = 9.0, kd = 3.0, derivative_observer = 30.0 }, estimator = { window = 4 } }
+output = { dead_zone = 10.0, smoothing = 2.0, min = -24.0, max = 24.0 }
+envelope = { min = -24.0, max = 24.0, rate_limit = 300.0 }
+reference = [{ kind = "sine", amplitude = 0.2, period = 1.0 }]
+[[devices.channels]]
+law = { law = "pid", params = { kp = 1.0 } }
+output = { min = -5.0, max = 5.0 }
+reference = [{ kind = "constant", value = 1.0 }]
+"#;
+
+fn predicting(extra: &str) -> Registry {
+    let text = PREDICTING.replace("prediction = { horizon = 6 }", extra);
+    Registry::new(ServiceConfig::parse("test.toml", &text).unwrap()).unwrap()
+}
+
+#[test]
+fn a_horizon_is_whole_periods_of_outputs_inside_the_envelope() {
+    let mut r = predicting("prediction = { horizon = 6 }");
+    let h = 0.01;
+    let mut seen = 0;
+    for k in 0..40u64 {
+        let t = k as f64 * h;
+        let y = [0.1 * (6.0 * t).sin(), 0.2];
+        let c = command(r.handle_sample("rig-1", &sample("rig-1", k, t, &y)));
+        if c.mode != pb::Mode::Control as i32 {
+            assert!(c.horizon.is_empty(), "no horizon while warming up");
+            continue;
+        }
+        // The period is known after a few samples; from then on, six periods of two.
+        if c.horizon.is_empty() {
+            assert!(k < 8, "no horizon at sample {k}");
+            continue;
+        }
+        seen += 1;
+        assert_eq!(c.horizon.len(), 6 * 2);
+        let mut prev = c.v[0];
+        for j in 0..6 {
+            let (a, b) = (c.horizon[2 * j], c.horizon[2 * j + 1]);
+            assert!(a.is_finite() && (-24.0..=24.0).contains(&a), "{a}");
+            // The rate limit holds from v through every element (300 V/s, 10 ms).
+            assert!((a - prev).abs() <= 3.0 * (1.0 + 1e-9), "{prev} -> {a}");
+            prev = a;
+            // The PID has no model to predict with: it holds its output.
+            assert_eq!(b, c.v[1]);
+            assert!((-5.0..=5.0).contains(&b));
+        }
+    }
+    assert!(seen > 20, "{seen} commands with a horizon");
+}
+
+#[test]
+fn delay_compensation_lengthens_the_horizon_to_the_round_trip() {
+    let mut r = predicting("prediction = { horizon = 2, delay_compensation = true }");
+    let h = 0.01;
+    let mut last = None;
+    for k in 0..60u64 {
+        let t = k as f64 * h;
+        let mut s = sample("rig-1", k, t, &[0.0, 0.2]);
+        // The plant reports 56 ms round trips: commands land 5 or 6 periods late.
+        s.last_rtt_us = 56_000;
+        last = Some(command(r.handle_sample("rig-1", &s)));
+    }
+    let c = last.unwrap();
+    assert_eq!(c.mode, pb::Mode::Control as i32);
+    // round(56 ms / 10 ms) = 6 periods, more than the configured 2.
+    assert_eq!(c.horizon.len(), 6 * 2);
+    // Without reports of the round trip, the configured horizon.
+    let mut r = predicting("prediction = { horizon = 2, delay_compensation = true }");
+    let mut last = None;
+    for k in 0..60u64 {
+        let t = k as f64 * h;
+        last = Some(command(
+            r.handle_sample("rig-1", &sample("rig-1", k, t, &[0.0, 0.2])),
+        ));
+    }
+    assert_eq!(last.unwrap().horizon.len(), 2 * 2);
+}
+
+#[test]
+fn a_horizon_longer_than_the_limit_is_refused_with_its_field() {
+    let text = PREDICTING.replace("horizon = 6", "horizon = 101");
+    let e = ServiceConfig::parse("test.toml", &text)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("devices[0].prediction.horizon"), "{e}");
+}

@@ -52,6 +52,7 @@ fn command_for(s: &pb::Sample) -> pb::Command {
         sample_sent_unix_ns: s.sent_unix_ns,
         controller_id: "echo".into(),
         error: String::new(),
+        horizon: Vec::new(),
     }
 }
 

@@ -6,7 +6,7 @@ use std::net::SocketAddr;
 use std::path::Path;
 
 use anyhow::Result;
-use controller_service::config::ServiceConfig;
+use controller_service::config::{Prediction, ServiceConfig};
 use faultlab::profile::{Profile, ProfileSet};
 use faultlab::relay::{Link, Relay, RelayStats};
 use plant_agent::agent::AgentReport;
@@ -72,6 +72,9 @@ pub struct CaseOptions {
     pub fallback: FallbackPolicy,
     /// Oldest command worth applying (periods).
     pub max_age: u32,
+    /// The service's prediction for each controller's device, in the order of the
+    /// controllers (missing: none).
+    pub predictions: Vec<Prediction>,
 }
 
 impl Default for CaseOptions {
@@ -80,8 +83,45 @@ impl Default for CaseOptions {
             hold_periods: plant_agent::safety::SafetyConfig::DEFAULT_HOLD_PERIODS,
             fallback: FallbackPolicy::LocalController,
             max_age: plant_agent::safety::SafetyConfig::DEFAULT_MAX_AGE,
+            predictions: Vec::new(),
         }
     }
+}
+
+/// A controller name as a device id chunk: `ipd+h10+dc` -> `ipd.h10.dc`.
+fn device_part(name: &str) -> String {
+    name.chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.') {
+                c
+            } else {
+                '.'
+            }
+        })
+        .collect()
+}
+
+/// A campaign entry: `KIND[+hN][+dc]`, a controller (a shipped name or a file) with the
+/// service's packetized horizon of N periods and/or delay compensation for its device.
+pub fn parse_variant(spec: &str) -> Result<(String, Prediction), String> {
+    let mut parts = spec.split('+');
+    let base = parts.next().unwrap_or_default().to_string();
+    let mut p = Prediction::default();
+    for opt in parts {
+        if opt == "dc" {
+            p.delay_compensation = true;
+        } else if let Some(n) = opt.strip_prefix('h').and_then(|n| n.parse::<u32>().ok()) {
+            p.horizon = n;
+        } else {
+            return Err(format!(
+                "{spec:?}: unknown option {opt:?} (expected +hN for a horizon of N periods, or +dc)"
+            ));
+        }
+    }
+    if base.is_empty() {
+        return Err(format!("{spec:?}: no controller before the options"));
+    }
+    Ok((base, p))
 }
 
 /// Run every controller of `controllers` on `scenario`, side by side, through a relay
@@ -101,12 +141,14 @@ pub async fn run_case(
     let mut config = ServiceConfig::default();
     let ids: Vec<String> = controllers
         .iter()
-        .map(|c| format!("aero-{}", c.name))
+        .map(|c| format!("aero-{}", device_part(&c.name)))
         .collect();
-    for (c, id) in controllers.iter().zip(&ids) {
-        config
-            .devices
-            .extend(service_config(scenario, c, std::slice::from_ref(id)).devices);
+    for (i, (c, id)) in controllers.iter().zip(&ids).enumerate() {
+        let mut devices = service_config(scenario, c, std::slice::from_ref(id)).devices;
+        for d in &mut devices {
+            d.prediction = options.predictions.get(i).copied().unwrap_or_default();
+        }
+        config.devices.extend(devices);
     }
     let svc = ServiceHandle::start_with(config, Some(format!("{}/{target}", link.scheme())), false)
         .await?;

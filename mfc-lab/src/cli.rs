@@ -61,6 +61,11 @@ enum Command {
         /// run (`plant-agent run --duration`).
         #[arg(long, conflicts_with = "compare")]
         duration: Option<f64>,
+        /// Actuator maps: `scenario` (the files' own: the smooth dead-zone compensation on
+        /// the shipped AERO), `paper` (the paper's step, `smoothing = 0` on every channel,
+        /// for the reproduction), or `both` (with --compare: one table each).
+        #[arg(long, value_enum, default_value = "scenario")]
+        map: MapChoice,
     },
     /// Run the main job: a controller service and N simulated plants over Zenoh on
     /// loopback, in real time.
@@ -123,12 +128,48 @@ enum Command {
         /// Seconds per run.
         #[arg(long, default_value_t = 20.0)]
         duration: f64,
-        /// Controllers, side by side on the same link.
+        /// Controllers, side by side on the same link: shipped names or files, each
+        /// optionally with `+hN` (the service sends a horizon of N periods with each
+        /// command) and `+dc` (delay compensation), e.g. `ipd,ipd+h10,ipd+h10+dc,pid`.
         #[arg(long, value_delimiter = ',', default_value = "ipd,pid")]
         controllers: Vec<String>,
         /// Links.
         #[arg(long, value_delimiter = ',', default_value = "tcp,udp")]
         links: Vec<Link>,
+    },
+    /// The networked loop in lockstep (the service's and the agent's own rules, a seeded
+    /// model of the link): each controller under each loss rate and each round trip, as
+    /// an RMS ratio against itself on a perfect link. Fast and repeatable; the campaign
+    /// measures the real network.
+    Netsim {
+        /// Scenario (a file or a shipped AERO one).
+        #[arg(long, default_value = "2")]
+        scenario: String,
+        /// Controllers, as for the campaign (`ipd+h10+dc`...).
+        #[arg(
+            long,
+            value_delimiter = ',',
+            default_value = "ipd,ipd+h10,ipd+h10+dc,pid,adrc"
+        )]
+        controllers: Vec<String>,
+        /// Loss rates each way (0 to 1), each run with no delay.
+        #[arg(long, value_delimiter = ',', default_value = "0.1,0.3,0.5")]
+        loss: Vec<f64>,
+        /// Round trips (ms), each run with no loss; each one-way delay spreads by ±20 %.
+        #[arg(long, value_delimiter = ',', default_value = "20,50,100")]
+        rtt_ms: Vec<f64>,
+        /// Seed of the link's draws.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// The agent's hold before its fallback (periods).
+        #[arg(long, default_value_t = SafetyConfig::DEFAULT_HOLD_PERIODS)]
+        hold_periods: u32,
+        /// Which way the loss rates apply: both, up (samples only), down (commands only).
+        #[arg(long, value_enum, default_value = "both")]
+        lossy: crate::netsim::Lossy,
+        /// Output directory (netsim.md, netsim.json).
+        #[arg(long, default_value = "out/netsim")]
+        out: PathBuf,
     },
     /// Print a controller-service configuration that serves these devices on a scenario.
     ServiceConfig {
@@ -184,6 +225,28 @@ fn bar(len: u64, template: &str) -> ProgressBar {
     )
 }
 
+/// Which dead-zone compensation a simulation runs with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum MapChoice {
+    /// The scenario files' own maps.
+    Scenario,
+    /// The paper's step compensation on every channel.
+    Paper,
+    /// Both, one table each (with --compare).
+    Both,
+}
+
+/// `s` with the paper's step compensation on every channel (`smoothing = 0`), named so.
+fn paper_map(mut s: Scenario) -> Scenario {
+    if s.channels.iter().any(|c| c.output.smoothing > 0.0) {
+        for c in &mut s.channels {
+            c.output.smoothing = 0.0;
+        }
+        s.name = format!("{} (paper map)", s.name);
+    }
+    s
+}
+
 fn real_main() -> Result<()> {
     match Cli::parse().command {
         Command::Sim {
@@ -192,6 +255,7 @@ fn real_main() -> Result<()> {
             out,
             compare: true,
             controllers,
+            map,
             ..
         } => {
             if controller.is_some() {
@@ -200,6 +264,7 @@ fn real_main() -> Result<()> {
             sim_compare(
                 &out,
                 (!controllers.is_empty()).then_some((&scenario, &controllers)),
+                map,
             )
         }
         Command::Sim {
@@ -208,9 +273,15 @@ fn real_main() -> Result<()> {
             out,
             compare: false,
             duration,
+            map,
             ..
         } => {
             let (mut scenario, set) = scenario_and_controller(&scenario, controller.as_deref())?;
+            match map {
+                MapChoice::Scenario => {}
+                MapChoice::Paper => scenario = paper_map(scenario),
+                MapChoice::Both => bail!("--map both needs --compare"),
+            }
             if let Some(d) = duration {
                 if !(d.is_finite() && d > 0.0) {
                     bail!("--duration must be a positive number of seconds, not {d}");
@@ -344,6 +415,23 @@ fn real_main() -> Result<()> {
             controllers,
             links,
         } => campaign(&profiles, &out, &scenario, duration, &controllers, &links),
+        Command::Netsim {
+            scenario,
+            controllers,
+            loss,
+            rtt_ms,
+            seed,
+            hold_periods,
+            lossy,
+            out,
+        } => netsim(
+            &scenario,
+            &controllers,
+            (&loss, lossy),
+            &rtt_ms,
+            (seed, hold_periods),
+            &out,
+        ),
         Command::ServiceConfig {
             devices,
             scenario,
@@ -416,7 +504,7 @@ fn print_reports(reports: &[AgentReport], offline: Option<&Summary>) {
     }
 }
 
-fn sim_compare(out: &Path, only: Option<(&String, &Vec<String>)>) -> Result<()> {
+fn sim_compare(out: &Path, only: Option<(&String, &Vec<String>)>, map: MapChoice) -> Result<()> {
     let (scenarios, controllers) = match only {
         Some((s, cs)) => (
             vec![load_scenario(s)?],
@@ -435,35 +523,47 @@ fn sim_compare(out: &Path, only: Option<(&String, &Vec<String>)>) -> Result<()> 
                 .collect::<Result<Vec<_>, _>>()?,
         ),
     };
-    let bar = bar(
-        (scenarios.len() * controllers.len()) as u64,
-        "{msg:<28} [{bar:30}] {pos}/{len} runs",
-    );
-    let cmp = compare(&scenarios, &controllers, |s, c| {
-        bar.set_message(format!("{s} / {c}"));
-        bar.inc(1);
-    })?;
-    bar.finish_and_clear();
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    let mass = cmp.mass_markdown();
-    let md = if mass.is_empty() {
-        cmp.markdown()
-    } else {
-        format!(
-            "{}\nRMS with the 4 g mass over RMS without (no retuning):\n\n{mass}",
-            cmp.markdown()
-        )
+    let variants: Vec<(&str, Vec<Scenario>)> = match map {
+        MapChoice::Scenario => vec![("", scenarios)],
+        MapChoice::Paper => vec![("-paper", scenarios.into_iter().map(paper_map).collect())],
+        MapChoice::Both => vec![
+            ("", scenarios.clone()),
+            ("-paper", scenarios.into_iter().map(paper_map).collect()),
+        ],
     };
-    std::fs::write(out.join("comparison.md"), &md)?;
-    std::fs::write(
-        out.join("comparison.json"),
-        serde_json::to_string_pretty(&cmp)? + "\n",
-    )?;
-    println!("{md}");
-    println!(
-        "wrote {0}/comparison.md and {0}/comparison.json",
-        out.display()
-    );
+    let runs: usize = variants.iter().map(|(_, s)| s.len()).sum::<usize>() * controllers.len();
+    let bar = bar(runs as u64, "{msg:<40} [{bar:30}] {pos}/{len} runs");
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let mut written = Vec::new();
+    for (suffix, scenarios) in &variants {
+        let cmp = compare(scenarios, &controllers, |s, c| {
+            bar.set_message(format!("{s} / {c}"));
+            bar.inc(1);
+        })?;
+        let mass = cmp.mass_markdown();
+        let md = if mass.is_empty() {
+            cmp.markdown()
+        } else {
+            format!(
+                "{}\nRMS with the 4 g mass over RMS without (no retuning):\n\n{mass}",
+                cmp.markdown()
+            )
+        };
+        let (md_file, json_file) = (
+            format!("comparison{suffix}.md"),
+            format!("comparison{suffix}.json"),
+        );
+        std::fs::write(out.join(&md_file), &md)?;
+        std::fs::write(
+            out.join(&json_file),
+            serde_json::to_string_pretty(&cmp)? + "\n",
+        )?;
+        bar.suspend(|| println!("{md}"));
+        written.push(md_file);
+        written.push(json_file);
+    }
+    bar.finish_and_clear();
+    println!("wrote {} in {}", written.join(", "), out.display());
     Ok(())
 }
 
@@ -484,12 +584,18 @@ fn campaign(
     }
     let mut s = load_scenario(scenario)?;
     s.duration = duration;
-    let sets = controllers
-        .iter()
-        .map(|c| load_controller(c))
-        .collect::<Result<Vec<_>, _>>()?;
-    for c in &sets {
-        s.check_controller(c)?;
+    let mut sets = Vec::new();
+    let mut options = CaseOptions::default();
+    for spec in controllers {
+        let (base, prediction) =
+            crate::campaign::parse_variant(spec).map_err(anyhow::Error::msg)?;
+        let mut set = load_controller(&base)?;
+        s.check_controller(&set)?;
+        if spec != &base {
+            set.name = format!("{}{}", set.name, &spec[base.len()..]);
+        }
+        sets.push(set);
+        options.predictions.push(prediction);
     }
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -507,7 +613,7 @@ fn campaign(
     for p in &set.profiles {
         for link in links {
             bar.set_message(format!("{} over {}", p.name, link.scheme()));
-            let r = runtime.block_on(run_case(&s, &sets, p, *link, &CaseOptions::default()))?;
+            let r = runtime.block_on(run_case(&s, &sets, p, *link, &options))?;
             campaign.cases.extend(r);
             bar.inc(1);
         }
@@ -527,6 +633,138 @@ fn campaign(
         "wrote {0}/campaign.md, {0}/campaign.json, {0}/rms_vs_loss.png|svg, {0}/rms_vs_latency.png|svg",
         out.display()
     );
+    Ok(())
+}
+
+fn netsim(
+    scenario: &str,
+    controllers: &[String],
+    (loss, lossy): (&[f64], crate::netsim::Lossy),
+    rtt_ms: &[f64],
+    (seed, hold_periods): (u64, u32),
+    out: &Path,
+) -> Result<()> {
+    use crate::netsim::{simulate_net, LinkModel};
+    let s = load_scenario(scenario)?;
+    let mut sets = Vec::new();
+    for spec in controllers {
+        let (base, prediction) =
+            crate::campaign::parse_variant(spec).map_err(anyhow::Error::msg)?;
+        let mut set = load_controller(&base)?;
+        s.check_controller(&set)?;
+        set.name = spec.clone();
+        sets.push((set, prediction));
+    }
+    let safety = SafetyConfig {
+        hold_periods,
+        ..crate::harness::default_safety(&s)
+    };
+    let mut links = vec![("perfect".to_string(), LinkModel::PERFECT)];
+    for &l in loss {
+        links.push((
+            format!(
+                "loss {:.0} %{}",
+                100.0 * l,
+                match lossy {
+                    crate::netsim::Lossy::Both => "",
+                    crate::netsim::Lossy::Up => " (samples)",
+                    crate::netsim::Lossy::Down => " (commands)",
+                }
+            ),
+            LinkModel {
+                loss: l,
+                lossy,
+                seed,
+                ..LinkModel::PERFECT
+            },
+        ));
+    }
+    for &r in rtt_ms {
+        let one_way = r / 2000.0;
+        links.push((
+            format!("{r:.0} ms round trip"),
+            LinkModel {
+                delay: one_way,
+                jitter: 0.2 * one_way,
+                seed,
+                ..LinkModel::PERFECT
+            },
+        ));
+    }
+    for (name, l) in &links {
+        l.check().map_err(|e| anyhow::anyhow!("{name}: {e}"))?;
+    }
+    let bar = bar(
+        (links.len() * sets.len()) as u64,
+        "{msg:<40} [{bar:30}] {pos}/{len} runs",
+    );
+    let mut rows = Vec::new();
+    for (name, link) in &links {
+        for (set, prediction) in &sets {
+            bar.set_message(format!("{} / {name}", set.name));
+            let r = simulate_net(&s, set, *prediction, link, safety)?;
+            rows.push((name.clone(), r));
+            bar.inc(1);
+        }
+    }
+    bar.finish_and_clear();
+    use std::fmt::Write as _;
+    let mut md = String::new();
+    let channels: Vec<String> = rows
+        .first()
+        .map(|(_, r)| r.channels.iter().map(|c| c.name.clone()).collect())
+        .unwrap_or_default();
+    let _ = write!(md, "| link | controller |");
+    for c in &channels {
+        let _ = write!(md, " {c} RMS | ratio |");
+    }
+    let _ = writeln!(
+        md,
+        " chatter (V/sample) | periods without command | horizon played | late, from the horizon | fallbacks |"
+    );
+    let _ = writeln!(
+        md,
+        "|---|---|{}---:|---:|---:|---:|---:|",
+        "---:|---:|".repeat(channels.len())
+    );
+    for (name, r) in &rows {
+        let base = rows
+            .iter()
+            .find(|(n, b)| n == "perfect" && b.controller == r.controller)
+            .map(|(_, b)| b);
+        let _ = write!(md, "| {name} | {} |", r.controller);
+        for (i, c) in r.channels.iter().enumerate() {
+            let ratio = base.map_or(f64::NAN, |b| c.rms / b.channels[i].rms);
+            let _ = write!(md, " {:.3e} | {ratio:.2} |", c.rms);
+        }
+        let k = &r.counters;
+        let chatter = r
+            .channels
+            .iter()
+            .map(|c| format!("{:.2}", c.control_variation))
+            .collect::<Vec<_>>()
+            .join(" / ");
+        let _ = writeln!(
+            md,
+            " {chatter} | {:.1} % | {} | {} | {} |",
+            100.0 * k.missing as f64 / k.periods.max(1) as f64,
+            k.horizon_periods,
+            k.horizon_late,
+            k.fallbacks
+        );
+    }
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    std::fs::write(out.join("netsim.md"), &md)?;
+    let json: Vec<_> = rows
+        .iter()
+        .map(|(name, r)| serde_json::json!({ "link": name, "run": r }))
+        .collect();
+    std::fs::write(
+        out.join("netsim.json"),
+        serde_json::to_string_pretty(&json)? + "\n",
+    )?;
+    println!("{md}");
+    println!("wrote {0}/netsim.md and {0}/netsim.json", out.display());
     Ok(())
 }
 

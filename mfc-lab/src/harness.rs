@@ -46,6 +46,7 @@ pub fn service_config(
                         envelope: None,
                     })
                     .collect(),
+                prediction: Default::default(),
             })
             .collect(),
         ..ServiceConfig::default()

@@ -18,5 +18,6 @@ pub mod cli;
 pub mod compare;
 pub mod demo;
 pub mod harness;
+pub mod netsim;
 pub mod offline;
 pub mod tune;

@@ -32,6 +32,12 @@ pub enum RunError {
     /// The plant could not be started or failed during the run.
     #[error("plant: {0}")]
     Plant(#[from] PlantError),
+    /// A networked run in lockstep ([`crate::netsim`]) could not be set up or went wrong.
+    #[error("network simulation: {reason}")]
+    Link {
+        /// Why.
+        reason: String,
+    },
 }
 
 /// Summary of an offline run, as written to `summary.json`.

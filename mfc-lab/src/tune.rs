@@ -41,6 +41,16 @@ fn intelligent(
     LawConfig::intelligent(kind, order, alpha, [kp, ki, kd], window)
 }
 
+/// The pitch iPD's answer to the encoder's staircase: `y'` from the model-based observer at
+/// 30 rad/s, `F_est` through a 50 ms low-pass.
+fn quantisation_aware(mut law: LawConfig) -> LawConfig {
+    if let LawConfig::Intelligent { params, .. } = &mut law {
+        params.derivative_observer = 30.0;
+        params.estimate_filter = 0.05;
+    }
+    law
+}
+
 /// The untuned starting point of a kind on the AERO.
 pub fn starting_point(kind: &str) -> Option<ControllerSet> {
     use ControllerKind::*;
@@ -56,11 +66,17 @@ pub fn starting_point(kind: &str) -> Option<ControllerSet> {
             intelligent(PI, Order::One, 0.001, 0.5, 0.1, 0.0, 10),
             intelligent(PI, Order::One, 0.01, 2.0, 0.5, 0.0, 5),
         ],
-        // The paper's own remedy for weak friction: n = 2 (iPD) on the pitch, alpha by the
-        // magnitude rule (|alpha u| ~ |pitch''|, about 0.1 rad/s² per volt), the error
-        // dynamics e'' + 3 e' + 9 e = 0 (3 rad/s, damping 0.5), a 20-sample window
-        // against the encoder's quantisation. Azimuth: the paper's iP.
+        // The paper's own remedy for weak friction: n = 2 (iPD) on the pitch, the error
+        // dynamics e'' + 3 e' + 9 e = 0 (3 rad/s, damping 0.5), a 20-sample window; alpha,
+        // the observer and the estimate filter as `plants/aero/controllers/ipd.toml`
+        // explains. Azimuth: the paper's iP.
         "ipd" => vec![
+            intelligent(P, Order::One, 0.001, 0.5, 0.0, 0.0, 10),
+            quantisation_aware(intelligent(PD, Order::Two, 0.2, 9.0, 0.0, 3.0, 20)),
+        ],
+        // The same as first shipped: alpha by the magnitude rule for the step map (0.1),
+        // y' from the derivative filter, F_est unfiltered.
+        "ipd-plain" => vec![
             intelligent(P, Order::One, 0.001, 0.5, 0.0, 0.0, 10),
             intelligent(PD, Order::Two, 0.1, 9.0, 0.0, 3.0, 20),
         ],

@@ -176,6 +176,16 @@ impl Adrc {
         Ok(u)
     }
 
+    /// A copy of the observer to run forward for a packetized horizon
+    /// ([`crate::Channel::plan`]): `None` before the first step.
+    pub(crate) fn predictor(&self) -> Option<AdrcPredictor> {
+        self.last_t?;
+        Some(AdrcPredictor {
+            params: self.params,
+            z: self.z,
+        })
+    }
+
     fn f_index(&self) -> usize {
         match self.params.order {
             Order::One => 1,
@@ -219,6 +229,41 @@ impl Adrc {
                 self.z[0] = z1 + l1 * e;
                 self.z[1] = z2 + l2 * e;
                 self.z[2] += l3 * e;
+            }
+        }
+    }
+}
+
+/// The observer's model run forward with `f` held (no measurement to correct it): the
+/// same ultra-local model the intelligent controllers predict with, in the ESO's states.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct AdrcPredictor {
+    params: AdrcParams,
+    z: [f64; 3],
+}
+
+impl AdrcPredictor {
+    /// Let `h` pass with `u` applied.
+    pub(crate) fn advance(&mut self, h: f64, u: f64) {
+        let bu = self.params.b0 * u;
+        match self.params.order {
+            Order::One => self.z[0] += h * (self.z[1] + bu),
+            Order::Two => {
+                let acc = self.z[2] + bu;
+                self.z[0] += h * self.z[1] + 0.5 * h * h * acc;
+                self.z[1] += h * acc;
+            }
+        }
+    }
+
+    /// The law at the predicted state.
+    pub(crate) fn law(&self, r: &Reference) -> f64 {
+        let p = &self.params;
+        match p.order {
+            Order::One => (p.wc * (r.y - self.z[0]) + r.dy - self.z[1]) / p.b0,
+            Order::Two => {
+                let (kp, kd) = (p.wc * p.wc, 2.0 * p.wc);
+                (kp * (r.y - self.z[0]) + kd * (r.dy - self.z[1]) + r.ddy - self.z[2]) / p.b0
             }
         }
     }

@@ -238,6 +238,74 @@ impl<const CAP: usize> Channel<CAP> {
         })
     }
 
+    /// A packetized horizon: the outputs this channel would send for the next
+    /// `out.len()` periods if no sample came, predicted with the ultra-local model (`F`
+    /// held at `last.f_est`, the last step's output) and the reference known ahead.
+    ///
+    /// Period 0 is the one the last step's sample opened; `out[j]` is for period `j + 1`,
+    /// `refs[j]` is the reference at its start, and `h` the period. `applied[j]`, if
+    /// given, is what the plant will apply over period `j` whatever this channel says
+    /// (the outputs of commands already on their way, for delay compensation): the model
+    /// is driven by those instead of `last.v` and the plan's own elements, and each
+    /// element is the law's value on the state the model predicts from them.
+    ///
+    /// Each element goes through the output map (compensation, limits, and the rate limit
+    /// from the element before), so it is a value this channel could have sent. A law with
+    /// no model (PID), a law still filling its window, and a step that produced no
+    /// estimate give the last output held: the same as a horizon-less plant's hold.
+    pub fn plan(
+        &self,
+        last: &ChannelOutput,
+        h: f64,
+        refs: &[Reference],
+        applied: &[f64],
+        out: &mut [f64],
+    ) {
+        enum P {
+            I(crate::intelligent::IntelligentPredictor),
+            A(crate::adrc::AdrcPredictor),
+        }
+        let n = out.len().min(refs.len());
+        let predictor = match (&self.law, last.f_est) {
+            _ if last.warming_up || h.is_nan() || h <= 0.0 || !h.is_finite() => None,
+            (Law::Intelligent(c), Some(f)) => c.predictor(f).map(P::I),
+            (Law::Adrc(c), _) => c.predictor().map(P::A),
+            _ => None,
+        };
+        let Some(mut predictor) = predictor else {
+            out.iter_mut().for_each(|o| *o = last.v);
+            return;
+        };
+        let c = &self.config.output;
+        let given = |j: usize| applied.get(j).copied().filter(|a| a.is_finite());
+        // What the plant gets over period j (the one before element j's).
+        let mut v_cur = given(0).unwrap_or(last.v);
+        let mut v_prev = last.v;
+        for j in 0..n {
+            let u_cur = self.map.inverse(v_cur);
+            match &mut predictor {
+                P::I(p) => p.advance(h, u_cur),
+                P::A(p) => p.advance(h, u_cur),
+            }
+            let u = match &mut predictor {
+                P::I(p) => p.law(h, &refs[j]),
+                P::A(p) => p.law(&refs[j]),
+            };
+            let mut v = if u.is_finite() {
+                c.compensate(u).clamp(c.min, c.max)
+            } else {
+                v_prev
+            };
+            if let Some(rate) = c.rate_limit {
+                v = v.clamp(v_prev - rate * h, v_prev + rate * h);
+            }
+            out[j] = v;
+            v_prev = v;
+            v_cur = given(j + 1).unwrap_or(v);
+        }
+        out[n..].iter_mut().for_each(|o| *o = v_prev);
+    }
+
     /// The plant reports that it applied `v` since the last step (not the commanded value):
     /// the estimator and anti-windup will use it.
     pub fn report_applied(&mut self, v: f64) -> Result<()> {

@@ -25,6 +25,11 @@ impl DerivativeFilter {
     pub fn value(&self) -> f64 {
         self.value
     }
+
+    /// The last sample fed, if any.
+    pub fn last(&self) -> Option<f64> {
+        self.last.map(|(_, x)| x)
+    }
 }
 
 /// `exp(-dt / tau)`, the per-step decay of a first-order lag; 0 when `tau` is 0.

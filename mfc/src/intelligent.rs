@@ -16,6 +16,19 @@
 //! is re-evaluated for the new `α` exactly), then either re-initialises the integral so the
 //! output is continuous (kinds with an integral) or adds the difference as an offset that
 //! fades with `bumpless_time_constant`. The applied input therefore never jumps on a change.
+//!
+//! # Quantised measurements
+//! An encoder's output is a staircase. Differentiating it (even filtered) turns every count
+//! into a spike of `e'`, and the estimate of `F` jumps at every count too; through `1/α`
+//! both reach the actuator as chatter, and while holding an angle between two counts the
+//! loop hunts from one to the other (`docs/results.md`). Two options, off by default:
+//!
+//! * `derivative_observer = ω` (n = 2): `e'` comes from an observer of `y` and `y'` driven by
+//!   the ultra-local model itself (`y'' = F_est + α u_applied`), corrected by the
+//!   measurement with both poles at `-ω`. Between counts the model carries the derivative,
+//!   so it needs far less smoothing, and far less lag, than a filter on the staircase.
+//! * `estimate_filter = τ`: a first-order low-pass of time constant `τ` on `F_est` (on both
+//!   parts of its linear form, so that a change of `α` stays exact and bumpless).
 
 use crate::error::{finite, non_negative, nonzero, MfcError, Result};
 use crate::estimator::{Estimator, EstimatorConfig, LinearEstimate, DEFAULT_CAPACITY};
@@ -42,6 +55,11 @@ pub struct IntelligentParams {
     pub kd: f64,
     /// Time constant (s) of the filter on the derivative of `y`. Default: 0.02.
     pub derivative_filter: f64,
+    /// Bandwidth (rad/s) of the model-based observer that gives `y'` instead of the
+    /// derivative filter (n = 2 only; module documentation). Default 0: off.
+    pub derivative_observer: f64,
+    /// Time constant (s) of a low-pass on `F_est` (module documentation). Default 0: off.
+    pub estimate_filter: f64,
     /// Time constant (s) with which the offset left by a parameter change fades.
     /// Default: 0.2.
     pub bumpless_time_constant: f64,
@@ -57,6 +75,8 @@ impl Default for IntelligentParams {
             ki: 0.0,
             kd: 0.0,
             derivative_filter: 0.02,
+            derivative_observer: 0.0,
+            estimate_filter: 0.0,
             bumpless_time_constant: 0.2,
         }
     }
@@ -70,6 +90,15 @@ impl IntelligentParams {
         non_negative("ki", self.ki)?;
         non_negative("kd", self.kd)?;
         non_negative("derivative_filter", self.derivative_filter)?;
+        non_negative("derivative_observer", self.derivative_observer)?;
+        non_negative("estimate_filter", self.estimate_filter)?;
+        if self.derivative_observer > 0.0 && self.order == Order::One {
+            return Err(MfcError::InvalidParameter {
+                name: "derivative_observer",
+                value: self.derivative_observer,
+                reason: "needs an ultra-local model of order 2 (order one gives y' itself)",
+            });
+        }
         non_negative("bumpless_time_constant", self.bumpless_time_constant)?;
         if !self.kind.supports(self.order) {
             return Err(MfcError::IncompatibleOrder {
@@ -129,6 +158,11 @@ pub struct IntelligentController<const CAP: usize = DEFAULT_CAPACITY> {
     /// Fade-out offset left by a change (or a bumpless start).
     pub(crate) bump: f64,
     pub(crate) bumpless_start: bool,
+    /// The model-based observer's `(y, y')`, while `derivative_observer` is on.
+    pub(crate) observer: Option<(f64, f64)>,
+    /// The estimate in force (filtered if `estimate_filter` is on), from the last step
+    /// that had one: the observer's model runs on it.
+    pub(crate) estimate: Option<LinearEstimate>,
     pub(crate) estimator: Estimator<CAP>,
 }
 
@@ -149,6 +183,8 @@ impl<const CAP: usize> IntelligentController<CAP> {
             hold: 0.0,
             bump: 0.0,
             bumpless_start: false,
+            observer: None,
+            estimate: None,
         })
     }
 
@@ -204,6 +240,8 @@ impl<const CAP: usize> IntelligentController<CAP> {
         self.estimator.reset();
         self.integral = 0.0;
         self.derivative = DerivativeFilter::default();
+        self.observer = None;
+        self.estimate = None;
         self.last_t = None;
         self.bump = 0.0;
     }
@@ -214,6 +252,8 @@ impl<const CAP: usize> IntelligentController<CAP> {
     pub fn forget_window(&mut self) {
         self.estimator.reset();
         self.derivative = DerivativeFilter::default();
+        self.observer = None;
+        self.estimate = None;
         self.last_t = None;
         self.hold = self.applied;
         self.last_u = self.applied;
@@ -234,7 +274,8 @@ impl<const CAP: usize> IntelligentController<CAP> {
         self.estimator.push(t, y, self.applied)?;
         self.last_t = Some(t);
         let p = self.params;
-        let dy = self.derivative.update(t, y, p.derivative_filter);
+        let filtered = self.derivative.update(t, y, p.derivative_filter);
+        let dy = self.observe(dt, y, filtered);
         let e = y - r.y;
         let de = dy - r.dy;
         if let Some(dt) = dt {
@@ -247,9 +288,11 @@ impl<const CAP: usize> IntelligentController<CAP> {
                 if let Some(new) = self.pending.take() {
                     self.params = new;
                 }
+                self.estimate = None;
                 (self.hold, None)
             }
             Ok(lin) => {
+                let lin = self.smooth(dt, lin);
                 let old = p.law(lin.at(p.alpha), r, e, de, self.integral) + self.bump;
                 let old = if self.bumpless_start {
                     // Start from what the plant is applying now: after a long warm-up (a
@@ -272,6 +315,80 @@ impl<const CAP: usize> IntelligentController<CAP> {
         self.last_u = u;
         self.applied = u;
         Ok(IntelligentOutput { u, f_est, error: e })
+    }
+
+    /// The state a prediction starts from, after a step that estimated `f`: the last
+    /// measurement, its filtered derivative, the integral and the fading bump. `None`
+    /// before the first step.
+    pub(crate) fn predictor(&self, f: f64) -> Option<IntelligentPredictor> {
+        let (y, dy) = match self.observer {
+            Some(o) => o,
+            None => (self.derivative.last()?, self.derivative.value()),
+        };
+        Some(IntelligentPredictor {
+            params: self.params,
+            f,
+            y,
+            dy,
+            integral: self.integral,
+            bump: self.bump,
+        })
+    }
+
+    /// `y'` for the law: the model-based observer's when it is on and an estimate of `F`
+    /// exists to drive it, else `filtered` (the derivative filter's), from which the
+    /// observer also starts.
+    fn observe(&mut self, dt: Option<f64>, y: f64, filtered: f64) -> f64 {
+        let p = &self.params;
+        if !(p.derivative_observer > 0.0 && p.order == Order::Two) {
+            self.observer = None;
+            return filtered;
+        }
+        let next = match (self.observer, dt, self.estimate) {
+            (Some((oy, ody)), Some(h), Some(lin)) if h > 0.0 => {
+                // Predict over h with the ultra-local model and the input really applied,
+                // then correct with the measurement: both poles at exp(-ω h).
+                let acc = lin.at(p.alpha) + p.alpha * self.applied;
+                let py = oy + h * ody + 0.5 * h * h * acc;
+                let pdy = ody + h * acc;
+                let beta = libm::exp(-p.derivative_observer * h);
+                let e = y - py;
+                let l1 = 1.0 - beta * beta;
+                let l2 = (1.0 - beta) * (1.0 - beta) / h;
+                (py + l1 * e, pdy + l2 * e)
+            }
+            _ => (y, filtered),
+        };
+        // Non-finite only from absurd (finite) data: start again from the measurement.
+        let next = if next.0.is_finite() && next.1.is_finite() {
+            next
+        } else {
+            (y, filtered)
+        };
+        self.observer = Some(next);
+        next.1
+    }
+
+    /// The estimate through `estimate_filter`, remembered as the one in force.
+    fn smooth(&mut self, dt: Option<f64>, lin: LinearEstimate) -> LinearEstimate {
+        let tau = self.params.estimate_filter;
+        let out = match (self.estimate, dt) {
+            (Some(old), Some(h)) if tau > 0.0 && h > 0.0 => {
+                let k = 1.0 - libm::exp(-h / tau);
+                LinearEstimate {
+                    base: old.base + k * (lin.base - old.base),
+                    per_alpha: old.per_alpha + k * (lin.per_alpha - old.per_alpha),
+                }
+            }
+            _ => lin,
+        };
+        let out = if out.base.is_finite() && out.per_alpha.is_finite() {
+            out
+        } else {
+            lin
+        };
+        self.estimate = Some(out);
+        out
     }
 
     /// Rectangle-rule integral of `e`, frozen while the actuator is saturated in the
@@ -321,5 +438,50 @@ impl<const CAP: usize> IntelligentController<CAP> {
         } else {
             self.bump = u_old - new.law(f, r, e, de, self.integral);
         }
+    }
+}
+
+/// The ultra-local model run forward from an intelligent controller's state, for a
+/// packetized horizon ([`crate::Channel::plan`]): `F` is held at its last estimate, and the
+/// law is evaluated on the predicted output exactly as the controller would on a measured
+/// one.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct IntelligentPredictor {
+    params: IntelligentParams,
+    f: f64,
+    y: f64,
+    dy: f64,
+    integral: f64,
+    bump: f64,
+}
+
+impl IntelligentPredictor {
+    /// Let `h` pass with `u` applied: `y' = F + alpha u` (n = 1) or `y'' = F + alpha u`
+    /// (n = 2), exact for a constant `u` over the period.
+    pub(crate) fn advance(&mut self, h: f64, u: f64) {
+        let p = &self.params;
+        let acc = self.f + p.alpha * u;
+        match p.order {
+            Order::One => {
+                self.y += h * acc;
+                self.dy = acc;
+            }
+            Order::Two => {
+                self.y += h * self.dy + 0.5 * h * h * acc;
+                self.dy += h * acc;
+            }
+        }
+        self.bump *= decay(h, p.bumpless_time_constant);
+    }
+
+    /// The law at the predicted state for reference `r`; the integral then takes this
+    /// period's error, as [`IntelligentController::step`] does on the next sample.
+    pub(crate) fn law(&mut self, h: f64, r: &Reference) -> f64 {
+        let e = self.y - r.y;
+        let de = self.dy - r.dy;
+        if self.params.kind.has_integral() {
+            self.integral += e * h;
+        }
+        self.params.law(self.f, r, e, de, self.integral) + self.bump
     }
 }

@@ -5,10 +5,21 @@
 //! the propellers hardly move below about 10 V, so the paper maps `v = 10 + u` for `u > 0`
 //! and `v = -10 + u` for `u < 0`, then the amplifier saturates at ±24 V.
 //!
+//! That *step* compensation makes every `v` with `0 < |v| < dead_zone` unreachable. A real
+//! actuator's dead zone is soft (the AERO's measured torque is already a ninth of full
+//! torque at 7.3 V), so holding a small angle needs a voltage inside the gap, and the loop
+//! can only reach it on average, by switching across it: a limit cycle (`docs/results.md`).
+//! With `smoothing = s > 0` the compensation is `v = u + dead_zone · tanh(u / s)`: odd,
+//! continuous, strictly increasing with slope between 1 and `1 + dead_zone / s`, equal to
+//! the step's within `dead_zone · (1 - tanh(|u| / s))` away from 0, and onto the whole
+//! `[min, max]`: no output is out of reach. `s` is how soft the dead zone is, in units of
+//! `u`; `s → 0` gives the paper's map back, and `smoothing = 0` is exactly that map.
+//!
 //! The estimator must see what the plant *really* got, in the controller's units: the
-//! inverse map `u_applied = sign(v) · max(|v| - dead_zone, 0)` turns an applied voltage
-//! (saturated, rate-limited, or held after a lost command) back into the `u` of the
-//! ultra-local model.
+//! inverse map turns an applied voltage (saturated, rate-limited, or held after a lost
+//! command) back into the `u` of the ultra-local model. For the step it is
+//! `u_applied = sign(v) · max(|v| - dead_zone, 0)`; for the smooth map it is the unique
+//! solution of `v = u + dead_zone · tanh(u / s)`, found to machine precision.
 
 use crate::error::{finite, non_negative, positive, MfcError, Result};
 
@@ -20,6 +31,10 @@ use crate::error::{finite, non_negative, positive, MfcError, Result};
 pub struct OutputMapConfig {
     /// Dead-zone compensation offset added in the direction of `u` (AERO: 10 V). Default 0.
     pub dead_zone: f64,
+    /// How soft the compensation is, in units of `u`: 0 (the default) is the paper's step
+    /// `v = u ± dead_zone`, which leaves `(0, dead_zone)` unreachable; `s > 0` is the smooth
+    /// `v = u + dead_zone · tanh(u / s)`, which reaches every output (module documentation).
+    pub smoothing: f64,
     /// Lower output limit (AERO: -24 V). Default: -infinity.
     pub min: f64,
     /// Upper output limit (AERO: +24 V). Default: +infinity.
@@ -32,6 +47,7 @@ impl Default for OutputMapConfig {
     fn default() -> Self {
         Self {
             dead_zone: 0.0,
+            smoothing: 0.0,
             min: f64::NEG_INFINITY,
             max: f64::INFINITY,
             rate_limit: None,
@@ -40,9 +56,11 @@ impl Default for OutputMapConfig {
 }
 
 impl OutputMapConfig {
-    /// The AERO's map from the paper: ±10 V dead-zone compensation, ±24 V saturation.
+    /// The AERO's map from the paper: ±10 V dead-zone compensation as a step, ±24 V
+    /// saturation.
     pub const AERO: Self = Self {
         dead_zone: 10.0,
+        smoothing: 0.0,
         min: -24.0,
         max: 24.0,
         rate_limit: None,
@@ -51,6 +69,7 @@ impl OutputMapConfig {
     /// Check the configuration.
     pub fn validate(&self) -> Result<()> {
         non_negative("dead_zone", self.dead_zone)?;
+        non_negative("smoothing", self.smoothing)?;
         if self.min.is_nan() || self.max.is_nan() || self.min > 0.0 || self.max < 0.0 {
             return Err(MfcError::InvalidParameter {
                 name: "min/max",
@@ -62,6 +81,68 @@ impl OutputMapConfig {
             positive("rate_limit", r)?;
         }
         Ok(())
+    }
+}
+
+impl OutputMapConfig {
+    /// The dead-zone compensation alone (no limits): odd and nondecreasing.
+    pub fn compensate(&self, u: f64) -> f64 {
+        let d = self.dead_zone;
+        if self.smoothing > 0.0 {
+            u + d * libm::tanh(u / self.smoothing)
+        } else if u > 0.0 {
+            u + d
+        } else if u < 0.0 {
+            u - d
+        } else {
+            0.0
+        }
+    }
+
+    /// The inverse of [`compensate`](Self::compensate): the `u` whose compensation is
+    /// `v` (for the step, 0 inside the dead zone). NaN gives NaN.
+    pub fn uncompensate(&self, v: f64) -> f64 {
+        let d = self.dead_zone;
+        let mag = v.abs();
+        let u = if self.smoothing > 0.0 && d > 0.0 {
+            // g(u) = u + d tanh(u/s) is increasing with g' in [1, 1 + d/s], so the root of
+            // g(u) = |v| lies in [max(|v| - d, 0), |v|]: Newton's steps, kept inside that
+            // bracket by bisection when they leave it, converge in a handful of steps.
+            let s = self.smoothing;
+            let (mut lo, mut hi) = ((mag - d).max(0.0), mag);
+            let mut u = lo;
+            for _ in 0..100 {
+                let th = libm::tanh(u / s);
+                let g = u + d * th - mag;
+                if g == 0.0 {
+                    break;
+                }
+                if g > 0.0 {
+                    hi = u;
+                } else {
+                    lo = u;
+                }
+                let slope = 1.0 + d / s * (1.0 - th * th);
+                let mut next = u - g / slope;
+                if !(next > lo && next < hi) {
+                    next = 0.5 * (lo + hi);
+                }
+                if next == u || hi - lo <= f64::EPSILON * hi {
+                    break;
+                }
+                u = next;
+            }
+            u
+        } else {
+            (mag - d).max(0.0)
+        };
+        if v.is_nan() {
+            f64::NAN
+        } else if v >= 0.0 {
+            u
+        } else {
+            -u
+        }
     }
 }
 
@@ -98,14 +179,7 @@ impl OutputMap {
         finite("time", t)?;
         finite("control", u)?;
         let c = &self.config;
-        let mut v = if u > 0.0 {
-            u + c.dead_zone
-        } else if u < 0.0 {
-            u - c.dead_zone
-        } else {
-            0.0
-        };
-        v = v.clamp(c.min, c.max);
+        let mut v = c.compensate(u).clamp(c.min, c.max);
         if let (Some(rate), Some((t0, v0))) = (c.rate_limit, self.last) {
             let dt = (t - t0).max(0.0);
             v = v.clamp(v0 - rate * dt, v0 + rate * dt);
@@ -115,15 +189,11 @@ impl OutputMap {
     }
 
     /// The virtual input `u` that an applied output `v` amounts to, under the dead-zone
-    /// model the compensation assumes (`v` inside the dead zone does nothing).
+    /// model the compensation assumes: for the step, `v` inside the dead zone does nothing;
+    /// for the smooth map, the `u` it would have compensated to `v`.
     pub fn inverse(&self, v: f64) -> f64 {
-        let v = v.clamp(self.config.min, self.config.max);
-        let mag = (v.abs() - self.config.dead_zone).max(0.0);
-        if v >= 0.0 {
-            mag
-        } else {
-            -mag
-        }
+        self.config
+            .uncompensate(v.clamp(self.config.min, self.config.max))
     }
 
     /// Tell the map what was actually applied (for the rate limit's memory).

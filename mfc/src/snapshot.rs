@@ -50,7 +50,9 @@ snapshot_struct!(IntelligentController {
     last_u,
     hold,
     bump,
-    bumpless_start
+    bumpless_start,
+    observer,
+    estimate
 });
 snapshot_struct!(Channel {
     law,

@@ -57,7 +57,7 @@ pub enum Command {
         device: String,
     },
     /// Change single parameters of one channel (a partial change: nothing else moves).
-    /// Fields: kp ki kd alpha derivative_filter b0 wc wo setpoint_weight dead_zone min max
+    /// Fields: kp ki kd alpha derivative_filter derivative_observer estimate_filter b0 wc wo setpoint_weight dead_zone smoothing min max
     /// rate_limit. Output limits must stay inside the envelope.
     Set {
         /// Device id.
@@ -187,12 +187,15 @@ pub fn parse_update(channel: u32, fields: &[String]) -> Result<pb::ChannelUpdate
             "wo" => &mut u.wo,
             "setpoint_weight" => &mut u.setpoint_weight,
             "dead_zone" => &mut u.dead_zone,
+            "smoothing" => &mut u.smoothing,
+            "derivative_observer" => &mut u.derivative_observer,
+            "estimate_filter" => &mut u.estimate_filter,
             "min" => &mut u.min,
             "max" => &mut u.max,
             "rate_limit" => &mut u.rate_limit,
             other => bail!(
-                "unknown field {other:?}: kp ki kd alpha derivative_filter b0 wc wo \
-                 setpoint_weight dead_zone min max rate_limit"
+                "unknown field {other:?}: kp ki kd alpha derivative_filter derivative_observer estimate_filter b0 wc wo \
+                 setpoint_weight dead_zone smoothing min max rate_limit"
             ),
         };
         *slot = Some(v);

@@ -193,8 +193,13 @@ pub fn config(c: &pb::DeviceConfig) -> String {
         let _ = writeln!(out, "  channel {i}: {}", law(ch));
         let _ = writeln!(
             out,
-            "    output: dead zone {}, limits [{}, {}], rate {}",
+            "    output: dead zone {}{}, limits [{}, {}], rate {}",
             o.dead_zone,
+            if o.smoothing > 0.0 {
+                format!(" (smooth, {})", o.smoothing)
+            } else {
+                String::new()
+            },
             opt(o.min),
             opt(o.max),
             opt(o.rate_limit)

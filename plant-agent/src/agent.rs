@@ -348,7 +348,24 @@ impl PlantThread {
     }
 }
 
-fn flags(mode: Mode) -> u32 {
+/// A decoded command as the supervisor judges it (a mode this agent does not know, STALE
+/// included, is `Unknown`).
+pub fn incoming(cmd: &pb::Command) -> IncomingCommand<'_> {
+    let body = match pb::Mode::try_from(cmd.mode) {
+        Ok(pb::Mode::Control) => CommandBody::Control(&cmd.v),
+        Ok(pb::Mode::WarmingUp) => CommandBody::WarmingUp,
+        Ok(pb::Mode::Rejected) => CommandBody::Rejected(&cmd.error),
+        _ => CommandBody::Unknown,
+    };
+    IncomingCommand {
+        seq: cmd.seq,
+        body,
+        horizon: &cmd.horizon,
+    }
+}
+
+/// The sample flags that report `mode`.
+pub fn flags(mode: Mode) -> u32 {
     match mode {
         Mode::Remote => 0,
         Mode::Holding => pb::SampleFlags::Holding as u32,
@@ -650,7 +667,10 @@ async fn periods(
             );
         }
         if let Some(v) = begin.write {
-            if !matches!(mode_before, Mode::Local | Mode::SafeStop) {
+            // A write at the start of a period is the fallback engaging, or (in Remote or
+            // Holding) the last command's horizon playing its element: only the first is
+            // news.
+            if sup.mode().is_fallback() && !mode_before.is_fallback() {
                 if answered_once {
                     tracing::warn!(
                         device = id,
@@ -698,15 +718,9 @@ async fn periods(
                     continue;
                 }
             };
-            let body = match pb::Mode::try_from(cmd.mode) {
-                Ok(pb::Mode::Control) => CommandBody::Control(&cmd.v),
-                Ok(pb::Mode::WarmingUp) => CommandBody::WarmingUp,
-                Ok(pb::Mode::Rejected) => CommandBody::Rejected(&cmd.error),
-                _ => CommandBody::Unknown,
-            };
             let at = arrival.saturating_duration_since(deadline).as_secs_f64();
             let was = sup.mode();
-            let (verdict, answered) = sup.on_command(at, IncomingCommand { seq: cmd.seq, body });
+            let (verdict, answered) = sup.on_command(at, incoming(&cmd));
             match verdict {
                 Verdict::Apply { v, advance, .. } => {
                     let written = match plant.advance(advance).await {

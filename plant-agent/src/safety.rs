@@ -10,6 +10,10 @@
 //!   than one already applied is dropped);
 //! * how long to hold the last command when answers stop, and when to fall back (to the
 //!   local controller, or to a safe stop);
+//! * what to play instead of holding when the last command carried a horizon (packetized
+//!   predictive control): in each period without its own command, the element of the last
+//!   command's horizon for that period, written at the period's start; and for a command
+//!   that lands late, the element for the period it lands in rather than its own `v`;
 //! * what mode to report in each sample and each period, and the counters of the run;
 //! * the time-weighted mean of what the plant really got over each period (a command that
 //!   lands mid-period was applied for part of it only, and the estimators integrate exactly
@@ -52,6 +56,8 @@ use serde::{Deserialize, Serialize};
 const MAX_AGE_LIMIT: u32 = 1000;
 /// Longest `hold_periods` accepted: holding a command for longer is not a safety setting.
 const HOLD_PERIODS_LIMIT: u32 = 100_000;
+/// Longest horizon accepted in a command (periods): the controller sends at most 100.
+pub const MAX_HORIZON: usize = 100;
 
 /// What to do when commands stop coming.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -122,7 +128,7 @@ impl FromStr for FallbackPolicy {
 pub enum Mode {
     /// Applying the remote controller's commands.
     Remote,
-    /// A command is missing: the last one applied is held.
+    /// A command is missing: the last one applied is held, or its horizon played.
     Holding,
     /// The fallback engaged: the local controller drives the plant.
     Local,
@@ -294,6 +300,9 @@ pub struct IncomingCommand<'a> {
     pub seq: u64,
     /// What it says.
     pub body: CommandBody<'a>,
+    /// For a control: the inputs predicted for the samples after `seq`, period-major
+    /// (`[j * n + i]`: input `i` for sample `seq + 1 + j`); empty for none.
+    pub horizon: &'a [f64],
 }
 
 /// Why a command was dropped.
@@ -307,7 +316,8 @@ pub enum Ignored {
     Superseded,
     /// More than `max_age` periods old.
     TooOld,
-    /// Wrong number of inputs, a NaN or infinite input, or an unknown mode.
+    /// Wrong number of inputs, a NaN or infinite input, a horizon that is not whole
+    /// periods of finite inputs or is longer than [`MAX_HORIZON`], or an unknown mode.
     Malformed,
 }
 
@@ -369,6 +379,14 @@ pub struct Counters {
     pub local_periods: u64,
     /// Periods in safe stop.
     pub safe_stop_periods: u64,
+    /// Periods without their own command that were driven by an element of the last
+    /// command's horizon instead of a held value (a subset of `holding_periods`).
+    #[serde(default)]
+    pub horizon_periods: u64,
+    /// Late commands applied with the element of their horizon for the period they landed
+    /// in (a subset of `late`).
+    #[serde(default)]
+    pub horizon_late: u64,
 }
 
 /// What to do at the start of a period.
@@ -380,7 +398,8 @@ pub struct Begin {
     /// Time-weighted mean of what the plant applied over the last period (the initial
     /// applied value for the first period), for the sample.
     pub applied_mean: Vec<f64>,
-    /// The fallback's inputs, to write now (at the start of the period), if it is engaged.
+    /// Inputs to write now, at the start of the period: the fallback's, if it is engaged,
+    /// or else the last command's horizon element for this period, if it has one.
     pub write: Option<Vec<f64>>,
 }
 
@@ -405,6 +424,8 @@ struct Period {
     got: bool,
     /// A warming-up answer came during the period.
     warming: bool,
+    /// A horizon element was written at the start of the period.
+    planned: bool,
     /// Seconds since the deadline up to which the plant has been integrated; also the
     /// start of the segment the current inputs were applied over.
     elapsed: f64,
@@ -428,6 +449,9 @@ pub struct Supervisor {
     mean: Vec<f64>,
     period: Option<Period>,
     last_k: Option<u64>,
+    /// The horizon of the last command applied (`[j * n + i]` for sample
+    /// `last_applied_seq + 1 + j`); emptied when the fallback engages.
+    plan: Vec<f64>,
 }
 
 impl Supervisor {
@@ -465,7 +489,15 @@ impl Supervisor {
             segments: vec![0.0; n],
             period: None,
             last_k: None,
+            plan: Vec::new(),
         })
+    }
+
+    /// The last command's horizon element for period `k`, if it reaches that far.
+    fn plan_for(&self, k: u64) -> Option<&[f64]> {
+        let n = self.applied.len();
+        let j = k.checked_sub(self.last_applied_seq?)?.checked_sub(1)? as usize;
+        self.plan.get(j * n..(j + 1) * n)
     }
 
     /// Start period `k` at plant time `t` with the outputs `y` just read and the references
@@ -514,6 +546,7 @@ impl Supervisor {
             fallback: None,
             got: false,
             warming: false,
+            planned: false,
             elapsed: 0.0,
         };
         let due = self.missing_streak > 0 && self.missing_streak >= self.config.hold_periods;
@@ -529,7 +562,15 @@ impl Supervisor {
             }
             self.mode = mode;
             period.fallback = Some(mode);
+            // A horizon is the remote controller's: it never plays under the fallback.
+            self.plan.clear();
             // Until the plant reports otherwise, assume the write took effect as given.
+            self.applied.clone_from(&v);
+            Some(v)
+        } else if let Some(v) = self.plan_for(k).map(<[f64]>::to_vec) {
+            // The remote controller's prediction for this period, until (if) the period's
+            // own command lands.
+            period.planned = true;
             self.applied.clone_from(&v);
             Some(v)
         } else {
@@ -588,6 +629,13 @@ impl Supervisor {
                 CommandBody::Control(v) if v.len() != n || !v.iter().all(|x| x.is_finite()) => {
                     Some(Ignored::Malformed)
                 }
+                CommandBody::Control(_)
+                    if cmd.horizon.len() % n.max(1) != 0
+                        || cmd.horizon.len() > MAX_HORIZON * n
+                        || !cmd.horizon.iter().all(|x| x.is_finite()) =>
+                {
+                    Some(Ignored::Malformed)
+                }
                 CommandBody::Unknown => Some(Ignored::Malformed),
                 _ => None,
             }
@@ -606,6 +654,16 @@ impl Supervisor {
         let own = seq == k;
         let verdict = match cmd.body {
             CommandBody::Control(v) => {
+                // Late, with a horizon: the element for the period it lands in (the last
+                // one if the horizon is shorter than the delay).
+                let periods = cmd.horizon.len() / n.max(1);
+                let v = if own || periods == 0 {
+                    v
+                } else {
+                    bump(&mut self.counters.horizon_late);
+                    let j = ((k - seq) as usize).min(periods) - 1;
+                    &cmd.horizon[j * n..(j + 1) * n]
+                };
                 let at = if at.is_nan() {
                     p.elapsed
                 } else {
@@ -620,6 +678,8 @@ impl Supervisor {
                 // Until the plant reports otherwise, assume the write took effect as given.
                 self.applied.copy_from_slice(v);
                 self.last_applied_seq = Some(seq);
+                self.plan.clear();
+                self.plan.extend_from_slice(cmd.horizon);
                 self.mode = Mode::Remote;
                 self.missing_streak = 0;
                 bump(&mut self.counters.commands);
@@ -672,6 +732,9 @@ impl Supervisor {
             _ => Mode::Remote,
         };
         let c = &mut self.counters;
+        if missing && p.planned && mode == Mode::Holding {
+            bump(&mut c.horizon_periods);
+        }
         match mode {
             Mode::Holding => bump(&mut c.holding_periods),
             Mode::Local => bump(&mut c.local_periods),
@@ -744,6 +807,7 @@ mod tests {
             law: LawConfig::intelligent(ControllerKind::P, Order::One, 2.0, [3.0, 0.0, 0.0], 3),
             output: OutputMapConfig {
                 dead_zone: 0.0,
+                smoothing: 0.0,
                 min: -24.0,
                 max: 24.0,
                 rate_limit: None,
@@ -781,6 +845,7 @@ mod tests {
         IncomingCommand {
             seq,
             body: CommandBody::Control(v),
+            horizon: &[],
         }
     }
 
@@ -788,6 +853,7 @@ mod tests {
         IncomingCommand {
             seq,
             body: CommandBody::WarmingUp,
+            horizon: &[],
         }
     }
 
@@ -795,6 +861,7 @@ mod tests {
         IncomingCommand {
             seq,
             body: CommandBody::Rejected("no"),
+            horizon: &[],
         }
     }
 
@@ -858,6 +925,123 @@ mod tests {
             + c.rejected
             + c.malformed
             + c.future
+    }
+
+    fn planned<'a>(seq: u64, v: &'a [f64], horizon: &'a [f64]) -> IncomingCommand<'a> {
+        IncomingCommand {
+            seq,
+            body: CommandBody::Control(v),
+            horizon,
+        }
+    }
+
+    // ---- the horizon (packetized predictive control) ----
+
+    #[test]
+    fn lost_commands_are_replaced_by_their_elements_of_the_last_horizon() {
+        // Two channels; command 3 carries three periods: 4 -> (1, 2), 5 -> (3, 4), 6 -> (5, 6).
+        let mut s = sup_n(2, 10, 5, FallbackPolicy::LocalController);
+        for k in 0..3 {
+            period(&mut s, k, Some(0.5));
+        }
+        begin(&mut s, 3);
+        let h = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0];
+        let (verdict, done) = command(&mut s, 0.1, planned(3, &[9.0, 9.5], &h));
+        assert!(done && matches!(verdict, Verdict::Apply { ref v, .. } if v == &[9.0, 9.5]));
+        s.end_period().unwrap();
+        // Commands 4 and 5 are lost: each period starts on its element, not on the hold.
+        for (k, want) in [(4, [1.0, 2.0]), (5, [3.0, 4.0]), (6, [5.0, 6.0])] {
+            let b = begin(&mut s, k);
+            assert_eq!(b.write.as_deref(), Some(&want[..]), "period {k}");
+            assert_eq!(s.applied_now(), &want);
+            let end = s.end_period().unwrap();
+            assert!(end.missing);
+            assert_eq!(end.mode, Mode::Holding);
+        }
+        // What each period applied is what the next sample reports: the estimator's input.
+        let b = begin(&mut s, 7);
+        assert_eq!(b.applied_mean, vec![5.0, 6.0]);
+        // Past the horizon: the last value is held until the fallback is due (hold 5).
+        assert_eq!(b.write, None);
+        s.end_period().unwrap();
+        let c = s.counters();
+        assert_eq!((c.horizon_periods, c.holding_periods, c.missing), (3, 4, 4));
+        let b = begin(&mut s, 8);
+        assert_eq!(b.write, None);
+        s.end_period().unwrap();
+        let b = begin(&mut s, 9);
+        assert_eq!(s.mode(), Mode::Local, "{b:?}");
+        assert_eq!(s.counters().fallbacks, 1);
+    }
+
+    #[test]
+    fn the_mean_applied_over_a_period_counts_the_element_until_the_own_command_lands() {
+        let mut s = sup(10, 5, FallbackPolicy::LocalController);
+        begin(&mut s, 0);
+        command(&mut s, 0.0, planned(0, &[2.0], &[4.0, 6.0]));
+        s.end_period().unwrap();
+        // Period 1: the element (4) from the deadline, the own command (8) from 0.1 s on.
+        let b = begin(&mut s, 1);
+        assert_eq!(b.write, Some(vec![4.0]));
+        command(&mut s, 0.1, planned(1, &[8.0], &[]));
+        s.end_period().unwrap();
+        let b = begin(&mut s, 2);
+        let want = (4.0 * 0.1 + 8.0 * (H - 0.1)) / H;
+        assert!((b.applied_mean[0] - want).abs() < 1e-12, "{b:?}");
+        // Command 1 had no horizon: period 2 holds 8, nothing is written.
+        assert_eq!(b.write, None);
+        assert_eq!(s.counters().horizon_periods, 0);
+    }
+
+    #[test]
+    fn a_late_command_applies_the_element_for_the_period_it_lands_in() {
+        let mut s = sup(10, 100, FallbackPolicy::LocalController);
+        for k in 0..3 {
+            begin(&mut s, k);
+            s.end_period().unwrap();
+        }
+        begin(&mut s, 3);
+        // Command 0 lands in period 3: element 3 - 0 - 1 = 2 of its horizon.
+        let (verdict, _) = command(&mut s, 0.1, planned(0, &[1.0], &[2.0, 3.0, 4.0, 5.0]));
+        assert!(matches!(verdict, Verdict::Apply { ref v, late: true, .. } if v == &[4.0]));
+        assert_eq!(s.counters().horizon_late, 1);
+        s.end_period().unwrap();
+        // Its next element plays in period 4.
+        assert_eq!(begin(&mut s, 4).write, Some(vec![5.0]));
+        s.end_period().unwrap();
+        // A command later than its horizon is long applies the last element.
+        begin(&mut s, 5);
+        s.end_period().unwrap();
+        begin(&mut s, 6);
+        let (verdict, _) = command(&mut s, 0.1, planned(2, &[1.0], &[7.0, 8.0]));
+        assert!(matches!(verdict, Verdict::Apply { ref v, .. } if v == &[8.0]));
+    }
+
+    #[test]
+    fn a_bad_horizon_makes_the_command_malformed_and_the_fallback_clears_it() {
+        let mut s = sup_n(2, 10, 1, FallbackPolicy::SafeStop);
+        begin(&mut s, 0);
+        let v = [1.0, 1.0];
+        assert_eq!(
+            ignored(&mut s, planned(0, &v, &[1.0, 2.0, 3.0])),
+            Ignored::Malformed
+        );
+        assert_eq!(
+            ignored(&mut s, planned(0, &v, &[1.0, f64::NAN])),
+            Ignored::Malformed
+        );
+        let long = vec![0.0; 2 * (MAX_HORIZON + 1)];
+        assert_eq!(ignored(&mut s, planned(0, &v, &long)), Ignored::Malformed);
+        // A whole horizon is accepted; then the link dies and the safe stop engages.
+        command(&mut s, 0.1, planned(0, &v, &[2.0, 2.0, 3.0, 3.0, 4.0, 4.0]));
+        s.end_period().unwrap();
+        assert_eq!(begin(&mut s, 1).write, Some(vec![2.0, 2.0]));
+        s.end_period().unwrap();
+        assert_eq!(begin(&mut s, 2).write, Some(vec![0.0, 0.0]));
+        assert_eq!(s.mode(), Mode::SafeStop);
+        s.end_period().unwrap();
+        // Never the horizon again under the fallback, although it would reach period 3.
+        assert_eq!(begin(&mut s, 3).write, Some(vec![0.0, 0.0]));
     }
 
     // ---- configuration, construction, serde ----
@@ -1163,6 +1347,7 @@ mod tests {
         let unknown = IncomingCommand {
             seq: 0,
             body: CommandBody::Unknown,
+            horizon: &[],
         };
         assert_eq!(ignored(&mut s, unknown), Ignored::Malformed);
         assert_eq!(s.counters().malformed, 7);
@@ -1884,7 +2069,14 @@ mod tests {
                     let before = s.counters().clone();
                     let last = s.last_applied_seq();
                     delivered += 1;
-                    let (verdict, done) = s.on_command(at, IncomingCommand { seq, body });
+                    let (verdict, done) = s.on_command(
+                        at,
+                        IncomingCommand {
+                            seq,
+                            body,
+                            horizon: &[],
+                        },
+                    );
                     assert_eq!(total(s.counters()), total(&before) + 1);
                     assert_eq!(done, seq == k && !matches!(verdict, Verdict::Ignored(_)));
                     match verdict {

@@ -282,7 +282,7 @@ impl Scenario {
 const SHIPPED_ROOT: &str = "<shipped>/plants/aero";
 
 /// The shipped AERO scenarios: (name, file name, text).
-pub const SHIPPED_SCENARIOS: [(&str, &str, &str); 4] = [
+pub const SHIPPED_SCENARIOS: [(&str, &str, &str); 5] = [
     (
         "1",
         "1-simple.toml",
@@ -303,10 +303,15 @@ pub const SHIPPED_SCENARIOS: [(&str, &str, &str); 4] = [
         "4-complex-mass.toml",
         include_str!("../../plants/aero/scenarios/4-complex-mass.toml"),
     ),
+    (
+        "5",
+        "5-fast-steps.toml",
+        include_str!("../../plants/aero/scenarios/5-fast-steps.toml"),
+    ),
 ];
 
 /// The shipped AERO controller sets: (name, text).
-pub const SHIPPED_CONTROLLERS: [(&str, &str); 6] = [
+pub const SHIPPED_CONTROLLERS: [(&str, &str); 7] = [
     ("ip", include_str!("../../plants/aero/controllers/ip.toml")),
     (
         "ipi",
@@ -315,6 +320,10 @@ pub const SHIPPED_CONTROLLERS: [(&str, &str); 6] = [
     (
         "ipd",
         include_str!("../../plants/aero/controllers/ipd.toml"),
+    ),
+    (
+        "ipd-plain",
+        include_str!("../../plants/aero/controllers/ipd-plain.toml"),
     ),
     (
         "ipd-tuned",

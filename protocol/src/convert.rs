@@ -61,6 +61,8 @@ pub fn channel_to_pb(c: &ChannelConfig) -> pb::ChannelConfig {
             kd: params.kd,
             derivative_filter: params.derivative_filter,
             bumpless_time_constant: params.bumpless_time_constant,
+            derivative_observer: params.derivative_observer,
+            estimate_filter: params.estimate_filter,
             estimator: Some(pb::Estimator {
                 kind: match estimator.kind {
                     EstimatorKind::Algebraic => pb::estimator::Kind::Algebraic,
@@ -101,6 +103,7 @@ pub fn channel_to_pb(c: &ChannelConfig) -> pb::ChannelConfig {
         law: Some(law),
         output: Some(pb::OutputMap {
             dead_zone: o.dead_zone,
+            smoothing: o.smoothing,
             min: o.min.is_finite().then_some(o.min),
             max: o.max.is_finite().then_some(o.max),
             rate_limit: o.rate_limit,
@@ -146,6 +149,8 @@ pub fn channel_from_pb(c: &pb::ChannelConfig) -> Result<ChannelConfig, ConvertEr
                     kd: i.kd,
                     derivative_filter: i.derivative_filter,
                     bumpless_time_constant: i.bumpless_time_constant,
+                    derivative_observer: i.derivative_observer,
+                    estimate_filter: i.estimate_filter,
                 },
                 estimator: EstimatorConfig {
                     kind: est_kind,
@@ -182,6 +187,7 @@ pub fn channel_from_pb(c: &pb::ChannelConfig) -> Result<ChannelConfig, ConvertEr
     let o = c.output.unwrap_or_default();
     let output = OutputMapConfig {
         dead_zone: o.dead_zone,
+        smoothing: o.smoothing,
         min: o.min.unwrap_or(f64::NEG_INFINITY),
         max: o.max.unwrap_or(f64::INFINITY),
         rate_limit: o.rate_limit,
@@ -240,6 +246,16 @@ pub fn apply_update(
                 u.derivative_filter,
                 Some(&mut params.derivative_filter),
             )?;
+            set(
+                "derivative_observer",
+                u.derivative_observer,
+                Some(&mut params.derivative_observer),
+            )?;
+            set(
+                "estimate_filter",
+                u.estimate_filter,
+                Some(&mut params.estimate_filter),
+            )?;
             set("b0", u.b0, None)?;
             set("wc", u.wc, None)?;
             set("wo", u.wo, None)?;
@@ -255,6 +271,8 @@ pub fn apply_update(
                 u.derivative_filter,
                 Some(&mut params.derivative_filter),
             )?;
+            set("derivative_observer", u.derivative_observer, None)?;
+            set("estimate_filter", u.estimate_filter, None)?;
             set("b0", u.b0, None)?;
             set("wc", u.wc, None)?;
             set("wo", u.wo, None)?;
@@ -270,6 +288,8 @@ pub fn apply_update(
             set("kd", u.kd, None)?;
             set("alpha", u.alpha, None)?;
             set("derivative_filter", u.derivative_filter, None)?;
+            set("derivative_observer", u.derivative_observer, None)?;
+            set("estimate_filter", u.estimate_filter, None)?;
             set("b0", u.b0, Some(&mut params.b0))?;
             set("wc", u.wc, Some(&mut params.wc))?;
             set("wo", u.wo, Some(&mut params.wo))?;
@@ -278,6 +298,9 @@ pub fn apply_update(
     }
     if let Some(v) = u.dead_zone {
         cfg.output.dead_zone = v;
+    }
+    if let Some(v) = u.smoothing {
+        cfg.output.smoothing = v;
     }
     if let Some(v) = u.min {
         cfg.output.min = v;

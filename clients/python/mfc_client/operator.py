@@ -23,8 +23,8 @@ M = TypeVar("M", bound=Message)
 
 #: The single-value fields of a ChannelUpdate (see the .proto for which law has which).
 UPDATE_FIELDS = (
-    "kp", "ki", "kd", "alpha", "derivative_filter", "b0", "wc", "wo", "setpoint_weight",
-    "dead_zone", "min", "max", "rate_limit",
+    "kp", "ki", "kd", "alpha", "derivative_filter", "derivative_observer", "estimate_filter", "b0", "wc", "wo", "setpoint_weight",
+    "dead_zone", "smoothing", "min", "max", "rate_limit",
 )
 #: Its law fields: a new law replacing the one in force (its output map kept).
 LAW_FIELDS = ("intelligent", "pid", "adrc")

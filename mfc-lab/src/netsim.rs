@@ -1,0 +1,238 @@
+//! The networked loop in lockstep: the service's per-device rules (its [`Registry`]) and
+//! the agent's safety state machine (its [`Supervisor`]), with a seeded model of a lossy,
+//! delayed link between them, and the plant, all in one thread on a simulated clock.
+//!
+//! It is the loop of `plant-agent` and `controller-service` without Zenoh, sockets or real
+//! time: every decision is made by the same code as in production, only the transport is a
+//! model (each message lost with a probability, delayed by a uniform draw in
+//! `delay ± jitter`, and so possibly reordered). A run takes a fraction of a second and is
+//! bit-for-bit repeatable, which is what designing a controller for a bad network needs;
+//! the fault campaign (`mfc-lab campaign`) measures the real thing, through a real relay,
+//! in real time.
+
+use std::cmp::Reverse;
+use std::collections::BinaryHeap;
+
+use controller_service::config::Prediction;
+use controller_service::registry::{Outcome, Registry};
+use mfc::trajectory::evaluate;
+use mfc::Reference;
+use plant_agent::agent::{flags, incoming};
+use plant_agent::record::{Accumulator, ChannelMetrics};
+use plant_agent::safety::{Counters, SafetyConfig, Supervisor, Verdict};
+use plant_agent::scenario::{ControllerSet, Scenario};
+use protocol::{pb, PROTOCOL_VERSION};
+use rand_xoshiro::rand_core::{Rng as _, SeedableRng};
+use rand_xoshiro::Xoshiro256StarStar;
+use serde::{Deserialize, Serialize};
+
+use crate::harness::service_config;
+use crate::offline::RunError;
+
+/// Which way a link loses messages.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum Lossy {
+    /// Samples and commands alike.
+    Both,
+    /// Samples only (plant to controller).
+    Up,
+    /// Commands only (controller to plant).
+    Down,
+}
+
+/// The link: delays the same both ways, losses where `lossy` says.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LinkModel {
+    /// Probability that a message is lost, on the ways `lossy` says.
+    pub loss: f64,
+    /// Which way messages are lost.
+    pub lossy: Lossy,
+    /// One-way delay (s).
+    pub delay: f64,
+    /// Half-width of the uniform spread around `delay` (s).
+    pub jitter: f64,
+    /// Seed of the draws.
+    pub seed: u64,
+}
+
+impl LinkModel {
+    /// A perfect link: nothing lost, no delay.
+    pub const PERFECT: Self = Self {
+        loss: 0.0,
+        lossy: Lossy::Both,
+        delay: 0.0,
+        jitter: 0.0,
+        seed: 0,
+    };
+
+    /// Check the figures.
+    pub fn check(&self) -> Result<(), String> {
+        if !(0.0..=1.0).contains(&self.loss) {
+            return Err(format!("loss {} is not between 0 and 1", self.loss));
+        }
+        for (name, v) in [("delay", self.delay), ("jitter", self.jitter)] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!("{name} {v} is not a finite number >= 0"));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// What a run gave.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct NetRun {
+    /// Controller (with its options).
+    pub controller: String,
+    /// Per channel, over the whole run.
+    pub channels: Vec<ChannelMetrics>,
+    /// The agent's counters.
+    pub counters: Counters,
+    /// Samples the link lost, and commands.
+    pub samples_lost: u64,
+    pub commands_lost: u64,
+}
+
+#[derive(Debug)]
+enum Event {
+    /// A sample reaches the service.
+    Sample(pb::Sample),
+    /// A command reaches the agent; the plant time of the sample it answers.
+    Command(pb::Command, f64),
+}
+
+/// Run `scenario` with `controller` (and the service's `prediction` for its device)
+/// through `link`, with the agent's `safety` settings.
+pub fn simulate_net(
+    scenario: &Scenario,
+    controller: &ControllerSet,
+    prediction: Prediction,
+    link: &LinkModel,
+    safety: SafetyConfig,
+) -> Result<NetRun, RunError> {
+    link.check().map_err(|reason| RunError::Link { reason })?;
+    scenario.check_controller(controller)?;
+    let n = scenario.channels.len();
+    let id = "net-1".to_string();
+    let mut config = service_config(scenario, controller, std::slice::from_ref(&id));
+    for d in &mut config.devices {
+        d.prediction = prediction;
+    }
+    let mut registry = Registry::new(config).map_err(|e| RunError::Link {
+        reason: e.to_string(),
+    })?;
+    let mut plant = plant_agent::plant::open(&scenario.plant, scenario.seed, n)?;
+    let initial = plant.write(&vec![0.0; n])?;
+    let mut sup =
+        Supervisor::new(safety, &scenario.channel_configs(controller), initial).map_err(|e| {
+            RunError::Link {
+                reason: e.to_string(),
+            }
+        })?;
+    let mut rng = Xoshiro256StarStar::seed_from_u64(link.seed);
+    let mut uniform = move || (rng.next_u64() >> 11) as f64 / (1u64 << 53) as f64;
+    // One draw says whether a message is lost, the next how long it takes.
+    let mut draw = move || {
+        let lost = uniform() < link.loss;
+        let delay = (link.delay + link.jitter * (2.0 * uniform() - 1.0)).max(0.0);
+        (lost, delay)
+    };
+    let h = scenario.period;
+    let mut queue: BinaryHeap<Reverse<(u64, u64)>> = BinaryHeap::new();
+    let mut events: Vec<Option<Event>> = Vec::new();
+    // Times in integer nanoseconds, so that the heap orders them exactly.
+    let ns = |s: f64| (s * 1e9).round() as u64;
+    let mut acc = vec![Accumulator::default(); n];
+    let mut refs = vec![Reference::default(); n];
+    let (mut samples_lost, mut commands_lost) = (0, 0);
+    let mut last_rtt_us = 0u32;
+    for k in 0..scenario.steps() {
+        let t = k as f64 * h;
+        let y = plant.read()?;
+        for (r, c) in refs.iter_mut().zip(&scenario.channels) {
+            *r = evaluate(&c.reference, t);
+        }
+        let begin = sup
+            .begin_period(k as u64, t, &y, &refs)
+            .map_err(|e| RunError::Link {
+                reason: e.to_string(),
+            })?;
+        if let Some(v) = &begin.write {
+            let a = plant.write(v)?;
+            sup.applied(&a);
+        }
+        let sample = pb::Sample {
+            version: PROTOCOL_VERSION,
+            device_id: id.clone(),
+            seq: k as u64,
+            plant_time: t,
+            outputs: y.clone(),
+            applied: begin.applied_mean.clone(),
+            flags: flags(begin.sample_mode),
+            sent_unix_ns: ns(t),
+            last_rtt_us,
+            run_id: 1,
+        };
+        let (lost, delay) = draw();
+        if lost && link.lossy != Lossy::Down {
+            samples_lost += 1;
+        } else {
+            let at = ns(t + delay);
+            queue.push(Reverse((at, events.len() as u64)));
+            events.push(Some(Event::Sample(sample)));
+        }
+        let end_ns = ns(t + h);
+        while let Some(Reverse((at, i))) = queue.peek().copied() {
+            if at >= end_ns {
+                break;
+            }
+            queue.pop();
+            match events[i as usize].take() {
+                Some(Event::Sample(s)) => {
+                    if let Outcome::Reply(cmd) = registry.handle_sample(&id, &s) {
+                        let (lost, delay) = draw();
+                        if lost && link.lossy != Lossy::Up {
+                            commands_lost += 1;
+                        } else {
+                            let arrive = at + ns(delay);
+                            queue.push(Reverse((arrive, events.len() as u64)));
+                            events.push(Some(Event::Command(cmd, s.plant_time)));
+                        }
+                    }
+                }
+                Some(Event::Command(cmd, sent)) => {
+                    let now = at as f64 * 1e-9;
+                    last_rtt_us = ((now - sent) * 1e6).round().clamp(1.0, u32::MAX as f64) as u32;
+                    let (verdict, _) = sup.on_command(now - t, incoming(&cmd));
+                    if let Verdict::Apply { v, advance, .. } = verdict {
+                        plant.advance(advance)?;
+                        let a = plant.write(&v)?;
+                        sup.applied(&a);
+                    }
+                }
+                None => {}
+            }
+        }
+        let end = sup.end_period().map_err(|e| RunError::Link {
+            reason: e.to_string(),
+        })?;
+        plant.advance(end.advance)?;
+        let applied = sup.applied_now();
+        for (i, c) in scenario.channels.iter().enumerate() {
+            acc[i].add(y[i] - refs[i].y, h, applied[i], c.saturated(applied[i]));
+        }
+    }
+    plant.stop()?;
+    Ok(NetRun {
+        controller: controller.name.clone(),
+        channels: acc
+            .iter()
+            .zip(&scenario.channels)
+            .map(|(a, c)| a.finish(&c.name))
+            .collect(),
+        counters: sup.counters().clone(),
+        samples_lost,
+        commands_lost,
+    })
+}
