@@ -7,9 +7,10 @@
 //!
 //! [[devices]]                          # declared devices
 //! id = "aero-1"
+//! prediction = { horizon = 10, delay_compensation = true }   # default: none
 //! [[devices.channels]]
 //! law = { law = "intelligent", params = { kind = "ip", alpha = 0.001, kp = 0.5 } }
-//! output = { dead_zone = 10.0, min = -24.0, max = 24.0 }
+//! output = { dead_zone = 10.0, smoothing = 2.0, min = -24.0, max = 24.0 }
 //! envelope = { min = -24.0, max = 24.0, rate_limit = 2400.0 }  # default: output's limits
 //! reference = [{ kind = "constant", value = 0.0 }]
 //!

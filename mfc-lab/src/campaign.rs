@@ -314,8 +314,9 @@ pub fn plots(out: &Path, c: &Campaign, set: &ProfileSet) -> Result<()> {
         let ymax = series
             .iter()
             .flat_map(|(_, p)| p.iter().map(|x| x.1))
+            .filter(|y| y.is_finite())
             .fold(2.0, f64::max)
-            * 1.1;
+            * 1.2;
         plant_agent::record::plot::ensure_font();
         let png = out.join(format!("{file}.png"));
         let svg = out.join(format!("{file}.svg"));
@@ -349,15 +350,17 @@ where
 {
     let e = |err: DrawingAreaErrorKind<DB::ErrorType>| anyhow::anyhow!("plot: {err:?}");
     root.fill(&WHITE).map_err(e)?;
+    // A ratio axis on a log scale: a controller that breaks down (ratios of 10 or 20) must
+    // not flatten the ones that matter, between 1 and 3.
     let mut chart = ChartBuilder::on(&root)
         .caption(
-            "Pitch tracking under faults (RMS / unimpaired RMS)",
+            "Pitch tracking under faults (RMS / unimpaired RMS, log scale)",
             ("sans-serif", 22),
         )
         .margin(15)
         .x_label_area_size(40)
         .y_label_area_size(60)
-        .build_cartesian_2d(0.0..xmax, 0.0..ymax)
+        .build_cartesian_2d(0.0..xmax, (0.8..ymax).log_scale())
         .map_err(e)?;
     chart
         .configure_mesh()
@@ -365,18 +368,40 @@ where
         .y_desc("RMS ratio")
         .draw()
         .map_err(e)?;
-    let colors = [BLUE, RED, GREEN, MAGENTA, CYAN, BLACK];
-    for (i, (name, pts)) in series.iter().enumerate() {
-        let color = colors[i % colors.len()];
+    // One colour per controller, the same over both links; TCP thin with open markers,
+    // UDP thick with filled ones.
+    let mut controllers: Vec<&str> = Vec::new();
+    for (name, _) in series {
+        let c = name.split(" over ").next().unwrap_or(name);
+        if !controllers.contains(&c) {
+            controllers.push(c);
+        }
+    }
+    for (name, pts) in series {
+        let c = name.split(" over ").next().unwrap_or(name);
+        let i = controllers.iter().position(|x| *x == c).unwrap_or(0);
+        let color = Palette99::pick(i).to_rgba();
+        let udp = name.ends_with("udp");
+        let width = if udp { 3 } else { 1 };
         chart
-            .draw_series(LineSeries::new(pts.iter().copied(), color.stroke_width(2)))
+            .draw_series(LineSeries::new(
+                pts.iter().copied(),
+                color.stroke_width(width),
+            ))
             .map_err(e)?
             .label(name)
             .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(width))
             });
         chart
-            .draw_series(pts.iter().map(|p| Circle::new(*p, 4, color.filled())))
+            .draw_series(pts.iter().map(|p| {
+                let style = if udp {
+                    color.filled()
+                } else {
+                    color.stroke_width(1)
+                };
+                Circle::new(*p, 4, style)
+            }))
             .map_err(e)?;
     }
     chart

@@ -136,6 +136,10 @@ enum Command {
         /// Links.
         #[arg(long, value_delimiter = ',', default_value = "tcp,udp")]
         links: Vec<Link>,
+        /// Run nothing: draw the plots again from a finished campaign's `campaign.json` in
+        /// this directory (with the same --profiles), into --out.
+        #[arg(long)]
+        replot: Option<PathBuf>,
     },
     /// The networked loop in lockstep (the service's and the agent's own rules, a seeded
     /// model of the link): each controller under each loss rate and each round trip, as
@@ -414,7 +418,11 @@ fn real_main() -> Result<()> {
             duration,
             controllers,
             links,
-        } => campaign(&profiles, &out, &scenario, duration, &controllers, &links),
+            replot,
+        } => match replot {
+            Some(from) => replot_campaign(&profiles, &from, &out),
+            None => campaign(&profiles, &out, &scenario, duration, &controllers, &links),
+        },
         Command::Netsim {
             scenario,
             controllers,
@@ -631,6 +639,23 @@ fn campaign(
     println!("{md}");
     println!(
         "wrote {0}/campaign.md, {0}/campaign.json, {0}/rms_vs_loss.png|svg, {0}/rms_vs_latency.png|svg",
+        out.display()
+    );
+    Ok(())
+}
+
+/// Draw a finished campaign's plots again from its `campaign.json`.
+fn replot_campaign(profiles: &str, from: &Path, out: &Path) -> Result<()> {
+    let set = ProfileSet::load(profiles)?;
+    let path = from.join("campaign.json");
+    let text =
+        std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let c: Campaign = serde_json::from_str(&text)
+        .with_context(|| format!("{} is not a campaign's record", path.display()))?;
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    crate::campaign::plots(out, &c, &set)?;
+    println!(
+        "wrote {0}/rms_vs_loss.png|svg, {0}/rms_vs_latency.png|svg",
         out.display()
     );
     Ok(())
