@@ -37,6 +37,7 @@ fn samples(devices: usize, k: u64) -> Vec<pb::Sample> {
             sent_unix_ns: 1,
             last_rtt_us: 0,
             run_id: 7,
+            ..Default::default()
         })
         .collect()
 }

@@ -360,6 +360,8 @@ struct Device {
     last_error: String,
     /// Horizon and delay compensation of its commands (from the file).
     prediction: Prediction,
+    /// Lost samples recovered from the copy the next one carried.
+    recovered: u64,
     /// With delay compensation: what the plant will apply in each coming period, as this
     /// device's commands already sent will have it.
     schedule: Option<Box<Schedule>>,
@@ -467,6 +469,7 @@ impl Device {
             f_est: smallvec::smallvec![f64::NAN; n],
             last_error: String::new(),
             prediction,
+            recovered: 0,
             schedule: prediction
                 .delay_compensation
                 .then(|| Box::new(Schedule::new(n))),
@@ -629,6 +632,7 @@ impl Device {
             clamped: self.clamped,
             references_refused: self.references_refused,
             restarts: self.restarts,
+            recovered: self.recovered,
         }
     }
 
@@ -1258,6 +1262,9 @@ fn step_sample(
             d.note_interval(dt);
         }
     }
+    if d.last_seq.is_some_and(|last| s.seq > last + 1) {
+        recover_previous(d, s);
+    }
     if d.last_seq.is_some() && !s.applied.is_empty() {
         // Checked finite above, so this cannot fail.
         let _ = d.mimo.report_applied(&s.applied);
@@ -1335,6 +1342,48 @@ fn step_sample(
     // Kept for a duplicate, inline in the device; the caller writes it out.
     d.last_command = Some(answer);
     Answered::Cached
+}
+
+/// The samples lost between the last answered one and `s`, from the copies `s` carries
+/// (`previous_*`, newest first): the controller steps on each, oldest first (their outputs
+/// are not sent, the moment has passed), so that its estimators see the data points
+/// instead of a gap. Copies of samples already seen, and anything that does not fit
+/// (lengths that are not whole samples, non-finite values, times that do not advance
+/// inside the gap, a step the core refuses), are skipped: at worst the sample is served as
+/// if it carried nothing.
+fn recover_previous(d: &mut Device, s: &pb::Sample) {
+    let n = d.channels();
+    let k = s.previous_plant_time.len().min(protocol::RESENT_SAMPLES);
+    if n == 0 || s.previous_outputs.len() != k * n || s.previous_applied.len() != k * n {
+        return;
+    }
+    for j in (0..k).rev() {
+        let t = s.previous_plant_time[j];
+        let y = &s.previous_outputs[j * n..(j + 1) * n];
+        let applied = &s.previous_applied[j * n..(j + 1) * n];
+        let fits = t.is_finite()
+            && t > d.last_time
+            && t < s.plant_time
+            && y.iter().chain(applied).all(|x| x.is_finite());
+        if !fits {
+            continue;
+        }
+        let refs: PerChannel<Reference> = d
+            .reference
+            .iter()
+            .map(|pieces| evaluate(pieces, t - d.reference_start))
+            .collect();
+        if d.mimo.check(t, y, &refs).is_err() {
+            continue;
+        }
+        let _ = d.mimo.report_applied(applied);
+        let mut outputs = d.outputs.clone();
+        if d.mimo.step(t, y, &refs, &mut outputs).is_ok() {
+            d.recovered += 1;
+            // Time moves on to the recovered sample: a later copy must come after it.
+            d.last_time = t;
+        }
+    }
 }
 
 /// Rule 7, for a device with a horizon or delay compensation: the outputs its command

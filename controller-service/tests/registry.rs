@@ -414,3 +414,46 @@ fn a_horizon_longer_than_the_limit_is_refused_with_its_field() {
         .to_string();
     assert!(e.contains("devices[0].prediction.horizon"), "{e}");
 }
+
+/// A lost sample whose copy comes with the next one: the controller steps on it, and the
+/// next command is the one it would have been had the sample arrived (only the counters
+/// differ). A copy that does not fit is ignored.
+#[test]
+fn a_lost_sample_is_recovered_from_the_copy_the_next_one_carries() {
+    let text = CONFIG.replace("estimator = { window = 3 }", "estimator = { window = 5 }");
+    let make = || Registry::new(ServiceConfig::parse("test.toml", &text).unwrap()).unwrap();
+    let (mut seen, mut gap, mut bad) = (make(), make(), make());
+    let y = |k: u64| [0.3 * (k as f64 * 0.1).sin(), 0.1 * k as f64];
+    let with_applied = |k: u64| {
+        let mut s = sample("aero-1", k, k as f64 * 0.01, &y(k));
+        s.applied = vec![0.1 * k as f64, -0.2];
+        s
+    };
+    for k in 0..20 {
+        for r in [&mut seen, &mut gap, &mut bad] {
+            command(r.handle_sample("aero-1", &with_applied(k)));
+        }
+    }
+    // Sample 20 reaches only `seen`; sample 21 carries it again.
+    command(seen.handle_sample("aero-1", &with_applied(20)));
+    let mut next = with_applied(21);
+    let lost = with_applied(20);
+    next.previous_plant_time = vec![lost.plant_time, 0.19];
+    next.previous_outputs = [lost.outputs.clone(), y(19).to_vec()].concat();
+    next.previous_applied = [lost.applied.clone(), vec![1.9, -0.2]].concat();
+    let a = command(seen.handle_sample("aero-1", &with_applied(21)));
+    let b = command(gap.handle_sample("aero-1", &next));
+    assert_eq!(a.u, b.u, "the command as if sample 20 had arrived");
+    // The iP's estimate (the PID channel has none: NaN).
+    assert_eq!(a.f_est[0], b.f_est[0]);
+    let st = gap.device_status("aero-1").unwrap();
+    assert_eq!((st.lost, st.recovered), (1, 1));
+    // A copy with a non-finite value is not used: the gap stays.
+    let mut broken = next.clone();
+    broken.previous_outputs[0] = f64::NAN;
+    let c = command(bad.handle_sample("aero-1", &broken));
+    assert_eq!(c.mode, pb::Mode::Control as i32);
+    assert_ne!(c.f_est[0], a.f_est[0]);
+    let st = bad.device_status("aero-1").unwrap();
+    assert_eq!((st.lost, st.recovered), (1, 0));
+}

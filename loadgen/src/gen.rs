@@ -384,6 +384,9 @@ fn send_loop(
                     sent_unix_ns: protocol::unix_ns(),
                     last_rtt_us: 0,
                     run_id,
+                    // A real agent also sends the previous sample again (`previous_*`,
+                    // for recovery after a loss); these plants do not: `docs/scale.md`.
+                    ..Default::default()
                 }
             };
             let payload = if spec.gateways == 0 {

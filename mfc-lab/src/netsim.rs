@@ -147,6 +147,8 @@ pub fn simulate_net(
     let mut refs = vec![Reference::default(); n];
     let (mut samples_lost, mut commands_lost) = (0, 0);
     let mut last_rtt_us = 0u32;
+    let mut previous: std::collections::VecDeque<(f64, Vec<f64>, Vec<f64>)> =
+        std::collections::VecDeque::with_capacity(protocol::RESENT_SAMPLES);
     for k in 0..scenario.steps() {
         let t = k as f64 * h;
         let y = plant.read()?;
@@ -173,7 +175,14 @@ pub fn simulate_net(
             sent_unix_ns: ns(t),
             last_rtt_us,
             run_id: 1,
+            previous_plant_time: previous.iter().map(|p| p.0).collect(),
+            previous_outputs: previous.iter().flat_map(|p| p.1.iter().copied()).collect(),
+            previous_applied: previous.iter().flat_map(|p| p.2.iter().copied()).collect(),
         };
+        if previous.len() == protocol::RESENT_SAMPLES {
+            previous.pop_back();
+        }
+        previous.push_front((t, y.clone(), begin.applied_mean.clone()));
         let (lost, delay) = draw();
         if lost && link.lossy != Lossy::Down {
             samples_lost += 1;

@@ -589,6 +589,10 @@ async fn periods(
     let mut rtts: Vec<u32> = Vec::with_capacity(config.steps);
     let mut sent_at: std::collections::VecDeque<(u64, Instant)> = std::collections::VecDeque::new();
     let mut last_rtt_us: u32 = 0;
+    // The last samples' times, outputs and applied, newest first, sent again with the next
+    // one (`pb::Sample::previous_plant_time`).
+    let mut previous: std::collections::VecDeque<(f64, Vec<f64>, Vec<f64>)> =
+        std::collections::VecDeque::with_capacity(protocol::RESENT_SAMPLES);
     let mut overruns = 0u64;
     let mut end = End::Completed;
     let mut error: Option<String> = None;
@@ -645,7 +649,14 @@ async fn periods(
             sent_unix_ns: protocol::unix_ns(),
             last_rtt_us,
             run_id,
+            previous_plant_time: previous.iter().map(|p| p.0).collect(),
+            previous_outputs: previous.iter().flat_map(|p| p.1.iter().copied()).collect(),
+            previous_applied: previous.iter().flat_map(|p| p.2.iter().copied()).collect(),
         };
+        if previous.len() == protocol::RESENT_SAMPLES {
+            previous.pop_back();
+        }
+        previous.push_front((t, y.clone(), begin.applied_mean.clone()));
         sent_at.push_back((k as u64, Instant::now()));
         if sent_at.len() > config.safety.max_age as usize + 2 {
             sent_at.pop_front();

@@ -42,6 +42,12 @@ pub const MAX_BATCH_SAMPLES: usize = 4096;
 /// Fixed by the protocol so that every process computes the same [`shard_of`].
 pub const SHARDS: u32 = 64;
 
+/// Earlier samples an agent sends again with each sample (`Sample::previous_*`): runs of up
+/// to this many lost samples leave the controller's data without a gap. Three covers the
+/// runs that matter at 30 % loss (a fourth in a row: under 1 %), for about 25 bytes per
+/// channel each.
+pub const RESENT_SAMPLES: usize = 3;
+
 /// The shard of an id (a device's, or a gateway's for the plants it hosts): FNV-1a, so
 /// it is the same on every platform and easy to compute in any language (64-bit FNV-1a
 /// of the UTF-8 bytes, modulo [`SHARDS`]).

@@ -54,6 +54,7 @@ fn sample(id: &str, seq: u64, y: f64) -> pb::Sample {
         sent_unix_ns: protocol::unix_ns(),
         last_rtt_us: 0,
         run_id: 7,
+        ..Default::default()
     }
 }
 
