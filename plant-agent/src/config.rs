@@ -10,6 +10,7 @@
 //! max_age = 10               # oldest command still applied, in periods
 //! hold_periods = 5           # periods holding the last command before the fallback
 //! fallback = "local"         # "local" (the local controller) or "safe_stop" (zero inputs)
+//! resend = 3                 # earlier samples sent again with each one (0 to 3), for losses
 //! out = "out/run"            # where the record goes (relative to the working directory)
 //! ```
 
@@ -74,6 +75,11 @@ pub struct AgentFile {
     pub hold_periods: u32,
     /// What to fall back to. Default: the local controller.
     pub fallback: FallbackPolicy,
+    /// Earlier samples sent again with each sample, 0 to 3: after a run of that many lost
+    /// samples the controller still gets their data, and its estimators see no gap (on a
+    /// lossy link the difference is large: `docs/results.md`). Each copy costs about 25
+    /// bytes per channel. Default 3.
+    pub resend: usize,
     /// Where to write the record (`run.csv`, `summary.json`, plots). Default `out/run`.
     pub out: PathBuf,
 }
@@ -88,6 +94,7 @@ impl Default for AgentFile {
             max_age: SafetyConfig::DEFAULT_MAX_AGE,
             hold_periods: SafetyConfig::DEFAULT_HOLD_PERIODS,
             fallback: FallbackPolicy::LocalController,
+            resend: protocol::RESENT_SAMPLES,
             out: PathBuf::from("out/run"),
         }
     }
@@ -173,7 +180,18 @@ impl AgentFile {
         safety
             .validate()
             .map_err(|e| invalid("max_age/hold_periods", e.to_string()))?;
-        let loop_config = LoopConfig::new(&scenario, &controller, &device, safety);
+        if self.resend > protocol::RESENT_SAMPLES {
+            return Err(invalid(
+                "resend",
+                format!(
+                    "at most {} earlier samples, got {}",
+                    protocol::RESENT_SAMPLES,
+                    self.resend
+                ),
+            ));
+        }
+        let mut loop_config = LoopConfig::new(&scenario, &controller, &device, safety);
+        loop_config.resend = self.resend;
         Ok(Resolved {
             scenario,
             controller,
@@ -234,6 +252,14 @@ mod tests {
         assert!(
             f.resolve(Path::new("d.toml")).is_err(),
             "no such controller"
+        );
+        let f = AgentFile::load(&write(&d, "e.toml", "device = \"x\"\nresend = 4\n")).unwrap();
+        let e = f.resolve(Path::new("e.toml")).unwrap_err().to_string();
+        assert!(e.contains("resend") && e.contains("at most 3"), "{e}");
+        let f = AgentFile::load(&write(&d, "f.toml", "device = \"x\"\nresend = 0\n")).unwrap();
+        assert_eq!(
+            f.resolve(Path::new("f.toml")).unwrap().loop_config.resend,
+            0
         );
     }
 
