@@ -314,6 +314,8 @@ async fn trial(
             prefix: "load".into(),
             warmup: spec.warmup,
             measure: spec.measure,
+            // The benchmark's figures are for plants that send no copies (`docs/scale.md`).
+            resend: 0,
         };
         // CPU and memory are read over the measured window, beside the generator.
         let (warmup, measure) = (spec.warmup, spec.measure);

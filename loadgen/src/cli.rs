@@ -43,6 +43,10 @@ pub enum Cmd {
         /// Counted window (s).
         #[arg(long, default_value_t = 10.0)]
         measure: f64,
+        /// Earlier samples each sample carries again, as a real agent's `resend` (0 to 3;
+        /// agents default to 3).
+        #[arg(long, default_value_t = 0)]
+        resend: usize,
         /// Print the report as JSON.
         #[arg(long)]
         json: bool,
@@ -155,6 +159,7 @@ async fn run(cli: Cli) -> Result<()> {
             gateways,
             warmup,
             measure,
+            resend,
             json,
             zenoh,
         } => {
@@ -166,6 +171,7 @@ async fn run(cli: Cli) -> Result<()> {
                 prefix: "load".into(),
                 warmup: secs("warmup", warmup)?,
                 measure: secs("measure", measure)?,
+                resend,
             };
             let r = crate::gen::run(&session, &spec).await?;
             let _ = session.close().await;

@@ -40,6 +40,11 @@ pub struct Spec {
     pub warmup: Duration,
     /// Time counted.
     pub measure: Duration,
+    /// Earlier samples each sample carries again, as an agent's `resend` (0 to
+    /// [`protocol::RESENT_SAMPLES`]): what a real agent's samples weigh. The copies hold the
+    /// plant's current values at the earlier times (no sample is lost on loopback, so
+    /// only their size matters).
+    pub resend: usize,
 }
 
 /// What came back. Times are round trips measured on this process's clock (sample sent to
@@ -214,6 +219,13 @@ pub async fn run(session: &Session, spec: &Spec) -> Result<Report, GenError> {
             protocol::MAX_BATCH_SAMPLES
         )));
     }
+    if spec.resend > protocol::RESENT_SAMPLES {
+        return Err(GenError::Spec(format!(
+            "resend is at most {}, got {}",
+            protocol::RESENT_SAMPLES,
+            spec.resend
+        )));
+    }
     keys::check_id(&format!("{}-gw-{}", spec.prefix, spec.devices))
         .map_err(|e| GenError::Spec(e.to_string()))?;
     let wait = Duration::from_secs(20);
@@ -340,6 +352,7 @@ fn send_loop(
 ) {
     let run_id = protocol::unix_ns() | 1;
     let dt = period.as_secs_f64();
+    let resend = spec.resend;
     let n = spec.devices;
     let senders = publishers.len();
     let ids: Vec<String> = (0..n).map(|i| format!("{}-{i}", spec.prefix)).collect();
@@ -384,9 +397,9 @@ fn send_loop(
                     sent_unix_ns: protocol::unix_ns(),
                     last_rtt_us: 0,
                     run_id,
-                    // A real agent also sends the previous sample again (`previous_*`,
-                    // for recovery after a loss); these plants do not: `docs/scale.md`.
-                    ..Default::default()
+                    previous_plant_time: (1..=resend).map(|j| (k as f64 - j as f64) * dt).collect(),
+                    previous_outputs: vec![y[i]; resend],
+                    previous_applied: vec![applied[i]; resend],
                 }
             };
             let payload = if spec.gateways == 0 {

@@ -126,6 +126,7 @@ fn spec(measure_s: f64) -> Spec {
         prefix: "load".into(),
         warmup: Duration::from_millis(1500),
         measure: Duration::from_secs_f64(measure_s),
+        resend: 0,
     }
 }
 
