@@ -1262,7 +1262,9 @@ fn step_sample(
             d.note_interval(dt);
         }
     }
-    if d.last_seq.is_some_and(|last| s.seq > last + 1) {
+    if d.last_seq
+        .is_some_and(|last| s.seq.saturating_sub(last) > 1)
+    {
         recover_previous(d, s);
     }
     if d.last_seq.is_some() && !s.applied.is_empty() {
@@ -1323,10 +1325,10 @@ fn step_sample(
     };
     let answer = Answer {
         seq: s.seq,
-        mode: if d.outputs.iter().any(|o| o.warming_up) {
-            pb::Mode::WarmingUp
-        } else {
+        mode: if control {
             pb::Mode::Control
+        } else {
+            pb::Mode::WarmingUp
         } as i32,
         controller_unix_ns: protocol::unix_ns(),
         sample_sent_unix_ns: s.sent_unix_ns,

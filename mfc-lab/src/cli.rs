@@ -592,19 +592,11 @@ fn campaign(
     }
     let mut s = load_scenario(scenario)?;
     s.duration = duration;
-    let mut sets = Vec::new();
-    let mut options = CaseOptions::default();
-    for spec in controllers {
-        let (base, prediction) =
-            crate::campaign::parse_variant(spec).map_err(anyhow::Error::msg)?;
-        let mut set = load_controller(&base)?;
-        s.check_controller(&set)?;
-        if spec != &base {
-            set.name = format!("{}{}", set.name, &spec[base.len()..]);
-        }
-        sets.push(set);
-        options.predictions.push(prediction);
-    }
+    let (sets, predictions): (Vec<_>, Vec<_>) = load_variants(&s, controllers)?.into_iter().unzip();
+    let options = CaseOptions {
+        predictions,
+        ..CaseOptions::default()
+    };
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?;
@@ -644,6 +636,25 @@ fn campaign(
     Ok(())
 }
 
+/// The controllers of `specs` (`KIND[+hN][+dc]`, a shipped name or a file with options),
+/// each checked against `s` and named after its set with the options appended.
+fn load_variants(
+    s: &Scenario,
+    specs: &[String],
+) -> Result<Vec<(ControllerSet, controller_service::config::Prediction)>> {
+    specs
+        .iter()
+        .map(|spec| {
+            let (base, prediction) =
+                crate::campaign::parse_variant(spec).map_err(anyhow::Error::msg)?;
+            let mut set = load_controller(&base)?;
+            s.check_controller(&set)?;
+            set.name.push_str(&spec[base.len()..]);
+            Ok((set, prediction))
+        })
+        .collect()
+}
+
 /// Draw a finished campaign's plots again from its `campaign.json`.
 fn replot_campaign(profiles: &str, from: &Path, out: &Path) -> Result<()> {
     let set = ProfileSet::load(profiles)?;
@@ -671,15 +682,7 @@ fn netsim(
 ) -> Result<()> {
     use crate::netsim::{simulate_net, LinkModel};
     let s = load_scenario(scenario)?;
-    let mut sets = Vec::new();
-    for spec in controllers {
-        let (base, prediction) =
-            crate::campaign::parse_variant(spec).map_err(anyhow::Error::msg)?;
-        let mut set = load_controller(&base)?;
-        s.check_controller(&set)?;
-        set.name = spec.clone();
-        sets.push((set, prediction));
-    }
+    let sets = load_variants(&s, controllers)?;
     let safety = SafetyConfig {
         hold_periods,
         ..crate::harness::default_safety(&s)

@@ -235,11 +235,7 @@ pub fn simulate_net(
     plant.stop()?;
     Ok(NetRun {
         controller: controller.name.clone(),
-        channels: acc
-            .iter()
-            .zip(&scenario.channels)
-            .map(|(a, c)| a.finish(&c.name))
-            .collect(),
+        channels: crate::offline::finish(&acc, scenario),
         counters: sup.counters().clone(),
         samples_lost,
         commands_lost,

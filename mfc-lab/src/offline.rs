@@ -134,13 +134,17 @@ pub fn simulate(
     let summary = Summary {
         scenario: scenario.name.clone(),
         controller: controller.name.clone(),
-        channels: acc
-            .iter()
-            .zip(&scenario.channels)
-            .map(|(a, c)| a.finish(&c.name))
-            .collect(),
+        channels: finish(&acc, scenario),
         limit_hits,
         completed: !failed,
     };
     Ok(Simulation { recording, summary })
+}
+
+/// Each channel's accumulated errors as its metrics, named as the scenario names it.
+pub(crate) fn finish(acc: &[Accumulator], scenario: &Scenario) -> Vec<ChannelMetrics> {
+    acc.iter()
+        .zip(&scenario.channels)
+        .map(|(a, c)| a.finish(&c.name))
+        .collect()
 }

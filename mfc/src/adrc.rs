@@ -194,13 +194,7 @@ impl Adrc {
     }
 
     fn law(&self, p: &AdrcParams, r: &Reference) -> f64 {
-        match p.order {
-            Order::One => (p.wc * (r.y - self.z[0]) + r.dy - self.z[1]) / p.b0,
-            Order::Two => {
-                let (kp, kd) = (p.wc * p.wc, 2.0 * p.wc);
-                (kp * (r.y - self.z[0]) + kd * (r.dy - self.z[1]) + r.ddy - self.z[2]) / p.b0
-            }
-        }
+        law(p, &self.z, r)
     }
 
     /// Predict over `h` with the applied input, then correct with the measurement.
@@ -258,13 +252,17 @@ impl AdrcPredictor {
 
     /// The law at the predicted state.
     pub(crate) fn law(&self, r: &Reference) -> f64 {
-        let p = &self.params;
-        match p.order {
-            Order::One => (p.wc * (r.y - self.z[0]) + r.dy - self.z[1]) / p.b0,
-            Order::Two => {
-                let (kp, kd) = (p.wc * p.wc, 2.0 * p.wc);
-                (kp * (r.y - self.z[0]) + kd * (r.dy - self.z[1]) + r.ddy - self.z[2]) / p.b0
-            }
+        law(&self.params, &self.z, r)
+    }
+}
+
+/// The control law on an observer state `z` (measured or predicted).
+fn law(p: &AdrcParams, z: &[f64; 3], r: &Reference) -> f64 {
+    match p.order {
+        Order::One => (p.wc * (r.y - z[0]) + r.dy - z[1]) / p.b0,
+        Order::Two => {
+            let (kp, kd) = (p.wc * p.wc, 2.0 * p.wc);
+            (kp * (r.y - z[0]) + kd * (r.dy - z[1]) + r.ddy - z[2]) / p.b0
         }
     }
 }
