@@ -3,10 +3,12 @@
 
 use std::path::PathBuf;
 
+use crate::observe::{Observers, ServiceMetrics};
 use crate::{service, Registry, ServiceConfig};
 use anyhow::{Context, Result};
 use clap::Parser;
 use protocol::keys;
+use telemetry::Recording;
 use transport::ZenohArgs;
 
 #[derive(Parser)]
@@ -25,6 +27,12 @@ pub struct Cli {
     /// Override the file's `workers` (device state sharded over this many workers).
     #[arg(long)]
     pub workers: Option<usize>,
+    /// Serve Prometheus metrics on this address (`GET /metrics`), over the file's `metrics`.
+    #[arg(long, value_name = "ADDR")]
+    pub metrics: Option<String>,
+    /// Record to this MCAP file, over the file's `record`.
+    #[arg(long, value_name = "FILE")]
+    pub record: Option<PathBuf>,
     #[command(flatten)]
     pub zenoh: ZenohArgs,
 }
@@ -85,6 +93,16 @@ pub async fn run(cli: Cli) -> Result<()> {
         config.workers = w;
         config.check(&cli.config.display().to_string())?;
     }
+    if let Some(addr) = cli.metrics {
+        config.metrics = Some(telemetry::MetricsSpec {
+            listen: addr,
+            ..config.metrics.unwrap_or_default()
+        });
+    }
+    if let Some(path) = cli.record {
+        config.record = Some(telemetry::RecordSpec::at(path));
+    }
+    let observers = observers(&config)?;
     let configs = config.worker_configs();
     let mut registries = Vec::with_capacity(configs.len());
     for c in configs {
@@ -99,25 +117,90 @@ pub async fn run(cli: Cli) -> Result<()> {
             return Ok(());
         }
     };
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let endpoint = match (&config.metrics, &observers.metrics) {
+        (Some(spec), Some(m)) => {
+            let mut stopped = stop_rx.clone();
+            let (_, task) = crate::observe::serve_endpoint(spec, m.clone(), async move {
+                let _ = stopped.wait_for(|s| *s).await;
+            })
+            .await?;
+            Some(task)
+        }
+        _ => None,
+    };
+    let result = serve_workers(session, registries, &observers, shutdown, stop_tx, stop_rx).await;
+    if let Some(e) = endpoint {
+        let _ = e.await;
+    }
+    if let Some(r) = &observers.recording {
+        match r.finish() {
+            Ok(s) => {
+                tracing::info!(path = %r.path().display(), messages = s.messages, dropped = s.dropped, "recording finished")
+            }
+            Err(e) => tracing::warn!(path = %r.path().display(), "recording: {e}"),
+        }
+    }
+    result
+}
+
+/// The recording and the metrics the file asks for. The recording starts with the
+/// configuration itself attached (`service-config.toml`), which is what a replay needs.
+pub fn observers(config: &ServiceConfig) -> Result<Observers> {
+    let recording = match &config.record {
+        Some(spec) => {
+            let r = Recording::create(spec, "controller-service")?;
+            let text = toml::to_string(config).context("the configuration as TOML")?;
+            r.attach(
+                crate::replay::CONFIG_ATTACHMENT,
+                "application/toml",
+                text.into_bytes(),
+            );
+            Some(r)
+        }
+        None => None,
+    };
+    let metrics = config.metrics.as_ref().map(|spec| {
+        std::sync::Arc::new(ServiceMetrics::new(
+            telemetry::Metrics::new(),
+            spec.per_device,
+            recording.clone(),
+        ))
+    });
+    Ok(Observers { metrics, recording })
+}
+
+async fn serve_workers(
+    session: zenoh::Session,
+    mut registries: Vec<Registry>,
+    observers: &Observers,
+    shutdown: impl std::future::Future<Output = ()>,
+    stop_tx: tokio::sync::watch::Sender<bool>,
+    stop_rx: tokio::sync::watch::Receiver<bool>,
+) -> Result<()> {
     if registries.len() == 1 {
         let registry = registries.pop().context("one registry")?;
-        service::serve(session, registry, shutdown).await?;
+        let result =
+            service::serve_observed(session.clone(), registry, observers.clone(), shutdown).await;
+        let _ = stop_tx.send(true);
+        let _ = session.close().await;
+        result?;
         return Ok(());
     }
     // Several workers: each serves its own shards on its own task (the runtime runs them on
     // every core), all on this one session; one signal stops them all. They start one after
     // the other, each once the previous one's fleet token is seen: a worker that finds the
     // others there takes its shards by handover, never by believing itself alone.
-    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     let mut tasks = Vec::new();
     for registry in registries {
         let member = registry
             .fleet()
             .map(|f| keys::fleet_member(&f.name, registry.controller_id()));
         let mut stopped = stop_rx.clone();
-        tasks.push(tokio::spawn(service::serve_shared(
+        tasks.push(tokio::spawn(service::serve_observed(
             session.clone(),
             registry,
+            observers.clone(),
             async move {
                 let _ = stopped.wait_for(|s| *s).await;
             },

@@ -323,6 +323,14 @@ pub struct ServiceConfig {
     /// Narrowing is always allowed. Default false: only this file widens an envelope.
     #[serde(default)]
     pub allow_remote_widening: bool,
+    /// A Prometheus endpoint (absent: none). `metrics = { listen = "127.0.0.1:9464",
+    /// per_device = true }`; see `telemetry::MetricsSpec`.
+    #[serde(default)]
+    pub metrics: Option<telemetry::MetricsSpec>,
+    /// Record samples, commands, configuration changes and events to an MCAP file (absent:
+    /// no recording). `record = { path = "service.mcap" }`; see `telemetry::RecordSpec`.
+    #[serde(default)]
+    pub record: Option<telemetry::RecordSpec>,
 }
 
 fn max_devices() -> usize {
@@ -345,6 +353,8 @@ impl Default for ServiceConfig {
             snapshots: None,
             max_devices: max_devices(),
             allow_remote_widening: false,
+            metrics: None,
+            record: None,
         }
     }
 }

@@ -15,7 +15,9 @@ pub mod config;
 pub mod envelope;
 pub mod fleet;
 pub mod inbox;
+pub mod observe;
 pub mod registry;
+pub mod replay;
 pub mod service;
 pub mod snapshot;
 

@@ -125,6 +125,8 @@ struct Answer {
     f_est: PerChannel<f64>,
     /// The packetized horizon (empty without prediction), as [`pb::Command::horizon`].
     horizon: Vec<f64>,
+    /// `y*` per channel at the sample's time, as [`pb::Command::reference`].
+    reference: PerChannel<f64>,
 }
 
 impl Answer {
@@ -144,6 +146,8 @@ impl Answer {
         out.f_est.extend_from_slice(&self.f_est);
         out.horizon.clear();
         out.horizon.extend_from_slice(&self.horizon);
+        out.reference.clear();
+        out.reference.extend_from_slice(&self.reference);
         out.mode = self.mode;
         out.sample_sent_unix_ns = self.sample_sent_unix_ns;
         out.controller_id.clear();
@@ -153,6 +157,9 @@ impl Answer {
 }
 
 /// How a sample was answered, inside the registry.
+// The command is the common case and is moved out at once: boxing it would cost an
+// allocation per answer to save stack space nobody holds.
+#[allow(clippy::large_enum_variant)]
 enum Answered {
     /// With the device's cached answer (`last_command`): a new one, or the same again for
     /// a duplicate.
@@ -237,6 +244,8 @@ impl Eq for DeviceKey {}
 
 /// What to do with a sample.
 #[derive(Debug, Clone, PartialEq)]
+// As `Answered`: a reply is the common case, boxing it would allocate per answer.
+#[allow(clippy::large_enum_variant)]
 pub enum Outcome {
     /// Publish this command on the device's command key: a new answer, the cached one again
     /// for a duplicate, or a refusal (`REJECTED`/`STALE`, with the reason in `error`).
@@ -362,6 +371,8 @@ struct Device {
     prediction: Prediction,
     /// Lost samples recovered from the copy the next one carried.
     recovered: u64,
+    /// The last sample's flags (what its plant was doing), for the status.
+    last_flags: u32,
     /// With delay compensation: what the plant will apply in each coming period, as this
     /// device's commands already sent will have it.
     schedule: Option<Box<Schedule>>,
@@ -470,6 +481,7 @@ impl Device {
             last_error: String::new(),
             prediction,
             recovered: 0,
+            last_flags: 0,
             schedule: prediction
                 .delay_compensation
                 .then(|| Box::new(Schedule::new(n))),
@@ -633,6 +645,7 @@ impl Device {
             references_refused: self.references_refused,
             restarts: self.restarts,
             recovered: self.recovered,
+            last_flags: self.last_flags,
         }
     }
 
@@ -1233,6 +1246,7 @@ fn step_sample(
     if s.flags & plant_trouble != 0 {
         d.samples_off_remote += 1;
     }
+    d.last_flags = s.flags;
     let dt = s.plant_time - d.last_time;
     // The plant applied the last command and nothing else since: the rate limit runs
     // from it. Otherwise (a new run, a restore, a gap, a plant holding or on its
@@ -1336,6 +1350,7 @@ fn step_sample(
         v,
         f_est: d.f_est.clone(),
         horizon,
+        reference: d.refs.iter().map(|r| r.y).collect(),
     };
     d.commands += 1;
     if answer.mode == pb::Mode::Control as i32 {

@@ -30,7 +30,9 @@ use zenoh::Session;
 
 use crate::fleet::{Action, Fleet, Release};
 use crate::inbox::{Inbox, Push, Taken};
+use crate::observe::{thread_cpu, DeviceHistograms, Observers, Scraped, ServiceMetrics};
 use crate::registry::{precheck, Outcome, Registry, Served};
+use telemetry::{Recording, Topic};
 
 /// Messages from zenoh's callbacks to the worker, other than samples.
 enum Msg {
@@ -269,7 +271,106 @@ pub async fn serve(
 /// undeclared at the end, and the session stays open for the others.
 pub async fn serve_shared(
     session: Session,
+    registry: Registry,
+    shutdown: impl std::future::Future<Output = ()>,
+) -> Result<(), ServiceError> {
+    serve_observed(session, registry, Observers::default(), shutdown).await
+}
+
+/// What a worker feeds its observers, and the histogram handles of its devices (one entry
+/// per device it served: bounded by its device table).
+struct Watch {
+    controller: String,
+    recording: Option<Recording>,
+    metrics: Option<Arc<ServiceMetrics>>,
+    histograms: HashMap<String, Option<DeviceHistograms>>,
+}
+
+impl Watch {
+    /// Whether samples are timed (only for the metrics: the clock costs a system call).
+    fn timing(&self) -> bool {
+        self.metrics.is_some()
+    }
+
+    /// Note a served sample: its round trip and CPU time, and into the recording the
+    /// sample, its answer and, for a device just provisioned, its configuration.
+    #[allow(clippy::too_many_arguments)]
+    fn served(
+        &mut self,
+        registry: &Registry,
+        dev: &str,
+        sample: &pb::Sample,
+        cmd: &pb::Command,
+        cpu: Option<f64>,
+        provisioned: bool,
+        log_ns: u64,
+    ) {
+        if let Some(m) = &self.metrics {
+            let h = self
+                .histograms
+                .entry(dev.to_string())
+                .or_insert_with(|| m.device(&self.controller, dev));
+            if let Some(h) = h {
+                if sample.last_rtt_us > 0 {
+                    h.rtt.record(f64::from(sample.last_rtt_us) * 1e-6);
+                }
+                if let Some(c) = cpu {
+                    h.cpu.record(c);
+                }
+            }
+        }
+        if let Some(r) = &self.recording {
+            if provisioned {
+                record_config(r, registry, dev, "provisioned from a template");
+            }
+            r.record(
+                dev,
+                Topic::Sample,
+                log_ns,
+                sample.sent_unix_ns,
+                encode(sample),
+            );
+            let now = protocol::unix_ns();
+            r.record(
+                dev,
+                Topic::Command,
+                now,
+                cmd.controller_unix_ns,
+                encode(cmd),
+            );
+            if cmd.mode == pb::Mode::Rejected as i32 {
+                r.event(dev, "rejected", cmd.error.clone(), sample.plant_time);
+            }
+        }
+    }
+
+    /// Record an accepted change: the request as it came, the configuration it left, and
+    /// an event saying who changed what.
+    fn changed(&self, registry: &Registry, dev: &str, topic: Topic, request: &[u8], what: &str) {
+        if let Some(r) = &self.recording {
+            let now = protocol::unix_ns();
+            r.record(dev, topic, now, now, request.to_vec());
+            record_config(r, registry, dev, what);
+        }
+    }
+}
+
+/// The device's configuration in force, and an event saying why it is recorded.
+fn record_config(r: &Recording, registry: &Registry, dev: &str, why: &str) {
+    if let Some(c) = registry.config_of(dev) {
+        let now = protocol::unix_ns();
+        r.record(dev, Topic::Config, now, now, encode(&c));
+    }
+    let t = registry.device_status(dev).map_or(0.0, |s| s.plant_time);
+    r.event(dev, "config", why, t);
+}
+
+/// [`serve_shared`] feeding `observers`: the metrics scrape this worker's status, the
+/// recording gets its devices' samples, commands and configuration changes.
+pub async fn serve_observed(
+    session: Session,
     mut registry: Registry,
+    observers: Observers,
     shutdown: impl std::future::Future<Output = ()>,
 ) -> Result<(), ServiceError> {
     let started = Instant::now();
@@ -278,7 +379,33 @@ pub async fn serve_shared(
     if let Some(sn) = &snapshots {
         let (ok, refused) = registry.load_snapshots(&sn.dir);
         tracing::info!(dir = %sn.dir.display(), restored = ok, refused, "snapshots");
+        if let (Some(r), true) = (&observers.recording, ok > 0) {
+            // What a replay must start from: the state these devices were restored to.
+            for snap in registry.snapshots() {
+                if snap.last_seq.is_some() {
+                    if let Ok(bytes) = crate::snapshot::encode(&snap) {
+                        r.attach(
+                            &format!("snapshot/{}", snap.id),
+                            "application/x-mfc-snapshot",
+                            bytes,
+                        );
+                    }
+                }
+            }
+        }
     }
+    let mut watch = Watch {
+        controller: id.clone(),
+        recording: observers.recording.clone(),
+        metrics: observers.metrics.clone(),
+        histograms: HashMap::new(),
+    };
+    if let Some(r) = &watch.recording {
+        for d in registry.device_ids() {
+            record_config(r, &registry, d, "recording starts");
+        }
+    }
+    let mut scrapes = watch.metrics.as_ref().map(|m| m.join());
     let (tx, mut rx) = mpsc::channel::<Msg>(QUEUE);
     let (hb_tx, mut hb_rx) = mpsc::channel::<Vec<u8>>(64);
     let drops = Arc::new(Drops::default());
@@ -704,6 +831,7 @@ pub async fn serve_shared(
                             let mut ib = lock(&inbox);
                             for d in &gone {
                                 ib.unserve(d);
+                                watch.histograms.remove(d);
                             }
                         }
                         Action::Subscribe(_) => {}
@@ -745,17 +873,27 @@ pub async fn serve_shared(
                 for _ in 0..BATCH {
                     let Some(taken) = lock(&inbox).pop() else { break };
                     let answers = ha.active && fleet.as_ref().is_none_or(|f| f.answers(protocol::shard_of(&taken.id)));
-                    serve_sample(&session, &mut registry, answers, &mut publishers, &inbox, &mut warn, taken).await;
+                    serve_sample(&session, &mut registry, answers, &mut publishers, &inbox, &mut warn, &mut watch, taken).await;
                 }
                 for _ in 0..GATEWAY_TURN {
                     let Some(taken) = lock(&gateways).pop() else { break };
                     let answers = ha.active && fleet.as_ref().is_none_or(|f| f.answers(protocol::shard_of(&taken.id)));
-                    serve_batch(&session, &mut registry, answers, &mut gw_publishers, &inbox, &mut warn, &mut command_pool, taken).await;
+                    serve_batch(&session, &mut registry, answers, &mut gw_publishers, &inbox, &mut warn, &mut watch, &mut command_pool, taken).await;
                 }
                 if !lock(&inbox).is_empty() || !lock(&gateways).is_empty() {
                     // More waits: come back after the other inputs had their turn.
                     wake.notify_one();
                 }
+                continue;
+            }
+            Some(reply) = async { match scrapes.as_mut() { Some(s) => s.recv().await, None => std::future::pending().await } } => {
+                let status = service_status_now(&registry, started, &inbox, &gateways, &drops, &ha, fleet.as_ref());
+                let _ = reply.send(Scraped {
+                    status,
+                    inbox: lock(&inbox).len(),
+                    gateways: lock(&gateways).len(),
+                    queue: internal_tx.max_capacity() - internal_tx.capacity(),
+                });
                 continue;
             }
             m = rx.recv() => match m { Some(m) => m, None => break },
@@ -847,6 +985,11 @@ pub async fn serve_shared(
             } => {
                 let outcome = registry.refuse_sample(&dev, seq, sent_unix_ns, reason);
                 if let Outcome::Reply(cmd) = outcome {
+                    if let Some(r) = &watch.recording {
+                        let now = protocol::unix_ns();
+                        r.record(&dev, Topic::Command, now, now, encode(&cmd));
+                        r.event(&dev, "rejected", cmd.error.clone(), 0.0);
+                    }
                     throttled!(warn.rejected, warn, device = %dev, seq, "sample refused: {}", cmd.error);
                     if ha.active {
                         publish(&session, &mut publishers, &dev, &cmd).await;
@@ -866,6 +1009,15 @@ pub async fn serve_shared(
             Msg::Reference(dev, bytes) => match decode::<pb::ReferenceUpdate>(&bytes) {
                 Ok(u) => {
                     let reply = registry.set_reference(&dev, &u);
+                    if reply.accepted {
+                        watch.changed(
+                            &registry,
+                            &dev,
+                            Topic::ReferenceUpdate,
+                            &bytes,
+                            "reference changed",
+                        );
+                    }
                     if !reply.accepted {
                         throttled!(warn.refused, warn, device = %printable(&dev), "reference refused: {}", reply.reason);
                     }
@@ -886,6 +1038,13 @@ pub async fn serve_shared(
                             let r = registry.configure(&dev, &req);
                             if r.accepted {
                                 throttled!(warn.changed, info, device = %dev, "configuration changed");
+                                watch.changed(
+                                    &registry,
+                                    &dev,
+                                    Topic::ConfigRequest,
+                                    &bytes,
+                                    "configuration changed",
+                                );
                             }
                             r
                         }
@@ -916,6 +1075,20 @@ pub async fn serve_shared(
                                 .flatten()
                                 .zip(after.iter().flatten())
                                 .any(|(b, a)| b.is_widened_by(a));
+                            if r.accepted {
+                                let what = format!(
+                                    "envelope {} by {}",
+                                    if widened { "WIDENED" } else { "narrowed" },
+                                    printable(&req.reason)
+                                );
+                                watch.changed(
+                                    &registry,
+                                    &dev,
+                                    Topic::EnvelopeRequest,
+                                    &bytes,
+                                    &what,
+                                );
+                            }
                             if r.accepted && widened {
                                 // Every widening has its own line: it is rare (the file must
                                 // allow it) and it is what an audit looks for.
@@ -945,7 +1118,19 @@ pub async fn serve_shared(
                 let reply = match payload(&q) {
                     None => read_config(&registry, &dev),
                     Some(bytes) => match decode::<pb::ReferenceUpdate>(&bytes) {
-                        Ok(u) => registry.set_reference(&dev, &u),
+                        Ok(u) => {
+                            let r = registry.set_reference(&dev, &u);
+                            if r.accepted {
+                                watch.changed(
+                                    &registry,
+                                    &dev,
+                                    Topic::ReferenceUpdate,
+                                    &bytes,
+                                    "reference changed",
+                                );
+                            }
+                            r
+                        }
                         Err(e) => undecodable_request(&mut registry, &dev, e),
                     },
                 };
@@ -1132,39 +1317,15 @@ pub async fn serve_shared(
                 }
             }
             Msg::ServiceStatus(q) => {
-                let mut s = registry.service_status(started.elapsed().as_secs_f64());
-                let (superseded, full) = {
-                    let ib = lock(&inbox);
-                    (ib.superseded(), ib.full())
-                };
-                let (superseded_batches, gw_full) = {
-                    let g = lock(&gateways);
-                    (g.superseded(), g.full())
-                };
-                let full = full + gw_full;
-                s.superseded_batches = superseded_batches;
-                s.unknown_samples += drops.unknown.load(Ordering::Relaxed);
-                for name in lock(&drops.unknown_names).iter() {
-                    if s.unknown_devices.len() >= UNKNOWN_NAMED {
-                        break;
-                    }
-                    if !s.unknown_devices.contains(name) {
-                        s.unknown_devices.push(name.clone());
-                    }
-                }
-                s.oversized = drops.oversized.load(Ordering::Relaxed);
-                s.undecodable += drops.undecodable.load(Ordering::Relaxed);
-                s.bad_key = drops.bad_key.load(Ordering::Relaxed);
-                s.queue_full = drops.queue_full.load(Ordering::Relaxed) + full;
-                s.superseded = superseded;
-                s.active = ha.active;
-                s.term = ha.term;
-                if let Some(f) = &fleet {
-                    s.devices
-                        .retain(|d| registry.home_of(&d.device_id).is_some_and(|h| f.answers(h)));
-                    s.owned_shards = (0..protocol::SHARDS).filter(|&x| f.answers(x)).collect();
-                    s.fleet_members = f.members().iter().cloned().collect();
-                }
+                let s = service_status_now(
+                    &registry,
+                    started,
+                    &inbox,
+                    &gateways,
+                    &drops,
+                    &ha,
+                    fleet.as_ref(),
+                );
                 // On its own key, so that a wildcard query over several services gets one
                 // reply from each, each telling which service it is.
                 let _ = q.reply(keys::service_status(&id), encode(&s)).await;
@@ -1195,6 +1356,53 @@ pub async fn serve_shared(
     drop(q_service);
     drop(publishers);
     Ok(())
+}
+
+/// The worker's status as a `ServiceStatus` query gets it: the registry's, with the drops
+/// counted before anything reached the worker and the standby and fleet state.
+fn service_status_now(
+    registry: &Registry,
+    started: Instant,
+    inbox: &Mutex<Inbox<pb::Sample>>,
+    gateways: &Mutex<Inbox<pb::SampleBatch>>,
+    drops: &Drops,
+    ha: &HotStandby,
+    fleet: Option<&Fleet>,
+) -> pb::ServiceStatus {
+    let mut s = registry.service_status(started.elapsed().as_secs_f64());
+    let (superseded, full) = {
+        let ib = lock(inbox);
+        (ib.superseded(), ib.full())
+    };
+    let (superseded_batches, gw_full) = {
+        let g = lock(gateways);
+        (g.superseded(), g.full())
+    };
+    let full = full + gw_full;
+    s.superseded_batches = superseded_batches;
+    s.unknown_samples += drops.unknown.load(Ordering::Relaxed);
+    for name in lock(&drops.unknown_names).iter() {
+        if s.unknown_devices.len() >= UNKNOWN_NAMED {
+            break;
+        }
+        if !s.unknown_devices.contains(name) {
+            s.unknown_devices.push(name.clone());
+        }
+    }
+    s.oversized = drops.oversized.load(Ordering::Relaxed);
+    s.undecodable += drops.undecodable.load(Ordering::Relaxed);
+    s.bad_key = drops.bad_key.load(Ordering::Relaxed);
+    s.queue_full = drops.queue_full.load(Ordering::Relaxed) + full;
+    s.superseded = superseded;
+    s.active = ha.active;
+    s.term = ha.term;
+    if let Some(f) = fleet {
+        s.devices
+            .retain(|d| registry.home_of(&d.device_id).is_some_and(|h| f.answers(h)));
+        s.owned_shards = (0..protocol::SHARDS).filter(|&x| f.answers(x)).collect();
+        s.fleet_members = f.members().iter().cloned().collect();
+    }
+    s
 }
 
 /// One of the service's locks (the inbox, the unknown ids): a panic elsewhere while it was
@@ -1276,6 +1484,7 @@ fn undecodable_request(
 }
 
 /// Answer one sample from the inbox.
+#[allow(clippy::too_many_arguments)]
 async fn serve_sample(
     session: &Session,
     registry: &mut Registry,
@@ -1283,13 +1492,17 @@ async fn serve_sample(
     publishers: &mut HashMap<String, Publisher<'static>>,
     inbox: &Mutex<Inbox<pb::Sample>>,
     warn: &mut Warnings,
+    watch: &mut Watch,
     taken: Taken<pb::Sample>,
 ) {
     let dev = taken.id.as_str();
     let sample = taken.item;
+    let log_ns = protocol::unix_ns();
+    let cpu0 = watch.timing().then(thread_cpu);
     // Every member follows every sample (a standby stays warm); only the active one answers.
     let (outcome, provisioned) =
         registry.handle_sample_from(dev, &sample, Some(protocol::shard_of(dev)));
+    let cpu = cpu0.map(|c| thread_cpu() - c);
     if taken.superseded > 0 {
         registry.note_superseded(dev, taken.superseded);
     }
@@ -1313,6 +1526,7 @@ async fn serve_sample(
     if cmd.mode == pb::Mode::Rejected as i32 {
         throttled!(warn.rejected, warn, device = %dev, seq = cmd.seq, "sample refused: {}", cmd.error);
     }
+    watch.served(registry, dev, &sample, &cmd, cpu, provisioned, log_ns);
     if answers {
         publish(session, publishers, dev, &cmd).await;
     }
@@ -1331,6 +1545,7 @@ async fn serve_batch(
     publishers: &mut HashMap<String, Publisher<'static>>,
     inbox: &Mutex<Inbox<pb::Sample>>,
     warn: &mut Warnings,
+    watch: &mut Watch,
     pool: &mut Vec<pb::Command>,
     taken: Taken<pb::SampleBatch>,
 ) {
@@ -1339,7 +1554,12 @@ async fn serve_batch(
     let batch = taken.item;
     let mut commands = std::mem::take(pool);
     let mut n = 0;
-    for sample in &batch.samples {
+    let log_ns = protocol::unix_ns();
+    // One clock read for the batch: its time is shared by its samples (reading the clock
+    // per sample would cost as much as a step).
+    let cpu0 = watch.timing().then(thread_cpu);
+    let mut answered: Vec<(usize, usize, bool)> = Vec::new();
+    for (k, sample) in batch.samples.iter().enumerate() {
         let dev = sample.device_id.as_str();
         if keys::check_id(dev).is_err() {
             // No device to answer: an id that could not even be a key.
@@ -1362,6 +1582,9 @@ async fn serve_batch(
                 if cmd.mode == pb::Mode::Rejected as i32 {
                     throttled!(warn.rejected, warn, device = %dev, seq = cmd.seq, "sample refused: {}", cmd.error);
                 }
+                if watch.timing() || watch.recording.is_some() {
+                    answered.push((k, n, provisioned));
+                }
                 n += 1;
             }
             Served::Unknown => {
@@ -1371,6 +1594,21 @@ async fn serve_batch(
                 throttled!(warn.table_full, warn, device = %dev, "a template matches but the device table is full (max_devices): dropped");
             }
             Served::AlreadyAnswered => {}
+        }
+    }
+    if !answered.is_empty() {
+        let cpu = cpu0.map(|c| (thread_cpu() - c) / answered.len() as f64);
+        for &(k, i, provisioned) in &answered {
+            let (sample, cmd) = (&batch.samples[k], &commands[i]);
+            watch.served(
+                registry,
+                &sample.device_id,
+                sample,
+                cmd,
+                cpu,
+                provisioned,
+                log_ns,
+            );
         }
     }
     // Only the answered ones go out; the spare ones keep their buffers for the next batch.

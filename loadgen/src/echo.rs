@@ -53,6 +53,7 @@ fn command_for(s: &pb::Sample) -> pb::Command {
         controller_id: "echo".into(),
         error: String::new(),
         horizon: Vec::new(),
+        reference: Vec::new(),
     }
 }
 

@@ -75,6 +75,8 @@ pub struct CaseOptions {
     /// The service's prediction for each controller's device, in the order of the
     /// controllers (missing: none).
     pub predictions: Vec<Prediction>,
+    /// Where the plants show their progress while they run (none: nowhere).
+    pub progress: Option<std::sync::Arc<plant_agent::observe::ProgressBoard>>,
 }
 
 impl Default for CaseOptions {
@@ -84,6 +86,7 @@ impl Default for CaseOptions {
             fallback: FallbackPolicy::LocalController,
             max_age: plant_agent::safety::SafetyConfig::DEFAULT_MAX_AGE,
             predictions: Vec::new(),
+            progress: None,
         }
     }
 }
@@ -164,6 +167,7 @@ pub async fn run_case(
         plant.loop_config.safety.hold_periods = options.hold_periods;
         plant.loop_config.safety.fallback = options.fallback;
         plant.loop_config.safety.max_age = options.max_age;
+        plant.loop_config.observers.progress = options.progress.clone();
         tasks.push(tokio::spawn(run_plant(
             vec![endpoint.clone()],
             plant,

@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
+use plant_agent::observe::ProgressBoard;
 
 use faultlab::profile::ProfileSet;
 use faultlab::relay::Link;
@@ -85,9 +86,33 @@ enum Command {
         /// What to fall back to: `local` (the local controller) or `safe-stop` (zero inputs).
         #[arg(long, default_value = "local", value_parser = parse_fallback)]
         fallback: FallbackPolicy,
-        /// Output directory (per plant: run.csv, summary.json, plots).
+        /// Output directory (per plant: run.csv, summary.json, plots; and the MCAP
+        /// recordings `service.mcap` and `plants.mcap`).
         #[arg(long, default_value = "out/demo")]
         out: PathBuf,
+        /// Do not record to MCAP.
+        #[arg(long)]
+        no_record: bool,
+        /// Serve the service's Prometheus metrics on this address (e.g. 127.0.0.1:9464).
+        #[arg(long, value_name = "ADDR")]
+        metrics: Option<String>,
+        /// No live progress on stderr.
+        #[arg(long)]
+        quiet: bool,
+    },
+    /// Re-run a controller service's MCAP recording through the controller, offline, and
+    /// say whether the commands match the recorded ones: a regression check. Exit status
+    /// 0 when they match, 1 when they differ.
+    Replay {
+        /// The recording (a service's: `service.mcap` of a demo, or `controller-service
+        /// --record`).
+        file: PathBuf,
+        /// Largest difference of `u` and `v` still counted as a match.
+        #[arg(long, default_value_t = controller_service::replay::DEFAULT_TOLERANCE)]
+        tolerance: f64,
+        /// Print the report as JSON.
+        #[arg(long)]
+        json: bool,
     },
     /// Tune one controller with a fixed budget of offline runs.
     Tune {
@@ -313,6 +338,9 @@ fn real_main() -> Result<()> {
             hold_periods,
             fallback,
             out,
+            no_record,
+            metrics,
+            quiet,
         } => {
             if plants == 0 || plants > 64 {
                 bail!("--plants must be between 1 and 64");
@@ -338,6 +366,9 @@ fn real_main() -> Result<()> {
                         fallback,
                     },
                     out: Some(out.clone()),
+                    record: (!no_record).then(|| out.clone()),
+                    metrics,
+                    progress: !quiet,
                 },
             ))?;
             print_reports(&reports, Some(&offline));
@@ -345,6 +376,34 @@ fn real_main() -> Result<()> {
                 "wrote {}/<device>/{{run.csv, summary.json, *.png, *.svg}}",
                 out.display()
             );
+            if !no_record {
+                println!(
+                    "recorded {0}/service.mcap and {0}/plants.mcap (Foxglove opens them; `mfc-lab replay {0}/service.mcap` re-runs the controller on them)",
+                    out.display()
+                );
+            }
+            Ok(())
+        }
+        Command::Replay {
+            file,
+            tolerance,
+            json,
+        } => {
+            if !(tolerance.is_finite() && tolerance >= 0.0) {
+                bail!("--tolerance must be a finite number >= 0");
+            }
+            let bytes =
+                std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
+            let report = controller_service::replay::replay(&bytes, tolerance)
+                .with_context(|| file.display().to_string())?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&report)?);
+            } else {
+                print!("{}", controller_service::replay::render(&report));
+            }
+            if !report.matched {
+                std::process::exit(1);
+            }
             Ok(())
         }
         Command::Tune {
@@ -593,18 +652,22 @@ fn campaign(
     let mut s = load_scenario(scenario)?;
     s.duration = duration;
     let (sets, predictions): (Vec<_>, Vec<_>) = load_variants(&s, controllers)?.into_iter().unzip();
+    let board = std::sync::Arc::new(ProgressBoard::new());
     let options = CaseOptions {
         predictions,
+        progress: Some(board.clone()),
         ..CaseOptions::default()
     };
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?;
     let total = set.profiles.len() * links.len();
+    // The case on the first line, the plants of the case running below it.
     let bar = bar(
         total as u64,
-        "{msg:<32} [{bar:30}] {pos}/{len} cases, {elapsed} ({eta} left)",
+        "{prefix:<32} [{bar:30}] {pos}/{len} cases, {elapsed} ({eta} left)\n{msg}",
     );
+    let tty = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let mut campaign = Campaign {
         scenario: s.name.clone(),
         duration,
@@ -612,8 +675,30 @@ fn campaign(
     };
     for p in &set.profiles {
         for link in links {
-            bar.set_message(format!("{} over {}", p.name, link.scheme()));
-            let r = runtime.block_on(run_case(&s, &sets, p, *link, &options))?;
+            let case = format!("{} over {}", p.name, link.scheme());
+            bar.set_prefix(case.clone());
+            board.clear();
+            let r = runtime.block_on(async {
+                let run = run_case(&s, &sets, p, *link, &options);
+                // Live: the plants' time, RMS so far, round trip and mode, twice a second
+                // under the bar on a terminal; every ten seconds as plain lines otherwise.
+                let show = async {
+                    let mut tick = tokio::time::interval(std::time::Duration::from_millis(500));
+                    for n in 0u64.. {
+                        tick.tick().await;
+                        let text = board.render();
+                        if tty {
+                            bar.set_message(text.trim_end().to_string());
+                        } else if n % 20 == 19 {
+                            eprint!("-- {case}\n{text}");
+                        }
+                    }
+                };
+                tokio::select! {
+                    r = run => r,
+                    () = show => unreachable!("the display runs until the case ends"),
+                }
+            })?;
             campaign.cases.extend(r);
             bar.inc(1);
         }

@@ -9,6 +9,8 @@ use plant_agent::safety::SafetyConfig;
 use plant_agent::scenario::{ControllerSet, PlantSource, Scenario};
 
 use crate::harness::{run_fleet, service_config, PlantSpec};
+use plant_agent::observe::{LoopObservers, ProgressBoard};
+use telemetry::{RecordSpec, Recording};
 
 /// Options of a demo run.
 #[derive(Debug, Clone)]
@@ -19,6 +21,49 @@ pub struct DemoOptions {
     pub safety: SafetyConfig,
     /// Where to write each plant's record (None: nowhere).
     pub out: Option<PathBuf>,
+    /// Record to MCAP in this directory: `service.mcap` (the controller's side, which
+    /// `mfc-lab replay` re-runs) and `plants.mcap` (the plants' side). None: no recording.
+    pub record: Option<PathBuf>,
+    /// Serve the service's Prometheus metrics on this address.
+    pub metrics: Option<String>,
+    /// Show each plant's time, RMS so far, round trip and mode on stderr while it runs.
+    pub progress: bool,
+}
+
+/// Print `board` to stderr every second until `done` resolves, then once more: in place on
+/// a terminal, as blocks of lines every five seconds otherwise (a log, a CI run).
+pub async fn show_progress(
+    board: std::sync::Arc<ProgressBoard>,
+    done: impl std::future::Future<Output = ()>,
+) {
+    use std::io::{IsTerminal, Write};
+    let tty = std::io::stderr().is_terminal();
+    let every = std::time::Duration::from_secs(if tty { 1 } else { 5 });
+    let mut tick = tokio::time::interval(every);
+    tick.tick().await;
+    tokio::pin!(done);
+    let mut shown = 0usize;
+    loop {
+        let last = tokio::select! {
+            _ = tick.tick() => false,
+            () = &mut done => true,
+        };
+        let text = board.render();
+        let mut err = std::io::stderr().lock();
+        if tty && shown > 0 {
+            // Back over the last board, and clear it.
+            let _ = write!(err, "\x1b[{shown}A\x1b[J");
+        }
+        if !tty {
+            let _ = writeln!(err, "--");
+        }
+        let _ = write!(err, "{text}");
+        let _ = err.flush();
+        shown = text.lines().count();
+        if last {
+            break;
+        }
+    }
 }
 
 /// The device ids of a demo: `aero-1..` for the AERO, `plant-1..` for a driver plant.
@@ -38,17 +83,52 @@ pub async fn demo(
     options: &DemoOptions,
 ) -> anyhow::Result<Vec<AgentReport>> {
     let ids = device_ids(scenario, options.plants);
+    let mut config = service_config(scenario, controller, &ids);
+    let mut observers = LoopObservers::default();
+    if let Some(dir) = &options.record {
+        std::fs::create_dir_all(dir)?;
+        config.record = Some(RecordSpec::at(dir.join("service.mcap")));
+        observers.recording = Some(Recording::create(
+            &RecordSpec::at(dir.join("plants.mcap")),
+            "plant-agent",
+        )?);
+    }
+    if let Some(addr) = &options.metrics {
+        config.metrics = Some(telemetry::MetricsSpec {
+            listen: addr.clone(),
+            per_device: true,
+        });
+    }
+    let board = std::sync::Arc::new(ProgressBoard::new());
+    if options.progress {
+        observers.progress = Some(board.clone());
+    }
     let plants = ids
         .iter()
         .enumerate()
         .map(|(i, id)| {
             let mut p = PlantSpec::new(scenario, controller, id);
             p.loop_config.safety = options.safety;
+            p.loop_config.observers = observers.clone();
             p.seed = scenario.seed.wrapping_add(i as u64);
             p
         })
         .collect();
-    let runs = run_fleet(plants, service_config(scenario, controller, &ids)).await?;
+    let (done_tx, done_rx) = tokio::sync::oneshot::channel::<()>();
+    let shown = options.progress.then(|| {
+        tokio::spawn(show_progress(board.clone(), async {
+            let _ = done_rx.await;
+        }))
+    });
+    let runs = run_fleet(plants, config).await;
+    let _ = done_tx.send(());
+    if let Some(s) = shown {
+        let _ = s.await;
+    }
+    if let Some(r) = observers.recording.take() {
+        tokio::task::spawn_blocking(move || r.finish()).await??;
+    }
+    let runs = runs?;
     let mut reports = Vec::new();
     for run in runs {
         if let Some(dir) = &options.out {

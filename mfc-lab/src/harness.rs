@@ -87,8 +87,15 @@ async fn open_config(config: zenoh::Config) -> anyhow::Result<Session> {
 pub struct ServiceHandle {
     /// Endpoint the service listens on.
     pub endpoint: String,
+    /// Address of its metrics endpoint, if its configuration asks for one.
+    pub metrics: Option<std::net::SocketAddr>,
     stop: Option<tokio::sync::oneshot::Sender<()>>,
     task: tokio::task::JoinHandle<Result<(), service::ServiceError>>,
+    observers: controller_service::observe::Observers,
+    metrics_stop: Option<(
+        tokio::sync::oneshot::Sender<()>,
+        tokio::task::JoinHandle<()>,
+    )>,
 }
 
 impl ServiceHandle {
@@ -108,19 +115,44 @@ impl ServiceHandle {
             Some(e) => e,
             None => format!("tcp/127.0.0.1:{}", transport::free_local_port()?),
         };
+        // As the service's binary: the recording and the metrics its configuration asks for.
+        let observers = controller_service::cli::observers(&config)?;
+        let mut metrics = None;
+        let mut metrics_stop = None;
+        if let (Some(spec), Some(m)) = (&config.metrics, &observers.metrics) {
+            let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+            let (addr, task) =
+                controller_service::observe::serve_endpoint(spec, m.clone(), async {
+                    let _ = rx.await;
+                })
+                .await?;
+            metrics = Some(addr);
+            metrics_stop = Some((tx, task));
+        }
         let registry = Registry::new(config)?;
         // As the service's own binary: no message larger than it would count is reassembled.
         let mut zc = loopback_config(Some(endpoint.clone()), vec![], gossip)?;
         transport::bound_messages(&mut zc, protocol::MAX_TRANSPORT_MESSAGE)?;
         let session = open_config(zc).await?;
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-        let task = tokio::spawn(service::serve(session, registry, async {
-            let _ = rx.await;
-        }));
+        let task = tokio::spawn({
+            let (session, observers) = (session.clone(), observers.clone());
+            async move {
+                let r = service::serve_observed(session.clone(), registry, observers, async {
+                    let _ = rx.await;
+                })
+                .await;
+                let _ = session.close().await;
+                r
+            }
+        });
         Ok(Self {
             endpoint,
+            metrics,
             stop: Some(tx),
             task,
+            observers,
+            metrics_stop,
         })
     }
 
@@ -135,6 +167,13 @@ impl ServiceHandle {
             let _ = tx.send(());
         }
         (&mut self.task).await??;
+        if let Some((tx, task)) = self.metrics_stop.take() {
+            let _ = tx.send(());
+            let _ = task.await;
+        }
+        if let Some(r) = self.observers.recording.take() {
+            tokio::task::spawn_blocking(move || r.finish()).await??;
+        }
         Ok(())
     }
 }

@@ -162,47 +162,6 @@ fn out<T: Serialize>(json: bool, value: &T, text: impl FnOnce(&T) -> String) -> 
     }
 }
 
-/// A `FIELD=VALUE` list as a partial change of `channel`.
-pub fn parse_update(channel: u32, fields: &[String]) -> Result<pb::ChannelUpdate> {
-    let mut u = pb::ChannelUpdate {
-        channel,
-        ..Default::default()
-    };
-    for f in fields {
-        let (k, v) = f
-            .split_once('=')
-            .with_context(|| format!("{f:?}: write FIELD=VALUE, e.g. kp=2.5"))?;
-        let v: f64 = v
-            .trim()
-            .parse()
-            .with_context(|| format!("{f:?}: {v:?} is not a number"))?;
-        let slot = match k.trim() {
-            "kp" => &mut u.kp,
-            "ki" => &mut u.ki,
-            "kd" => &mut u.kd,
-            "alpha" => &mut u.alpha,
-            "derivative_filter" => &mut u.derivative_filter,
-            "b0" => &mut u.b0,
-            "wc" => &mut u.wc,
-            "wo" => &mut u.wo,
-            "setpoint_weight" => &mut u.setpoint_weight,
-            "dead_zone" => &mut u.dead_zone,
-            "smoothing" => &mut u.smoothing,
-            "derivative_observer" => &mut u.derivative_observer,
-            "estimate_filter" => &mut u.estimate_filter,
-            "min" => &mut u.min,
-            "max" => &mut u.max,
-            "rate_limit" => &mut u.rate_limit,
-            other => bail!(
-                "unknown field {other:?}: kp ki kd alpha derivative_filter derivative_observer estimate_filter b0 wc wo \
-                 setpoint_weight dead_zone smoothing min max rate_limit"
-            ),
-        };
-        *slot = Some(v);
-    }
-    Ok(u)
-}
-
 /// The reference file's shape.
 #[derive(Debug, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -259,7 +218,7 @@ async fn command(
             channel,
             fields,
         } => {
-            let u = parse_update(*channel, fields)?;
+            let u = ops::parse_update(*channel, fields)?;
             let c = ops::update(session, device, u, timeout).await?;
             out(json, &c, render::config)?
         }
@@ -325,18 +284,6 @@ async fn command(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn field_assignments_become_a_partial_change() {
-        let u = parse_update(1, &["kp=450".into(), "alpha = 5".into()]).unwrap();
-        assert_eq!(
-            (u.channel, u.kp, u.alpha, u.ki),
-            (1, Some(450.0), Some(5.0), None)
-        );
-        for bad in ["kp", "kp=x", "gain=1"] {
-            assert!(parse_update(0, &[bad.into()]).is_err(), "{bad}");
-        }
-    }
 
     #[test]
     fn the_command_line_parses() {

@@ -4,10 +4,11 @@
 //! queries, so whatever the session may reach (an operator's credentials on a secured
 //! router) is what it may do.
 //!
-//! * [`ops`]: the queries, decoded, with typed errors;
+//! * [`ops`]: the queries, decoded, with typed errors (in `transport`, shared with the
+//!   browser console);
 //! * [`render`]: text for people (pure);
 //! * [`cli`]: the command line (the binary is a one-line `main`).
 
 pub mod cli;
-pub mod ops;
+pub use transport::ops;
 pub mod render;

@@ -27,12 +27,14 @@ use tokio::sync::{mpsc, oneshot};
 use tokio::time::Instant;
 use zenoh::Session;
 
+use crate::observe::{LoopObservers, PeriodFigures, Progress};
 use crate::plant::{Plant, PlantError};
 use crate::record::{percentile, Accumulator, ChannelMetrics, Period, Recording};
 use crate::safety::{
     CommandBody, Counters, IncomingCommand, Mode, SafetyConfig, SafetyError, Supervisor, Verdict,
 };
 use crate::scenario::{ControllerSet, Scenario, ScenarioChannel};
+use telemetry::Topic;
 
 /// What the loop runs: one device on one scenario, with its local controller and its
 /// safety settings.
@@ -59,6 +61,8 @@ pub struct LoopConfig {
     /// [`protocol::RESENT_SAMPLES`]: a run of that many lost samples leaves the controller
     /// no gap, for about 25 bytes per channel and copy.
     pub resend: usize,
+    /// Live progress, metrics and recording (default: none).
+    pub observers: LoopObservers,
 }
 
 impl LoopConfig {
@@ -79,6 +83,7 @@ impl LoopConfig {
             scenario: scenario.name.clone(),
             startup_delay: Duration::from_millis(100),
             resend: protocol::RESENT_SAMPLES,
+            observers: LoopObservers::default(),
         }
     }
 }
@@ -602,6 +607,21 @@ async fn periods(
     let mut end = End::Completed;
     let mut error: Option<String> = None;
     let (mut bad_commands, mut refusals) = (LogBudget::default(), LogBudget::default());
+    let obs = &config.observers;
+    let dev_metrics = obs.metrics.as_ref().map(|m| m.device(id, n));
+    let mcap = obs.recording.as_ref();
+    let duration = config.steps as f64 * h;
+    // The board is refreshed ten times a second of plant time: enough for a person.
+    let board_every = ((0.1 / h).round() as usize).max(1);
+    let mut last_f: Option<Vec<f64>> = None;
+    if let Some(r) = mcap {
+        r.event(
+            id,
+            "start",
+            format!("run {run_id:#x}: {} periods of {h} s", config.steps),
+            0.0,
+        );
+    }
     tokio::pin!(stop);
 
     tokio::select! {
@@ -664,6 +684,15 @@ async fn periods(
         if sent_at.len() > config.safety.max_age as usize + 2 {
             sent_at.pop_front();
         }
+        if let Some(r) = mcap {
+            r.record(
+                id,
+                Topic::Sample,
+                sample.sent_unix_ns,
+                sample.sent_unix_ns,
+                encode(&sample),
+            );
+        }
         if let Err(e) = publisher.send(sample).await {
             tracing::warn!(device = id, "publishing sample {k}: {e}");
         }
@@ -723,7 +752,18 @@ async fn periods(
                 break;
             };
             let cmd = match decode::<pb::Command>(&bytes) {
-                Ok(c) if c.device_id == id => c,
+                Ok(c) if c.device_id == id => {
+                    if let Some(r) = mcap {
+                        r.record(
+                            id,
+                            Topic::Command,
+                            protocol::unix_ns(),
+                            c.controller_unix_ns,
+                            bytes.clone(),
+                        );
+                    }
+                    c
+                }
                 Ok(_) => continue,
                 Err(e) => {
                     if bad_commands.hit() {
@@ -795,6 +835,39 @@ async fn periods(
         for (i, c) in config.channels.iter().enumerate() {
             acc[i].add(y[i] - refs[i].y, h, applied[i], c.saturated(applied[i]));
         }
+        if let Some(r) = &remote {
+            last_f = Some(r.1.clone());
+        }
+        if let (Some(r), true) = (mcap, done.mode != mode_before) {
+            r.event(id, "mode", format!("{mode_before:?} -> {:?}", done.mode), t);
+        }
+        if let Some(d) = &dev_metrics {
+            d.period(&PeriodFigures {
+                counters: sup.counters(),
+                rtt_us,
+                mode: done.mode,
+                f_est: last_f.as_deref(),
+                queue: rx.len(),
+                overruns,
+            });
+        }
+        if let (Some(b), true) = (&obs.progress, k % board_every == 0) {
+            b.update(Progress {
+                device: id.to_string(),
+                t,
+                duration,
+                rms: acc
+                    .iter()
+                    .zip(&config.channels)
+                    .map(|(a, c)| a.finish(&c.name).rms)
+                    .collect(),
+                rtt_us,
+                mode: done.mode,
+                fallbacks: sup.counters().fallbacks,
+                missing: sup.counters().missing,
+                done: false,
+            });
+        }
         let y_ref: Vec<f64> = refs.iter().map(|r| r.y).collect();
         recording.push(Period {
             t,
@@ -817,6 +890,34 @@ async fn periods(
     };
     if let Some(e) = &error {
         tracing::error!(device = id, "run ended: {e}");
+    }
+    if let Some(b) = &obs.progress {
+        b.update(Progress {
+            device: id.to_string(),
+            t: recording.t.last().copied().unwrap_or(0.0),
+            duration,
+            rms: acc
+                .iter()
+                .zip(&config.channels)
+                .map(|(a, c)| a.finish(&c.name).rms)
+                .collect(),
+            rtt_us: last_rtt_us,
+            mode: sup.mode(),
+            fallbacks: sup.counters().fallbacks,
+            missing: sup.counters().missing,
+            done: true,
+        });
+    }
+    if let Some(r) = mcap {
+        r.event(
+            id,
+            "end",
+            format!(
+                "{end:?}{}",
+                error.as_ref().map(|e| format!(": {e}")).unwrap_or_default()
+            ),
+            0.0,
+        );
     }
     rtts.sort_unstable();
     let counters = sup.counters().clone();

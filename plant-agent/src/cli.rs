@@ -8,6 +8,7 @@ use clap::{Parser, Subcommand};
 
 use crate::agent::{self, AgentReport};
 use crate::config::AgentFile;
+use crate::observe;
 use crate::record::write_run;
 use crate::safety::FallbackPolicy;
 
@@ -79,6 +80,12 @@ struct RunArgs {
     /// Where to write the record.
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Serve Prometheus metrics on this address (`GET /metrics`).
+    #[arg(long, value_name = "ADDR")]
+    metrics: Option<String>,
+    /// Record samples, commands and mode changes to this MCAP file.
+    #[arg(long, value_name = "FILE")]
+    record: Option<PathBuf>,
     #[command(flatten)]
     zenoh: transport::ZenohArgs,
 }
@@ -136,7 +143,16 @@ fn run(args: RunArgs) -> Result<u8> {
     if let Some(o) = args.out {
         file.out = o;
     }
-    let r = file.resolve(&source)?;
+    if let Some(m) = args.metrics {
+        file.metrics = Some(telemetry::MetricsSpec {
+            listen: m,
+            ..file.metrics.unwrap_or_default()
+        });
+    }
+    if let Some(p) = args.record {
+        file.record = Some(telemetry::RecordSpec::at(p));
+    }
+    let mut r = file.resolve(&source)?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?;
@@ -166,7 +182,10 @@ fn run(args: RunArgs) -> Result<u8> {
                 return Ok(agent::never_started(&r.loop_config, stopped));
             }
         };
+        let started = observe::start(file.metrics.as_ref(), file.record.as_ref()).await?;
+        r.loop_config.observers = started.observers.clone();
         let out = agent::run_loop(&session, plant, &r.loop_config, run_id(), shutdown).await;
+        started.finish().await;
         let _ = session.close().await;
         Ok(out?)
     });
@@ -218,9 +237,14 @@ fn gateway(args: GatewayArgs) -> Result<u8> {
                 return Err(anyhow::Error::from(e));
             }
         };
+        let started = observe::start(g.metrics.as_ref(), g.record.as_ref()).await?;
+        for (_, cfg) in plants.iter_mut() {
+            cfg.observers = started.observers.clone();
+        }
         tracing::info!(gateway = %g.gateway, plants = plants.len(), "hosting");
         let runs =
             crate::gateway::run_gateway(&session, &g.gateway, plants, run_id, shutdown).await;
+        started.finish().await;
         let _ = session.close().await;
         Ok(runs?)
     });

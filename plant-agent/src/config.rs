@@ -82,6 +82,13 @@ pub struct AgentFile {
     pub resend: usize,
     /// Where to write the record (`run.csv`, `summary.json`, plots). Default `out/run`.
     pub out: PathBuf,
+    /// A Prometheus endpoint (absent: none): `metrics = { listen = "127.0.0.1:9465" }`.
+    /// In a gateway's file, set it once at the top level (a plant's is ignored).
+    pub metrics: Option<telemetry::MetricsSpec>,
+    /// Record the plant's side (samples sent, commands received, mode changes) to MCAP:
+    /// `record = { path = "agent.mcap" }` (absent: no recording). In a gateway's file, set
+    /// it once at the top level.
+    pub record: Option<telemetry::RecordSpec>,
 }
 
 impl Default for AgentFile {
@@ -96,6 +103,8 @@ impl Default for AgentFile {
             fallback: FallbackPolicy::LocalController,
             resend: protocol::RESENT_SAMPLES,
             out: PathBuf::from("out/run"),
+            metrics: None,
+            record: None,
         }
     }
 }

@@ -54,6 +54,12 @@ pub struct GatewayFile {
     /// Where the records go: one directory per plant under it. Default `out/{gateway}`.
     #[serde(default)]
     pub out: Option<PathBuf>,
+    /// A Prometheus endpoint for all its plants (absent: none).
+    #[serde(default)]
+    pub metrics: Option<telemetry::MetricsSpec>,
+    /// Record all its plants into one MCAP file (absent: no recording).
+    #[serde(default)]
+    pub record: Option<telemetry::RecordSpec>,
     /// The plants, each as a single agent's file would describe it (`device` required;
     /// its `out` is ignored). At least one, at most [`MAX_PLANTS`], unique ids, one period.
     pub plants: Vec<AgentFile>,
@@ -64,6 +70,8 @@ pub struct GatewayFile {
 pub struct ResolvedGateway {
     pub gateway: String,
     pub out: PathBuf,
+    pub metrics: Option<telemetry::MetricsSpec>,
+    pub record: Option<telemetry::RecordSpec>,
     pub plants: Vec<Resolved>,
 }
 
@@ -128,6 +136,8 @@ impl GatewayFile {
                 .clone()
                 .unwrap_or_else(|| PathBuf::from("out").join(&self.gateway)),
             gateway: self.gateway.clone(),
+            metrics: self.metrics.clone(),
+            record: self.record.clone(),
             plants,
         })
     }

@@ -21,6 +21,7 @@ pub mod agent;
 pub mod cli;
 pub mod config;
 pub mod gateway;
+pub mod observe;
 pub mod plant;
 pub mod record;
 pub mod safety;

@@ -15,6 +15,15 @@ pub mod pb {
     include!(concat!(env!("OUT_DIR"), "/mfc.v1.rs"));
 }
 
+/// The compiled schema of [`pb`] (package `mfc.v1`), as a serialized
+/// `google.protobuf.FileDescriptorSet`: what an MCAP recording embeds with each protobuf
+/// channel so that Foxglove, `mcap` tools or any protobuf library decode it as it is.
+pub const FILE_DESCRIPTOR_SET: &[u8] =
+    include_bytes!(concat!(env!("OUT_DIR"), "/mfc_descriptor_set.bin"));
+
+/// The package of every message, for fully qualified names (`mfc.v1.Sample`).
+pub const PACKAGE: &str = "mfc.v1";
+
 /// Version carried in field 1 of every top-level message; decoders refuse any other.
 pub const PROTOCOL_VERSION: u32 = 1;
 
@@ -130,7 +139,8 @@ versioned!(
     ServiceStatus,
     Heartbeat,
     SampleBatch,
-    CommandBatch
+    CommandBatch,
+    Event
 );
 
 /// Decode a versioned message; never panics, whatever the bytes.

@@ -5,6 +5,11 @@
 //! go out `express` (no batching), at `RealTime` priority, with `Drop` congestion control:
 //! in a control loop a stale message is worse than a lost one, and a blocked publisher must
 //! never stall the loop.
+//!
+//! [`ops`] holds what an operator asks of the controllers (status, configuration, gain and
+//! reference changes), shared by `mfcctl` and the browser console.
+
+pub mod ops;
 
 use std::path::PathBuf;
 

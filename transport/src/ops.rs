@@ -1,6 +1,7 @@
 //! What an operator asks of the controllers, over a Zenoh session: each call is one query
 //! (or a liveliness read) and returns the decoded answer or a typed error that says what
-//! went wrong and where. No printing here: [`crate::render`] does that.
+//! went wrong and where. No printing here: `mfcctl`'s `render` and the browser console
+//! (`mfc-console`) present the answers, each in its own way.
 
 use std::time::Duration;
 
@@ -229,6 +230,72 @@ pub async fn change_envelope(
     accepted(&keys::envelope(id), reply)
 }
 
+/// The fields a [`pb::ChannelUpdate`] can change, by the names operators write
+/// (`FIELD=VALUE`): the law's parameters, then the output map's.
+pub const UPDATE_FIELDS: [&str; 16] = [
+    "kp",
+    "ki",
+    "kd",
+    "alpha",
+    "derivative_filter",
+    "derivative_observer",
+    "estimate_filter",
+    "b0",
+    "wc",
+    "wo",
+    "setpoint_weight",
+    "dead_zone",
+    "smoothing",
+    "min",
+    "max",
+    "rate_limit",
+];
+
+/// A `FIELD=VALUE` list as a partial change of `channel`: only the named fields are set,
+/// so the service changes those and nothing else. Shared by `mfcctl set` and the browser
+/// console's gain form, so both accept exactly the same names.
+pub fn parse_update(channel: u32, fields: &[String]) -> Result<pb::ChannelUpdate, OpError> {
+    let mut u = pb::ChannelUpdate {
+        channel,
+        ..Default::default()
+    };
+    for f in fields {
+        let (k, v) = f
+            .split_once('=')
+            .ok_or_else(|| OpError::Usage(format!("{f:?}: write FIELD=VALUE, e.g. kp=2.5")))?;
+        let v: f64 = v
+            .trim()
+            .parse()
+            .map_err(|_| OpError::Usage(format!("{f:?}: {v:?} is not a number")))?;
+        let slot = match k.trim() {
+            "kp" => &mut u.kp,
+            "ki" => &mut u.ki,
+            "kd" => &mut u.kd,
+            "alpha" => &mut u.alpha,
+            "derivative_filter" => &mut u.derivative_filter,
+            "b0" => &mut u.b0,
+            "wc" => &mut u.wc,
+            "wo" => &mut u.wo,
+            "setpoint_weight" => &mut u.setpoint_weight,
+            "dead_zone" => &mut u.dead_zone,
+            "smoothing" => &mut u.smoothing,
+            "derivative_observer" => &mut u.derivative_observer,
+            "estimate_filter" => &mut u.estimate_filter,
+            "min" => &mut u.min,
+            "max" => &mut u.max,
+            "rate_limit" => &mut u.rate_limit,
+            other => {
+                return Err(OpError::Usage(format!(
+                    "unknown field {other:?}: {}",
+                    UPDATE_FIELDS.join(" ")
+                )))
+            }
+        };
+        *slot = Some(v);
+    }
+    Ok(u)
+}
+
 fn check(id: &str) -> Result<(), OpError> {
     keys::check_id(id)
         .map(|_| ())
@@ -246,4 +313,25 @@ fn accepted(key: &str, reply: pb::ConfigReply) -> Result<pb::DeviceConfig, OpErr
         what: format!("query {key}"),
         reason: "accepted, but no configuration came back".into(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn field_assignments_become_a_partial_change() {
+        let u = parse_update(1, &["kp=450".into(), "alpha = 5".into()]).unwrap();
+        assert_eq!(
+            (u.channel, u.kp, u.alpha, u.ki),
+            (1, Some(450.0), Some(5.0), None)
+        );
+        for bad in ["kp", "kp=x", "gain=1"] {
+            assert!(parse_update(0, &[bad.into()]).is_err(), "{bad}");
+        }
+        // Every name the list advertises is accepted.
+        for f in UPDATE_FIELDS {
+            assert!(parse_update(0, &[format!("{f}=1")]).is_ok(), "{f}");
+        }
+    }
 }
