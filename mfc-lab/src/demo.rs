@@ -87,11 +87,13 @@ pub async fn demo(
     let mut observers = LoopObservers::default();
     if let Some(dir) = &options.record {
         std::fs::create_dir_all(dir)?;
-        config.record = Some(RecordSpec::at(dir.join("service.mcap")));
-        observers.recording = Some(Recording::create(
-            &RecordSpec::at(dir.join("plants.mcap")),
-            "plant-agent",
-        )?);
+        // A demo's output directory holds its last run: replaced, not accumulated.
+        let spec = |name: &str| RecordSpec {
+            keep_previous: false,
+            ..RecordSpec::at(dir.join(name))
+        };
+        config.record = Some(spec("service.mcap"));
+        observers.recording = Some(Recording::create(&spec("plants.mcap"), "plant-agent")?);
     }
     if let Some(addr) = &options.metrics {
         config.metrics = Some(telemetry::MetricsSpec {

@@ -28,9 +28,12 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RecordSpec {
-    /// The MCAP file to write (replaced if it exists). No default: recording is off unless
-    /// asked for.
+    /// The MCAP file to write. No default: recording is off unless asked for.
     pub path: PathBuf,
+    /// What to do with a file already at `path` (a service restarted): keep it, renamed
+    /// `{name}.{unix seconds}.mcap` (true, the default), or replace it (false).
+    #[serde(default = "yes")]
+    pub keep_previous: bool,
     /// Messages that may wait for the writer (default 65 536: several seconds of a
     /// thousand plants at 100 Hz); beyond it messages are dropped and counted.
     #[serde(default = "queue")]
@@ -40,6 +43,10 @@ pub struct RecordSpec {
     /// file is finished properly at the end.
     #[serde(default = "max_bytes")]
     pub max_bytes: u64,
+}
+
+fn yes() -> bool {
+    true
 }
 
 fn queue() -> usize {
@@ -55,6 +62,7 @@ impl RecordSpec {
     pub fn at(path: impl Into<PathBuf>) -> Self {
         Self {
             path: path.into(),
+            keep_previous: true,
             queue: queue(),
             max_bytes: max_bytes(),
         }
@@ -212,6 +220,20 @@ impl Recording {
     /// Start recording as `spec` says; `source` names the writer (`controller-service`,
     /// `plant-agent`) in the file's header.
     pub fn create(spec: &RecordSpec, source: &str) -> Result<Self, RecordError> {
+        if spec.keep_previous && spec.path.exists() {
+            let stem = spec
+                .path
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            let secs = protocol::unix_ns() / 1_000_000_000;
+            let old = spec.path.with_file_name(format!("{stem}.{secs}.mcap"));
+            std::fs::rename(&spec.path, &old).map_err(|source| RecordError::Create {
+                path: old.clone(),
+                source,
+            })?;
+            tracing::info!(previous = %old.display(), "the previous recording is kept");
+        }
         let file = File::create(&spec.path).map_err(|source| RecordError::Create {
             path: spec.path.clone(),
             source,
@@ -563,6 +585,25 @@ mod tests {
         let c = read_recording(&std::fs::read(&spec.path).unwrap()).unwrap();
         assert_eq!(c.messages.len(), 2);
         assert_eq!(c.metadata["dropped"], "3");
+    }
+
+    #[test]
+    fn a_previous_recording_is_kept_unless_told_otherwise() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut spec = RecordSpec::at(dir.path().join("s.mcap"));
+        std::fs::write(&spec.path, b"earlier").unwrap();
+        Recording::create(&spec, "test").unwrap().finish().unwrap();
+        let names: Vec<String> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        assert_eq!(names.len(), 2, "{names:?}");
+        let kept = names.iter().find(|n| *n != "s.mcap").unwrap();
+        assert!(kept.starts_with("s.") && kept.ends_with(".mcap"), "{kept}");
+        assert_eq!(std::fs::read(dir.path().join(kept)).unwrap(), b"earlier");
+        spec.keep_previous = false;
+        Recording::create(&spec, "test").unwrap().finish().unwrap();
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
     }
 
     #[test]
