@@ -238,8 +238,11 @@ impl Recording {
             path: spec.path.clone(),
             source,
         })?;
+        // Chunks of 64 KiB (the crate's default is 768 KiB): a writer killed before it
+        // finishes loses at most the chunk it was filling.
         let writer = mcap::WriteOptions::new()
             .compression(None)
+            .chunk_size(Some(64 * 1024))
             .profile("")
             .library(format!("mfc-zenoh {source}"))
             .create(BufWriter::new(file))?;
@@ -471,13 +474,29 @@ pub struct RecordingContents {
     pub metadata: BTreeMap<String, String>,
     /// Messages on topics this project does not write (kept out of `messages`).
     pub foreign: usize,
+    /// The file ends before its footer (the writer was killed): `messages` and
+    /// `attachments` hold what was written before the cut, and there is no metadata.
+    pub truncated: bool,
 }
 
-/// Read a whole recording. Refuses a file that is not MCAP or is cut short.
+/// Read a whole recording. Refuses a file that is not MCAP; a file cut short (a writer
+/// killed before it finished) gives the messages before the cut, marked `truncated`.
 pub fn read_recording(bytes: &[u8]) -> Result<RecordingContents, RecordError> {
+    if !bytes.starts_with(mcap::MAGIC) {
+        return Err(mcap::McapError::BadMagic.into());
+    }
     let mut out = RecordingContents::default();
+    let finished = mcap::read::footer(bytes).is_ok();
     for m in mcap::MessageStream::new(bytes)? {
-        let m = m?;
+        let m = match m {
+            Ok(m) => m,
+            Err(e) if !finished => {
+                tracing::debug!("recording cut short: {e}");
+                out.truncated = true;
+                break;
+            }
+            Err(e) => return Err(e.into()),
+        };
         let parsed = m
             .channel
             .topic
@@ -494,6 +513,20 @@ pub fn read_recording(bytes: &[u8]) -> Result<RecordingContents, RecordError> {
             }),
             None => out.foreign += 1,
         }
+    }
+    if !finished {
+        // No summary to find the attachments by: walk the records up to the cut.
+        out.truncated = true;
+        for r in mcap::read::LinearReader::new(bytes)? {
+            match r {
+                Ok(mcap::records::Record::Attachment { header, data, .. }) => {
+                    out.attachments.insert(header.name, data.into_owned());
+                }
+                Ok(_) => {}
+                Err(_) => break,
+            }
+        }
+        return Ok(out);
     }
     if let Some(summary) = mcap::Summary::read(bytes)? {
         for a in summary.attachment_indexes.iter() {
@@ -604,6 +637,36 @@ mod tests {
         spec.keep_previous = false;
         Recording::create(&spec, "test").unwrap().finish().unwrap();
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
+    }
+
+    #[test]
+    fn a_file_cut_short_gives_what_was_written_before() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut spec = RecordSpec::at(dir.path().join("r.mcap"));
+        let rec = Recording::create(&spec, "test").unwrap();
+        for i in 0..2000u64 {
+            rec.record("d", Topic::Sample, i, i, vec![7u8; 500]);
+        }
+        rec.finish().unwrap();
+        let bytes = std::fs::read(&spec.path).unwrap();
+        let whole = read_recording(&bytes).unwrap();
+        assert!(!whole.truncated);
+        assert_eq!(whole.messages.len(), 2000);
+        // Cut in the middle, as a kill -9 would leave it.
+        let cut = read_recording(&bytes[..bytes.len() / 2]).unwrap();
+        assert!(cut.truncated);
+        assert!(
+            !cut.messages.is_empty() && cut.messages.len() < 2000,
+            "{}",
+            cut.messages.len()
+        );
+        assert!(cut
+            .messages
+            .iter()
+            .enumerate()
+            .all(|(i, m)| m.log_ns == i as u64));
+        spec.path = dir.path().join("x");
+        assert!(read_recording(&bytes[..4]).is_err(), "not even the magic");
     }
 
     #[test]

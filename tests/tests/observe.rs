@@ -255,6 +255,22 @@ async fn metrics_match_the_status_and_a_recording_decodes_and_replays() {
     assert_eq!((dr.changes, dr.changes_refused), (1, 0));
     println!("{}", controller_service::replay::render(&r));
 
+    // A recording whose writer was killed (cut at 60 %: no summary, no footer) still
+    // replays, up to the cut, and says so.
+    let cut = controller_service::replay::replay(&bytes[..bytes.len() * 6 / 10], 1e-9).unwrap();
+    assert!(cut.matched, "{}", controller_service::replay::render(&cut));
+    assert!(
+        cut.notes.iter().any(|n| n.contains("cut short")),
+        "{:?}",
+        cut.notes
+    );
+    let compared = cut.devices[0].compared;
+    assert!(
+        compared > 100 && compared < d.commands,
+        "{compared} of {}",
+        d.commands
+    );
+
     // The same recording with one output moved by 1 mrad, a third of the way in: the
     // replay must see the controller answer differently from there on.
     let c = read_recording(&bytes).unwrap();
