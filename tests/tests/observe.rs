@@ -302,3 +302,94 @@ async fn metrics_match_the_status_and_a_recording_decodes_and_replays() {
     assert!(!r.matched, "{}", controller_service::replay::render(&r));
     assert!(r.devices[0].mismatches > 0);
 }
+
+/// The service's own binary (`service-under-test` runs the same `cli::main_with_args`):
+/// `--metrics` serves while it runs, `--record` writes a finished file when SIGTERM stops
+/// it (summary, footer, nothing dropped), and a second start keeps the first file.
+#[tokio::test(flavor = "multi_thread")]
+async fn the_service_binary_serves_metrics_and_finishes_its_recording_on_sigterm() {
+    let _s = SERIAL.lock().await;
+    let dir = scratch_dir("observe-bin");
+    let mut s = load_scenario("1").unwrap();
+    s.duration = 3.0;
+    let c = shipped_controller("ipd").unwrap();
+    let config = service_config(&s, &c, &["aero-1".into()]);
+    let file = dir.join("service.toml");
+    std::fs::write(&file, toml::to_string(&config).unwrap()).unwrap();
+    let rec = dir.join("service.mcap");
+    for round in 0..2 {
+        let endpoint = format!("tcp/127.0.0.1:{}", transport::free_local_port().unwrap());
+        let metrics = format!("127.0.0.1:{}", transport::free_local_port().unwrap());
+        let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_service-under-test"))
+            .args(["--config", file.to_str().unwrap(), "--listen", &endpoint])
+            .args(["--no-multicast-scouting", "--metrics", &metrics])
+            .args(["--record", rec.to_str().unwrap()])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap();
+        let probe = transport::ZenohArgs::loopback(None, vec![endpoint.clone()])
+            .open()
+            .await
+            .unwrap();
+        let up = transport::wait_for_token(
+            &probe,
+            &protocol::keys::alive_controller("controller-1"),
+            Duration::from_secs(20),
+        )
+        .await;
+        let _ = probe.close().await;
+        assert!(up, "the service never came up");
+        let run = run_plant(vec![endpoint], PlantSpec::new(&s, &c, "aero-1"), true)
+            .await
+            .unwrap();
+        assert!(run.report.controller_reached);
+        // The plant has stopped; the last of its samples may still be in the service's
+        // inbox: read until two scrapes agree.
+        let key = "mfc_device_samples_total{controller=\"controller-1\",device=\"aero-1\"}";
+        let mut served = -1.0;
+        for _ in 0..50 {
+            let now = samples(&scrape(metrics.parse().unwrap()).await)[key];
+            if now == served {
+                break;
+            }
+            served = now;
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+        assert!(served >= 250.0, "{served}");
+        // SIGTERM: the service's clean stop, which must finish the file.
+        let pid = child.id().to_string();
+        let killed = std::process::Command::new("kill")
+            .args(["-TERM", &pid])
+            .status()
+            .unwrap();
+        assert!(killed.success());
+        let status = tokio::task::spawn_blocking(move || child.wait())
+            .await
+            .unwrap()
+            .unwrap();
+        assert!(status.success(), "{status:?}");
+        let bytes = std::fs::read(&rec).unwrap();
+        let c = read_recording(&bytes).unwrap();
+        assert!(!c.truncated, "round {round}: the file was not finished");
+        assert_eq!(c.metadata["dropped"], "0");
+        let sampled = c
+            .messages
+            .iter()
+            .filter(|m| m.topic == Topic::Sample)
+            .count();
+        assert_eq!(sampled as f64, served, "every sample served is in the file");
+        let r = controller_service::replay::replay(&bytes, 1e-9).unwrap();
+        assert!(r.matched, "{}", controller_service::replay::render(&r));
+    }
+    // The second start kept the first file under a name with the time.
+    let kept = std::fs::read_dir(&dir)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .filter(|e| {
+            let n = e.file_name().to_string_lossy().into_owned();
+            n.starts_with("service.") && n.ends_with(".mcap") && n != "service.mcap"
+        })
+        .count();
+    assert_eq!(kept, 1);
+}
