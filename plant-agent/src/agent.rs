@@ -614,6 +614,25 @@ async fn periods(
     // The board is refreshed ten times a second of plant time: enough for a person.
     let board_every = ((0.1 / h).round() as usize).max(1);
     let mut last_f: Option<Vec<f64>> = None;
+    // A plant's line on the progress board.
+    let progress =
+        |t: f64, rtt_us: u32, mode: Mode, acc: &[Accumulator], sup: &Supervisor, done: bool| {
+            Progress {
+                device: id.to_string(),
+                t,
+                duration,
+                rms: acc
+                    .iter()
+                    .zip(&config.channels)
+                    .map(|(a, c)| a.finish(&c.name).rms)
+                    .collect(),
+                rtt_us,
+                mode,
+                fallbacks: sup.counters().fallbacks,
+                missing: sup.counters().missing,
+                done,
+            }
+        };
     if let Some(r) = mcap {
         r.event(
             id,
@@ -835,7 +854,7 @@ async fn periods(
         for (i, c) in config.channels.iter().enumerate() {
             acc[i].add(y[i] - refs[i].y, h, applied[i], c.saturated(applied[i]));
         }
-        if let Some(r) = &remote {
+        if let (Some(r), true) = (&remote, dev_metrics.is_some()) {
             last_f = Some(r.1.clone());
         }
         if let (Some(r), true) = (mcap, done.mode != mode_before) {
@@ -852,21 +871,7 @@ async fn periods(
             });
         }
         if let (Some(b), true) = (&obs.progress, k % board_every == 0) {
-            b.update(Progress {
-                device: id.to_string(),
-                t,
-                duration,
-                rms: acc
-                    .iter()
-                    .zip(&config.channels)
-                    .map(|(a, c)| a.finish(&c.name).rms)
-                    .collect(),
-                rtt_us,
-                mode: done.mode,
-                fallbacks: sup.counters().fallbacks,
-                missing: sup.counters().missing,
-                done: false,
-            });
+            b.update(progress(t, rtt_us, done.mode, &acc, &sup, false));
         }
         let y_ref: Vec<f64> = refs.iter().map(|r| r.y).collect();
         recording.push(Period {
@@ -892,21 +897,8 @@ async fn periods(
         tracing::error!(device = id, "run ended: {e}");
     }
     if let Some(b) = &obs.progress {
-        b.update(Progress {
-            device: id.to_string(),
-            t: recording.t.last().copied().unwrap_or(0.0),
-            duration,
-            rms: acc
-                .iter()
-                .zip(&config.channels)
-                .map(|(a, c)| a.finish(&c.name).rms)
-                .collect(),
-            rtt_us: last_rtt_us,
-            mode: sup.mode(),
-            fallbacks: sup.counters().fallbacks,
-            missing: sup.counters().missing,
-            done: true,
-        });
+        let t = recording.t.last().copied().unwrap_or(0.0);
+        b.update(progress(t, last_rtt_us, sup.mode(), &acc, &sup, true));
     }
     if let Some(r) = mcap {
         r.event(
