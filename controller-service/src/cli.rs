@@ -117,6 +117,26 @@ pub async fn run(cli: Cli) -> Result<()> {
             return Ok(());
         }
     };
+    if let Some(f) = config.fleet.as_ref().filter(|f| f.connect_wait_ms > 0) {
+        // Who else is in the fleet is looked up next: first be connected to everyone named.
+        let expected = transport::connect_endpoint_count(&cli.zenoh.to_config()?);
+        let wait = std::time::Duration::from_millis(f.connect_wait_ms);
+        let n = tokio::select! {
+            n = transport::wait_connected(&session, expected, wait) => n,
+            _ = &mut shutdown => {
+                let _ = session.close().await;
+                return Ok(());
+            }
+        };
+        if n < expected {
+            tracing::warn!(
+                connected = n,
+                endpoints = expected,
+                waited_ms = f.connect_wait_ms,
+                "not connected to every endpoint given: joining the fleet with the members in view"
+            );
+        }
+    }
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     let endpoint = match (&config.metrics, &observers.metrics) {
         (Some(spec), Some(m)) => {

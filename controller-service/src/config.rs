@@ -235,14 +235,22 @@ pub struct FleetSpec {
     /// for the newcomer to ask for it (ms, > 0). Default 1000.
     #[serde(default = "release_timeout_ms")]
     pub release_timeout_ms: u64,
-    /// How long a member waits for the previous owner's state before it answers a shard
-    /// with what it has (ms, > 0). Default 500.
+    /// How long a member waits for one reply from a shard's previous owner before it
+    /// checks that the owner is still in the fleet and asks again (ms, > 0). Default 500.
+    /// A member never takes a shard from an owner that is still there without its reply.
     #[serde(default = "handover_timeout_ms")]
     pub handover_timeout_ms: u64,
     /// How long a starting member looks for the others before it decides what it owns
     /// (ms, > 0). Default 300.
     #[serde(default = "discover_ms")]
     pub discover_ms: u64,
+    /// How long a starting member waits to be connected to every endpoint it was told to
+    /// connect to (`--connect`, `connect/endpoints`) before it looks for the others (ms).
+    /// Zenoh may return the session before its connections are up; a member that looked
+    /// then would believe itself alone and answer shards the others still answer. An
+    /// endpoint that stays down costs this much at start (0: do not wait). Default 5000.
+    #[serde(default = "connect_wait_ms")]
+    pub connect_wait_ms: u64,
 }
 
 fn yes() -> bool {
@@ -259,6 +267,9 @@ fn handover_timeout_ms() -> u64 {
 }
 fn discover_ms() -> u64 {
     300
+}
+fn connect_wait_ms() -> u64 {
+    5000
 }
 
 /// Per-device state snapshots, so that a restarted service carries on where it stopped.
@@ -411,6 +422,8 @@ impl ServiceConfig {
                         release_timeout_ms: release_timeout_ms(),
                         handover_timeout_ms: handover_timeout_ms(),
                         discover_ms: discover_ms(),
+                        // The workers share the process's session: it is connected already.
+                        connect_wait_ms: 0,
                     });
                 }
                 c

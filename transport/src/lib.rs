@@ -203,6 +203,25 @@ pub async fn control_publisher(
         })
 }
 
+/// [`control_publisher`] for code that runs in one of zenoh's callbacks, where zenoh's
+/// blocking calls are its own way; never call it from async code.
+pub fn control_publisher_now(
+    session: &Session,
+    key: String,
+) -> Result<zenoh::pubsub::Publisher<'static>, TransportError> {
+    use zenoh::Wait;
+    session
+        .declare_publisher(key.clone())
+        .congestion_control(CongestionControl::Drop)
+        .priority(Priority::RealTime)
+        .express(true)
+        .wait()
+        .map_err(|e| TransportError::Declare {
+            what: format!("publisher {key}"),
+            reason: e.to_string(),
+        })
+}
+
 /// Query `key` (with `payload`, if any) and return the payload of the first good reply:
 /// the request/reply path for configuration and status (never the control path). Error
 /// replies are skipped while another replier may still answer well (a service that does
@@ -250,6 +269,46 @@ pub async fn wait_for_token(session: &Session, key: &str, timeout: std::time::Du
         tokio::time::sleep(std::time::Duration::from_millis(100)).await;
     }
     false
+}
+
+/// How many endpoints `config` tells the session to connect to (`connect/endpoints`,
+/// either a list or one list per mode; for a per-mode object, the longest list).
+pub fn connect_endpoint_count(config: &Config) -> usize {
+    let Ok(json) = config.get_json("connect/endpoints") else {
+        return 0;
+    };
+    match serde_json::from_str::<serde_json::Value>(&json) {
+        Ok(serde_json::Value::Array(v)) => v.len(),
+        Ok(serde_json::Value::Object(m)) => m
+            .values()
+            .filter_map(|v| v.as_array().map(Vec::len))
+            .max()
+            .unwrap_or(0),
+        _ => 0,
+    }
+}
+
+/// Wait until `session` has a transport to at least `expected` peers and routers, polling
+/// every 20 ms for at most `timeout`; returns how many it has.
+///
+/// A peer's session returns from `open` once its configured connections are up *or* after
+/// zenoh's scouting delay, whichever comes first; on a loaded machine it can return before
+/// a connection is made, and whatever the program then looks up (who else is there) is
+/// missing that peer. A program whose decisions depend on seeing everyone waits here first.
+pub async fn wait_connected(
+    session: &Session,
+    expected: usize,
+    timeout: std::time::Duration,
+) -> usize {
+    let deadline = std::time::Instant::now() + timeout;
+    loop {
+        let info = session.info();
+        let n = info.peers_zid().await.count() + info.routers_zid().await.count();
+        if n >= expected || std::time::Instant::now() >= deadline {
+            return n;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
 }
 
 /// A free UDP port on 127.0.0.1 (as [`free_local_port`], for UDP endpoints).
@@ -355,5 +414,45 @@ mod tests {
         assert!(
             matches!(missing.to_config(), Err(TransportError::Config(m)) if m.contains("nonexistent"))
         );
+    }
+
+    #[test]
+    fn counts_the_endpoints_to_connect_to() {
+        let two = ZenohArgs::loopback(
+            None,
+            vec!["tcp/127.0.0.1:1".into(), "tcp/127.0.0.1:2".into()],
+        );
+        assert_eq!(connect_endpoint_count(&two.to_config().unwrap()), 2);
+        let none = ZenohArgs::loopback(None, vec![]);
+        assert_eq!(connect_endpoint_count(&none.to_config().unwrap()), 0);
+        let mut per_mode = Config::default();
+        per_mode
+            .insert_json5(
+                "connect/endpoints",
+                r#"{ router: ["tcp/127.0.0.1:1"], peer: ["tcp/127.0.0.1:1", "tcp/127.0.0.1:2", "tcp/127.0.0.1:3"] }"#,
+            )
+            .unwrap();
+        assert_eq!(connect_endpoint_count(&per_mode), 3);
+    }
+
+    /// A session counts the peer it connected to, and a wait for more ends at its bound.
+    #[tokio::test(flavor = "multi_thread")]
+    async fn waits_for_its_connections() {
+        let port = free_local_port().unwrap();
+        let ep = format!("tcp/127.0.0.1:{port}");
+        let a = ZenohArgs::loopback(Some(ep.clone()), vec![])
+            .open()
+            .await
+            .unwrap();
+        let b = ZenohArgs::loopback(None, vec![ep]).open().await.unwrap();
+        let t = std::time::Duration::from_secs(10);
+        assert_eq!(wait_connected(&b, 1, t).await, 1);
+        assert_eq!(wait_connected(&a, 1, t).await, 1);
+        let started = std::time::Instant::now();
+        let short = std::time::Duration::from_millis(200);
+        assert_eq!(wait_connected(&b, 2, short).await, 1);
+        assert!(started.elapsed() >= short, "the wait lasted its bound");
+        let _ = b.close().await;
+        let _ = a.close().await;
     }
 }
