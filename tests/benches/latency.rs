@@ -2,9 +2,12 @@
 //! plain Zenoh publish/echo between two sessions in the same run.
 //!
 //! `cargo bench -p system-tests --bench latency [-- SECONDS]` (default 20 s each). Both use
-//! the same plumbing (express, real-time priority, drop on congestion; the echo side's
-//! callback hands the payload to a task that publishes it back, as the service does), so
-//! the ratio isolates what the service adds: decoding, the control step, encoding.
+//! the same plumbing (express, real-time priority, drop on congestion; the echo side
+//! answers inside zenoh's callback, as the service does when its worker is free; both
+//! round trips run from just before the put to the reply's callback). What the ratio holds
+//! beyond the service's decoding, control step and encoding: the agent's encoding of its
+//! sample, and a sample that carries its last three predecessors again (`resend`), longer
+//! than the echo's 70 bytes.
 
 use std::time::Duration;
 
@@ -13,6 +16,7 @@ use plant_agent::record::percentile;
 use plant_agent::scenario::{load_scenario, shipped_controller};
 use tokio::time::Instant;
 use transport::ZenohArgs;
+use zenoh::Wait;
 
 async fn echo(seconds: f64) -> anyhow::Result<Vec<f64>> {
     let port = transport::free_local_port()?;
@@ -22,19 +26,15 @@ async fn echo(seconds: f64) -> anyhow::Result<Vec<f64>> {
         .await?;
     let b = ZenohArgs::loopback(None, vec![endpoint]).open().await?;
     let pong = transport::control_publisher(&b, "bench/pong".into()).await?;
-    let (tx, mut rx) = tokio::sync::mpsc::channel::<Vec<u8>>(256);
+    // Answered inside zenoh's callback (a blocking put is zenoh's own way there), as the
+    // service answers a sample when its worker is free.
     let _ping_sub = b
         .declare_subscriber("bench/ping")
         .callback(move |s| {
-            let _ = tx.try_send(s.payload().to_bytes().into_owned());
+            let _ = pong.put(s.payload().to_bytes().into_owned()).wait();
         })
         .await
         .map_err(|e| anyhow::anyhow!("{e}"))?;
-    tokio::spawn(async move {
-        while let Some(p) = rx.recv().await {
-            let _ = pong.put(p).await;
-        }
-    });
     let (rtx, mut rrx) = tokio::sync::mpsc::channel::<Instant>(256);
     let _pong_sub = a
         .declare_subscriber("bench/pong")
