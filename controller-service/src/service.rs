@@ -531,8 +531,13 @@ pub async fn serve_observed(
     let mut pending_actions: Vec<Action> = Vec::new();
     let masks = Arc::new(Masks {
         step: AtomicU64::new(if fleet_spec.is_some() { 0 } else { u64::MAX }),
-        // Nothing is answered until the roles are known (set below, before serving).
-        answer: AtomicU64::new(0),
+        // A plain service answers from its first sample; a fleet member or a member of a
+        // standby group answers nothing until its role is known (set before serving).
+        answer: AtomicU64::new(if fleet_spec.is_none() && standby.is_none() {
+            u64::MAX
+        } else {
+            0
+        }),
     });
     let core = Arc::new(Mutex::new(Core {
         registry,
