@@ -945,6 +945,22 @@ pub async fn serve_observed(
             masks.answer.store(m, Ordering::Relaxed);
         }};
     }
+    // The device a request names, if this member answers for it; otherwise the query gets
+    // its error reply (or silence, for another member's device) and `None`.
+    macro_rules! served {
+        ($q:expr) => {{
+            let checked = served_device(&$q, &mut lock(&core).registry, &id, fleet.as_ref());
+            match checked {
+                Ok(dev) => Some(dev),
+                Err(why) => {
+                    if let Some(why) = why {
+                        let _ = $q.reply_err(why).await;
+                    }
+                    None
+                }
+            }
+        }};
+    }
     // Fleet changes: start the handover requests the change asks for, drop the state of
     // shards no longer held, and make the shard subscriptions and queryables match.
     macro_rules! fleet_apply {
@@ -1224,16 +1240,7 @@ pub async fn serve_observed(
                 }
             },
             Msg::Config(q) => {
-                let checked = served_device(&q, &mut lock(&core).registry, &id, fleet.as_ref());
-                let dev = match checked {
-                    Ok(dev) => dev,
-                    Err(why) => {
-                        if let Some(why) = why {
-                            let _ = q.reply_err(why).await;
-                        }
-                        continue;
-                    }
-                };
+                let Some(dev) = served!(q) else { continue };
                 let reply = {
                     let mut held = lock(&core);
                     let Core {
@@ -1269,16 +1276,7 @@ pub async fn serve_observed(
                 }
             }
             Msg::Envelope(q) => {
-                let checked = served_device(&q, &mut lock(&core).registry, &id, fleet.as_ref());
-                let dev = match checked {
-                    Ok(dev) => dev,
-                    Err(why) => {
-                        if let Some(why) = why {
-                            let _ = q.reply_err(why).await;
-                        }
-                        continue;
-                    }
-                };
+                let Some(dev) = served!(q) else { continue };
                 let reply = {
                     let mut held = lock(&core);
                     let Core {
@@ -1334,16 +1332,7 @@ pub async fn serve_observed(
                 }
             }
             Msg::ReferenceQuery(q) => {
-                let checked = served_device(&q, &mut lock(&core).registry, &id, fleet.as_ref());
-                let dev = match checked {
-                    Ok(dev) => dev,
-                    Err(why) => {
-                        if let Some(why) = why {
-                            let _ = q.reply_err(why).await;
-                        }
-                        continue;
-                    }
-                };
+                let Some(dev) = served!(q) else { continue };
                 let reply = {
                     let mut held = lock(&core);
                     let Core {

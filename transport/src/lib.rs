@@ -186,21 +186,34 @@ pub async fn open_logged(config: Config) -> Result<Session, TransportError> {
     }
 }
 
+/// The declaration of a publisher for control traffic: express, real-time priority, drop
+/// on congestion.
+fn control_declaration(
+    session: &Session,
+    key: String,
+) -> zenoh::pubsub::PublisherBuilder<'_, 'static> {
+    session
+        .declare_publisher(key)
+        .congestion_control(CongestionControl::Drop)
+        .priority(Priority::RealTime)
+        .express(true)
+}
+
+fn declare_error(key: &str, e: zenoh::Error) -> TransportError {
+    TransportError::Declare {
+        what: format!("publisher {key}"),
+        reason: e.to_string(),
+    }
+}
+
 /// Declare a publisher for control traffic: express, real-time priority, drop on congestion.
 pub async fn control_publisher(
     session: &Session,
     key: String,
 ) -> Result<zenoh::pubsub::Publisher<'static>, TransportError> {
-    session
-        .declare_publisher(key.clone())
-        .congestion_control(CongestionControl::Drop)
-        .priority(Priority::RealTime)
-        .express(true)
+    control_declaration(session, key.clone())
         .await
-        .map_err(|e| TransportError::Declare {
-            what: format!("publisher {key}"),
-            reason: e.to_string(),
-        })
+        .map_err(|e| declare_error(&key, e))
 }
 
 /// [`control_publisher`] for code that runs in one of zenoh's callbacks, where zenoh's
@@ -210,16 +223,9 @@ pub fn control_publisher_now(
     key: String,
 ) -> Result<zenoh::pubsub::Publisher<'static>, TransportError> {
     use zenoh::Wait;
-    session
-        .declare_publisher(key.clone())
-        .congestion_control(CongestionControl::Drop)
-        .priority(Priority::RealTime)
-        .express(true)
+    control_declaration(session, key.clone())
         .wait()
-        .map_err(|e| TransportError::Declare {
-            what: format!("publisher {key}"),
-            reason: e.to_string(),
-        })
+        .map_err(|e| declare_error(&key, e))
 }
 
 /// Query `key` (with `payload`, if any) and return the payload of the first good reply:
