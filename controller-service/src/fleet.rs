@@ -165,6 +165,14 @@ impl Fleet {
             .fold(0, |m, s| m | 1 << s)
     }
 
+    /// Shards this member waits for (`Acquiring`), as a bit mask: a handover request still
+    /// wanted.
+    pub fn acquiring_mask(&self) -> u64 {
+        (0..SHARDS)
+            .filter(|&s| self.role(s) == Role::Acquiring)
+            .fold(0, |m, s| m | 1 << s)
+    }
+
     /// Shards this member steps, as a bit mask.
     pub fn step_mask(&self) -> u64 {
         (0..SHARDS)
@@ -445,6 +453,7 @@ mod tests {
                 from: "a".into()
             }));
             assert_eq!(b.role(s), Role::Acquiring);
+            assert_ne!(b.acquiring_mask() & 1 << s, 0);
             assert_eq!(a.role(s), Role::Releasing);
             assert!(offers.contains(&Action::Offer {
                 shard: s,

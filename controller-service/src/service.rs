@@ -85,6 +85,9 @@ struct Masks {
     /// whoever answers, so that a handover's state and the answers agree (see
     /// `Msg::Handover`).
     answer: AtomicU64,
+    /// The shards whose previous owner's state is still awaited: a handover request for
+    /// any other is no longer wanted.
+    acquiring: AtomicU64,
 }
 
 impl Masks {
@@ -94,6 +97,10 @@ impl Masks {
 
     fn answers(&self, shard: u32) -> bool {
         self.answer.load(Ordering::Relaxed) & (1u64 << (shard % 64)) != 0
+    }
+
+    fn acquiring(&self, shard: u32) -> bool {
+        self.acquiring.load(Ordering::Relaxed) & (1u64 << (shard % 64)) != 0
     }
 }
 
@@ -538,6 +545,7 @@ pub async fn serve_observed(
         } else {
             0
         }),
+        acquiring: AtomicU64::new(0),
     });
     let core = Arc::new(Mutex::new(Core {
         registry,
@@ -975,8 +983,8 @@ pub async fn serve_observed(
                                 internal_tx.clone(),
                                 (&spec.name, &id),
                                 from.clone(),
-                                *shard,
-                                matches!(a, Action::Acquire { .. }),
+                                (*shard, matches!(a, Action::Acquire { .. })),
+                                masks.clone(),
                                 (
                                     Duration::from_millis(spec.handover_timeout_ms),
                                     Duration::from_millis(spec.release_timeout_ms),
@@ -1010,6 +1018,9 @@ pub async fn serve_observed(
                     store_answers!();
                 }
                 masks.step.store(fl.step_mask(), Ordering::Relaxed);
+                masks
+                    .acquiring
+                    .store(fl.acquiring_mask(), Ordering::Relaxed);
                 dynamic
                     .sync(&session, fl, &sample_cb, &gateway_cb, &query_cb)
                     .await;
@@ -1962,14 +1973,15 @@ impl Dynamic {
 /// with this member yet) nor silence (the owner is slow, or its reply was lost) ends the
 /// wait while the owner's token is alive: giving up on a timer let a slow owner and the
 /// newcomer answer the same samples. Meanwhile the owner keeps answering, so the plants
-/// are served. A wait past `timeout` plus the owner's `release_timeout` is logged.
+/// are served. A wait past `timeout` plus the owner's `release_timeout` is logged; the
+/// task ends without an answer once the shard is no longer awaited (`masks`).
 fn spawn_handover(
     session: Session,
     tx: mpsc::Sender<Msg>,
     (fleet, me): (&str, &str),
     from: String,
-    shard: u32,
-    release: bool,
+    (shard, release): (u32, bool),
+    masks: Arc<Masks>,
     (timeout, release_timeout): (Duration, Duration),
 ) {
     let key = keys::fleet_handover(fleet, &from, shard);
@@ -1995,6 +2007,16 @@ fn spawn_handover(
             }
             if got.is_some() || !member_alive(&session, &member, timeout).await {
                 break got;
+            }
+            // The view moved on (another member took the shard, or this one no longer
+            // follows it): nobody waits for this answer any more.
+            let wanted = if release {
+                masks.acquiring(shard)
+            } else {
+                masks.steps(shard) && !masks.answers(shard)
+            };
+            if !wanted {
+                return;
             }
             if !warned && started.elapsed() > timeout + release_timeout {
                 warned = true;
