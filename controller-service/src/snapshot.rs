@@ -11,8 +11,9 @@ use mfc::trajectory::Piece;
 
 /// Bumped whenever the layout changes; a file of another version is refused and its
 /// device starts from the configuration. 2: the estimators' rings span their window
-/// only (files of 1 would be read with the wrong layout).
-pub const SNAPSHOT_VERSION: u32 = 3;
+/// only (files of 1 would be read with the wrong layout). 4: the intelligent laws'
+/// `hold_estimate_filter` and `hold_after`, and the time their reference has rested.
+pub const SNAPSHOT_VERSION: u32 = 4;
 
 /// What a device snapshot holds.
 #[derive(Debug, Clone, Encode, Decode)]

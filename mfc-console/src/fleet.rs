@@ -766,6 +766,8 @@ pub fn check_update(update: &pb::ChannelUpdate, config: &pb::DeviceConfig) -> Re
         ("derivative_filter", update.derivative_filter),
         ("derivative_observer", update.derivative_observer),
         ("estimate_filter", update.estimate_filter),
+        ("hold_estimate_filter", update.hold_estimate_filter),
+        ("hold_after", update.hold_after),
         ("b0", update.b0),
         ("wc", update.wc),
         ("wo", update.wo),
@@ -871,6 +873,12 @@ pub fn channel_views(config: &pb::DeviceConfig) -> Vec<ChannelView> {
                             p("derivative_filter", x.derivative_filter),
                             p("derivative_observer", x.derivative_observer),
                             p("estimate_filter", x.estimate_filter),
+                            p("hold_estimate_filter", x.hold_estimate_filter),
+                            p(
+                                "hold_after",
+                                x.hold_after
+                                    .unwrap_or(mfc::IntelligentParams::default().hold_after),
+                            ),
                         ],
                     )
                 }

@@ -318,6 +318,26 @@ impl<const CAP: usize> Channel<CAP> {
         Ok(())
     }
 
+    /// How long (s) this channel's reference has rested, for the laws that keep count
+    /// (the intelligent ones; see `hold_estimate_filter`).
+    pub(crate) fn rested(&self) -> Option<f64> {
+        match &self.law {
+            Law::Intelligent(c) => Some(c.rest.map_or(0.0, |(held, _)| held)),
+            _ => None,
+        }
+    }
+
+    /// Another channel's reference moves (`None`) or has rested for less (`Some`): this
+    /// one's time at rest is no longer than that.
+    pub(crate) fn cap_rest(&mut self, rested: Option<f64>) {
+        if let Law::Intelligent(c) = &mut self.law {
+            c.rest = match (c.rest, rested) {
+                (Some((held, y)), Some(cap)) => Some((held.min(cap), y)),
+                _ => None,
+            };
+        }
+    }
+
     /// Forget the data history after a gap (see the laws' `forget_window`), keeping
     /// parameters, integrals and the output being applied.
     pub fn forget_window(&mut self) {

@@ -29,6 +29,15 @@
 //!   so it needs far less smoothing, and far less lag, than a filter on the staircase.
 //! * `estimate_filter = τ`: a first-order low-pass of time constant `τ` on `F_est` (on both
 //!   parts of its linear form, so that a change of `α` stays exact and bumpless).
+//! * `hold_estimate_filter = τ_h`: the low-pass's time constant once the plant holds, that
+//!   is once every reference of the plant has rested (`y*` unchanged, `y*'` and `y*''`
+//!   zero) for `hold_after` seconds; `estimate_filter` again as soon as any moves. Holding
+//!   is where the count-to-count hunting is worst (the plant sits between two counts, and
+//!   near the voltage a hold needs the output map's gain is highest); a slower `F` there
+//!   stops most of it. The price is a slower answer to a disturbance while holding, which
+//!   is why the rule waits for *every* reference: another channel's motion is the
+//!   disturbance a coupled plant's `F` most needs to follow. [`crate::MimoController`]
+//!   applies that rule; a channel stepped on its own sees only its own reference.
 
 use crate::error::{finite, non_negative, nonzero, MfcError, Result};
 use crate::estimator::{Estimator, EstimatorConfig, LinearEstimate, DEFAULT_CAPACITY};
@@ -60,6 +69,12 @@ pub struct IntelligentParams {
     pub derivative_observer: f64,
     /// Time constant (s) of a low-pass on `F_est` (module documentation). Default 0: off.
     pub estimate_filter: f64,
+    /// Time constant (s) of the low-pass on `F_est` while holding: once the reference has
+    /// been at rest for `hold_after` (module documentation). Default 0: off.
+    pub hold_estimate_filter: f64,
+    /// How long (s) the reference must have been at rest before `hold_estimate_filter`
+    /// takes over from `estimate_filter`. Default: 1.
+    pub hold_after: f64,
     /// Time constant (s) with which the offset left by a parameter change fades.
     /// Default: 0.2.
     pub bumpless_time_constant: f64,
@@ -77,6 +92,8 @@ impl Default for IntelligentParams {
             derivative_filter: 0.02,
             derivative_observer: 0.0,
             estimate_filter: 0.0,
+            hold_estimate_filter: 0.0,
+            hold_after: 1.0,
             bumpless_time_constant: 0.2,
         }
     }
@@ -92,6 +109,8 @@ impl IntelligentParams {
         non_negative("derivative_filter", self.derivative_filter)?;
         non_negative("derivative_observer", self.derivative_observer)?;
         non_negative("estimate_filter", self.estimate_filter)?;
+        non_negative("hold_estimate_filter", self.hold_estimate_filter)?;
+        non_negative("hold_after", self.hold_after)?;
         if self.derivative_observer > 0.0 && self.order == Order::One {
             return Err(MfcError::InvalidParameter {
                 name: "derivative_observer",
@@ -163,6 +182,9 @@ pub struct IntelligentController<const CAP: usize = DEFAULT_CAPACITY> {
     /// The estimate in force (filtered if `estimate_filter` is on), from the last step
     /// that had one: the observer's model runs on it.
     pub(crate) estimate: Option<LinearEstimate>,
+    /// While the reference is at rest (`y*` unchanged, its derivatives zero): for how long
+    /// (s), and the `y*` it rests at. `hold_estimate_filter` applies from `hold_after` on.
+    pub(crate) rest: Option<(f64, f64)>,
     pub(crate) estimator: Estimator<CAP>,
 }
 
@@ -185,6 +207,7 @@ impl<const CAP: usize> IntelligentController<CAP> {
             bumpless_start: false,
             observer: None,
             estimate: None,
+            rest: None,
         })
     }
 
@@ -282,6 +305,11 @@ impl<const CAP: usize> IntelligentController<CAP> {
             self.bump *= decay(dt, p.bumpless_time_constant);
             self.integrate(e, dt);
         }
+        self.rest = match (self.rest, dt) {
+            _ if r.dy != 0.0 || r.ddy != 0.0 => None,
+            (Some((held, y0)), Some(dt)) if r.y == y0 => Some((held + dt, y0)),
+            _ => Some((0.0, r.y)),
+        };
         let (u, f_est) = match self.estimator.estimate(p.order) {
             Err(_) => {
                 // Window still filling: hold, and switch parameters directly.
@@ -371,7 +399,13 @@ impl<const CAP: usize> IntelligentController<CAP> {
 
     /// The estimate through `estimate_filter`, remembered as the one in force.
     fn smooth(&mut self, dt: Option<f64>, lin: LinearEstimate) -> LinearEstimate {
-        let tau = self.params.estimate_filter;
+        let p = &self.params;
+        let holding = matches!(self.rest, Some((held, _)) if held >= p.hold_after);
+        let tau = if p.hold_estimate_filter > 0.0 && holding {
+            p.hold_estimate_filter
+        } else {
+            p.estimate_filter
+        };
         let out = match (self.estimate, dt) {
             (Some(old), Some(h)) if tau > 0.0 && h > 0.0 => {
                 let k = 1.0 - libm::exp(-h / tau);

@@ -81,6 +81,22 @@ impl<const CAP: usize> MimoController<CAP> {
         for (((c, y), r), o) in self.channels.iter_mut().zip(y).zip(r).zip(out) {
             *o = c.step(t, *y, r)?;
         }
+        // A hold (`hold_estimate_filter`) waits for every reference: the coupling a
+        // moving or stepped channel brings is a disturbance the others' F must follow at
+        // full speed. So every channel's time at rest is the shortest of them all.
+        let rested = if r.iter().any(|r| r.dy != 0.0 || r.ddy != 0.0) {
+            None
+        } else {
+            Some(
+                self.channels
+                    .iter()
+                    .filter_map(Channel::rested)
+                    .fold(f64::INFINITY, f64::min),
+            )
+        };
+        for c in &mut self.channels {
+            c.cap_rest(rested);
+        }
         Ok(())
     }
 

@@ -52,7 +52,8 @@ snapshot_struct!(IntelligentController {
     bump,
     bumpless_start,
     observer,
-    estimate
+    estimate,
+    rest
 });
 snapshot_struct!(Channel {
     law,

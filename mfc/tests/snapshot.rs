@@ -21,13 +21,22 @@ fn mimo() -> MimoController {
             [3.0, 1.0, 0.0],
             17,
         )),
-        law(LawConfig::intelligent(
-            ControllerKind::PD,
-            Order::Two,
-            0.1,
-            [9.0, 0.0, 3.0],
-            20,
-        )),
+        // With the hold filter taking over at 4 s, after the snapshot: the restored
+        // controller must know how long its reference has rested.
+        law(
+            match LawConfig::intelligent(ControllerKind::PD, Order::Two, 0.1, [9.0, 0.0, 3.0], 20) {
+                LawConfig::Intelligent { params, estimator } => LawConfig::Intelligent {
+                    params: mfc::IntelligentParams {
+                        estimate_filter: 0.05,
+                        hold_estimate_filter: 0.3,
+                        hold_after: 4.0,
+                        ..params
+                    },
+                    estimator,
+                },
+                other => other,
+            },
+        ),
         law(LawConfig::Pid {
             params: PidParams {
                 kp: 2.0,

@@ -57,7 +57,7 @@ pub enum Command {
         device: String,
     },
     /// Change single parameters of one channel (a partial change: nothing else moves).
-    /// Fields: kp ki kd alpha derivative_filter derivative_observer estimate_filter b0 wc wo setpoint_weight dead_zone smoothing min max
+    /// Fields: kp ki kd alpha derivative_filter derivative_observer estimate_filter hold_estimate_filter hold_after b0 wc wo setpoint_weight dead_zone smoothing min max
     /// rate_limit. Output limits must stay inside the envelope.
     Set {
         /// Device id.

@@ -311,7 +311,7 @@ pub const SHIPPED_SCENARIOS: [(&str, &str, &str); 5] = [
 ];
 
 /// The shipped AERO controller sets: (name, text).
-pub const SHIPPED_CONTROLLERS: [(&str, &str); 7] = [
+pub const SHIPPED_CONTROLLERS: [(&str, &str); 8] = [
     ("ip", include_str!("../../plants/aero/controllers/ip.toml")),
     (
         "ipi",
@@ -320,6 +320,10 @@ pub const SHIPPED_CONTROLLERS: [(&str, &str); 7] = [
     (
         "ipd",
         include_str!("../../plants/aero/controllers/ipd.toml"),
+    ),
+    (
+        "ipd-hold",
+        include_str!("../../plants/aero/controllers/ipd-hold.toml"),
     ),
     (
         "ipd-plain",

@@ -63,6 +63,8 @@ pub fn channel_to_pb(c: &ChannelConfig) -> pb::ChannelConfig {
             bumpless_time_constant: params.bumpless_time_constant,
             derivative_observer: params.derivative_observer,
             estimate_filter: params.estimate_filter,
+            hold_estimate_filter: params.hold_estimate_filter,
+            hold_after: Some(params.hold_after),
             estimator: Some(pb::Estimator {
                 kind: match estimator.kind {
                     EstimatorKind::Algebraic => pb::estimator::Kind::Algebraic,
@@ -151,6 +153,10 @@ pub fn channel_from_pb(c: &pb::ChannelConfig) -> Result<ChannelConfig, ConvertEr
                     bumpless_time_constant: i.bumpless_time_constant,
                     derivative_observer: i.derivative_observer,
                     estimate_filter: i.estimate_filter,
+                    hold_estimate_filter: i.hold_estimate_filter,
+                    hold_after: i
+                        .hold_after
+                        .unwrap_or(IntelligentParams::default().hold_after),
                 },
                 estimator: EstimatorConfig {
                     kind: est_kind,
@@ -256,6 +262,12 @@ pub fn apply_update(
                 u.estimate_filter,
                 Some(&mut params.estimate_filter),
             )?;
+            set(
+                "hold_estimate_filter",
+                u.hold_estimate_filter,
+                Some(&mut params.hold_estimate_filter),
+            )?;
+            set("hold_after", u.hold_after, Some(&mut params.hold_after))?;
             set("b0", u.b0, None)?;
             set("wc", u.wc, None)?;
             set("wo", u.wo, None)?;
@@ -273,6 +285,8 @@ pub fn apply_update(
             )?;
             set("derivative_observer", u.derivative_observer, None)?;
             set("estimate_filter", u.estimate_filter, None)?;
+            set("hold_estimate_filter", u.hold_estimate_filter, None)?;
+            set("hold_after", u.hold_after, None)?;
             set("b0", u.b0, None)?;
             set("wc", u.wc, None)?;
             set("wo", u.wo, None)?;
@@ -290,6 +304,8 @@ pub fn apply_update(
             set("derivative_filter", u.derivative_filter, None)?;
             set("derivative_observer", u.derivative_observer, None)?;
             set("estimate_filter", u.estimate_filter, None)?;
+            set("hold_estimate_filter", u.hold_estimate_filter, None)?;
+            set("hold_after", u.hold_after, None)?;
             set("b0", u.b0, Some(&mut params.b0))?;
             set("wc", u.wc, Some(&mut params.wc))?;
             set("wo", u.wo, Some(&mut params.wo))?;

@@ -232,7 +232,7 @@ pub async fn change_envelope(
 
 /// The fields a [`pb::ChannelUpdate`] can change, by the names operators write
 /// (`FIELD=VALUE`): the law's parameters, then the output map's.
-pub const UPDATE_FIELDS: [&str; 16] = [
+pub const UPDATE_FIELDS: [&str; 18] = [
     "kp",
     "ki",
     "kd",
@@ -240,6 +240,8 @@ pub const UPDATE_FIELDS: [&str; 16] = [
     "derivative_filter",
     "derivative_observer",
     "estimate_filter",
+    "hold_estimate_filter",
+    "hold_after",
     "b0",
     "wc",
     "wo",
@@ -281,6 +283,8 @@ pub fn parse_update(channel: u32, fields: &[String]) -> Result<pb::ChannelUpdate
             "smoothing" => &mut u.smoothing,
             "derivative_observer" => &mut u.derivative_observer,
             "estimate_filter" => &mut u.estimate_filter,
+            "hold_estimate_filter" => &mut u.hold_estimate_filter,
+            "hold_after" => &mut u.hold_after,
             "min" => &mut u.min,
             "max" => &mut u.max,
             "rate_limit" => &mut u.rate_limit,

@@ -23,7 +23,7 @@ M = TypeVar("M", bound=Message)
 
 #: The single-value fields of a ChannelUpdate (see the .proto for which law has which).
 UPDATE_FIELDS = (
-    "kp", "ki", "kd", "alpha", "derivative_filter", "derivative_observer", "estimate_filter", "b0", "wc", "wo", "setpoint_weight",
+    "kp", "ki", "kd", "alpha", "derivative_filter", "derivative_observer", "estimate_filter", "hold_estimate_filter", "hold_after", "b0", "wc", "wo", "setpoint_weight",
     "dead_zone", "smoothing", "min", "max", "rate_limit",
 )
 #: Its law fields: a new law replacing the one in force (its output map kept).
