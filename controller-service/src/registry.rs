@@ -1456,7 +1456,7 @@ fn predict(
         }
         let mut last = d.outputs[i];
         last.v = v[i];
-        d.mimo.channels()[i].plan(&last, h, &refs, &applied, &mut elements);
+        d.mimo.channels()[i].plan(&last, h, &refs, &applied, p.trend, &mut elements);
         let mut prev = v[i];
         for (j, e) in elements.iter().enumerate() {
             let (x, _) = d.envelope[i].clamp(*e, Some((prev, h)));

@@ -13,7 +13,8 @@ use mfc::trajectory::Piece;
 /// device starts from the configuration. 2: the estimators' rings span their window
 /// only (files of 1 would be read with the wrong layout). 4: the intelligent laws'
 /// `hold_estimate_filter` and `hold_after`, and the time their reference has rested.
-pub const SNAPSHOT_VERSION: u32 = 4;
+/// 5: an intelligent controller keeps its estimate's trend, for predictions.
+pub const SNAPSHOT_VERSION: u32 = 5;
 
 /// What a device snapshot holds.
 #[derive(Debug, Clone, Encode, Decode)]

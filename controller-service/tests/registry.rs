@@ -415,6 +415,61 @@ fn a_horizon_longer_than_the_limit_is_refused_with_its_field() {
     assert!(e.contains("devices[0].prediction.horizon"), "{e}");
 }
 
+#[test]
+fn the_trend_of_f_defaults_to_half_and_is_refused_outside_0_to_2_with_its_field() {
+    let config = ServiceConfig::parse("test.toml", PREDICTING).unwrap();
+    assert_eq!(config.devices[0].prediction.trend, 0.5);
+    let text = PREDICTING.replace("horizon = 6", "horizon = 6, trend = 0");
+    let config = ServiceConfig::parse("test.toml", &text).unwrap();
+    assert_eq!(config.devices[0].prediction.trend, 0.0);
+    for bad in ["-0.1", "2.5", "nan"] {
+        let text = PREDICTING.replace("horizon = 6", &format!("horizon = 6, trend = {bad}"));
+        let e = ServiceConfig::parse("test.toml", &text)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("devices[0].prediction.trend"), "{bad}: {e}");
+    }
+}
+
+/// With an estimate filter on the iPD, the horizon follows the trend of `F` by default,
+/// and `trend = 0` gives back the held `F`: the commands' own outputs are the same, their
+/// horizons differ once the estimate moves.
+#[test]
+fn the_trend_changes_the_horizon_not_the_command() {
+    // Without the envelope's rate limit, which would clip both horizons alike.
+    let filtered = PREDICTING
+        .replace(
+            "derivative_observer = 30.0",
+            "derivative_observer = 30.0, estimate_filter = 0.05",
+        )
+        .replace("rate_limit = 300.0", "rate_limit = 1e6");
+    let run = |prediction: &str| {
+        let text = filtered.replace("prediction = { horizon = 6 }", prediction);
+        let mut r = Registry::new(ServiceConfig::parse("test.toml", &text).unwrap()).unwrap();
+        (0..40u64)
+            .map(|k| {
+                let t = k as f64 * 0.01;
+                command(r.handle_sample(
+                    "rig-1",
+                    // Near the reference (0.2 sin 2πt), so that the outputs stay unsaturated.
+                    &sample("rig-1", k, t, &[0.19 * (6.0 * t).sin(), 0.2]),
+                ))
+            })
+            .collect::<Vec<_>>()
+    };
+    let (trend, held) = (
+        run("prediction = { horizon = 6 }"),
+        run("prediction = { horizon = 6, trend = 0 }"),
+    );
+    let mut differ = 0;
+    for (a, b) in trend.iter().zip(&held) {
+        assert_eq!(a.v, b.v);
+        assert_eq!(a.horizon.len(), b.horizon.len());
+        differ += usize::from(a.horizon != b.horizon);
+    }
+    assert!(differ > 10, "{differ} horizons differ");
+}
+
 /// A lost sample whose copy comes with the next one: the controller steps on it, and the
 /// next command is the one it would have been had the sample arrived (only the counters
 /// differ). A copy that does not fit is ignored.

@@ -104,8 +104,9 @@ fn device_part(name: &str) -> String {
         .collect()
 }
 
-/// A campaign entry: `KIND[+hN][+dc]`, a controller (a shipped name or a file) with the
-/// service's packetized horizon of N periods and/or delay compensation for its device.
+/// A campaign entry: `KIND[+hN][+dc][+notrend]`, a controller (a shipped name or a file) with
+/// the service's packetized horizon of N periods and/or delay compensation for its device;
+/// `+notrend` predicts with `F` held (`trend = 0`) instead of following its trend.
 pub fn parse_variant(spec: &str) -> Result<(String, Prediction), String> {
     let mut parts = spec.split('+');
     let base = parts.next().unwrap_or_default().to_string();
@@ -113,11 +114,13 @@ pub fn parse_variant(spec: &str) -> Result<(String, Prediction), String> {
     for opt in parts {
         if opt == "dc" {
             p.delay_compensation = true;
+        } else if opt == "notrend" {
+            p.trend = 0.0;
         } else if let Some(n) = opt.strip_prefix('h').and_then(|n| n.parse::<u32>().ok()) {
             p.horizon = n;
         } else {
             return Err(format!(
-                "{spec:?}: unknown option {opt:?} (expected +hN for a horizon of N periods, or +dc)"
+                "{spec:?}: unknown option {opt:?} (expected +hN for a horizon of N periods, +dc, or +notrend)"
             ));
         }
     }
@@ -417,4 +420,22 @@ where
         .map_err(e)?;
     root.present().map_err(e)?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_variant;
+
+    #[test]
+    fn variants_parse_and_bad_ones_name_the_option() {
+        let (base, p) = parse_variant("ipd-hold+h10+dc+notrend").unwrap();
+        assert_eq!(base, "ipd-hold");
+        assert_eq!((p.horizon, p.delay_compensation, p.trend), (10, true, 0.0));
+        let (_, p) = parse_variant("ipd+h5").unwrap();
+        assert_eq!((p.horizon, p.delay_compensation), (5, false));
+        assert_eq!(p.trend, controller_service::config::DEFAULT_TREND);
+        let e = parse_variant("ipd+h10+fast").unwrap_err();
+        assert!(e.contains("\"fast\""), "{e}");
+        assert!(parse_variant("+dc").is_err());
+    }
 }

@@ -155,7 +155,8 @@ enum Command {
         duration: f64,
         /// Controllers, side by side on the same link: shipped names or files, each
         /// optionally with `+hN` (the service sends a horizon of N periods with each
-        /// command) and `+dc` (delay compensation), e.g. `ipd,ipd+h10,ipd+h10+dc,pid`.
+        /// command), `+dc` (delay compensation) and `+notrend` (predict with `F` held, not
+        /// following its trend), e.g. `ipd,ipd+h10,ipd+h10+dc,pid`.
         #[arg(long, value_delimiter = ',', default_value = "ipd,pid")]
         controllers: Vec<String>,
         /// Links.
@@ -721,8 +722,8 @@ fn campaign(
     Ok(())
 }
 
-/// The controllers of `specs` (`KIND[+hN][+dc]`, a shipped name or a file with options),
-/// each checked against `s` and named after its set with the options appended.
+/// The controllers of `specs` (`KIND[+hN][+dc][+notrend]`, a shipped name or a file with
+/// options), each checked against `s` and named after its set with the options appended.
 fn load_variants(
     s: &Scenario,
     specs: &[String],

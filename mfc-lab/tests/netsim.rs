@@ -55,6 +55,7 @@ fn on_a_100_ms_round_trip_the_horizon_keeps_the_pitch() {
             Prediction {
                 horizon,
                 delay_compensation: false,
+                ..Prediction::default()
             },
             &link,
             default_safety(&s),

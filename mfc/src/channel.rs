@@ -240,7 +240,8 @@ impl<const CAP: usize> Channel<CAP> {
 
     /// A packetized horizon: the outputs this channel would send for the next
     /// `out.len()` periods if no sample came, predicted with the ultra-local model (`F`
-    /// held at `last.f_est`, the last step's output) and the reference known ahead.
+    /// from `last.f_est`, the last step's output: held with `trend = 0`, else following
+    /// the estimate's trend, see [`crate::intelligent`]) and the reference known ahead.
     ///
     /// Period 0 is the one the last step's sample opened; `out[j]` is for period `j + 1`,
     /// `refs[j]` is the reference at its start, and `h` the period. `applied[j]`, if
@@ -259,6 +260,7 @@ impl<const CAP: usize> Channel<CAP> {
         h: f64,
         refs: &[Reference],
         applied: &[f64],
+        trend: f64,
         out: &mut [f64],
     ) {
         enum P {
@@ -268,7 +270,7 @@ impl<const CAP: usize> Channel<CAP> {
         let n = out.len().min(refs.len());
         let predictor = match (&self.law, last.f_est) {
             _ if last.warming_up || h.is_nan() || h <= 0.0 || !h.is_finite() => None,
-            (Law::Intelligent(c), Some(f)) => c.predictor(f).map(P::I),
+            (Law::Intelligent(c), Some(f)) => c.predictor(f, trend).map(P::I),
             (Law::Adrc(c), _) => c.predictor().map(P::A),
             _ => None,
         };

@@ -38,11 +38,27 @@
 //!   is why the rule waits for *every* reference: another channel's motion is the
 //!   disturbance a coupled plant's `F` most needs to follow. [`crate::MimoController`]
 //!   applies that rule; a channel stepped on its own sees only its own reference.
+//!
+//! # Predictions (packetized horizons, delay compensation)
+//! [`crate::Channel::plan`] runs the ultra-local model forward from the controller's state.
+//! With `trend = 0`, `F` is held at the filtered `F_est`: an estimate that already lags
+//! the plant by the filter's `τ` (and the window), held for the whole round trip. That
+//! staleness is most of what a delay costs (`docs/results.md`). With `trend = g > 0`, the
+//! prediction uses the estimate's trend `Ḟ`, the low-passed (time constant
+//! [`TREND_FILTER`]` × τ`) difference between the raw and the filtered estimate divided by
+//! `τ` (exact for an `F` that ramps): `F(s) = F_est + Ḟ (τ + g s)` at `s` after the sample,
+//! that is the filter's lag taken back, then `F` extrapolated at the fraction `g` of its
+//! trend. Without `estimate_filter` there is no trend to read, and `F` is held.
 
 use crate::error::{finite, non_negative, nonzero, MfcError, Result};
 use crate::estimator::{Estimator, EstimatorConfig, LinearEstimate, DEFAULT_CAPACITY};
 use crate::filter::{decay, DerivativeFilter};
 use crate::{ControllerKind, Order, Reference};
+
+/// Time constant of the low-pass that gives the estimate's trend for predictions, in units
+/// of `estimate_filter` (module documentation): 1.5 keeps the estimate's jumps at encoder
+/// counts out of the trend without letting it lag much more than the estimate itself.
+pub const TREND_FILTER: f64 = 1.5;
 
 /// Parameters of an intelligent controller.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -185,6 +201,10 @@ pub struct IntelligentController<const CAP: usize = DEFAULT_CAPACITY> {
     /// While the reference is at rest (`y*` unchanged, its derivatives zero): for how long
     /// (s), and the `y*` it rests at. `hold_estimate_filter` applies from `hold_after` on.
     pub(crate) rest: Option<(f64, f64)>,
+    /// While `estimate_filter` is on: the low-passed difference between the raw estimate
+    /// and the filtered one (both parts of the linear form), the filter's lag, for
+    /// predictions (module documentation).
+    pub(crate) trend: Option<LinearEstimate>,
     pub(crate) estimator: Estimator<CAP>,
 }
 
@@ -208,6 +228,7 @@ impl<const CAP: usize> IntelligentController<CAP> {
             observer: None,
             estimate: None,
             rest: None,
+            trend: None,
         })
     }
 
@@ -265,6 +286,7 @@ impl<const CAP: usize> IntelligentController<CAP> {
         self.derivative = DerivativeFilter::default();
         self.observer = None;
         self.estimate = None;
+        self.trend = None;
         self.last_t = None;
         self.bump = 0.0;
     }
@@ -277,6 +299,7 @@ impl<const CAP: usize> IntelligentController<CAP> {
         self.derivative = DerivativeFilter::default();
         self.observer = None;
         self.estimate = None;
+        self.trend = None;
         self.last_t = None;
         self.hold = self.applied;
         self.last_u = self.applied;
@@ -346,15 +369,30 @@ impl<const CAP: usize> IntelligentController<CAP> {
     }
 
     /// The state a prediction starts from, after a step that estimated `f`: the last
-    /// measurement, its filtered derivative, the integral and the fading bump. `None`
-    /// before the first step.
-    pub(crate) fn predictor(&self, f: f64) -> Option<IntelligentPredictor> {
+    /// measurement, its filtered derivative, the integral and the fading bump; with
+    /// `trend > 0` and the estimate filter on, `F` follows the estimate's trend (module
+    /// documentation). `None` before the first step.
+    pub(crate) fn predictor(&self, f: f64, trend: f64) -> Option<IntelligentPredictor> {
         let (y, dy) = match self.observer {
             Some(o) => o,
             None => (self.derivative.last()?, self.derivative.value()),
         };
+        let tau = self.params.estimate_filter;
+        let (f, rate) = match self.trend {
+            Some(lag) if trend > 0.0 && tau > 0.0 => {
+                let lag = lag.at(self.params.alpha);
+                let (g, r) = (f + lag, trend * lag / tau);
+                if g.is_finite() && r.is_finite() {
+                    (g, r)
+                } else {
+                    (f, 0.0)
+                }
+            }
+            _ => (f, 0.0),
+        };
         Some(IntelligentPredictor {
             params: self.params,
+            rate,
             f,
             y,
             dy,
@@ -422,6 +460,24 @@ impl<const CAP: usize> IntelligentController<CAP> {
             lin
         };
         self.estimate = Some(out);
+        // The filter's lag, low-passed: what a prediction adds back (module documentation).
+        let lag = LinearEstimate {
+            base: lin.base - out.base,
+            per_alpha: lin.per_alpha - out.per_alpha,
+        };
+        self.trend = match (self.trend, dt) {
+            _ if tau <= 0.0 => None,
+            (Some(old), Some(h)) if h > 0.0 => {
+                let k = 1.0 - libm::exp(-h / (TREND_FILTER * tau));
+                Some(LinearEstimate {
+                    base: old.base + k * (lag.base - old.base),
+                    per_alpha: old.per_alpha + k * (lag.per_alpha - old.per_alpha),
+                })
+            }
+            (Some(old), _) => Some(old),
+            (None, _) => Some(lag),
+        }
+        .filter(|t| t.base.is_finite() && t.per_alpha.is_finite());
         out
     }
 
@@ -476,13 +532,16 @@ impl<const CAP: usize> IntelligentController<CAP> {
 }
 
 /// The ultra-local model run forward from an intelligent controller's state, for a
-/// packetized horizon ([`crate::Channel::plan`]): `F` is held at its last estimate, and the
-/// law is evaluated on the predicted output exactly as the controller would on a measured
-/// one.
+/// packetized horizon ([`crate::Channel::plan`]): `F` is held at its last estimate, or
+/// follows its trend (module documentation), and the law is evaluated on the predicted
+/// output exactly as the controller would on a measured one.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct IntelligentPredictor {
     params: IntelligentParams,
+    /// `F` at the start of the next period to predict.
     f: f64,
+    /// `F'` over the prediction (0: held).
+    rate: f64,
     y: f64,
     dy: f64,
     integral: f64,
@@ -491,20 +550,22 @@ pub(crate) struct IntelligentPredictor {
 
 impl IntelligentPredictor {
     /// Let `h` pass with `u` applied: `y' = F + alpha u` (n = 1) or `y'' = F + alpha u`
-    /// (n = 2), exact for a constant `u` over the period.
+    /// (n = 2), exact for a constant `u` over the period and `F` held or ramping at `rate`.
     pub(crate) fn advance(&mut self, h: f64, u: f64) {
         let p = &self.params;
         let acc = self.f + p.alpha * u;
+        let r = self.rate;
         match p.order {
             Order::One => {
-                self.y += h * acc;
-                self.dy = acc;
+                self.y += h * acc + 0.5 * h * h * r;
+                self.dy = acc + h * r;
             }
             Order::Two => {
-                self.y += h * self.dy + 0.5 * h * h * acc;
-                self.dy += h * acc;
+                self.y += h * self.dy + 0.5 * h * h * acc + h * h * h * r / 6.0;
+                self.dy += h * acc + 0.5 * h * h * r;
             }
         }
+        self.f += h * r;
         self.bump *= decay(h, p.bumpless_time_constant);
     }
 

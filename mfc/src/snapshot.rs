@@ -53,7 +53,8 @@ snapshot_struct!(IntelligentController {
     bumpless_start,
     observer,
     estimate,
-    rest
+    rest,
+    trend
 });
 snapshot_struct!(Channel {
     law,

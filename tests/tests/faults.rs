@@ -125,6 +125,7 @@ async fn loss_and_latency_degrade_gracefully() {
             Prediction {
                 horizon: 10,
                 delay_compensation: true,
+                ..Prediction::default()
             },
         ],
         ..opts
