@@ -139,7 +139,7 @@ pub struct Prediction {
 /// Default [`Prediction::trend`]: half the trend. In the lockstep simulator
 /// (`mfc-lab netsim`, AERO scenarios 1 to 4, four link seeds) it took the pitch RMS ratio
 /// of `ipd+h10+dc` at 50 / 100 ms from 1.44 / 2.03 to 1.09 / 1.46 on scenario 2 and from
-/// 1.48 / 2.14 to 1.12 / 1.52 on scenario 4, helped scenarios 1 and 3 at 20 and 50 ms and
+/// 1.49 / 2.14 to 1.12 / 1.52 on scenario 4, helped scenarios 1 and 3 at 20 and 50 ms and
 /// left them where they were at 100 ms (`docs/results.md`); a whole trend (1)
 /// over-extrapolates the estimate's noise at 100 ms. The price is more chatter.
 pub const DEFAULT_TREND: f64 = 0.5;

@@ -104,9 +104,10 @@ fn device_part(name: &str) -> String {
         .collect()
 }
 
-/// A campaign entry: `KIND[+hN][+dc][+notrend]`, a controller (a shipped name or a file) with
-/// the service's packetized horizon of N periods and/or delay compensation for its device;
-/// `+notrend` predicts with `F` held (`trend = 0`) instead of following its trend.
+/// A campaign entry: `KIND[+hN][+dc][+notrend|+trendG]`, a controller (a shipped name or a
+/// file) with the service's packetized horizon of N periods and/or delay compensation for
+/// its device; `+notrend` predicts with `F` held (`prediction.trend = 0`) instead of
+/// following half its trend, `+trendG` with `trend = G` (0 to 2).
 pub fn parse_variant(spec: &str) -> Result<(String, Prediction), String> {
     let mut parts = spec.split('+');
     let base = parts.next().unwrap_or_default().to_string();
@@ -116,11 +117,19 @@ pub fn parse_variant(spec: &str) -> Result<(String, Prediction), String> {
             p.delay_compensation = true;
         } else if opt == "notrend" {
             p.trend = 0.0;
+        } else if let Some(g) = opt
+            .strip_prefix("trend")
+            .and_then(|g| g.parse::<f64>().ok())
+        {
+            if !(0.0..=2.0).contains(&g) {
+                return Err(format!("{spec:?}: +trend{g} is not between 0 and 2"));
+            }
+            p.trend = g;
         } else if let Some(n) = opt.strip_prefix('h').and_then(|n| n.parse::<u32>().ok()) {
             p.horizon = n;
         } else {
             return Err(format!(
-                "{spec:?}: unknown option {opt:?} (expected +hN for a horizon of N periods, +dc, or +notrend)"
+                "{spec:?}: unknown option {opt:?} (expected +hN for a horizon of N periods, +dc, +notrend or +trendG)"
             ));
         }
     }
@@ -437,5 +446,9 @@ mod tests {
         let e = parse_variant("ipd+h10+fast").unwrap_err();
         assert!(e.contains("\"fast\""), "{e}");
         assert!(parse_variant("+dc").is_err());
+        let (_, p) = parse_variant("ipd+h10+trend0.75").unwrap();
+        assert_eq!(p.trend, 0.75);
+        let e = parse_variant("ipd+h10+trend3").unwrap_err();
+        assert!(e.contains("between 0 and 2"), "{e}");
     }
 }

@@ -155,8 +155,9 @@ enum Command {
         duration: f64,
         /// Controllers, side by side on the same link: shipped names or files, each
         /// optionally with `+hN` (the service sends a horizon of N periods with each
-        /// command), `+dc` (delay compensation) and `+notrend` (predict with `F` held, not
-        /// following its trend), e.g. `ipd,ipd+h10,ipd+h10+dc,pid`.
+        /// command), `+dc` (delay compensation), and `+notrend` (predict with `F` held, not
+        /// following half its trend) or `+trendG` (`prediction.trend = G`), e.g.
+        /// `ipd,ipd+h10,ipd+h10+dc,pid`.
         #[arg(long, value_delimiter = ',', default_value = "ipd,pid")]
         controllers: Vec<String>,
         /// Links.
@@ -722,7 +723,7 @@ fn campaign(
     Ok(())
 }
 
-/// The controllers of `specs` (`KIND[+hN][+dc][+notrend]`, a shipped name or a file with
+/// The controllers of `specs` (`KIND[+hN][+dc][+notrend|+trendG]`, a shipped name or a file with
 /// options), each checked against `s` and named after its set with the options appended.
 fn load_variants(
     s: &Scenario,
