@@ -1044,6 +1044,37 @@ pub async fn serve_observed(
             }
         }};
     }
+    // A configuration, envelope or reference query: no payload reads the configuration in
+    // force; a payload is decoded as `$req` and applied by `$apply` with the core held
+    // (`$registry`, `$watch`, the decoded `$r` and its `$bytes` in scope). A refusal is
+    // logged, the reply sent, and an accepted change synced to the standby.
+    macro_rules! change_query {
+        ($q:expr, $dev:expr, $req:ty, $what:literal,
+         |$registry:ident, $watch:ident, $r:ident, $bytes:ident| $apply:expr) => {{
+            let reply = {
+                let mut held = lock(&core);
+                let Core {
+                    registry: $registry,
+                    watch: $watch,
+                    ..
+                } = &mut *held;
+                match payload(&$q) {
+                    None => read_config($registry, &$dev),
+                    Some($bytes) => match decode::<$req>(&$bytes) {
+                        Ok($r) => $apply,
+                        Err(e) => undecodable_request($registry, &$dev, e),
+                    },
+                }
+            };
+            if !reply.accepted {
+                throttled!(warn.refused, warn, device = %printable(&$dev), "{} refused: {}", $what, reply.reason);
+            }
+            let _ = $q.reply($q.key_expr().clone(), encode(&reply)).await;
+            if reply.accepted && payload(&$q).is_some() {
+                sync_device!(&$dev);
+            }
+        }};
+    }
     fleet_apply!(std::mem::take(&mut pending_actions));
     {
         let _held = lock(&core);
@@ -1252,130 +1283,85 @@ pub async fn serve_observed(
             },
             Msg::Config(q) => {
                 let Some(dev) = served!(q) else { continue };
-                let reply = {
-                    let mut held = lock(&core);
-                    let Core {
-                        registry, watch, ..
-                    } = &mut *held;
-                    match payload(&q) {
-                        None => read_config(registry, &dev),
-                        Some(bytes) => match decode::<pb::ConfigRequest>(&bytes) {
-                            Ok(req) => {
-                                let r = registry.configure(&dev, &req);
-                                if r.accepted {
-                                    throttled!(warn.changed, info, device = %dev, "configuration changed");
-                                    watch.changed(
-                                        registry,
-                                        &dev,
-                                        Topic::ConfigRequest,
-                                        &bytes,
-                                        "configuration changed",
-                                    );
-                                }
-                                r
-                            }
-                            Err(e) => undecodable_request(registry, &dev, e),
-                        },
+                change_query!(
+                    q,
+                    dev,
+                    pb::ConfigRequest,
+                    "configuration",
+                    |registry, watch, req, bytes| {
+                        let r = registry.configure(&dev, &req);
+                        if r.accepted {
+                            throttled!(warn.changed, info, device = %dev, "configuration changed");
+                            watch.changed(
+                                registry,
+                                &dev,
+                                Topic::ConfigRequest,
+                                &bytes,
+                                "configuration changed",
+                            );
+                        }
+                        r
                     }
-                };
-                if !reply.accepted {
-                    throttled!(warn.refused, warn, device = %printable(&dev), "configuration refused: {}", reply.reason);
-                }
-                let _ = q.reply(q.key_expr().clone(), encode(&reply)).await;
-                if reply.accepted && payload(&q).is_some() {
-                    sync_device!(&dev);
-                }
+                );
             }
             Msg::Envelope(q) => {
                 let Some(dev) = served!(q) else { continue };
-                let reply = {
-                    let mut held = lock(&core);
-                    let Core {
-                        registry, watch, ..
-                    } = &mut *held;
-                    match payload(&q) {
-                        None => read_config(registry, &dev),
-                        Some(bytes) => match decode::<pb::EnvelopeRequest>(&bytes) {
-                            Ok(req) => {
-                                let before = registry.envelope_of(&dev);
-                                let r = registry.change_envelope(&dev, &req);
-                                let after = registry.envelope_of(&dev);
-                                let widened = before
-                                    .iter()
-                                    .flatten()
-                                    .zip(after.iter().flatten())
-                                    .any(|(b, a)| b.is_widened_by(a));
-                                if r.accepted {
-                                    let what = format!(
-                                        "envelope {} by {}",
-                                        if widened { "WIDENED" } else { "narrowed" },
-                                        printable(&req.reason)
-                                    );
-                                    watch.changed(
-                                        registry,
-                                        &dev,
-                                        Topic::EnvelopeRequest,
-                                        &bytes,
-                                        &what,
-                                    );
-                                }
-                                if r.accepted && widened {
-                                    // Every widening has its own line: it is rare (the file must
-                                    // allow it) and it is what an audit looks for.
-                                    tracing::warn!(device = %dev, by = %printable(&req.reason),
-                                    envelope = ?r.config.as_ref().and_then(|c| c.envelope.clone()), "envelope WIDENED");
-                                } else if r.accepted {
-                                    throttled!(warn.envelope, info, device = %dev, by = %printable(&req.reason),
-                                    envelope = ?r.config.as_ref().and_then(|c| c.envelope.clone()), "envelope narrowed");
-                                }
-                                r
-                            }
-                            Err(e) => undecodable_request(registry, &dev, e),
-                        },
+                change_query!(
+                    q,
+                    dev,
+                    pb::EnvelopeRequest,
+                    "envelope change",
+                    |registry, watch, req, bytes| {
+                        let before = registry.envelope_of(&dev);
+                        let r = registry.change_envelope(&dev, &req);
+                        let after = registry.envelope_of(&dev);
+                        let widened = before
+                            .iter()
+                            .flatten()
+                            .zip(after.iter().flatten())
+                            .any(|(b, a)| b.is_widened_by(a));
+                        if r.accepted {
+                            let what = format!(
+                                "envelope {} by {}",
+                                if widened { "WIDENED" } else { "narrowed" },
+                                printable(&req.reason)
+                            );
+                            watch.changed(registry, &dev, Topic::EnvelopeRequest, &bytes, &what);
+                        }
+                        if r.accepted && widened {
+                            // Every widening has its own line: it is rare (the file must
+                            // allow it) and it is what an audit looks for.
+                            tracing::warn!(device = %dev, by = %printable(&req.reason),
+                                envelope = ?r.config.as_ref().and_then(|c| c.envelope.clone()), "envelope WIDENED");
+                        } else if r.accepted {
+                            throttled!(warn.envelope, info, device = %dev, by = %printable(&req.reason),
+                                envelope = ?r.config.as_ref().and_then(|c| c.envelope.clone()), "envelope narrowed");
+                        }
+                        r
                     }
-                };
-                if !reply.accepted {
-                    throttled!(warn.refused, warn, device = %printable(&dev), "envelope change refused: {}", reply.reason);
-                }
-                let _ = q.reply(q.key_expr().clone(), encode(&reply)).await;
-                if reply.accepted && payload(&q).is_some() {
-                    sync_device!(&dev);
-                }
+                );
             }
             Msg::ReferenceQuery(q) => {
                 let Some(dev) = served!(q) else { continue };
-                let reply = {
-                    let mut held = lock(&core);
-                    let Core {
-                        registry, watch, ..
-                    } = &mut *held;
-                    match payload(&q) {
-                        None => read_config(registry, &dev),
-                        Some(bytes) => match decode::<pb::ReferenceUpdate>(&bytes) {
-                            Ok(u) => {
-                                let r = registry.set_reference(&dev, &u);
-                                if r.accepted {
-                                    watch.changed(
-                                        registry,
-                                        &dev,
-                                        Topic::ReferenceUpdate,
-                                        &bytes,
-                                        "reference changed",
-                                    );
-                                }
-                                r
-                            }
-                            Err(e) => undecodable_request(registry, &dev, e),
-                        },
+                change_query!(
+                    q,
+                    dev,
+                    pb::ReferenceUpdate,
+                    "reference",
+                    |registry, watch, u, bytes| {
+                        let r = registry.set_reference(&dev, &u);
+                        if r.accepted {
+                            watch.changed(
+                                registry,
+                                &dev,
+                                Topic::ReferenceUpdate,
+                                &bytes,
+                                "reference changed",
+                            );
+                        }
+                        r
                     }
-                };
-                if !reply.accepted {
-                    throttled!(warn.refused, warn, device = %printable(&dev), "reference refused: {}", reply.reason);
-                }
-                let _ = q.reply(q.key_expr().clone(), encode(&reply)).await;
-                if reply.accepted && payload(&q).is_some() {
-                    sync_device!(&dev);
-                }
+                );
             }
             Msg::Status(q) => {
                 let sharded = q
