@@ -114,25 +114,22 @@ impl DeviceChannel {
 /// links (packetized predictive control, `docs/results.md`). Off by default: a command
 /// then carries its own outputs only, as before.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(default, deny_unknown_fields)]
 pub struct Prediction {
     /// Periods of future outputs each command carries, predicted with the ultra-local model
     /// (or ADRC's observer) and the reference known ahead; the agent plays them while
     /// commands are lost or late. At most [`MAX_HORIZON`]. Default 0: none.
-    #[serde(default)]
     pub horizon: u32,
     /// Predict from the state the plant will be in when the command lands: the model is
     /// driven, over the measured round trip (the median of the plant's recent reports, in
     /// periods), by the outputs already on their way, and the horizon is lengthened to
     /// reach the landing period. Default false.
-    #[serde(default)]
     pub delay_compensation: bool,
     /// How an intelligent channel with an `estimate_filter` predicts `F`: 0 holds the
     /// filtered `F_est` (an estimate already `estimate_filter` old) over the whole
     /// prediction; `g > 0` takes the filter's lag back and extrapolates `F` at the fraction
     /// `g` of its trend (`F(s) = F_est + Ḟ (τ + g s)`, see `mfc::intelligent`). Other laws
     /// ignore it. 0 to 2; default [`DEFAULT_TREND`].
-    #[serde(default = "default_trend")]
     pub trend: f64,
 }
 
@@ -143,10 +140,6 @@ pub struct Prediction {
 /// left them where they were at 100 ms (`docs/results.md`); a whole trend (1)
 /// over-extrapolates the estimate's noise at 100 ms. The price is more chatter.
 pub const DEFAULT_TREND: f64 = 0.5;
-
-fn default_trend() -> f64 {
-    DEFAULT_TREND
-}
 
 impl Default for Prediction {
     fn default() -> Self {
