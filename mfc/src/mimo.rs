@@ -83,7 +83,10 @@ impl<const CAP: usize> MimoController<CAP> {
         }
         // A hold (`hold_estimate_filter`) waits for every reference: the coupling a
         // moving or stepped channel brings is a disturbance the others' F must follow at
-        // full speed. So every channel's time at rest is the shortest of them all.
+        // full speed. So every channel's time at rest is the shortest of them all. The
+        // intelligent channels count their own; the others (PID, ADRC) keep no count, so
+        // their references are seen through their derivatives only (a step of a PID
+        // channel's set-point does not restart the others' hold).
         let rested = if r.iter().any(|r| r.dy != 0.0 || r.ddy != 0.0) {
             None
         } else {
