@@ -1456,7 +1456,11 @@ fn predict(
         }
         let mut last = d.outputs[i];
         last.v = v[i];
-        d.mimo.channels()[i].plan(&last, h, &refs, &applied, p.trend, &mut elements);
+        let trend = mfc::Trend {
+            moving: p.trend,
+            at_rest: p.trend_at_rest,
+        };
+        d.mimo.channels()[i].plan(&last, h, &refs, &applied, trend, &mut elements);
         let mut prev = v[i];
         for (j, e) in elements.iter().enumerate() {
             let (x, _) = d.envelope[i].clamp(*e, Some((prev, h)));

@@ -419,15 +419,22 @@ fn a_horizon_longer_than_the_limit_is_refused_with_its_field() {
 fn the_trend_of_f_defaults_to_half_and_is_refused_outside_0_to_2_with_its_field() {
     let config = ServiceConfig::parse("test.toml", PREDICTING).unwrap();
     assert_eq!(config.devices[0].prediction.trend, 0.5);
-    let text = PREDICTING.replace("horizon = 6", "horizon = 6, trend = 0");
+    assert_eq!(config.devices[0].prediction.trend_at_rest, 0.0);
+    let text = PREDICTING.replace("horizon = 6", "horizon = 6, trend = 0, trend_at_rest = 0.5");
     let config = ServiceConfig::parse("test.toml", &text).unwrap();
     assert_eq!(config.devices[0].prediction.trend, 0.0);
-    for bad in ["-0.1", "2.5", "nan"] {
-        let text = PREDICTING.replace("horizon = 6", &format!("horizon = 6, trend = {bad}"));
-        let e = ServiceConfig::parse("test.toml", &text)
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains("devices[0].prediction.trend"), "{bad}: {e}");
+    assert_eq!(config.devices[0].prediction.trend_at_rest, 0.5);
+    for field in ["trend", "trend_at_rest"] {
+        for bad in ["-0.1", "2.5", "nan"] {
+            let text = PREDICTING.replace("horizon = 6", &format!("horizon = 6, {field} = {bad}"));
+            let e = ServiceConfig::parse("test.toml", &text)
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains(&format!("devices[0].prediction.{field}`")),
+                "{bad}: {e}"
+            );
+        }
     }
 }
 

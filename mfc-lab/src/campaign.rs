@@ -104,10 +104,11 @@ fn device_part(name: &str) -> String {
         .collect()
 }
 
-/// A campaign entry: `KIND[+hN][+dc][+notrend|+trendG]`, a controller (a shipped name or a
-/// file) with the service's packetized horizon of N periods and/or delay compensation for
-/// its device; `+notrend` predicts with `F` held (`prediction.trend = 0`) instead of
-/// following half its trend, `+trendG` with `trend = G` (0 to 2).
+/// A campaign entry: `KIND[+hN][+dc][+notrend|+trendG][+restG]`, a controller (a shipped
+/// name or a file) with the service's packetized horizon of N periods and/or delay
+/// compensation for its device; `+notrend` predicts with `F` held (`prediction.trend = 0`)
+/// instead of following half its trend, `+trendG` with `trend = G` (0 to 2), and `+restG`
+/// follows the fraction G of the trend at rest too (`trend_at_rest = G`; default 0).
 pub fn parse_variant(spec: &str) -> Result<(String, Prediction), String> {
     let mut parts = spec.split('+');
     let base = parts.next().unwrap_or_default().to_string();
@@ -117,19 +118,23 @@ pub fn parse_variant(spec: &str) -> Result<(String, Prediction), String> {
             p.delay_compensation = true;
         } else if opt == "notrend" {
             p.trend = 0.0;
-        } else if let Some(g) = opt
-            .strip_prefix("trend")
-            .and_then(|g| g.parse::<f64>().ok())
-        {
+        } else if let Some((what, g)) = ["trend", "rest"].iter().find_map(|what| {
+            let g = opt.strip_prefix(what)?.parse::<f64>().ok()?;
+            Some((*what, g))
+        }) {
             if !(0.0..=2.0).contains(&g) {
-                return Err(format!("{spec:?}: +trend{g} is not between 0 and 2"));
+                return Err(format!("{spec:?}: +{what}{g} is not between 0 and 2"));
             }
-            p.trend = g;
+            if what == "trend" {
+                p.trend = g;
+            } else {
+                p.trend_at_rest = g;
+            }
         } else if let Some(n) = opt.strip_prefix('h').and_then(|n| n.parse::<u32>().ok()) {
             p.horizon = n;
         } else {
             return Err(format!(
-                "{spec:?}: unknown option {opt:?} (expected +hN for a horizon of N periods, +dc, +notrend or +trendG)"
+                "{spec:?}: unknown option {opt:?} (expected +hN for a horizon of N periods, +dc, +notrend, +trendG or +restG)"
             ));
         }
     }
@@ -450,5 +455,13 @@ mod tests {
         assert_eq!(p.trend, 0.75);
         let e = parse_variant("ipd+h10+trend3").unwrap_err();
         assert!(e.contains("between 0 and 2"), "{e}");
+        let (_, p) = parse_variant("ipd+h10+dc+rest0.5").unwrap();
+        assert_eq!((p.trend, p.trend_at_rest), (0.5, 0.5));
+        assert_eq!(
+            parse_variant("ipd+h10").unwrap().1.trend_at_rest,
+            controller_service::config::DEFAULT_TREND_AT_REST
+        );
+        let e = parse_variant("ipd+rest-1").unwrap_err();
+        assert!(e.contains("+rest-1 is not between 0 and 2"), "{e}");
     }
 }

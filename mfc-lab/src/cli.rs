@@ -155,14 +155,18 @@ enum Command {
         duration: f64,
         /// Controllers, side by side on the same link: shipped names or files, each
         /// optionally with `+hN` (the service sends a horizon of N periods with each
-        /// command), `+dc` (delay compensation), and `+notrend` (predict with `F` held, not
-        /// following half its trend) or `+trendG` (`prediction.trend = G`), e.g.
-        /// `ipd,ipd+h10,ipd+h10+dc,pid`.
+        /// command), `+dc` (delay compensation), `+notrend` (predict with `F` held, not
+        /// following half its trend) or `+trendG` (`prediction.trend = G`), and `+restG`
+        /// (`prediction.trend_at_rest = G`; default 0), e.g. `ipd,ipd+h10,ipd+h10+dc,pid`.
         #[arg(long, value_delimiter = ',', default_value = "ipd,pid")]
         controllers: Vec<String>,
         /// Links.
         #[arg(long, value_delimiter = ',', default_value = "tcp,udp")]
         links: Vec<Link>,
+        /// The agents' oldest command still applied (periods, at most 1000): a command
+        /// later than that is dropped, so a link whose round trips reach it loses commands.
+        #[arg(long, default_value_t = SafetyConfig::DEFAULT_MAX_AGE)]
+        max_age: u32,
         /// Run nothing: draw the plots again from a finished campaign's `campaign.json` in
         /// this directory (with the same --profiles), into --out.
         #[arg(long)]
@@ -176,6 +180,9 @@ enum Command {
         /// Scenario (a file or a shipped AERO one).
         #[arg(long, default_value = "2")]
         scenario: String,
+        /// Shorten the scenario to this many seconds (the campaign runs 20 s of its own).
+        #[arg(long)]
+        duration: Option<f64>,
         /// Controllers, as for the campaign (`ipd+h10+dc`...).
         #[arg(
             long,
@@ -195,6 +202,9 @@ enum Command {
         /// The agent's hold before its fallback (periods).
         #[arg(long, default_value_t = SafetyConfig::DEFAULT_HOLD_PERIODS)]
         hold_periods: u32,
+        /// The agent's oldest command still applied (periods), as for the campaign.
+        #[arg(long, default_value_t = SafetyConfig::DEFAULT_MAX_AGE)]
+        max_age: u32,
         /// Which way the loss rates apply: both, up (samples only), down (commands only).
         #[arg(long, value_enum, default_value = "both")]
         lossy: crate::netsim::Lossy,
@@ -479,26 +489,36 @@ fn real_main() -> Result<()> {
             duration,
             controllers,
             links,
+            max_age,
             replot,
         } => match replot {
             Some(from) => replot_campaign(&profiles, &from, &out),
-            None => campaign(&profiles, &out, &scenario, duration, &controllers, &links),
+            None => campaign(
+                &profiles,
+                &out,
+                (&scenario, duration),
+                &controllers,
+                &links,
+                max_age,
+            ),
         },
         Command::Netsim {
             scenario,
+            duration,
             controllers,
             loss,
             rtt_ms,
             seed,
             hold_periods,
+            max_age,
             lossy,
             out,
         } => netsim(
-            &scenario,
+            (&scenario, duration),
             &controllers,
             (&loss, lossy),
             &rtt_ms,
-            (seed, hold_periods),
+            (seed, hold_periods, max_age),
             &out,
         ),
         Command::ServiceConfig {
@@ -639,14 +659,15 @@ fn sim_compare(out: &Path, only: Option<(&String, &Vec<String>)>, map: MapChoice
 fn campaign(
     profiles: &str,
     out: &Path,
-    scenario: &str,
-    duration: f64,
+    (scenario, duration): (&str, f64),
     controllers: &[String],
     links: &[Link],
+    max_age: u32,
 ) -> Result<()> {
     if !(duration.is_finite() && duration >= 2.0) {
         bail!("--duration must be at least 2 s");
     }
+    check_max_age(max_age)?;
     let set = ProfileSet::load(profiles)?;
     if !set.profiles.iter().any(|p| p.name == "none") {
         bail!("{profiles}: the campaign needs a profile named `none` (the unimpaired baseline)");
@@ -657,6 +678,7 @@ fn campaign(
     let board = std::sync::Arc::new(ProgressBoard::new());
     let options = CaseOptions {
         predictions,
+        max_age,
         progress: Some(board.clone()),
         ..CaseOptions::default()
     };
@@ -729,7 +751,7 @@ fn load_variants(
     s: &Scenario,
     specs: &[String],
 ) -> Result<Vec<(ControllerSet, controller_service::config::Prediction)>> {
-    specs
+    let sets = specs
         .iter()
         .map(|spec| {
             let (base, prediction) =
@@ -739,7 +761,32 @@ fn load_variants(
             set.name.push_str(&spec[base.len()..]);
             Ok((set, prediction))
         })
-        .collect()
+        .collect::<Result<Vec<_>>>()?;
+    // Rows, ratios and device ids go by name: two entries of one name would be measured
+    // against each other's runs.
+    for (i, (a, _)) in sets.iter().enumerate() {
+        if let Some(j) = sets[..i].iter().position(|(b, _)| b.name == a.name) {
+            bail!(
+                "{} and {} are both named {:?}: give one another `name` in its file",
+                specs[j],
+                specs[i],
+                a.name
+            );
+        }
+    }
+    Ok(sets)
+}
+
+/// `--max-age` as the agent's configuration would take it.
+fn check_max_age(max_age: u32) -> Result<()> {
+    SafetyConfig {
+        period: 0.01,
+        max_age,
+        hold_periods: SafetyConfig::DEFAULT_HOLD_PERIODS,
+        fallback: plant_agent::safety::FallbackPolicy::LocalController,
+    }
+    .validate()
+    .map_err(|e| anyhow::anyhow!("--max-age {max_age}: {e}"))
 }
 
 /// Draw a finished campaign's plots again from its `campaign.json`.
@@ -760,18 +807,29 @@ fn replot_campaign(profiles: &str, from: &Path, out: &Path) -> Result<()> {
 }
 
 fn netsim(
-    scenario: &str,
+    (scenario, duration): (&str, Option<f64>),
     controllers: &[String],
     (loss, lossy): (&[f64], crate::netsim::Lossy),
     rtt_ms: &[f64],
-    (seed, hold_periods): (u64, u32),
+    (seed, hold_periods, max_age): (u64, u32, u32),
     out: &Path,
 ) -> Result<()> {
     use crate::netsim::{simulate_net, LinkModel};
-    let s = load_scenario(scenario)?;
+    let mut s = load_scenario(scenario)?;
+    if let Some(d) = duration {
+        if !(d.is_finite() && d >= s.period) {
+            bail!(
+                "--duration must be at least one period ({} s), not {d}",
+                s.period
+            );
+        }
+        s.duration = d;
+    }
+    check_max_age(max_age)?;
     let sets = load_variants(&s, controllers)?;
     let safety = SafetyConfig {
         hold_periods,
+        max_age,
         ..crate::harness::default_safety(&s)
     };
     let mut links = vec![("perfect".to_string(), LinkModel::PERFECT)];

@@ -107,6 +107,28 @@ fn bad_input_gives_a_clear_error_and_exit_code() {
         .unwrap();
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("unknown controller kind `lqr`"));
+    // Two entries of one name would each be measured against the other's perfect link.
+    let shipped = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../plants/aero/controllers/ipd.toml"
+    );
+    let out = lab()
+        .args(["netsim", "--controllers"])
+        .arg(format!("ipd+h10,{shipped}+h10"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("both named \"ipd+h10\""), "{err}");
+    for (flag, value, says) in [
+        ("--max-age", "2000", "--max-age 2000"),
+        ("--duration", "0", "--duration must be at least one period"),
+    ] {
+        let out = lab().args(["netsim", flag, value]).output().unwrap();
+        assert!(!out.status.success());
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(says), "{flag}: {err}");
+    }
 }
 
 fn plants() -> std::path::PathBuf {

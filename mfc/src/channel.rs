@@ -240,8 +240,8 @@ impl<const CAP: usize> Channel<CAP> {
 
     /// A packetized horizon: the outputs this channel would send for the next
     /// `out.len()` periods if no sample came, predicted with the ultra-local model (`F`
-    /// from `last.f_est`, the last step's output: held with `trend = 0`, else following
-    /// the estimate's trend, see [`crate::intelligent`]) and the reference known ahead.
+    /// from `last.f_est`, the last step's output: held, or following the estimate's trend
+    /// as `trend` says, see [`crate::intelligent`]) and the reference known ahead.
     ///
     /// Period 0 is the one the last step's sample opened; `out[j]` is for period `j + 1`,
     /// `refs[j]` is the reference at its start, and `h` the period. `applied[j]`, if
@@ -260,7 +260,7 @@ impl<const CAP: usize> Channel<CAP> {
         h: f64,
         refs: &[Reference],
         applied: &[f64],
-        trend: f64,
+        trend: crate::Trend,
         out: &mut [f64],
     ) {
         enum P {
@@ -321,7 +321,8 @@ impl<const CAP: usize> Channel<CAP> {
     }
 
     /// How long (s) this channel's reference has rested, for the laws that keep count
-    /// (the intelligent ones; see `hold_estimate_filter`).
+    /// (the intelligent ones; see `hold_estimate_filter`). For [`crate::MimoController`].
+    #[cfg(feature = "alloc")]
     pub(crate) fn rested(&self) -> Option<f64> {
         match &self.law {
             Law::Intelligent(c) => Some(c.rest.map_or(0.0, |(held, _)| held)),
@@ -331,6 +332,7 @@ impl<const CAP: usize> Channel<CAP> {
 
     /// Another channel's reference moves (`None`) or has rested for less (`Some`): this
     /// one's time at rest is no longer than that.
+    #[cfg(feature = "alloc")]
     pub(crate) fn cap_rest(&mut self, rested: Option<f64>) {
         if let Law::Intelligent(c) = &mut self.law {
             c.rest = match (c.rest, rested) {

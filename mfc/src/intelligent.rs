@@ -49,6 +49,13 @@
 //! `τ` (exact for an `F` that ramps): `F(s) = F_est + Ḟ (τ + g s)` at `s` after the sample,
 //! that is the filter's lag taken back, then `F` extrapolated at the fraction `g` of its
 //! trend. Without `estimate_filter` there is no trend to read, and `F` is held.
+//!
+//! [`Trend`] gives `g` twice: while any reference of the plant moves, and once every one
+//! has rested for `hold_after` (the rule of `hold_estimate_filter`). At rest most of what
+//! the trend reads is the encoder: the plant sits between two counts, every count jumps the
+//! raw estimate, and extrapolating those jumps over a round trip turns them into the
+//! command. So the shipped default is to hold `F` at rest (`at_rest = 0`); a plant whose
+//! load drifts while it holds (a ramping disturbance) wants `at_rest = moving`.
 
 use crate::error::{finite, non_negative, nonzero, MfcError, Result};
 use crate::estimator::{Estimator, EstimatorConfig, LinearEstimate, DEFAULT_CAPACITY};
@@ -59,6 +66,27 @@ use crate::{ControllerKind, Order, Reference};
 /// of `estimate_filter` (module documentation): 1.5 keeps the estimate's jumps at encoder
 /// counts out of the trend without letting it lag much more than the estimate itself.
 pub const TREND_FILTER: f64 = 1.5;
+
+/// How a prediction follows `F` (module documentation): the fraction `g` of the estimate's
+/// trend it extrapolates while any reference of the plant moves, and once every reference
+/// has rested for `hold_after`. 0 holds `F`.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Trend {
+    /// While any reference moves, or has rested for less than `hold_after`.
+    pub moving: f64,
+    /// Once every reference has rested for `hold_after`.
+    pub at_rest: f64,
+}
+
+impl Trend {
+    /// The same fraction whether the references move or rest.
+    pub const fn always(g: f64) -> Self {
+        Self {
+            moving: g,
+            at_rest: g,
+        }
+    }
+}
 
 /// Parameters of an intelligent controller.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -369,15 +397,18 @@ impl<const CAP: usize> IntelligentController<CAP> {
     }
 
     /// The state a prediction starts from, after a step that estimated `f`: the last
-    /// measurement, its filtered derivative, the integral and the fading bump; with
-    /// `trend > 0` and the estimate filter on, `F` follows the estimate's trend (module
-    /// documentation). `None` before the first step.
-    pub(crate) fn predictor(&self, f: f64, trend: f64) -> Option<IntelligentPredictor> {
+    /// measurement, its filtered derivative, the integral and the fading bump; with a
+    /// `trend` above 0 (`at_rest` once the references have rested for `hold_after`) and the
+    /// estimate filter on, `F` follows the estimate's trend (module documentation). `None`
+    /// before the first step.
+    pub(crate) fn predictor(&self, f: f64, trend: Trend) -> Option<IntelligentPredictor> {
         let (y, dy) = match self.observer {
             Some(o) => o,
             None => (self.derivative.last()?, self.derivative.value()),
         };
         let tau = self.params.estimate_filter;
+        let resting = matches!(self.rest, Some((held, _)) if held >= self.params.hold_after);
+        let trend = if resting { trend.at_rest } else { trend.moving };
         let (f, rate) = match self.trend {
             Some(lag) if trend > 0.0 && tau > 0.0 => {
                 let lag = lag.at(self.params.alpha);

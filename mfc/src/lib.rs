@@ -96,7 +96,7 @@ pub use adrc::{Adrc, AdrcParams};
 pub use channel::{Channel, ChannelConfig, ChannelOutput, LawConfig};
 pub use error::{MfcError, Result};
 pub use estimator::{Estimator, EstimatorConfig, EstimatorKind, LinearEstimate, DEFAULT_CAPACITY};
-pub use intelligent::{IntelligentController, IntelligentOutput, IntelligentParams};
+pub use intelligent::{IntelligentController, IntelligentOutput, IntelligentParams, Trend};
 #[cfg(feature = "alloc")]
 pub use mimo::MimoController;
 pub use output_map::{OutputMap, OutputMapConfig};

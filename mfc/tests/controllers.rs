@@ -6,7 +6,7 @@ use common::{rms, Rk4Plant};
 use mfc::{
     AdrcParams, Channel, ChannelConfig, ControllerKind, EstimatorConfig, EstimatorKind,
     IntelligentController, IntelligentParams, LawConfig, Order, OutputMapConfig, PidParams,
-    Reference,
+    Reference, Trend,
 };
 
 const H: f64 = 0.01;
@@ -344,9 +344,9 @@ fn mimo_tracks_a_coupled_plant() {
 }
 
 /// The packetized horizon of an iPD (n = 2, `estimate_filter` 0.05 s) after 3 s holding 0
-/// against `y'' = d + u`, `d` ramping at 3 per second: the plan and the plant's state at the
-/// start of the first planned period.
-fn ramp_plan(estimate_filter: f64, trend: f64) -> (Vec<f64>, Rk4Plant<3>) {
+/// (or, with `moving`, tracking `y* = 0.1 t`) against `y'' = d + u`, `d` ramping at 3 per
+/// second: the plan and the plant's state at the start of the first planned period.
+fn ramp_plan(estimate_filter: f64, trend: Trend, moving: bool) -> (Vec<f64>, Rk4Plant<3>) {
     let config = ChannelConfig {
         law: LawConfig::Intelligent {
             params: IntelligentParams {
@@ -370,33 +370,40 @@ fn ramp_plan(estimate_filter: f64, trend: f64) -> (Vec<f64>, Rk4Plant<3>) {
         x: [0.0; 3],
         deriv: |x, u| [x[1], x[2] + u, 3.0],
     };
-    let zero = Reference::default();
+    let reference = |k: usize| {
+        if moving {
+            Reference {
+                y: 0.1 * k as f64 * H,
+                dy: 0.1,
+                ddy: 0.0,
+            }
+        } else {
+            Reference::default()
+        }
+    };
     let mut last = None;
     for k in 0..300 {
-        let out = channel.step(k as f64 * H, plant.x[0], &zero).expect("step");
+        let out = channel
+            .step(k as f64 * H, plant.x[0], &reference(k))
+            .expect("step");
         plant.advance(H, out.v, 10);
         last = Some(out);
     }
+    let refs: Vec<Reference> = (300..320).map(reference).collect();
     let mut out = vec![0.0; 20];
-    channel.plan(
-        &last.expect("stepped"),
-        H,
-        &[zero; 20],
-        &[],
-        trend,
-        &mut out,
-    );
+    channel.plan(&last.expect("stepped"), H, &refs, &[], trend, &mut out);
     (out, plant)
 }
 
-/// A plan that follows the estimate's trend keeps up with a disturbance that ramps: played
-/// open loop (every command of 200 ms lost), the plant drifts from where it was a third as
-/// far as under a plan that holds `F` at its (filtered, late) estimate with half the trend
+/// A plan that follows the estimate's trend keeps up with a disturbance that ramps while
+/// the plant holds (`at_rest` as `moving`, for a load that drifts): played open loop
+/// (every command of 200 ms lost), the plant drifts from where it was a third as far as
+/// under a plan that holds `F` at its (filtered, late) estimate with half the trend
 /// (7.5e-3 -> 2.7e-3), and a tenth as far with the whole (exact for a ramp).
 #[test]
 fn a_plan_following_the_trend_of_f_keeps_up_with_a_ramping_disturbance() {
-    let worst = |trend| {
-        let (plan, mut plant) = ramp_plan(0.05, trend);
+    let worst = |g| {
+        let (plan, mut plant) = ramp_plan(0.05, Trend::always(g), false);
         let y0 = plant.x[0];
         plan.iter().fold(0.0_f64, |w, &v| {
             plant.advance(H, v, 10);
@@ -418,7 +425,21 @@ fn a_plan_following_the_trend_of_f_keeps_up_with_a_ramping_disturbance() {
 /// `trend` says, exactly as with `trend = 0`.
 #[test]
 fn without_an_estimate_filter_the_trend_changes_nothing() {
-    let (held, _) = ramp_plan(0.0, 0.0);
-    let (trend, _) = ramp_plan(0.0, 1.0);
+    let (held, _) = ramp_plan(0.0, Trend::always(0.0), false);
+    let (trend, _) = ramp_plan(0.0, Trend::always(1.0), false);
     assert_eq!(held, trend);
+}
+
+/// Which fraction of the trend a plan follows depends on the references: `at_rest` once
+/// they have rested for `hold_after` (1 s here, after 3 s at 0), `moving` while one moves
+/// (a ramp); the other is then ignored, exactly.
+#[test]
+fn the_trend_at_rest_applies_once_the_references_rest_and_only_then() {
+    let resting = |moving, at_rest| ramp_plan(0.05, Trend { moving, at_rest }, false).0;
+    assert_eq!(resting(1.0, 0.0), resting(0.0, 0.0));
+    assert_eq!(resting(0.0, 0.5), resting(0.5, 0.5));
+    assert_ne!(resting(0.5, 0.5), resting(0.0, 0.0));
+    let moving = |moving, at_rest| ramp_plan(0.05, Trend { moving, at_rest }, true).0;
+    assert_eq!(moving(0.5, 0.0), moving(0.5, 1.0));
+    assert_ne!(moving(0.5, 0.0), moving(0.0, 0.0));
 }
