@@ -193,9 +193,14 @@ enum Command {
         /// Loss rates each way (0 to 1), each run with no delay.
         #[arg(long, value_delimiter = ',', default_value = "0.1,0.3,0.5")]
         loss: Vec<f64>,
-        /// Round trips (ms), each run with no loss; each one-way delay spreads by ±20 %.
+        /// Round trips (ms), each run with no loss; each one-way delay spreads by
+        /// ±`jitter` of itself.
         #[arg(long, value_delimiter = ',', default_value = "20,50,100")]
         rtt_ms: Vec<f64>,
+        /// Spread of each one-way delay, as a fraction of it (uniform in ±jitter; 0 to 1).
+        /// The default, 0.2, is the campaign's latency profiles (50 ms ± 10 ms each way).
+        #[arg(long, default_value_t = 0.2)]
+        jitter: f64,
         /// Seed of the link's draws.
         #[arg(long, default_value_t = 1)]
         seed: u64,
@@ -508,6 +513,7 @@ fn real_main() -> Result<()> {
             controllers,
             loss,
             rtt_ms,
+            jitter,
             seed,
             hold_periods,
             max_age,
@@ -517,7 +523,7 @@ fn real_main() -> Result<()> {
             (&scenario, duration),
             &controllers,
             (&loss, lossy),
-            &rtt_ms,
+            (&rtt_ms, jitter),
             (seed, hold_periods, max_age),
             &out,
         ),
@@ -810,7 +816,7 @@ fn netsim(
     (scenario, duration): (&str, Option<f64>),
     controllers: &[String],
     (loss, lossy): (&[f64], crate::netsim::Lossy),
-    rtt_ms: &[f64],
+    (rtt_ms, jitter): (&[f64], f64),
     (seed, hold_periods, max_age): (u64, u32, u32),
     out: &Path,
 ) -> Result<()> {
@@ -826,6 +832,9 @@ fn netsim(
         s.duration = d;
     }
     check_max_age(max_age)?;
+    if !(0.0..=1.0).contains(&jitter) {
+        bail!("--jitter must be between 0 and 1 (a fraction of the one-way delay), not {jitter}");
+    }
     let sets = load_variants(&s, controllers)?;
     let safety = SafetyConfig {
         hold_periods,
@@ -858,7 +867,7 @@ fn netsim(
             format!("{r:.0} ms round trip"),
             LinkModel {
                 delay: one_way,
-                jitter: 0.2 * one_way,
+                jitter: jitter * one_way,
                 seed,
                 ..LinkModel::PERFECT
             },

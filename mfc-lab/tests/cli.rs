@@ -123,6 +123,7 @@ fn bad_input_gives_a_clear_error_and_exit_code() {
     for (flag, value, says) in [
         ("--max-age", "2000", "--max-age 2000"),
         ("--duration", "0", "--duration must be at least one period"),
+        ("--jitter", "1.5", "--jitter must be between 0 and 1"),
     ] {
         let out = lab().args(["netsim", flag, value]).output().unwrap();
         assert!(!out.status.success());
