@@ -169,6 +169,31 @@ impl LinearEstimate {
     pub fn at(&self, alpha: f64) -> f64 {
         self.base + alpha * self.per_alpha
     }
+
+    /// One step of a first-order low-pass: the fraction `k` of the way to `target`, on
+    /// both parts (so that a change of `alpha` stays exact).
+    #[inline]
+    pub(crate) fn toward(self, target: Self, k: f64) -> Self {
+        Self {
+            base: self.base + k * (target.base - self.base),
+            per_alpha: self.per_alpha + k * (target.per_alpha - self.per_alpha),
+        }
+    }
+
+    /// `self - other`, part by part.
+    #[inline]
+    pub(crate) fn minus(self, other: Self) -> Self {
+        Self {
+            base: self.base - other.base,
+            per_alpha: self.per_alpha - other.per_alpha,
+        }
+    }
+
+    /// Both parts finite.
+    #[inline]
+    pub(crate) fn is_finite(&self) -> bool {
+        self.base.is_finite() && self.per_alpha.is_finite()
+    }
 }
 
 /// One zero-order-hold interval `[a, b]`: output samples at both ends and the input the
@@ -486,10 +511,7 @@ impl<const CAP: usize> Estimator<CAP> {
             };
             self.lowpass[slot] = Some(match self.lowpass[slot] {
                 None => raw,
-                Some(prev) => LinearEstimate {
-                    base: prev.base + gain * (raw.base - prev.base),
-                    per_alpha: prev.per_alpha + gain * (raw.per_alpha - prev.per_alpha),
-                },
+                Some(prev) => prev.toward(raw, gain),
             });
         }
     }

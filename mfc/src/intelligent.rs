@@ -407,8 +407,11 @@ impl<const CAP: usize> IntelligentController<CAP> {
             None => (self.derivative.last()?, self.derivative.value()),
         };
         let tau = self.params.estimate_filter;
-        let resting = matches!(self.rest, Some((held, _)) if held >= self.params.hold_after);
-        let trend = if resting { trend.at_rest } else { trend.moving };
+        let trend = if self.resting() {
+            trend.at_rest
+        } else {
+            trend.moving
+        };
         let (f, rate) = match self.trend {
             Some(lag) if trend > 0.0 && tau > 0.0 => {
                 let lag = lag.at(self.params.alpha);
@@ -469,47 +472,37 @@ impl<const CAP: usize> IntelligentController<CAP> {
     /// The estimate through `estimate_filter`, remembered as the one in force.
     fn smooth(&mut self, dt: Option<f64>, lin: LinearEstimate) -> LinearEstimate {
         let p = &self.params;
-        let holding = matches!(self.rest, Some((held, _)) if held >= p.hold_after);
-        let tau = if p.hold_estimate_filter > 0.0 && holding {
+        let tau = if p.hold_estimate_filter > 0.0 && self.resting() {
             p.hold_estimate_filter
         } else {
             p.estimate_filter
         };
         let out = match (self.estimate, dt) {
             (Some(old), Some(h)) if tau > 0.0 && h > 0.0 => {
-                let k = 1.0 - libm::exp(-h / tau);
-                LinearEstimate {
-                    base: old.base + k * (lin.base - old.base),
-                    per_alpha: old.per_alpha + k * (lin.per_alpha - old.per_alpha),
-                }
+                old.toward(lin, 1.0 - libm::exp(-h / tau))
             }
             _ => lin,
         };
-        let out = if out.base.is_finite() && out.per_alpha.is_finite() {
-            out
-        } else {
-            lin
-        };
+        let out = if out.is_finite() { out } else { lin };
         self.estimate = Some(out);
         // The filter's lag, low-passed: what a prediction adds back (module documentation).
-        let lag = LinearEstimate {
-            base: lin.base - out.base,
-            per_alpha: lin.per_alpha - out.per_alpha,
-        };
+        let lag = lin.minus(out);
         self.trend = match (self.trend, dt) {
             _ if tau <= 0.0 => None,
             (Some(old), Some(h)) if h > 0.0 => {
-                let k = 1.0 - libm::exp(-h / (TREND_FILTER * tau));
-                Some(LinearEstimate {
-                    base: old.base + k * (lag.base - old.base),
-                    per_alpha: old.per_alpha + k * (lag.per_alpha - old.per_alpha),
-                })
+                Some(old.toward(lag, 1.0 - libm::exp(-h / (TREND_FILTER * tau))))
             }
             (Some(old), _) => Some(old),
             (None, _) => Some(lag),
         }
-        .filter(|t| t.base.is_finite() && t.per_alpha.is_finite());
+        .filter(LinearEstimate::is_finite);
         out
+    }
+
+    /// Every reference of the plant has rested for `hold_after` (the rule of
+    /// `hold_estimate_filter` and of [`Trend::at_rest`]).
+    fn resting(&self) -> bool {
+        matches!(self.rest, Some((held, _)) if held >= self.params.hold_after)
     }
 
     /// Rectangle-rule integral of `e`, frozen while the actuator is saturated in the
