@@ -118,18 +118,10 @@ pub fn parse_variant(spec: &str) -> Result<(String, Prediction), String> {
             p.delay_compensation = true;
         } else if opt == "notrend" {
             p.trend = 0.0;
-        } else if let Some((what, g)) = ["trend", "rest"].iter().find_map(|what| {
-            let g = opt.strip_prefix(what)?.parse::<f64>().ok()?;
-            Some((*what, g))
-        }) {
-            if !(0.0..=2.0).contains(&g) {
-                return Err(format!("{spec:?}: +{what}{g} is not between 0 and 2"));
-            }
-            if what == "trend" {
-                p.trend = g;
-            } else {
-                p.trend_at_rest = g;
-            }
+        } else if let Some(g) = fraction(opt, "trend") {
+            p.trend = g.map_err(|e| format!("{spec:?}: {e}"))?;
+        } else if let Some(g) = fraction(opt, "rest") {
+            p.trend_at_rest = g.map_err(|e| format!("{spec:?}: {e}"))?;
         } else if let Some(n) = opt.strip_prefix('h').and_then(|n| n.parse::<u32>().ok()) {
             p.horizon = n;
         } else {
@@ -142,6 +134,16 @@ pub fn parse_variant(spec: &str) -> Result<(String, Prediction), String> {
         return Err(format!("{spec:?}: no controller before the options"));
     }
     Ok((base, p))
+}
+
+/// `+{what}G` with G a number: `Some` of G if it is between 0 and 2, else of why not.
+fn fraction(opt: &str, what: &str) -> Option<Result<f64, String>> {
+    let g = opt.strip_prefix(what)?.parse::<f64>().ok()?;
+    Some(if (0.0..=2.0).contains(&g) {
+        Ok(g)
+    } else {
+        Err(format!("+{what}{g} is not between 0 and 2"))
+    })
 }
 
 /// Run every controller of `controllers` on `scenario`, side by side, through a relay

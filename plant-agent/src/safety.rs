@@ -53,7 +53,7 @@ use serde::{Deserialize, Serialize};
 
 /// Longest `max_age` accepted: beyond a thousand periods a command describes a plant that is
 /// long gone.
-const MAX_AGE_LIMIT: u32 = 1000;
+pub const MAX_AGE_LIMIT: u32 = 1000;
 /// Longest `hold_periods` accepted: holding a command for longer is not a safety setting.
 const HOLD_PERIODS_LIMIT: u32 = 100_000;
 /// Longest horizon accepted in a command (periods): the controller sends at most 100.
