@@ -63,6 +63,11 @@ pub struct LoopConfig {
     pub resend: usize,
     /// Live progress, metrics and recording (default: none).
     pub observers: LoopObservers,
+    /// Wake on the period's deadlines to about 0.1 ms ([`crate::pace`]) rather than on
+    /// tokio's timer (1 to 2 ms late). Default true. Each wait borrows a thread of tokio's
+    /// blocking pool for its last 1.5 ms, so a process that hosts hundreds of loops (the
+    /// gateway) turns it off rather than keep a hundred threads sleeping.
+    pub precise_wake: bool,
 }
 
 impl LoopConfig {
@@ -84,6 +89,7 @@ impl LoopConfig {
             startup_delay: Duration::from_millis(100),
             resend: protocol::RESENT_SAMPLES,
             observers: LoopObservers::default(),
+            precise_wake: true,
         }
     }
 }
@@ -657,7 +663,7 @@ async fn periods(
         let deadline = start + period * k as u32;
         let next = deadline + period;
         tokio::select! {
-            _ = tokio::time::sleep_until(deadline) => {}
+            _ = crate::pace::wait_until(deadline, config.precise_wake) => {}
             _ = &mut stop => { end = End::Interrupted; break 'run; }
         }
         if Instant::now() > deadline + period / 2 {
@@ -762,12 +768,16 @@ async fn periods(
 
         let mut rtt_us = 0;
         let mut remote: Option<(Vec<f64>, Vec<f64>)> = None;
+        // One timer for the whole period, so that a command's arrival does not restart it.
+        let period_end = crate::pace::wait_until(next, config.precise_wake);
+        tokio::pin!(period_end);
         loop {
             let arrived = tokio::select! {
-                r = tokio::time::timeout_at(next, rx.recv()) => r,
+                r = rx.recv() => r,
+                () = &mut period_end => None,
                 _ = &mut stop => { end = End::Interrupted; break 'run; }
             };
-            let Ok(Some((arrival, bytes))) = arrived else {
+            let Some((arrival, bytes)) = arrived else {
                 break;
             };
             let cmd = match decode::<pb::Command>(&bytes) {

@@ -196,7 +196,10 @@ pub async fn run_gateway(
     let handles: Vec<_> = plants
         .into_iter()
         .zip(receivers)
-        .map(|((plant, cfg), rx)| {
+        .map(|((plant, mut cfg), rx)| {
+            // Hundreds of loops: tokio's timer, not a blocking thread per wait
+            // (`LoopConfig::precise_wake`); the batch waits for the slowest plant anyway.
+            cfg.precise_wake = false;
             let (samples, mut stopped) = (sample_tx.clone(), stop_rx.clone());
             let (session, id) = (session.clone(), run_id());
             tokio::spawn(async move {

@@ -9,6 +9,8 @@
 //! * [`safety`]: the agent's rules (command acceptance, hold, fallback, safe stop, what was
 //!   really applied), pure: no I/O, no async, no clock;
 //! * [`agent`]: the networked loop, thin wiring around [`safety`];
+//! * [`pace`]: deadlines kept to a tenth of a millisecond, where tokio's timer keeps one
+//!   or two;
 //! * [`config`]: the agent's configuration file;
 //! * [`record`]: the recorder every run uses (CSV, summary, plots, metrics);
 //! * [`cli`]: the `plant-agent` command line.
@@ -22,6 +24,7 @@ pub mod cli;
 pub mod config;
 pub mod gateway;
 pub mod observe;
+pub mod pace;
 pub mod plant;
 pub mod record;
 pub mod safety;
