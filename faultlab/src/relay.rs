@@ -364,7 +364,7 @@ const COARSE: Duration = Duration::from_micros(1500);
 /// and the reactor's `epoll_wait` rounds up again: a plain `sleep_until` wakes 1.3 ms late
 /// at the median (2 ms at the 99th percentile, `cargo bench -p plant-agent --bench pace`
 /// on a 2-core machine). A profile's fixed 45 ms each way measured a 92.4 ms round trip
-/// through the agent (0.2 ms without the relay); with this wait, 90.4 ms. tokio's timer
+/// through the agent (0.2 ms without the relay); with this wait, 90.5 ms. tokio's timer
 /// sleeps until [`COARSE`] before `at`, then a thread of the blocking pool sleeps the
 /// rest on the kernel's high-resolution timer (0.11 ms late at the median). The thread
 /// only sleeps, for at most [`COARSE`]; a dropped wait leaves it to finish alone. (The
