@@ -2,6 +2,7 @@
 //! (one iP channel each, as the load generator's), every one stepped once per iteration,
 //! the way gateways' batches are served. Run: `cargo bench -p controller-service`.
 
+use controller_service::registry::Via;
 use controller_service::{Registry, ServiceConfig};
 use protocol::{pb, PROTOCOL_VERSION};
 
@@ -48,10 +49,12 @@ fn samples(devices: usize, k: u64) -> Vec<pb::Sample> {
 #[divan::bench(args = [1000, 10000])]
 fn every_device_once(b: divan::Bencher, devices: usize) {
     let mut r = Registry::new(ServiceConfig::parse("bench", CONFIG).unwrap()).unwrap();
+    // One command written over and over, as the service's batches reuse theirs.
+    let mut out = pb::Command::default();
     let mut k = 1;
     for _ in 0..20 {
         for s in samples(devices, k) {
-            r.handle_sample(&s.device_id.clone(), &s);
+            r.handle_sample(Via::key(&s.device_id), &s, 0, &mut out);
         }
         k += 1;
     }
@@ -62,7 +65,7 @@ fn every_device_once(b: divan::Bencher, devices: usize) {
             s.plant_time = k as f64 * 0.01;
         }
         for s in &batch {
-            divan::black_box(r.handle_sample(&s.device_id, s));
+            divan::black_box(r.handle_sample(Via::key(&s.device_id), s, k, &mut out));
         }
         k += 1;
     });

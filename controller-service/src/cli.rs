@@ -200,8 +200,7 @@ async fn serve_workers(
 ) -> Result<()> {
     if registries.len() == 1 {
         let registry = registries.pop().context("one registry")?;
-        let result =
-            service::serve_observed(session.clone(), registry, observers.clone(), shutdown).await;
+        let result = service::serve(session.clone(), registry, observers.clone(), shutdown).await;
         let _ = stop_tx.send(true);
         let _ = session.close().await;
         result?;
@@ -217,7 +216,7 @@ async fn serve_workers(
             .fleet()
             .map(|f| keys::fleet_member(&f.name, registry.controller_id()));
         let mut stopped = stop_rx.clone();
-        tasks.push(tokio::spawn(service::serve_observed(
+        tasks.push(tokio::spawn(service::serve(
             session.clone(),
             registry,
             observers.clone(),

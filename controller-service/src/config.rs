@@ -500,13 +500,52 @@ impl ServiceConfig {
 
     /// Check ids, patterns and every channel.
     pub fn check(&self, file: &str) -> Result<(), ConfigError> {
-        let invalid = |field: String, reason: String| ConfigError::Invalid {
+        let invalid = |(field, reason): (String, String)| ConfigError::Invalid {
             file: file.into(),
             field,
             reason,
         };
         protocol::keys::check_id(&self.controller_id)
-            .map_err(|e| invalid("controller_id".into(), e.to_string()))?;
+            .map_err(|e| invalid(("controller_id".into(), e.to_string())))?;
+        self.check_devices(file)?;
+        self.check_workers().map_err(invalid)?;
+        self.check_groups().map_err(invalid)?;
+        if let Some(sn) = &self.snapshots {
+            if sn.interval_ms == 0 {
+                return Err(invalid((
+                    "snapshots.interval_ms".into(),
+                    "must be > 0".into(),
+                )));
+            }
+        }
+        if self.max_devices < self.devices.len() {
+            return Err(invalid((
+                "max_devices".into(),
+                format!(
+                    "{} is fewer than the {} devices declared",
+                    self.max_devices,
+                    self.devices.len()
+                ),
+            )));
+        }
+        for (i, t) in self.templates.iter().enumerate() {
+            zenoh::key_expr::KeyExpr::try_from(t.pattern.as_str())
+                .map_err(|e| invalid((format!("templates[{i}].pattern"), e.to_string())))?;
+            check_channels(file, &format!("templates[{i}]"), &t.channels)?;
+            t.prediction
+                .check()
+                .map_err(|(f, r)| invalid((format!("templates[{i}].prediction.{f}"), r)))?;
+        }
+        Ok(())
+    }
+
+    /// The declared devices: valid and distinct ids, channels, predictions.
+    fn check_devices(&self, file: &str) -> Result<(), ConfigError> {
+        let invalid = |field: String, reason: String| ConfigError::Invalid {
+            file: file.into(),
+            field,
+            reason,
+        };
         let mut seen = std::collections::HashSet::new();
         for (i, d) in self.devices.iter().enumerate() {
             protocol::keys::check_id(&d.id)
@@ -522,35 +561,47 @@ impl ServiceConfig {
                 .check()
                 .map_err(|(f, r)| invalid(format!("devices[{i}].prediction.{f}"), r))?;
         }
+        Ok(())
+    }
+
+    /// The number of workers, and what it excludes: the bad field and why.
+    fn check_workers(&self) -> Result<(), (String, String)> {
+        let bad = |field: &str, reason: &str| Err((field.to_string(), reason.to_string()));
         if self.workers == 0 || self.workers > 64 {
-            return Err(invalid("workers".into(), "between 1 and 64".into()));
+            return bad("workers", "between 1 and 64");
         }
         if self.workers > 1 {
             protocol::keys::check_id(&format!("{}.w{}", self.controller_id, self.workers - 1))
                 .map_err(|e| {
-                    invalid(
-                        "controller_id".into(),
+                    (
+                        "controller_id".to_string(),
                         format!("with its workers' suffix: {e}"),
                     )
                 })?;
         }
         if self.workers > 1 && self.standby.is_some() {
-            return Err(invalid(
-                "workers".into(),
-                "several workers and a hot-standby group exclude each other (use a fleet)".into(),
-            ));
+            return bad(
+                "workers",
+                "several workers and a hot-standby group exclude each other (use a fleet)",
+            );
         }
         if self.workers > 1 && self.snapshots.is_some() {
-            return Err(invalid(
-                "workers".into(),
-                "several workers and snapshot files exclude each other for now: each worker would write every device it ever held".into(),
-            ));
+            return bad(
+                "workers",
+                "several workers and snapshot files exclude each other for now: each worker would write every device it ever held",
+            );
         }
+        Ok(())
+    }
+
+    /// The fleet and the hot-standby group: names, times, and that they exclude each
+    /// other. The bad field and why.
+    fn check_groups(&self) -> Result<(), (String, String)> {
         if let Some(f) = &self.fleet {
             protocol::keys::check_id(&f.name)
-                .map_err(|e| invalid("fleet.name".into(), e.to_string()))?;
+                .map_err(|e| ("fleet.name".to_string(), e.to_string()))?;
             if self.standby.is_some() {
-                return Err(invalid(
+                return Err((
                     "fleet".into(),
                     "a fleet and a hot-standby group exclude each other: a fleet keeps standbys per shard itself".into(),
                 ));
@@ -561,45 +612,19 @@ impl ServiceConfig {
                 ("fleet.discover_ms", f.discover_ms),
             ] {
                 if v == 0 {
-                    return Err(invalid(field.into(), "must be > 0".into()));
+                    return Err((field.into(), "must be > 0".into()));
                 }
             }
         }
         if let Some(sb) = &self.standby {
             protocol::keys::check_id(&sb.group)
-                .map_err(|e| invalid("standby.group".into(), e.to_string()))?;
+                .map_err(|e| ("standby.group".to_string(), e.to_string()))?;
             if sb.heartbeat_ms == 0 || sb.takeover_ms <= sb.heartbeat_ms {
-                return Err(invalid(
+                return Err((
                     "standby.takeover_ms".into(),
                     "heartbeat_ms must be > 0 and takeover_ms longer than heartbeat_ms".into(),
                 ));
             }
-        }
-        if let Some(sn) = &self.snapshots {
-            if sn.interval_ms == 0 {
-                return Err(invalid(
-                    "snapshots.interval_ms".into(),
-                    "must be > 0".into(),
-                ));
-            }
-        }
-        if self.max_devices < self.devices.len() {
-            return Err(invalid(
-                "max_devices".into(),
-                format!(
-                    "{} is fewer than the {} devices declared",
-                    self.max_devices,
-                    self.devices.len()
-                ),
-            ));
-        }
-        for (i, t) in self.templates.iter().enumerate() {
-            zenoh::key_expr::KeyExpr::try_from(t.pattern.as_str())
-                .map_err(|e| invalid(format!("templates[{i}].pattern"), e.to_string()))?;
-            check_channels(file, &format!("templates[{i}]"), &t.channels)?;
-            t.prediction
-                .check()
-                .map_err(|(f, r)| invalid(format!("templates[{i}].prediction.{f}"), r))?;
         }
         Ok(())
     }

@@ -1,5 +1,6 @@
 //! Several service instances sharing one fleet of devices: who answers what. Pure logic,
-//! no I/O and no clock; the service wires it to liveliness, subscriptions and queries.
+//! no I/O and no clock: the service wires it to liveliness, subscriptions and queries, and
+//! passes the time of the events that need one ([`Fleet::tick`], [`Fleet::unanswered`]).
 //!
 //! # Ownership
 //! Device state lives in [`SHARDS`](protocol::SHARDS) shards: a device on its own key is in
@@ -25,13 +26,23 @@
 //!   (its [`Role::Releasing`]), then stops, and replies with the shard's state, which the
 //!   newcomer restores before it answers. So at every moment at most one member answers a
 //!   shard, and the gap is one request's round trip. If the request is never made (the
-//!   newcomer died at once), the release ends after a timeout the caller keeps.
+//!   newcomer died at once), the release ends after [`FleetTiming::release_timeout`].
 //! * A new standby asks the owner for a copy of the shard's state ([`Action::Copy`]).
+//! * A request that gets no answer (lost, refused because the other's view has not caught
+//!   up yet, or timed out) is asked again [`FleetTiming::retry`] later, for as long as it
+//!   is still wanted: the shard is still awaited from a member still in view.
+//! * Two members that each believed themselves alone (started together, or a partition
+//!   healed) both own some shards: the one outranked offers each such shard to the other
+//!   ([`Action::Offer`]), which answers that it owns it ([`Reply::Owned`]); the offerer
+//!   then stops answering it at once. The offer is made again every [`FleetTiming::retry`]
+//!   to whoever owns the shard in the view of the time; without an answer, the release
+//!   ends after [`FleetTiming::release_timeout`].
 //!
 //! Two members that cannot see each other (a partition) both believe they own; that is
 //! what the lease and access control bound, not this module.
 
 use std::collections::BTreeSet;
+use std::time::{Duration, Instant};
 
 use protocol::SHARDS;
 
@@ -48,7 +59,8 @@ pub enum Role {
     /// Owns the shard: steps and answers.
     Owner,
     /// Owned it until a newcomer outranked it: still answers until the newcomer asks for
-    /// the shard (or the caller's timeout ends it), then becomes `after`.
+    /// the shard (or [`FleetTiming::release_timeout`] ends it), then becomes what it
+    /// would be under the new view.
     Releasing,
 }
 
@@ -59,14 +71,94 @@ pub enum Action {
     Subscribe(u32),
     /// Stop receiving it and drop its devices' state.
     Unsubscribe(u32),
-    /// Ask `from` to release the shard and send its state; then call [`Fleet::acquired`].
+    /// Ask `from` to release the shard and send its state ([`Request::Release`]); then
+    /// call [`Fleet::on_answer`] with what came back.
     Acquire { shard: u32, from: String },
-    /// Ask the owner `from` for a copy of the shard's state (a new standby).
+    /// Ask the owner `from` for a copy of the shard's state (a new standby,
+    /// [`Request::Copy`]); then [`Fleet::on_answer`].
     Copy { shard: u32, from: String },
     /// Tell `to`, which now outranks this member for the shard, that this member still
-    /// answers it. If `to` already owns it (two members started together, each believing
-    /// itself alone), call [`Fleet::release_expired`] at once; otherwise `to` will ask.
+    /// answers it ([`Request::Offer`]); then [`Fleet::on_answer`]: if `to` owns it already
+    /// this member stops answering it at once, otherwise `to` will ask, and the offer is
+    /// made again while the shard is being released.
     Offer { shard: u32, to: String },
+}
+
+/// A request another member makes about one shard: the body of a handover query.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Request<'a> {
+    /// `release:{id}`: `id` ranks first now and asks for the shard and its state.
+    Release(&'a str),
+    /// `copy:{id}`: `id` is the shard's new standby and asks for a copy of its state.
+    Copy(&'a str),
+    /// `offer:{id}`: `id` still answers the shard, which this member outranks it for.
+    Offer(&'a str),
+}
+
+impl<'a> Request<'a> {
+    /// Parse a handover query's body; `None` for anything else (the asker's id must be a
+    /// valid id: it comes from the network).
+    pub fn parse(body: &'a str) -> Option<Self> {
+        let (kind, who) = body.split_once(':')?;
+        let who = protocol::keys::check_id(who).ok()?;
+        match kind {
+            "release" => Some(Self::Release(who)),
+            "copy" => Some(Self::Copy(who)),
+            "offer" => Some(Self::Offer(who)),
+            _ => None,
+        }
+    }
+
+    /// The body that [`Request::parse`] reads.
+    pub fn body(&self) -> String {
+        match self {
+            Self::Release(id) => format!("release:{id}"),
+            Self::Copy(id) => format!("copy:{id}"),
+            Self::Offer(id) => format!("offer:{id}"),
+        }
+    }
+}
+
+/// This member's answer to a [`Request`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Reply {
+    /// Send the shard's state as this member holds it, taken after this call (so that no
+    /// sample answered here is missing from it).
+    State,
+    /// This member owns the shard already: the offerer must stop answering it.
+    Owned,
+    /// Refused, with why: the asker asks again later.
+    Refused(&'static str),
+}
+
+/// The kinds of [`Request`], for matching an answer to what was asked.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RequestKind {
+    Release,
+    Copy,
+    Offer,
+}
+
+impl Request<'_> {
+    /// What kind of request this is.
+    pub fn kind(&self) -> RequestKind {
+        match self {
+            Self::Release(_) => RequestKind::Release,
+            Self::Copy(_) => RequestKind::Copy,
+            Self::Offer(_) => RequestKind::Offer,
+        }
+    }
+}
+
+/// What came back for one of this member's requests ([`Fleet::on_answer`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Got {
+    /// A shard's state (restored by the caller if it could be, before this call).
+    State,
+    /// "Owned": the member offered the shard owns it already.
+    Owned,
+    /// Nothing usable: an error reply, no reply before the timeout, a lost message.
+    Nothing,
 }
 
 /// The answer to a request to release a shard ([`Fleet::release`]).
@@ -79,6 +171,25 @@ pub enum Release {
     NotHeld(Vec<Action>),
     /// Refused (why): reply with an error; the asker asks again.
     Refused(&'static str),
+}
+
+/// The fleet's times (from the service's file, `FleetSpec`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FleetTiming {
+    /// How long an outranked owner keeps answering a shard while nobody asks for it.
+    pub release_timeout: Duration,
+    /// How long after a request that got no answer it is made again.
+    pub retry: Duration,
+}
+
+impl Default for FleetTiming {
+    /// The file's defaults: a release of one second, a retry after 50 ms.
+    fn default() -> Self {
+        Self {
+            release_timeout: Duration::from_millis(1000),
+            retry: Duration::from_millis(50),
+        }
+    }
 }
 
 /// Rendezvous weight of `member` for `shard`: FNV-1a over the member's id and the shard,
@@ -106,30 +217,52 @@ pub fn owner(shard: u32, members: &BTreeSet<String>) -> Option<&str> {
     ranked(shard, members).first().copied()
 }
 
+/// Where a request for a shard's state stands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+enum Ask {
+    /// None wanted (or the answer came).
+    #[default]
+    Done,
+    /// Made; its answer is awaited.
+    InFlight,
+    /// Unanswered: to be made again at this time.
+    RetryAt(Instant),
+}
+
+/// One member's part in one shard, and its handover in progress.
+#[derive(Debug, Clone, Default)]
+struct Slot {
+    role: Role,
+    /// For a `Releasing` shard: the role it takes once released.
+    after: Role,
+    /// For an `Acquiring` shard, whom it waits for; for a new `Standby`, the owner it asks
+    /// for a copy.
+    from: Option<String>,
+    ask: Ask,
+    /// For a `Releasing` shard: since when (the first [`Fleet::tick`] that saw it).
+    releasing_since: Option<Instant>,
+}
+
 /// One member's view of the fleet and its roles.
 #[derive(Debug, Clone)]
 pub struct Fleet {
     me: String,
     members: BTreeSet<String>,
-    roles: [Role; SHARDS as usize],
-    /// For a `Releasing` shard: the role it takes once released.
-    after: [Role; SHARDS as usize],
-    /// For an `Acquiring` shard: whom it waits for.
-    from: Vec<Option<String>>,
+    slots: Vec<Slot>,
     standby: bool,
+    timing: FleetTiming,
 }
 
 impl Fleet {
     /// A member alone (it owns nothing until [`Fleet::start`]). `standby`: whether members
     /// keep warm standbys (twice the stepping, takeover with no warm-up).
-    pub fn new(me: &str, standby: bool) -> Self {
+    pub fn new(me: &str, standby: bool, timing: FleetTiming) -> Self {
         Self {
             me: me.to_string(),
             members: BTreeSet::new(),
-            roles: [Role::None; SHARDS as usize],
-            after: [Role::None; SHARDS as usize],
-            from: vec![None; SHARDS as usize],
+            slots: vec![Slot::default(); SHARDS as usize],
             standby,
+            timing,
         }
     }
 
@@ -145,7 +278,9 @@ impl Fleet {
 
     /// The role in `shard` (shards beyond [`SHARDS`] are nobody's).
     pub fn role(&self, shard: u32) -> Role {
-        self.roles.get(shard as usize).copied().unwrap_or_default()
+        self.slots
+            .get(shard as usize)
+            .map_or(Role::None, |s| s.role)
     }
 
     /// Whether this member answers the samples and queries of `shard`.
@@ -158,26 +293,28 @@ impl Fleet {
         self.role(shard) != Role::None
     }
 
-    /// Shards this member answers, as a bit mask (bit `s` for shard `s`).
-    pub fn answer_mask(&self) -> u64 {
-        (0..SHARDS)
-            .filter(|&s| self.answers(s))
-            .fold(0, |m, s| m | 1 << s)
+    /// Whether this member owns `shard` outright (not releasing it).
+    pub fn owns(&self, shard: u32) -> bool {
+        self.role(shard) == Role::Owner
     }
 
-    /// Shards this member waits for (`Acquiring`), as a bit mask: a handover request still
-    /// wanted.
-    pub fn acquiring_mask(&self) -> u64 {
-        (0..SHARDS)
-            .filter(|&s| self.role(s) == Role::Acquiring)
-            .fold(0, |m, s| m | 1 << s)
+    /// Shards this member answers, as a bit mask (bit `s` for shard `s`).
+    pub fn answer_mask(&self) -> u64 {
+        self.mask(|s| self.answers(s))
     }
 
     /// Shards this member steps, as a bit mask.
     pub fn step_mask(&self) -> u64 {
-        (0..SHARDS)
-            .filter(|&s| self.steps(s))
-            .fold(0, |m, s| m | 1 << s)
+        self.mask(|s| self.steps(s))
+    }
+
+    fn mask(&self, f: impl Fn(u32) -> bool) -> u64 {
+        (0..SHARDS).filter(|&s| f(s)).fold(0, |m, s| m | 1 << s)
+    }
+
+    /// Shards in `Releasing`.
+    pub fn releasing(&self) -> impl Iterator<Item = u32> + '_ {
+        (0..SHARDS).filter(|&s| self.role(s) == Role::Releasing)
     }
 
     /// The role this member should end up with in `shard` under `members`.
@@ -189,6 +326,32 @@ impl Fleet {
             Role::Standby
         } else {
             Role::None
+        }
+    }
+
+    /// Give `shard` the role `role`, forgetting whatever belonged to the one before.
+    fn set_role(&mut self, shard: u32, role: Role) {
+        let slot = &mut self.slots[shard as usize];
+        if slot.role != role {
+            slot.role = role;
+            slot.from = None;
+            slot.ask = Ask::Done;
+            slot.releasing_since = None;
+        }
+    }
+
+    /// Make a request for `shard`'s state to `from` (the caller emits the action).
+    fn ask(&mut self, shard: u32, from: &str) {
+        let slot = &mut self.slots[shard as usize];
+        slot.from = Some(from.to_string());
+        slot.ask = Ask::InFlight;
+    }
+
+    /// Offer a shard this member releases to `to`, its owner now.
+    fn offer(&mut self, shard: u32, to: Option<String>, out: &mut Vec<Action>) {
+        if let Some(to) = to.filter(|o| *o != self.me) {
+            self.ask(shard, &to);
+            out.push(Action::Offer { shard, to });
         }
     }
 
@@ -224,79 +387,96 @@ impl Fleet {
     fn change(&mut self, next: BTreeSet<String>) -> Vec<Action> {
         let mut out = Vec::new();
         for s in 0..SHARDS {
-            let i = s as usize;
-            let old_owner = owner(s, &self.members).map(str::to_string);
-            let target = self.target(s, &next);
-            let cur = self.roles[i];
-            let new = match (cur, target) {
-                (Role::Owner, Role::Owner) | (Role::Standby, Role::Standby) => cur,
-                (Role::Acquiring, Role::Owner) => {
-                    // Still waiting, unless the one it waits for is gone.
-                    match &self.from[i] {
-                        Some(o) if next.contains(o) => cur,
-                        _ => Role::Owner,
-                    }
-                }
-                (Role::Releasing, Role::Owner) => Role::Owner,
-                (Role::Releasing, t) => {
-                    self.after[i] = t;
-                    Role::Releasing
-                }
-                (Role::None | Role::Standby, Role::Owner) => {
-                    if cur == Role::None {
-                        out.push(Action::Subscribe(s));
-                    }
-                    match old_owner {
-                        Some(o) if o != self.me && next.contains(&o) => {
-                            out.push(Action::Acquire {
-                                shard: s,
-                                from: o.clone(),
-                            });
-                            self.from[i] = Some(o);
-                            Role::Acquiring
-                        }
-                        _ => Role::Owner,
-                    }
-                }
-                (Role::Owner, t) => {
-                    // Outranked by a newcomer: it will ask; answer until then. Say so, in
-                    // case it believes it owns the shard already.
-                    self.after[i] = t;
-                    if let Some(o) = owner(s, &next) {
-                        out.push(Action::Offer {
-                            shard: s,
-                            to: o.to_string(),
-                        });
-                    }
-                    Role::Releasing
-                }
-                (Role::None, Role::Standby) => {
-                    out.push(Action::Subscribe(s));
-                    if let Some(o) = owner(s, &next).filter(|o| *o != self.me) {
-                        out.push(Action::Copy {
-                            shard: s,
-                            from: o.to_string(),
-                        });
-                    }
-                    Role::Standby
-                }
-                (Role::Acquiring, Role::Standby) => Role::Standby,
-                (Role::Standby | Role::Acquiring, Role::None) => {
-                    out.push(Action::Unsubscribe(s));
-                    Role::None
-                }
-                (Role::None, Role::None) => Role::None,
-                (
-                    Role::None | Role::Acquiring | Role::Standby,
-                    Role::Acquiring | Role::Releasing,
-                ) => {
-                    unreachable!("target() never returns Acquiring or Releasing")
-                }
-            };
-            self.roles[i] = new;
+            let role = self.next_role(s, &next, &mut out);
+            self.set_role(s, role);
         }
         self.members = next;
         out
+    }
+
+    /// The role of `shard` under the view `next`, with the actions that takes.
+    fn next_role(&mut self, s: u32, next: &BTreeSet<String>, out: &mut Vec<Action>) -> Role {
+        let target = self.target(s, next);
+        let slot = &self.slots[s as usize];
+        let cur = slot.role;
+        match (cur, target) {
+            (Role::Owner, Role::Owner) | (Role::Standby, Role::Standby) => cur,
+            // Still waiting, unless the one it waits for is gone.
+            (Role::Acquiring, Role::Owner) => match &slot.from {
+                Some(o) if next.contains(o) => cur,
+                _ => Role::Owner,
+            },
+            (Role::Releasing, Role::Owner) => Role::Owner,
+            (Role::Releasing, t) => {
+                // Offer it again if the view names another owner now.
+                self.slots[s as usize].after = t;
+                let to = owner(s, next).map(str::to_string);
+                if to != owner(s, &self.members).map(str::to_string) {
+                    self.offer(s, to, out);
+                }
+                Role::Releasing
+            }
+            (Role::None | Role::Standby, Role::Owner) => {
+                if cur == Role::None {
+                    out.push(Action::Subscribe(s));
+                }
+                let old = owner(s, &self.members).map(str::to_string);
+                match old {
+                    Some(o) if o != self.me && next.contains(&o) => {
+                        self.set_role(s, Role::Acquiring);
+                        self.ask(s, &o);
+                        out.push(Action::Acquire { shard: s, from: o });
+                        Role::Acquiring
+                    }
+                    _ => Role::Owner,
+                }
+            }
+            (Role::Owner, t) => {
+                // Outranked by a newcomer: it will ask; answer until then. Say so, in
+                // case it believes it owns the shard already.
+                self.set_role(s, Role::Releasing);
+                self.slots[s as usize].after = t;
+                let to = owner(s, next).map(str::to_string);
+                self.offer(s, to, out);
+                Role::Releasing
+            }
+            (Role::None | Role::Acquiring, Role::Standby) => {
+                if cur == Role::None {
+                    out.push(Action::Subscribe(s));
+                }
+                if let Some(o) = owner(s, next).filter(|o| *o != self.me).map(str::to_string) {
+                    self.set_role(s, Role::Standby);
+                    self.ask(s, &o);
+                    out.push(Action::Copy { shard: s, from: o });
+                }
+                Role::Standby
+            }
+            (Role::Standby | Role::Acquiring, Role::None) => {
+                out.push(Action::Unsubscribe(s));
+                Role::None
+            }
+            (Role::None, Role::None) => Role::None,
+            (_, Role::Acquiring | Role::Releasing) => {
+                unreachable!("target() never returns Acquiring or Releasing")
+            }
+        }
+    }
+
+    /// Another member's [`Request`] about `shard`: the reply to send, then the actions.
+    pub fn on_request(&mut self, shard: u32, request: Request<'_>) -> (Reply, Vec<Action>) {
+        match request {
+            Request::Release(by) => match self.release(shard, by) {
+                Release::Granted(a) | Release::NotHeld(a) => (Reply::State, a),
+                Release::Refused(why) => (Reply::Refused(why), Vec::new()),
+            },
+            Request::Copy(_) if shard < SHARDS => (Reply::State, Vec::new()),
+            Request::Offer(_) if self.owns(shard) => (Reply::Owned, Vec::new()),
+            Request::Offer(_) => (
+                Reply::Refused("this member does not own the shard (yet): it will ask"),
+                Vec::new(),
+            ),
+            Request::Copy(_) => (Reply::Refused("no such shard"), Vec::new()),
+        }
     }
 
     /// `by` asks this member to release `shard`.
@@ -307,12 +487,11 @@ impl Fleet {
     /// and the asker asks again. When granted, the caller sends the shard's state in the
     /// reply *after* this call, so that no sample is answered by both.
     pub fn release(&mut self, shard: u32, by: &str) -> Release {
-        let i = shard as usize;
-        if i >= SHARDS as usize {
+        if shard >= SHARDS {
             return Release::Refused("no such shard");
         }
         let known = self.members.contains(by) && by != self.me;
-        match self.roles[i] {
+        match self.role(shard) {
             Role::Owner | Role::Releasing => {
                 if !known {
                     return Release::Refused("the asker is not a member in this view (yet)");
@@ -321,7 +500,7 @@ impl Fleet {
                     return Release::Refused("the asker does not rank first for this shard");
                 }
                 let t = self.target(shard, &self.members);
-                self.roles[i] = t;
+                self.set_role(shard, t);
                 Release::Granted(if t == Role::None {
                     vec![Action::Unsubscribe(shard)]
                 } else {
@@ -336,7 +515,7 @@ impl Fleet {
                 }
                 let t = self.target(shard, &self.members);
                 if t != Role::Owner {
-                    self.roles[i] = t;
+                    self.set_role(shard, t);
                     if t == Role::None {
                         return Release::NotHeld(vec![Action::Unsubscribe(shard)]);
                     }
@@ -347,38 +526,89 @@ impl Fleet {
         }
     }
 
-    /// A release waited too long for its request: stop answering anyway.
-    pub fn release_expired(&mut self, shard: u32) -> Vec<Action> {
-        let i = shard as usize;
-        if self.roles.get(i) != Some(&Role::Releasing) {
+    /// What came back for this member's request of `kind` about `shard`, at `now`:
+    /// * the state for a release: the previous owner stopped answering the shard before it
+    ///   replied, so this member answers it from now on (with the state restored, or with
+    ///   what it had if it could not be);
+    /// * the state for a copy: the new standby has its copy;
+    /// * "owned" for an offer: the other member answers the shard, this one stops at once;
+    /// * nothing: the request is made again [`FleetTiming::retry`] later, if still wanted
+    ///   then ([`Fleet::tick`]).
+    pub fn on_answer(
+        &mut self,
+        shard: u32,
+        kind: RequestKind,
+        got: Got,
+        now: Instant,
+    ) -> Vec<Action> {
+        let Some(slot) = self.slots.get_mut(shard as usize) else {
+            return Vec::new();
+        };
+        match (kind, got, slot.role) {
+            (RequestKind::Release, Got::State, Role::Acquiring) => {
+                self.set_role(shard, Role::Owner);
+            }
+            (RequestKind::Copy, Got::State, Role::Standby) => {
+                slot.from = None;
+                slot.ask = Ask::Done;
+            }
+            (RequestKind::Offer, Got::Owned, Role::Releasing) => {
+                return self.release_expired(shard);
+            }
+            _ if slot.ask == Ask::InFlight => slot.ask = Ask::RetryAt(now + self.timing.retry),
+            _ => {}
+        }
+        Vec::new()
+    }
+
+    /// A release is over (asked for elsewhere, or waited too long): stop answering.
+    fn release_expired(&mut self, shard: u32) -> Vec<Action> {
+        if self.role(shard) != Role::Releasing {
             return Vec::new();
         }
-        self.roles[i] = self.after[i];
-        if self.after[i] == Role::None {
+        let after = self.slots[shard as usize].after;
+        self.set_role(shard, after);
+        if after == Role::None {
             vec![Action::Unsubscribe(shard)]
         } else {
             Vec::new()
         }
     }
 
-    /// Another member offers `shard` (it still answers it, see [`Action::Offer`]): whether
-    /// this member owns it already, so that the other must stop at once.
-    pub fn owns(&self, shard: u32) -> bool {
-        self.role(shard) == Role::Owner
-    }
-
-    /// The previous owner's state arrived (or the request failed): answer from now on.
-    pub fn acquired(&mut self, shard: u32) {
-        if let Some(r) = self.roles.get_mut(shard as usize) {
-            if *r == Role::Acquiring {
-                *r = Role::Owner;
+    /// Time passed: at `now`, releases nobody asked for within
+    /// [`FleetTiming::release_timeout`] end, and unanswered requests still wanted are
+    /// made again. The service calls it every few tens of milliseconds.
+    pub fn tick(&mut self, now: Instant) -> Vec<Action> {
+        let mut out = Vec::new();
+        for s in 0..SHARDS {
+            let slot = &mut self.slots[s as usize];
+            if slot.role == Role::Releasing {
+                let since = *slot.releasing_since.get_or_insert(now);
+                if now.saturating_duration_since(since) > self.timing.release_timeout {
+                    out.extend(self.release_expired(s));
+                    continue;
+                }
             }
+            if !matches!(slot.ask, Ask::RetryAt(t) if t <= now) {
+                continue;
+            }
+            slot.ask = Ask::Done;
+            let to = match slot.role {
+                // An offer goes to whoever owns the shard in this view.
+                Role::Releasing => owner(s, &self.members).map(str::to_string),
+                _ => slot.from.clone().filter(|f| self.members.contains(f)),
+            };
+            let Some(to) = to.filter(|t| *t != self.me) else {
+                continue;
+            };
+            self.ask(s, &to);
+            out.push(match self.slots[s as usize].role {
+                Role::Acquiring => Action::Acquire { shard: s, from: to },
+                Role::Releasing => Action::Offer { shard: s, to },
+                _ => Action::Copy { shard: s, from: to },
+            });
         }
-    }
-
-    /// Shards in `Releasing`.
-    pub fn releasing(&self) -> impl Iterator<Item = u32> + '_ {
-        (0..SHARDS).filter(|&s| self.role(s) == Role::Releasing)
+        out
     }
 }
 
@@ -428,7 +658,7 @@ mod tests {
 
     #[test]
     fn a_member_alone_owns_everything_at_once() {
-        let mut f = Fleet::new("a", true);
+        let mut f = Fleet::new("a", true, FleetTiming::default());
         let acts = f.start([]);
         assert_eq!(acts.len(), SHARDS as usize);
         assert!(acts.iter().all(|a| matches!(a, Action::Subscribe(_))));
@@ -437,9 +667,9 @@ mod tests {
 
     #[test]
     fn a_newcomer_acquires_and_the_old_owner_answers_until_asked() {
-        let mut a = Fleet::new("a", true);
+        let mut a = Fleet::new("a", true, FleetTiming::default());
         a.start([]);
-        let mut b = Fleet::new("b", true);
+        let mut b = Fleet::new("b", true, FleetTiming::default());
         let acts = b.start(["a".to_string()]);
         let offers = a.join("b");
         // b acquires every shard it now ranks first, from a; a answers them until asked.
@@ -453,7 +683,6 @@ mod tests {
                 from: "a".into()
             }));
             assert_eq!(b.role(s), Role::Acquiring);
-            assert_ne!(b.acquiring_mask() & 1 << s, 0);
             assert_eq!(a.role(s), Role::Releasing);
             assert!(offers.contains(&Action::Offer {
                 shard: s,
@@ -480,7 +709,7 @@ mod tests {
         for &s in &wanted {
             assert!(matches!(a.release(s, "b"), Release::Granted(_)));
             assert!(owners(&[&a, &b]).iter().all(|&n| n <= 1));
-            b.acquired(s);
+            b.on_answer(s, RequestKind::Release, Got::State, Instant::now());
         }
         assert_eq!(
             owners(&[&a, &b]),
@@ -496,7 +725,10 @@ mod tests {
     #[test]
     fn a_dead_owners_shards_go_to_their_standby_at_once() {
         let names = ["a", "b", "c"];
-        let mut fleets: Vec<Fleet> = names.iter().map(|n| Fleet::new(n, true)).collect();
+        let mut fleets: Vec<Fleet> = names
+            .iter()
+            .map(|n| Fleet::new(n, true, FleetTiming::default()))
+            .collect();
         // All start knowing each other: nobody to acquire from who owned before.
         for f in &mut fleets {
             let others: Vec<String> = names
@@ -510,7 +742,7 @@ mod tests {
         for s in 0..SHARDS {
             for f in fleets.iter_mut() {
                 if f.role(s) == Role::Acquiring {
-                    f.acquired(s);
+                    f.on_answer(s, RequestKind::Release, Got::State, Instant::now());
                 }
                 if f.role(s) == Role::Releasing {
                     f.release_expired(s);
@@ -543,7 +775,10 @@ mod tests {
 
     #[test]
     fn two_members_that_started_alone_settle_on_one_owner() {
-        let (mut a, mut b) = (Fleet::new("a", true), Fleet::new("b", true));
+        let (mut a, mut b) = (
+            Fleet::new("a", true, FleetTiming::default()),
+            Fleet::new("b", true, FleetTiming::default()),
+        );
         a.start([]);
         b.start([]);
         assert_eq!(
@@ -577,7 +812,7 @@ mod tests {
 
     #[test]
     fn an_expired_release_stops_answering() {
-        let mut a = Fleet::new("a", false);
+        let mut a = Fleet::new("a", false, FleetTiming::default());
         a.start([]);
         a.join("b");
         let s = a.releasing().next().expect("b outranks a somewhere");
@@ -590,7 +825,7 @@ mod tests {
 
     #[test]
     fn the_newcomer_leaving_before_it_asks_gives_the_shard_back() {
-        let mut a = Fleet::new("a", true);
+        let mut a = Fleet::new("a", true, FleetTiming::default());
         a.start([]);
         a.join("b");
         let s = a.releasing().next().unwrap();

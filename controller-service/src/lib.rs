@@ -1,14 +1,19 @@
 //! Controller service: holds per-device model-free control state and answers each sensor
 //! sample, published over Zenoh, with a control command. One process serves many plants.
 //!
-//! * [`config`]: the TOML file (declared devices, templates, envelopes);
+//! The rules, without I/O, async or a clock of their own (time is passed in):
+//! * [`registry`]: the per-device state and the rules for samples, configuration and status;
 //! * [`envelope`]: a device's safety envelope, the limits no command leaves;
-//! * [`registry`]: the per-device state and the rules for samples, configuration and status,
-//!   without I/O;
+//! * [`fleet`]: several instances sharing the devices: who owns, who stands by, handover;
+//! * [`standby`]: a hot-standby group: who is active, takeover after silence.
+//!
+//! Around them:
+//! * [`config`]: the TOML file (declared devices, templates, envelopes, fleet, standby);
 //! * [`inbox`]: where samples wait for the worker: the latest per device, so one device's
 //!   flood cannot delay another's;
-//! * [`service`]: the Zenoh wiring and the worker task;
-//! * [`cli`]: the command line (the binary is a one-line `main`).
+//! * [`service`]: the Zenoh wiring and the worker, [`service::serve`] its entry point;
+//! * [`snapshot`]: the snapshots' format and files; [`replay`]: a recording played again;
+//! * [`observe`]: metrics; [`cli`]: the command line (the binary is a one-line `main`).
 
 pub mod cli;
 pub mod config;
@@ -20,6 +25,7 @@ pub mod registry;
 pub mod replay;
 pub mod service;
 pub mod snapshot;
+pub mod standby;
 
 pub use config::ServiceConfig;
 pub use registry::Registry;

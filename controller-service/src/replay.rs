@@ -20,7 +20,7 @@ use protocol::{decode, pb};
 use serde::Serialize;
 use telemetry::{read_recording, RecordError, Topic};
 
-use crate::registry::{Outcome, Registry};
+use crate::registry::{Registry, Via};
 use crate::ServiceConfig;
 
 /// The attachment holding the service's configuration: [`ServiceConfig`] as TOML, the
@@ -91,6 +91,43 @@ fn kept(c: &pb::Command) -> bool {
 /// Replay `bytes` (an MCAP recording of a controller service).
 pub fn replay(bytes: &[u8], tolerance: f64) -> Result<ReplayReport, ReplayError> {
     let contents = read_recording(bytes)?;
+    let mut report = ReplayReport {
+        tolerance,
+        ..Default::default()
+    };
+    let registry = registry_of(&contents, &mut report.notes)?;
+    if contents.truncated {
+        report.notes.push(
+            "the recording was cut short (its writer did not finish it): replayed up to the cut"
+                .into(),
+        );
+    }
+    let mut play = Play {
+        registry,
+        recorded: BTreeMap::new(),
+        replayed: BTreeMap::new(),
+        stats: BTreeMap::new(),
+    };
+    for m in &contents.messages {
+        play.message(m, &mut report.notes);
+    }
+    report.devices = play.compare(contents.truncated, tolerance);
+    report.matched = report
+        .devices
+        .iter()
+        .all(|d| d.mismatches == 0 && d.unmatched == 0 && d.changes_refused == 0)
+        && !report.devices.is_empty();
+    Ok(report)
+}
+
+/// The registry the recording starts from: its configuration (one registry holds every
+/// device; what decided where a device lived, workers, fleet, standby, and what the
+/// process did besides control, snapshots, observers, stays out), with the devices'
+/// recorded snapshots restored.
+fn registry_of(
+    contents: &telemetry::RecordingContents,
+    notes: &mut Vec<String>,
+) -> Result<Registry, ReplayError> {
     let file = contents
         .attachments
         .get(CONFIG_ATTACHMENT)
@@ -98,8 +135,6 @@ pub fn replay(bytes: &[u8], tolerance: f64) -> Result<ReplayReport, ReplayError>
     let text = std::str::from_utf8(file).map_err(|e| ReplayError::Config(e.to_string()))?;
     let mut config: ServiceConfig =
         toml::from_str(text).map_err(|e| ReplayError::Config(e.to_string()))?;
-    // One registry holds every device; what decided where a device lived (workers, fleet,
-    // standby) and what the process did besides control (snapshots, observers) stays out.
     config.workers = 1;
     config.fleet = None;
     config.standby = None;
@@ -107,10 +142,6 @@ pub fn replay(bytes: &[u8], tolerance: f64) -> Result<ReplayReport, ReplayError>
     config.metrics = None;
     config.record = None;
     let mut registry = Registry::new(config).map_err(|e| ReplayError::Config(e.to_string()))?;
-    let mut report = ReplayReport {
-        tolerance,
-        ..Default::default()
-    };
     for (name, data) in &contents.attachments {
         let Some(id) = name.strip_prefix("snapshot/") else {
             continue;
@@ -119,23 +150,28 @@ pub fn replay(bytes: &[u8], tolerance: f64) -> Result<ReplayReport, ReplayError>
             .map_err(|e| e.to_string())
             .and_then(|s| registry.restore(&s));
         if let Err(e) = restored {
-            report
-                .notes
-                .push(format!("{id}: the recorded restore does not replay: {e}"));
+            notes.push(format!("{id}: the recorded restore does not replay: {e}"));
         }
     }
-    if contents.truncated {
-        report.notes.push(
-            "the recording was cut short (its writer did not finish it): replayed up to the cut"
-                .into(),
-        );
-    }
-    let mut recorded: BTreeMap<String, Vec<pb::Command>> = BTreeMap::new();
-    let mut replayed: BTreeMap<String, Vec<pb::Command>> = BTreeMap::new();
-    let mut stats: BTreeMap<String, DeviceReplay> = BTreeMap::new();
-    for m in &contents.messages {
+    Ok(registry)
+}
+
+/// The replay in progress: the registry, and per device the commands recorded and
+/// replayed.
+struct Play {
+    registry: Registry,
+    recorded: BTreeMap<String, Vec<pb::Command>>,
+    replayed: BTreeMap<String, Vec<pb::Command>>,
+    stats: BTreeMap<String, DeviceReplay>,
+}
+
+impl Play {
+    /// One recorded message: a sample is answered again, a command kept for comparison, a
+    /// change applied again.
+    fn message(&mut self, m: &telemetry::Recorded, notes: &mut Vec<String>) {
         let dev = m.device.as_str();
-        let st = stats
+        let st = self
+            .stats
             .entry(dev.to_string())
             .or_insert_with(|| DeviceReplay {
                 device: dev.to_string(),
@@ -144,28 +180,29 @@ pub fn replay(bytes: &[u8], tolerance: f64) -> Result<ReplayReport, ReplayError>
         match m.topic {
             Topic::Sample => {
                 let Ok(s) = decode::<pb::Sample>(&m.data) else {
-                    report
-                        .notes
-                        .push(format!("{dev}: a recorded sample does not decode"));
-                    continue;
+                    notes.push(format!("{dev}: a recorded sample does not decode"));
+                    return;
                 };
                 st.samples += 1;
-                let (outcome, _) =
-                    registry.handle_sample_from(dev, &s, Some(protocol::shard_of(dev)));
-                if let Outcome::Reply(c) = outcome {
-                    if kept(&c) {
-                        replayed.entry(dev.to_string()).or_default().push(c);
-                    }
+                // The time the answer carries: when the sample was logged, as near as the
+                // recording knows to when it was answered.
+                let mut c = pb::Command::default();
+                let served = self
+                    .registry
+                    .handle_sample(Via::key(dev), &s, m.log_ns, &mut c);
+                if served.answered() && kept(&c) {
+                    self.replayed.entry(dev.to_string()).or_default().push(c);
                 }
             }
             Topic::Command => {
                 if let Ok(c) = decode::<pb::Command>(&m.data) {
                     if kept(&c) {
-                        recorded.entry(dev.to_string()).or_default().push(c);
+                        self.recorded.entry(dev.to_string()).or_default().push(c);
                     }
                 }
             }
             Topic::ConfigRequest | Topic::ReferenceUpdate | Topic::EnvelopeRequest => {
+                let registry = &mut self.registry;
                 let reply = match m.topic {
                     Topic::ConfigRequest => {
                         decode::<pb::ConfigRequest>(&m.data).map(|r| registry.configure(dev, &r))
@@ -176,80 +213,74 @@ pub fn replay(bytes: &[u8], tolerance: f64) -> Result<ReplayReport, ReplayError>
                         .map(|r| registry.change_envelope(dev, &r)),
                 };
                 st.changes += 1;
-                match reply {
-                    Ok(r) if r.accepted => {}
-                    Ok(r) => {
-                        st.changes_refused += 1;
-                        report.notes.push(format!(
-                            "{dev}: a recorded change is refused now: {}",
-                            r.reason
-                        ));
-                    }
-                    Err(e) => {
-                        st.changes_refused += 1;
-                        report
-                            .notes
-                            .push(format!("{dev}: a recorded change does not decode: {e}"));
-                    }
-                }
+                let refused = match reply {
+                    Ok(r) if r.accepted => return,
+                    Ok(r) => format!("{dev}: a recorded change is refused now: {}", r.reason),
+                    Err(e) => format!("{dev}: a recorded change does not decode: {e}"),
+                };
+                st.changes_refused += 1;
+                notes.push(refused);
             }
             Topic::Config | Topic::Event => {}
         }
     }
-    let empty = Vec::new();
-    for (dev, st) in stats.iter_mut() {
-        let rec = recorded.get(dev).unwrap_or(&empty);
-        let rep = replayed.get(dev).unwrap_or(&empty);
-        // A cut may fall between a sample and its command: the replay then has answers the
-        // file lost, which is no difference.
-        st.unmatched = if contents.truncated {
-            rec.len().saturating_sub(rep.len())
-        } else {
-            rec.len().abs_diff(rep.len())
-        } as u64;
-        for (a, b) in rec.iter().zip(rep) {
-            st.compared += 1;
-            let diff = |x: &[f64], y: &[f64]| -> f64 {
-                if x.len() != y.len() {
-                    return f64::INFINITY;
-                }
-                x.iter()
-                    .zip(y)
-                    .map(|(p, q)| if p == q { 0.0 } else { (p - q).abs() })
-                    .fold(0.0, f64::max)
-            };
-            let (dv, du) = (diff(&a.v, &b.v), diff(&a.u, &b.u));
-            st.max_dv = st.max_dv.max(dv);
-            st.max_du = st.max_du.max(du);
-            let bad = a.seq != b.seq
-                || a.mode != b.mode
-                || a.horizon.len() != b.horizon.len()
-                // Written so that a NaN difference counts as a mismatch.
-                || dv.partial_cmp(&tolerance) != Some(std::cmp::Ordering::Less)
-                    && dv != tolerance
-                || du.partial_cmp(&tolerance) != Some(std::cmp::Ordering::Less)
-                    && du != tolerance;
-            if bad {
-                st.mismatches += 1;
-                st.first_mismatch.get_or_insert_with(|| {
-                    format!(
-                        "seq {} (replayed seq {}): recorded v {:?} u {:?}, replayed v {:?} u {:?}",
-                        a.seq, b.seq, a.v, a.u, b.v, b.u
-                    )
-                });
+
+    /// Compare each device's replayed commands with its recorded ones, in order.
+    fn compare(mut self, truncated: bool, tolerance: f64) -> Vec<DeviceReplay> {
+        let empty = Vec::new();
+        for (dev, st) in self.stats.iter_mut() {
+            let rec = self.recorded.get(dev).unwrap_or(&empty);
+            let rep = self.replayed.get(dev).unwrap_or(&empty);
+            // A cut may fall between a sample and its command: the replay then has answers
+            // the file lost, which is no difference.
+            st.unmatched = if truncated {
+                rec.len().saturating_sub(rep.len())
+            } else {
+                rec.len().abs_diff(rep.len())
+            } as u64;
+            for (a, b) in rec.iter().zip(rep) {
+                compare_one(st, a, b, tolerance);
             }
         }
+        self.stats
+            .into_values()
+            .filter(|d| d.samples > 0 || d.compared > 0)
+            .collect()
     }
-    report.devices = stats
-        .into_values()
-        .filter(|d| d.samples > 0 || d.compared > 0)
-        .collect();
-    report.matched = report
-        .devices
-        .iter()
-        .all(|d| d.mismatches == 0 && d.unmatched == 0 && d.changes_refused == 0)
-        && !report.devices.is_empty();
-    Ok(report)
+}
+
+/// Compare a recorded command `a` with its replayed `b`, into the device's figures.
+fn compare_one(st: &mut DeviceReplay, a: &pb::Command, b: &pb::Command, tolerance: f64) {
+    st.compared += 1;
+    let diff = |x: &[f64], y: &[f64]| -> f64 {
+        if x.len() != y.len() {
+            return f64::INFINITY;
+        }
+        x.iter()
+            .zip(y)
+            .map(|(p, q)| if p == q { 0.0 } else { (p - q).abs() })
+            .fold(0.0, f64::max)
+    };
+    let (dv, du) = (diff(&a.v, &b.v), diff(&a.u, &b.u));
+    st.max_dv = st.max_dv.max(dv);
+    st.max_du = st.max_du.max(du);
+    // Written so that a NaN difference counts as a mismatch.
+    let beyond =
+        |d: f64| d.partial_cmp(&tolerance) != Some(std::cmp::Ordering::Less) && d != tolerance;
+    let bad = a.seq != b.seq
+        || a.mode != b.mode
+        || a.horizon.len() != b.horizon.len()
+        || beyond(dv)
+        || beyond(du);
+    if bad {
+        st.mismatches += 1;
+        st.first_mismatch.get_or_insert_with(|| {
+            format!(
+                "seq {} (replayed seq {}): recorded v {:?} u {:?}, replayed v {:?} u {:?}",
+                a.seq, b.seq, a.v, a.u, b.v, b.u
+            )
+        });
+    }
 }
 
 /// The report for people: one line per device, then the notes.

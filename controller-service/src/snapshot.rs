@@ -1,4 +1,5 @@
-//! The one codec of device snapshots (bincode, pinned to 2.0.1).
+//! The one codec of device snapshots (bincode, pinned to 2.0.1), and their files: one
+//! `{id}.snap` per device in the snapshot directory ([`save_dir`], [`load_dir`]).
 //!
 //! A snapshot holds everything the service knows about a device: the whole control state
 //! (every channel's law, estimator window, integrals, output map; see `mfc::snapshot`), the
@@ -116,4 +117,55 @@ pub fn decode_shard(bytes: &[u8]) -> Result<ShardState, SnapshotError> {
         return Err(SnapshotError::Version(s.version));
     }
     Ok(s)
+}
+
+/// Write every device's snapshot into `dir` (write to a temporary file, then rename: a
+/// crash mid-write never leaves a torn snapshot). Returns how many were written; a device
+/// that does not encode is skipped; the first I/O error ends the pass.
+pub fn save_dir(registry: &crate::Registry, dir: &std::path::Path) -> std::io::Result<usize> {
+    std::fs::create_dir_all(dir)?;
+    let mut n = 0;
+    for s in registry.snapshots() {
+        let Ok(bytes) = encode(&s) else {
+            continue;
+        };
+        let tmp = dir.join(format!(".{}.snap.tmp", s.id));
+        std::fs::write(&tmp, bytes)?;
+        std::fs::rename(&tmp, dir.join(format!("{}.snap", s.id)))?;
+        n += 1;
+    }
+    Ok(n)
+}
+
+/// What [`load_dir`] did.
+#[derive(Debug, Default)]
+pub struct Loaded {
+    /// Devices restored.
+    pub restored: usize,
+    /// Files refused, each with why (for the caller to log).
+    pub refused: Vec<(std::path::PathBuf, String)>,
+}
+
+/// Restore every device that has a `.snap` file in `dir` into `registry`; nothing (not an
+/// error) if `dir` cannot be read.
+pub fn load_dir(registry: &mut crate::Registry, dir: &std::path::Path) -> Loaded {
+    let mut out = Loaded::default();
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return out;
+    };
+    for e in entries.flatten() {
+        let path = e.path();
+        if path.extension().is_none_or(|x| x != "snap") {
+            continue;
+        }
+        let result = std::fs::read(&path)
+            .map_err(|e| e.to_string())
+            .and_then(|b| decode(&b).map_err(|e| e.to_string()))
+            .and_then(|s| registry.restore(&s));
+        match result {
+            Ok(()) => out.restored += 1,
+            Err(reason) => out.refused.push((path, reason)),
+        }
+    }
+    out
 }

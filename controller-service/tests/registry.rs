@@ -1,6 +1,7 @@
 //! The rules for samples, configuration and status, without a network.
 
-use controller_service::registry::Outcome;
+use controller_service::registry::{Served, Via};
+use controller_service::snapshot;
 use controller_service::{Registry, ServiceConfig};
 use protocol::convert::channel_to_pb;
 use protocol::{pb, PROTOCOL_VERSION};
@@ -37,10 +38,26 @@ fn sample(id: &str, seq: u64, t: f64, y: &[f64]) -> pb::Sample {
     }
 }
 
-fn command(o: Outcome) -> pb::Command {
+fn command(o: Result<pb::Command, Served>) -> pb::Command {
     match o {
-        Outcome::Reply(c) => c,
-        other => panic!("no reply: {other:?}"),
+        Ok(c) => c,
+        Err(other) => panic!("no reply: {other:?}"),
+    }
+}
+
+/// The registry's one entry point for a sample on `id`'s own key, as the service calls it
+/// (a fixed time: nothing here depends on it): the command to publish, or why none.
+trait Answer {
+    fn answer(&mut self, id: &str, s: &pb::Sample) -> Result<pb::Command, Served>;
+}
+
+impl Answer for Registry {
+    fn answer(&mut self, id: &str, s: &pb::Sample) -> Result<pb::Command, Served> {
+        let mut c = pb::Command::default();
+        match self.handle_sample(Via::key(id), s, 1, &mut c) {
+            Served::Answered { .. } => Ok(c),
+            other => Err(other),
+        }
     }
 }
 
@@ -48,8 +65,7 @@ fn command(o: Outcome) -> pb::Command {
 fn answers_every_sample_with_its_sequence() {
     let mut r = registry();
     for k in 0..10u64 {
-        let c =
-            command(r.handle_sample("aero-1", &sample("aero-1", k, k as f64 * 0.01, &[0.0, 0.5])));
+        let c = command(r.answer("aero-1", &sample("aero-1", k, k as f64 * 0.01, &[0.0, 0.5])));
         assert_eq!(c.seq, k);
         // The iP channel's window is 3 intervals: it warms up on the first 3 samples.
         let expected = if k < 3 {
@@ -68,9 +84,9 @@ fn answers_every_sample_with_its_sequence() {
 #[test]
 fn duplicates_stale_and_lost() {
     let mut r = registry();
-    let first = command(r.handle_sample("aero-1", &sample("aero-1", 5, 0.05, &[0.0, 0.0])));
+    let first = command(r.answer("aero-1", &sample("aero-1", 5, 0.05, &[0.0, 0.0])));
     // Duplicate: the same command again.
-    let again = command(r.handle_sample("aero-1", &sample("aero-1", 5, 0.05, &[0.0, 0.0])));
+    let again = command(r.answer("aero-1", &sample("aero-1", 5, 0.05, &[0.0, 0.0])));
     assert_eq!(
         protocol::encode(&first),
         protocol::encode(&again),
@@ -78,7 +94,7 @@ fn duplicates_stale_and_lost() {
     );
     // Older: stale, nothing moves.
     let before = r.device_status("aero-1").unwrap();
-    let stale = command(r.handle_sample("aero-1", &sample("aero-1", 3, 0.03, &[9.0, 9.0])));
+    let stale = command(r.answer("aero-1", &sample("aero-1", 3, 0.03, &[9.0, 9.0])));
     assert_eq!(stale.mode, pb::Mode::Stale as i32);
     assert!(stale.v.is_empty());
     let after = r.device_status("aero-1").unwrap();
@@ -87,7 +103,7 @@ fn duplicates_stale_and_lost() {
         (before.last_seq, before.plant_time)
     );
     // A jump: 6..=8 lost.
-    command(r.handle_sample("aero-1", &sample("aero-1", 9, 0.09, &[0.0, 0.0])));
+    command(r.answer("aero-1", &sample("aero-1", 9, 0.09, &[0.0, 0.0])));
     let s = r.device_status("aero-1").unwrap();
     assert_eq!((s.duplicates, s.stale, s.lost), (1, 1, 3));
 }
@@ -95,7 +111,7 @@ fn duplicates_stale_and_lost() {
 #[test]
 fn bad_samples_are_rejected_with_a_reason_and_change_nothing() {
     let mut r = registry();
-    command(r.handle_sample("aero-1", &sample("aero-1", 1, 0.01, &[0.0, 0.0])));
+    command(r.answer("aero-1", &sample("aero-1", 1, 0.01, &[0.0, 0.0])));
     let cases = [
         (sample("aero-1", 2, 0.02, &[f64::NAN, 0.0]), "non-finite"),
         (sample("aero-1", 2, 0.02, &[0.0]), "expected 2 outputs"),
@@ -103,14 +119,14 @@ fn bad_samples_are_rejected_with_a_reason_and_change_nothing() {
         (sample("other", 2, 0.02, &[0.0, 0.0]), "device id"),
     ];
     for (s, needle) in cases {
-        let c = command(r.handle_sample("aero-1", &s));
+        let c = command(r.answer("aero-1", &s));
         assert_eq!(c.mode, pb::Mode::Rejected as i32, "{needle}");
         assert!(c.error.contains(needle), "{}: {needle}", c.error);
     }
     let s = r.device_status("aero-1").unwrap();
     assert_eq!((s.rejected, s.last_seq, s.commands), (4, 1, 1));
     // And the device still works (still warming up its 3-interval window).
-    let c = command(r.handle_sample("aero-1", &sample("aero-1", 2, 0.02, &[0.0, 0.0])));
+    let c = command(r.answer("aero-1", &sample("aero-1", 2, 0.02, &[0.0, 0.0])));
     assert_eq!(c.mode, pb::Mode::WarmingUp as i32);
     assert_eq!(c.seq, 2);
 }
@@ -119,10 +135,10 @@ fn bad_samples_are_rejected_with_a_reason_and_change_nothing() {
 fn unknown_devices_are_refused_templates_provision() {
     let mut r = registry();
     assert_eq!(
-        r.handle_sample("ghost", &sample("ghost", 0, 0.0, &[0.0])),
-        Outcome::Unknown
+        r.answer("ghost", &sample("ghost", 0, 0.0, &[0.0])),
+        Err(Served::Unknown)
     );
-    let c = command(r.handle_sample("sim-7", &sample("sim-7", 0, 0.0, &[0.3])));
+    let c = command(r.answer("sim-7", &sample("sim-7", 0, 0.0, &[0.3])));
     assert_eq!(c.v.len(), 1);
     let st = r.service_status(1.0);
     assert_eq!(st.unknown_samples, 1);
@@ -134,14 +150,14 @@ fn unknown_devices_are_refused_templates_provision() {
 fn a_restarted_plant_resets_its_state() {
     let mut r = registry();
     for k in 0..5u64 {
-        command(r.handle_sample(
+        command(r.answer(
             "aero-1",
             &sample("aero-1", 100 + k, 10.0 + k as f64 * 0.01, &[0.0, 0.0]),
         ));
     }
     let mut s = sample("aero-1", 0, 0.0, &[0.0, 0.0]);
     s.run_id = 43;
-    let c = command(r.handle_sample("aero-1", &s));
+    let c = command(r.answer("aero-1", &s));
     // Answered, and warming up again: the state was reset for the new run.
     assert_eq!((c.seq, c.mode), (0, pb::Mode::WarmingUp as i32));
 }
@@ -203,7 +219,7 @@ fn bad_config_files_are_refused() {
 fn the_reference_can_be_steered_live() {
     use mfc::trajectory::Piece;
     let mut r = registry();
-    command(r.handle_sample("aero-1", &sample("aero-1", 0, 0.0, &[0.0, 0.0])));
+    command(r.answer("aero-1", &sample("aero-1", 0, 0.0, &[0.0, 0.0])));
     let pieces = vec![
         vec![Piece::Constant { value: 3.0 }],
         vec![Piece::Constant { value: -1.0 }],
@@ -230,27 +246,33 @@ fn the_reference_can_be_steered_live() {
     assert_eq!(r.device_status("aero-1").unwrap().references_refused, 1);
 }
 
+/// Restore `dir`'s snapshots into `r`: how many were restored and refused.
+fn loaded(r: &mut Registry, dir: &std::path::Path) -> (usize, usize) {
+    let l = snapshot::load_dir(r, dir);
+    (l.restored, l.refused.len())
+}
+
 /// A registry restored from a snapshot answers the next samples exactly as the original
 /// would have (same state, same reference phase); a configuration changed since is kept.
 #[test]
 fn snapshots_restore_state_and_reference_phase() {
     let mut a = registry();
     for k in 0..50u64 {
-        command(a.handle_sample(
+        command(a.answer(
             "aero-1",
             &sample("aero-1", k, k as f64 * 0.01, &[0.1 * k as f64, 0.2]),
         ));
     }
     let dir = std::env::temp_dir().join(format!("snap-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
-    assert_eq!(a.save_snapshots(&dir).unwrap(), 1);
+    assert_eq!(snapshot::save_dir(&a, &dir).unwrap(), 1);
     let mut b = registry();
-    assert_eq!(b.load_snapshots(&dir), (1, 0));
+    assert_eq!(loaded(&mut b, &dir), (1, 0));
     for k in 50..80u64 {
         let s = sample("aero-1", k, k as f64 * 0.01, &[0.1 * k as f64, 0.2]);
         let (ca, cb) = (
-            command(a.handle_sample("aero-1", &s)),
-            command(b.handle_sample("aero-1", &s)),
+            command(a.answer("aero-1", &s)),
+            command(b.answer("aero-1", &s)),
         );
         assert_eq!((ca.u, ca.v), (cb.u, cb.v), "seq {k}");
     }
@@ -262,62 +284,25 @@ fn snapshots_restore_state_and_reference_phase() {
     // or by the member that handed the device over) is not answered a second time,
     // even STALE: it counts as a duplicate and moves nothing.
     let mut c = registry();
-    assert_eq!(c.load_snapshots(&dir), (1, 0));
+    assert_eq!(loaded(&mut c, &dir), (1, 0));
     let before = c.device_status("aero-1").unwrap();
     let last = sample("aero-1", 49, 0.49, &[4.9, 0.2]);
-    assert_eq!(c.handle_sample("aero-1", &last), Outcome::AlreadyAnswered);
+    assert_eq!(c.answer("aero-1", &last), Err(Served::AlreadyAnswered));
     let st = c.device_status("aero-1").unwrap();
     assert_eq!(
         (st.duplicates, st.last_seq, st.commands),
         (before.duplicates + 1, 49, before.commands)
     );
     let next = sample("aero-1", 50, 0.50, &[5.0, 0.2]);
-    assert_eq!(command(c.handle_sample("aero-1", &next)).seq, 50);
+    assert_eq!(command(c.answer("aero-1", &next)).seq, 50);
     // Once this service has answered a sample, a duplicate of it gets that answer again.
-    assert_eq!(command(c.handle_sample("aero-1", &next)).seq, 50);
+    assert_eq!(command(c.answer("aero-1", &next)).seq, 50);
     // Corrupt files and a changed configuration are refused, with the device left as is.
     std::fs::write(dir.join("junk.snap"), b"not a snapshot").unwrap();
     let changed = CONFIG.replace("kp = 2.0", "kp = 3.0");
     let mut c = Registry::new(ServiceConfig::parse("test.toml", &changed).unwrap()).unwrap();
-    assert_eq!(c.load_snapshots(&dir), (0, 2));
+    assert_eq!(loaded(&mut c, &dir), (0, 2));
     assert_eq!(c.device_status("aero-1").unwrap().samples, 0);
-}
-
-/// The hot-standby state machine: takeover after silence with a higher term, step-down on
-/// hearing a higher term (so at most one member answers).
-#[test]
-fn hot_standby_state_machine() {
-    use controller_service::config::{Role, StandbySpec};
-    use controller_service::service::HotStandby;
-    let spec = |role| StandbySpec {
-        group: "g".into(),
-        role,
-        heartbeat_ms: 10,
-        takeover_ms: 30,
-    };
-    let mut a = HotStandby::new(Some(&spec(Role::Active)));
-    assert!(!a.active, "silent until it has listened");
-    std::thread::sleep(std::time::Duration::from_millis(40));
-    assert!(
-        a.on_tick() && a.active && a.term == 1,
-        "nobody spoke: takes over"
-    );
-    // A member that heard a term-1 active and then silence takes over with term 2.
-    let mut b = HotStandby::new(Some(&spec(Role::Active)));
-    let hb = |id: &str, term| pb::Heartbeat {
-        version: PROTOCOL_VERSION,
-        controller_id: id.into(),
-        term,
-    };
-    assert!(!b.on_heartbeat("b", &hb("a", 1)));
-    assert!(!b.on_tick(), "heard recently: stays standby");
-    std::thread::sleep(std::time::Duration::from_millis(40));
-    assert!(b.on_tick() && b.term == 2);
-    // The old active hears term 2 and steps down; its own heartbeats are ignored.
-    assert!(!a.on_heartbeat("a", &hb("a", 1)));
-    assert!(a.on_heartbeat("a", &hb("b", 2)) && !a.active);
-    // Without a group the service is simply active.
-    assert!(HotStandby::new(None).active);
 }
 
 /// A device whose commands carry a horizon: an iPD (n = 2) with a smooth dead-zone map on
@@ -351,7 +336,7 @@ fn a_horizon_is_whole_periods_of_outputs_inside_the_envelope() {
     for k in 0..40u64 {
         let t = k as f64 * h;
         let y = [0.1 * (6.0 * t).sin(), 0.2];
-        let c = command(r.handle_sample("rig-1", &sample("rig-1", k, t, &y)));
+        let c = command(r.answer("rig-1", &sample("rig-1", k, t, &y)));
         if c.mode != pb::Mode::Control as i32 {
             assert!(c.horizon.is_empty(), "no horizon while warming up");
             continue;
@@ -388,7 +373,7 @@ fn delay_compensation_lengthens_the_horizon_to_the_round_trip() {
         let mut s = sample("rig-1", k, t, &[0.0, 0.2]);
         // The plant reports 56 ms round trips: commands land 5 or 6 periods late.
         s.last_rtt_us = 56_000;
-        last = Some(command(r.handle_sample("rig-1", &s)));
+        last = Some(command(r.answer("rig-1", &s)));
     }
     let c = last.unwrap();
     assert_eq!(c.mode, pb::Mode::Control as i32);
@@ -400,7 +385,7 @@ fn delay_compensation_lengthens_the_horizon_to_the_round_trip() {
     for k in 0..60u64 {
         let t = k as f64 * h;
         last = Some(command(
-            r.handle_sample("rig-1", &sample("rig-1", k, t, &[0.0, 0.2])),
+            r.answer("rig-1", &sample("rig-1", k, t, &[0.0, 0.2])),
         ));
     }
     assert_eq!(last.unwrap().horizon.len(), 2 * 2);
@@ -456,7 +441,7 @@ fn the_trend_changes_the_horizon_not_the_command() {
         (0..40u64)
             .map(|k| {
                 let t = k as f64 * 0.01;
-                command(r.handle_sample(
+                command(r.answer(
                     "rig-1",
                     // Near the reference (0.2 sin 2πt), so that the outputs stay unsaturated.
                     &sample("rig-1", k, t, &[0.19 * (6.0 * t).sin(), 0.2]),
@@ -493,18 +478,18 @@ fn a_lost_sample_is_recovered_from_the_copy_the_next_one_carries() {
     };
     for k in 0..20 {
         for r in [&mut seen, &mut gap, &mut bad] {
-            command(r.handle_sample("aero-1", &with_applied(k)));
+            command(r.answer("aero-1", &with_applied(k)));
         }
     }
     // Sample 20 reaches only `seen`; sample 21 carries it again.
-    command(seen.handle_sample("aero-1", &with_applied(20)));
+    command(seen.answer("aero-1", &with_applied(20)));
     let mut next = with_applied(21);
     let lost = with_applied(20);
     next.previous_plant_time = vec![lost.plant_time, 0.19];
     next.previous_outputs = [lost.outputs.clone(), y(19).to_vec()].concat();
     next.previous_applied = [lost.applied.clone(), vec![1.9, -0.2]].concat();
-    let a = command(seen.handle_sample("aero-1", &with_applied(21)));
-    let b = command(gap.handle_sample("aero-1", &next));
+    let a = command(seen.answer("aero-1", &with_applied(21)));
+    let b = command(gap.answer("aero-1", &next));
     assert_eq!(a.u, b.u, "the command as if sample 20 had arrived");
     // The iP's estimate (the PID channel has none: NaN).
     assert_eq!(a.f_est[0], b.f_est[0]);
@@ -513,9 +498,49 @@ fn a_lost_sample_is_recovered_from_the_copy_the_next_one_carries() {
     // A copy with a non-finite value is not used: the gap stays.
     let mut broken = next.clone();
     broken.previous_outputs[0] = f64::NAN;
-    let c = command(bad.handle_sample("aero-1", &broken));
+    let c = command(bad.answer("aero-1", &broken));
     assert_eq!(c.mode, pb::Mode::Control as i32);
     assert_ne!(c.f_est[0], a.f_est[0]);
     let st = bad.device_status("aero-1").unwrap();
     assert_eq!((st.lost, st.recovered), (1, 0));
+}
+
+/// A shard handed to a member that never saw its devices: template devices are provisioned
+/// there from the handed state and continue where the previous owner left them (a
+/// handover is never a restart); a device no template of the receiver matches is refused
+/// with its reason, and nothing else changes.
+#[test]
+fn a_handed_shard_provisions_its_template_devices() {
+    let mut a = registry();
+    let id = "sim-7";
+    for k in 0..30u64 {
+        command(a.answer(id, &sample(id, k, k as f64 * 0.01, &[0.1 * k as f64])));
+    }
+    let shard = protocol::shard_of(id);
+    let state = a.shard_state(shard);
+    assert!(state.devices.iter().any(|d| d.snapshot.id == id));
+    let mut b = registry();
+    assert!(!b.serves(id));
+    let restored = b.restore_shard(&state);
+    assert!(restored.refused.is_empty(), "{:?}", restored.refused);
+    assert!(b.serves(id) && b.device_status(id).unwrap().from_template);
+    let next = sample(id, 30, 0.30, &[3.0]);
+    let (ca, cb) = (command(a.answer(id, &next)), command(b.answer(id, &next)));
+    assert_eq!(
+        cb.mode,
+        pb::Mode::Control as i32,
+        "no warm-up after a handover"
+    );
+    assert_eq!((ca.u, ca.v), (cb.u, cb.v));
+    // A receiver without the template refuses the device, saying why.
+    let bare = CONFIG.split("[[templates]]").next().unwrap();
+    let mut c = Registry::new(ServiceConfig::parse("test.toml", bare).unwrap()).unwrap();
+    let refused = c.restore_shard(&state).refused;
+    assert_eq!(refused.len(), 1);
+    assert!(
+        refused[0].1.contains("cannot serve it here"),
+        "{:?}",
+        refused[0]
+    );
+    assert!(!c.serves(id));
 }

@@ -1,7 +1,7 @@
 //! Untrusted input against the registry, without a network: the envelope holds whatever a
 //! client asks, state stays bounded, and nothing changes before a message is validated.
 
-use controller_service::registry::{Outcome, MAX_SEQ_JUMP};
+use controller_service::registry::{Served, Via, MAX_SEQ_JUMP};
 use controller_service::{Registry, ServiceConfig};
 use proptest::prelude::*;
 use protocol::{pb, PROTOCOL_VERSION};
@@ -56,10 +56,26 @@ fn sample(id: &str, run: u64, seq: u64, t: f64, y: &[f64]) -> pb::Sample {
     }
 }
 
-fn reply(o: Outcome) -> pb::Command {
+fn reply(o: Result<pb::Command, Served>) -> pb::Command {
     match o {
-        Outcome::Reply(c) => c,
-        other => panic!("no reply: {other:?}"),
+        Ok(c) => c,
+        Err(other) => panic!("no reply: {other:?}"),
+    }
+}
+
+/// The registry's one entry point for a sample on `id`'s own key, as the service calls it
+/// (a fixed time: nothing here depends on it): the command to publish, or why none.
+trait Answer {
+    fn answer(&mut self, id: &str, s: &pb::Sample) -> Result<pb::Command, Served>;
+}
+
+impl Answer for Registry {
+    fn answer(&mut self, id: &str, s: &pb::Sample) -> Result<pb::Command, Served> {
+        let mut c = pb::Command::default();
+        match self.handle_sample(Via::key(id), s, 1, &mut c) {
+            Served::Answered { .. } => Ok(c),
+            other => Err(other),
+        }
     }
 }
 
@@ -71,7 +87,7 @@ fn mode(c: &pb::Command) -> pb::Mode {
 fn run(r: &mut Registry, seq0: u64, n: u64) -> pb::Command {
     let mut last = None;
     for k in seq0..seq0 + n {
-        last = Some(reply(r.handle_sample(
+        last = Some(reply(r.answer(
             "aero-1",
             &sample("aero-1", 7, k, k as f64 * 0.01, &[0.0, 0.0]),
         )));
@@ -111,7 +127,7 @@ fn a_law_only_change_keeps_the_limits() {
     assert_eq!(cfg.channels[0].output.unwrap().dead_zone, 10.0);
     // A huge gain on a big error: the command saturates at the envelope, never beyond.
     for k in 0..20u64 {
-        let c = reply(r.handle_sample(
+        let c = reply(r.answer(
             "aero-1",
             &sample("aero-1", 7, k, k as f64 * 0.01, &[-100.0, 100.0]),
         ));
@@ -348,7 +364,7 @@ fn a_one_sided_rate_limited_envelope_holds_through_any_gain() {
     for k in 0..200u64 {
         // The temperature swings wildly around the 40 degree setpoint.
         let y = if k % 7 < 3 { 100.0 } else { -50.0 };
-        let c = reply(r.handle_sample("heater", &sample("heater", 1, k, k as f64 * 0.01, &[y])));
+        let c = reply(r.answer("heater", &sample("heater", 1, k, k as f64 * 0.01, &[y])));
         let v = c.v[0];
         assert!((0.0..=24.0).contains(&v), "seq {k}: {v}");
         if let Some(p) = prev {
@@ -363,15 +379,9 @@ fn a_bad_sample_with_a_new_run_id_does_not_restart_the_device() {
     let mut r = registry();
     assert_eq!(mode(&run(&mut r, 0, 10)), pb::Mode::Control);
     let mut nan = sample("aero-1", 99, 10, 0.1, &[f64::NAN, 0.0]);
-    assert_eq!(
-        mode(&reply(r.handle_sample("aero-1", &nan))),
-        pb::Mode::Rejected
-    );
+    assert_eq!(mode(&reply(r.answer("aero-1", &nan))), pb::Mode::Rejected);
     nan.device_id = "someone-else".into();
-    assert_eq!(
-        mode(&reply(r.handle_sample("aero-1", &nan))),
-        pb::Mode::Rejected
-    );
+    assert_eq!(mode(&reply(r.answer("aero-1", &nan))), pb::Mode::Rejected);
     // The real plant carries on in control: no warm-up.
     assert_eq!(mode(&run(&mut r, 10, 1)), pb::Mode::Control);
     assert_eq!(r.device_status("aero-1").unwrap().restarts, 1);
@@ -382,20 +392,20 @@ fn no_sequence_number_can_lock_a_device() {
     let mut r = registry();
     run(&mut r, 0, 10);
     let wild = sample("aero-1", 7, u64::MAX, 0.2, &[0.0, 0.0]);
-    let c = reply(r.handle_sample("aero-1", &wild));
+    let c = reply(r.answer("aero-1", &wild));
     assert_eq!(mode(&c), pb::Mode::Rejected);
     assert!(c.error.contains("jumps"), "{}", c.error);
     assert_eq!(mode(&run(&mut r, 10, 1)), pb::Mode::Control);
     // A jump within the bound is an outage: counted as lost, answered.
     let far = 10 + MAX_SEQ_JUMP;
-    let c = reply(r.handle_sample("aero-1", &sample("aero-1", 7, far, 100.0, &[0.0, 0.0])));
+    let c = reply(r.answer("aero-1", &sample("aero-1", 7, far, 100.0, &[0.0, 0.0])));
     assert_eq!(mode(&c), pb::Mode::Control);
     assert_eq!(r.device_status("aero-1").unwrap().lost, MAX_SEQ_JUMP - 1);
     // A new run may start anywhere, u64::MAX included, and the arithmetic does not wrap:
     // the next run starts again from 1.
-    let top = reply(r.handle_sample("aero-1", &sample("aero-1", 8, u64::MAX, 0.0, &[0.0, 0.0])));
+    let top = reply(r.answer("aero-1", &sample("aero-1", 8, u64::MAX, 0.0, &[0.0, 0.0])));
     assert_eq!(mode(&top), pb::Mode::WarmingUp);
-    let again = reply(r.handle_sample("aero-1", &sample("aero-1", 9, 1, 0.0, &[0.0, 0.0])));
+    let again = reply(r.answer("aero-1", &sample("aero-1", 9, 1, 0.0, &[0.0, 0.0])));
     assert_eq!(mode(&again), pb::Mode::WarmingUp);
     assert_eq!(r.device_status("aero-1").unwrap().lost, MAX_SEQ_JUMP - 1);
 }
@@ -407,10 +417,10 @@ fn a_stray_run_cannot_lock_the_real_plant_out() {
     // One valid sample of another run restarts the device (it cannot be told from a
     // restart). The real plant's run is then retired: its samples are late ones at first,
     // and after the reorder window the real plant is taken back.
-    reply(r.handle_sample("aero-1", &sample("aero-1", 666, 5, 0.0, &[0.0, 0.0])));
+    reply(r.answer("aero-1", &sample("aero-1", 666, 5, 0.0, &[0.0, 0.0])));
     let mut modes = Vec::new();
     for k in 100..300u64 {
-        let c = reply(r.handle_sample(
+        let c = reply(r.answer(
             "aero-1",
             &sample("aero-1", 7, k, k as f64 * 0.01, &[0.0, 0.0]),
         ));
@@ -437,7 +447,7 @@ fn heater(run: u64, seq: u64, t: f64, y: f64, held: f64) -> pb::Sample {
 fn drive_heater(r: &mut Registry, run: u64, seqs: std::ops::Range<u64>, held: f64) -> f64 {
     let mut held = held;
     for k in seqs {
-        let c = reply(r.handle_sample("heater", &heater(run, k, k as f64 * 0.01, 20.0, held)));
+        let c = reply(r.answer("heater", &heater(run, k, k as f64 * 0.01, 20.0, held)));
         assert_eq!(mode(&c), pb::Mode::Control, "seq {k}: {}", c.error);
         assert!(
             (c.v[0] - held).abs() <= 1.0 + 2e-9,
@@ -455,7 +465,7 @@ fn a_leap_of_plant_time_neither_opens_the_rate_limit_nor_locks_the_device() {
     let mut r = registry();
     let held = drive_heater(&mut r, 1, 1..50, 0.0);
     // The next sample in sequence, but with the plant's clock a day ahead.
-    let c = reply(r.handle_sample("heater", &heater(1, 50, 86_400.0, 20.0, held)));
+    let c = reply(r.answer("heater", &heater(1, 50, 86_400.0, 20.0, held)));
     assert_eq!(mode(&c), pb::Mode::Control);
     assert!(
         (c.v[0] - held).abs() <= 100.0 * 2.0 * 0.01 * (1.0 + 2e-9),
@@ -468,7 +478,7 @@ fn a_leap_of_plant_time_neither_opens_the_rate_limit_nor_locks_the_device() {
     let mut refused = 0;
     let mut k = 51;
     let first = loop {
-        let c = reply(r.handle_sample("heater", &heater(1, k, k as f64 * 0.01, 20.0, held)));
+        let c = reply(r.answer("heater", &heater(1, k, k as f64 * 0.01, 20.0, held)));
         if mode(&c) == pb::Mode::Control {
             break c;
         }
@@ -499,7 +509,7 @@ fn leaps_in_a_row_do_not_open_the_rate_limit() {
     let mut t = 0.29;
     for k in 30..34u64 {
         t += 1000.0;
-        let c = reply(r.handle_sample("heater", &heater(1, k, t, 20.0, held)));
+        let c = reply(r.answer("heater", &heater(1, k, t, 20.0, held)));
         assert_eq!(mode(&c), pb::Mode::Control, "{}", c.error);
         assert!(
             (c.v[0] - held).abs() <= 100.0 * 2.0 * 0.01 * (1.0 + 2e-9),
@@ -530,14 +540,14 @@ fn a_sequence_jump_inside_the_bound_locks_out_for_at_most_resync_after() {
     use controller_service::registry::RESYNC_AFTER;
     let mut r = registry();
     run(&mut r, 0, 20);
-    let c = reply(r.handle_sample(
+    let c = reply(r.answer(
         "aero-1",
         &sample("aero-1", 7, MAX_SEQ_JUMP / 2, 0.21, &[0.0, 0.0]),
     ));
     assert_eq!(mode(&c), pb::Mode::Control);
     let mut stale = 0;
     for k in 21..21 + u64::from(RESYNC_AFTER) {
-        let c = reply(r.handle_sample(
+        let c = reply(r.answer(
             "aero-1",
             &sample("aero-1", 7, k, 0.21 + k as f64 * 0.01, &[0.0, 0.0]),
         ));
@@ -547,7 +557,7 @@ fn a_sequence_jump_inside_the_bound_locks_out_for_at_most_resync_after() {
     }
     assert_eq!(stale, RESYNC_AFTER - 1);
     // Followed again (a fresh run: the estimators warm up).
-    let c = reply(r.handle_sample(
+    let c = reply(r.answer(
         "aero-1",
         &sample("aero-1", 7, 21 + u64::from(RESYNC_AFTER), 2.0, &[0.0, 0.0]),
     ));
@@ -562,7 +572,7 @@ fn scattered_refusals_never_resync_a_device() {
     // Old samples replayed out of order (no stream of their own): stale, every one.
     for k in 0..500u64 {
         let seq = (k * 7919) % 19;
-        let c = reply(r.handle_sample(
+        let c = reply(r.answer(
             "aero-1",
             &sample("aero-1", 7, seq, seq as f64 * 0.01, &[0.0, 0.0]),
         ));
@@ -577,11 +587,11 @@ fn the_first_command_of_a_run_moves_from_what_the_plant_applies() {
     let mut r = registry();
     // The plant starts while its own controller holds 12 V: the service's first command
     // stays there (no period known yet), the next ones move at most 100 V/s * 10 ms.
-    let c = reply(r.handle_sample("heater", &heater(1, 1, 0.01, 20.0, 12.0)));
+    let c = reply(r.answer("heater", &heater(1, 1, 0.01, 20.0, 12.0)));
     assert_eq!(c.v, vec![12.0]);
     let held = drive_heater(&mut r, 1, 2..30, 12.0);
     // The plant restarts (a new run) and reports 3 V: one period's step from there.
-    let c = reply(r.handle_sample("heater", &heater(2, 1, 0.01, 20.0, 3.0)));
+    let c = reply(r.answer("heater", &heater(2, 1, 0.01, 20.0, 3.0)));
     assert!(
         (c.v[0] - 3.0).abs() <= 1.0 + 2e-9,
         "{held} / 3 -> {}",
@@ -589,7 +599,7 @@ fn the_first_command_of_a_run_moves_from_what_the_plant_applies() {
     );
     // Without a report, from the last command sent to the device.
     let last = c.v[0];
-    let c = reply(r.handle_sample("heater", &sample("heater", 3, 1, 0.01, &[20.0])));
+    let c = reply(r.answer("heater", &sample("heater", 3, 1, 0.01, &[20.0])));
     assert!((c.v[0] - last).abs() <= 1.0 + 2e-9, "{last} -> {}", c.v[0]);
 }
 
@@ -603,7 +613,7 @@ fn after_a_restore_the_first_command_moves_from_what_the_plant_applies() {
         fresh.restore(s).unwrap();
     }
     // The plant ran on its fallback meanwhile and holds 2 V now.
-    let c = reply(fresh.handle_sample("heater", &heater(1, 130, 1.3, 20.0, 2.0)));
+    let c = reply(fresh.answer("heater", &heater(1, 130, 1.3, 20.0, 2.0)));
     assert!(
         (c.v[0] - 2.0).abs() <= 1.0 + 2e-9,
         "before the restore {held}, now 2 V -> {}",
@@ -615,19 +625,19 @@ fn after_a_restore_the_first_command_moves_from_what_the_plant_applies() {
 fn a_plant_without_a_run_id_recovers_from_its_restart() {
     let mut r = registry();
     for k in 1..=300u64 {
-        reply(r.handle_sample(
+        reply(r.answer(
             "aero-1",
             &sample("aero-1", 0, k, k as f64 * 0.01, &[0.0, 0.0]),
         ));
     }
     // A late sample is still stale...
-    let late = reply(r.handle_sample("aero-1", &sample("aero-1", 0, 290, 2.9, &[0.0, 0.0])));
+    let late = reply(r.answer("aero-1", &sample("aero-1", 0, 290, 2.9, &[0.0, 0.0])));
     assert_eq!(mode(&late), pb::Mode::Stale);
     // ...but the plant starting again at seq 1, time 0.01, is a new run.
-    let c = reply(r.handle_sample("aero-1", &sample("aero-1", 0, 1, 0.01, &[0.0, 0.0])));
+    let c = reply(r.answer("aero-1", &sample("aero-1", 0, 1, 0.01, &[0.0, 0.0])));
     assert_eq!(mode(&c), pb::Mode::WarmingUp);
     for k in 2..20u64 {
-        let c = reply(r.handle_sample(
+        let c = reply(r.answer(
             "aero-1",
             &sample("aero-1", 0, k, k as f64 * 0.01, &[0.0, 0.0]),
         ));
@@ -635,7 +645,7 @@ fn a_plant_without_a_run_id_recovers_from_its_restart() {
         assert_ne!(mode(&c), pb::Mode::Rejected, "{}", c.error);
     }
     // Even if its first samples after the restart were lost.
-    let c = reply(r.handle_sample("aero-1", &sample("aero-1", 0, 1, 0.01, &[0.0, 0.0])));
+    let c = reply(r.answer("aero-1", &sample("aero-1", 0, 1, 0.01, &[0.0, 0.0])));
     assert_eq!(mode(&c), pb::Mode::WarmingUp);
 }
 
@@ -643,14 +653,14 @@ fn a_plant_without_a_run_id_recovers_from_its_restart() {
 fn echoed_strings_are_capped_and_unknown_ids_bounded() {
     let mut r = registry();
     let huge = "x".repeat(1 << 20);
-    let c = reply(r.handle_sample("aero-1", &sample(&huge, 7, 0, 0.0, &[0.0, 0.0])));
+    let c = reply(r.answer("aero-1", &sample(&huge, 7, 0, 0.0, &[0.0, 0.0])));
     assert!(c.error.len() < 200, "{} bytes", c.error.len());
     assert!(r.device_status("aero-1").unwrap().last_error.len() < 200);
     for k in 0..10_000 {
         let id = format!("ghost-{k}");
         assert_eq!(
-            r.handle_sample(&id, &sample(&id, 1, 0, 0.0, &[0.0])),
-            Outcome::Unknown
+            r.answer(&id, &sample(&id, 1, 0, 0.0, &[0.0])),
+            Err(Served::Unknown)
         );
     }
     let st = r.service_status(0.0);
@@ -660,8 +670,8 @@ fn echoed_strings_are_capped_and_unknown_ids_bounded() {
     // Templates provision up to max_devices (4, two declared), then refuse and count.
     for k in 0..10 {
         let id = format!("sim-{k}");
-        let o = r.handle_sample(&id, &sample(&id, 1, 0, 0.0, &[0.0]));
-        assert_eq!(matches!(o, Outcome::Reply(_)), k < 2, "{id}");
+        let o = r.answer(&id, &sample(&id, 1, 0, 0.0, &[0.0]));
+        assert_eq!(o.is_ok(), k < 2, "{id}");
     }
     let st = r.service_status(0.0);
     assert_eq!((st.devices.len(), st.device_table_full), (4, 8));
@@ -777,7 +787,7 @@ proptest! {
                         s.applied = vec![held];
                     }
                     let env = limits_of(&r, id);
-                    if let Outcome::Reply(c) = r.handle_sample(id, &s) {
+                    if let Ok(c) = r.answer(id, &s) {
                         prop_assert_eq!(c.seq, seq);
                         let env = if env.is_empty() { limits_of(&r, id) } else { env };
                         for (i, v) in c.v.iter().enumerate() {

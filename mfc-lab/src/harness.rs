@@ -138,7 +138,7 @@ impl ServiceHandle {
         let task = tokio::spawn({
             let (session, observers) = (session.clone(), observers.clone());
             async move {
-                let r = service::serve_observed(session.clone(), registry, observers, async {
+                let r = service::serve(session.clone(), registry, observers, async {
                     let _ = rx.await;
                 })
                 .await;

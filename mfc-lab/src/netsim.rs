@@ -14,7 +14,7 @@ use std::cmp::Reverse;
 use std::collections::BinaryHeap;
 
 use controller_service::config::Prediction;
-use controller_service::registry::{Outcome, Registry};
+use controller_service::registry::{Registry, Via};
 use mfc::trajectory::evaluate;
 use mfc::Reference;
 use plant_agent::agent::{flags, incoming};
@@ -199,7 +199,8 @@ pub fn simulate_net(
             queue.pop();
             match events[i as usize].take() {
                 Some(Event::Sample(s)) => {
-                    if let Outcome::Reply(cmd) = registry.handle_sample(&id, &s) {
+                    let mut cmd = pb::Command::default();
+                    if registry.handle_sample(Via::key(&id), &s, at, &mut cmd).answered() {
                         let (lost, delay) = draw();
                         if lost && link.lossy != Lossy::Up {
                             commands_lost += 1;

@@ -1,0 +1,658 @@
+//! What the service holds for one device: its control state, where the plant's run
+//! stands, the counters of its status, and the answer it sent last.
+
+use smallvec::SmallVec;
+use std::collections::VecDeque;
+
+use mfc::trajectory::Piece;
+use mfc::{ChannelConfig, ChannelOutput, MimoController, Reference};
+use protocol::convert::{
+    apply_update, channel_from_pb, channel_to_pb, reference_from_pb, reference_to_pb,
+};
+use protocol::{pb, PROTOCOL_VERSION};
+
+use super::{latency, REORDER_WINDOW, RESYNC_AFTER};
+use crate::config::{DeviceChannel, Prediction, MAX_HORIZON};
+use crate::envelope::Limits;
+
+/// Most recent round trips kept per device for the status percentiles; older ones drop out.
+pub(super) const RTT_WINDOW: usize = 1000;
+/// Sample intervals kept per device to estimate its period (their lower median, so that
+/// leaps in fewer than five of the last eight intervals do not move it).
+const PERIOD_WINDOW: usize = 8;
+/// Intervals needed before the estimate counts.
+const PERIOD_MIN_INTERVALS: usize = 3;
+
+/// Run ids remembered after their run ended, so a late sample of one is STALE instead of
+/// starting that run again.
+const RETIRED_RUNS: usize = 4;
+
+/// Per-channel values kept inline in a device's state: a plant has one or two channels (the
+/// AERO has two), and a value that lives beside the rest of the device costs no pointer
+/// chase, where a separate allocation per field costs a cache miss per sample once
+/// thousands of devices no longer fit the caches (`docs/scale.md`). More channels spill to
+/// the heap and work the same.
+pub(super) type PerChannel<T> = SmallVec<[T; 2]>;
+
+/// The last CONTROL or WARMING_UP answer, kept to send again verbatim for a duplicate: the
+/// values of the command without its ids (the device's key and the controller's own),
+/// inline rather than a whole [`pb::Command`] with five allocations of its own.
+#[derive(Debug, Clone)]
+pub(super) struct Answer {
+    pub(super) seq: u64,
+    pub(super) mode: i32,
+    pub(super) controller_unix_ns: u64,
+    pub(super) sample_sent_unix_ns: u64,
+    pub(super) u: PerChannel<f64>,
+    pub(super) v: PerChannel<f64>,
+    pub(super) f_est: PerChannel<f64>,
+    /// The packetized horizon (empty without prediction), as [`pb::Command::horizon`].
+    pub(super) horizon: Vec<f64>,
+    /// `y*` per channel at the sample's time, as [`pb::Command::reference`].
+    pub(super) reference: PerChannel<f64>,
+}
+
+impl Answer {
+    /// Write this answer into `out`, reusing its buffers: a batch's commands are kept
+    /// from one batch to the next, so answering allocates nothing.
+    pub(super) fn write_into(&self, controller_id: &str, device_id: &str, out: &mut pb::Command) {
+        out.version = PROTOCOL_VERSION;
+        out.device_id.clear();
+        out.device_id.push_str(device_id);
+        out.seq = self.seq;
+        out.u.clear();
+        out.u.extend_from_slice(&self.u);
+        out.v.clear();
+        out.v.extend_from_slice(&self.v);
+        out.controller_unix_ns = self.controller_unix_ns;
+        out.f_est.clear();
+        out.f_est.extend_from_slice(&self.f_est);
+        out.horizon.clear();
+        out.horizon.extend_from_slice(&self.horizon);
+        out.reference.clear();
+        out.reference.extend_from_slice(&self.reference);
+        out.mode = self.mode;
+        out.sample_sent_unix_ns = self.sample_sent_unix_ns;
+        out.controller_id.clear();
+        out.controller_id.push_str(controller_id);
+        out.error.clear();
+    }
+}
+
+/// How a sample was answered, inside the registry.
+// The command is the common case and is moved out at once: boxing it would cost an
+// allocation per answer to save stack space nobody holds.
+#[allow(clippy::large_enum_variant)]
+pub(super) enum Answered {
+    /// With the device's cached answer (`last_command`): a new one, or the same again for
+    /// a duplicate.
+    Cached,
+    /// With this command (a refusal, a stale answer).
+    Reply(pb::Command),
+    /// Not at all ([`Outcome::AlreadyAnswered`]).
+    Not,
+}
+
+/// `load-1234`) live inside the table's own slot, so that finding a device among thousands
+/// reads the table and nothing else: with the id behind a pointer, every lookup missed the
+/// caches once more for the comparison. Longer ids are kept on the heap and work the same.
+#[derive(Debug, Clone)]
+pub(super) enum DeviceKey {
+    Inline { len: u8, bytes: [u8; INLINE_ID] },
+    Heap(Box<str>),
+}
+
+/// Bytes of an id kept inline in [`DeviceKey`]: the key is then 24 bytes, as a `String`.
+const INLINE_ID: usize = 22;
+
+impl DeviceKey {
+    pub(super) fn new(id: &str) -> Self {
+        if id.len() <= INLINE_ID {
+            let mut bytes = [0; INLINE_ID];
+            bytes[..id.len()].copy_from_slice(id.as_bytes());
+            Self::Inline {
+                len: id.len() as u8,
+                bytes,
+            }
+        } else {
+            Self::Heap(id.into())
+        }
+    }
+
+    pub(super) fn as_str(&self) -> &str {
+        match self {
+            // Whole bytes of a `&str`: always UTF-8, so never the empty fallback.
+            Self::Inline { len, bytes } => {
+                std::str::from_utf8(&bytes[..*len as usize]).unwrap_or("")
+            }
+            Self::Heap(s) => s,
+        }
+    }
+}
+
+impl std::borrow::Borrow<str> for DeviceKey {
+    fn borrow(&self) -> &str {
+        self.as_str()
+    }
+}
+
+// Hash and equality are the id's, as `Borrow<str>` requires.
+impl std::hash::Hash for DeviceKey {
+    fn hash<H: std::hash::Hasher>(&self, state: &mut H) {
+        self.as_str().hash(state);
+    }
+}
+
+impl PartialEq for DeviceKey {
+    fn eq(&self, other: &Self) -> bool {
+        self.as_str() == other.as_str()
+    }
+}
+
+impl Eq for DeviceKey {}
+
+/// How a sample relates to the run in force.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Run {
+    Same,
+    New,
+    /// A late sample of a run that already ended.
+    Retired,
+}
+
+/// What the service holds for one device: its control state, where the plant's run stands,
+/// and the counters of its status.
+#[derive(Debug, Clone)]
+pub(super) struct Device {
+    /// The shard the device lives in ([`crate::fleet`]): its id's, or its gateway's if its
+    /// samples come in a gateway's batches.
+    pub(super) home: u32,
+    /// Restored from a snapshot and not yet resumed: the first sample decides whether the
+    /// data history still holds (no gap) or must be forgotten.
+    pub(super) restored: bool,
+    /// Provisioned from a template, not declared: reported in the status, and lets a
+    /// snapshot rebuild the device although no declaration names it.
+    pub(super) from_template: bool,
+    /// The safety envelope per channel. Every output map in `configs` lies inside it.
+    pub(super) envelope: PerChannel<Limits>,
+    /// Laws and output maps in force (changed by `configure`); a snapshot of a declared
+    /// device is restored only if its laws equal these.
+    pub(super) configs: Vec<ChannelConfig>,
+    pub(super) mimo: MimoController,
+    /// Reference pieces per channel, evaluated at `plant_time - reference_start`.
+    pub(super) reference: PerChannel<Vec<Piece>>,
+    /// Plant time (s) at which the reference starts: 0 from the file, moved by a live
+    /// reference update.
+    pub(super) reference_start: f64,
+    /// The plant run this state belongs to (`None` before the first sample).
+    pub(super) run_id: Option<u64>,
+    /// Runs that ended, newest last, at most `RETIRED_RUNS`.
+    pub(super) retired: VecDeque<u64>,
+    /// Samples received since the run in force started, refused ones included: a sample of
+    /// a retired run is late only while this is below `REORDER_WINDOW`.
+    pub(super) run_samples: u64,
+    /// Sequence number of the last sample answered with control values; refused samples do
+    /// not move it.
+    pub(super) last_seq: Option<u64>,
+    /// Plant time of that sample (s); the next must come strictly later. Minus infinity
+    /// until the first one (and after a plant restart), so any first time is accepted.
+    pub(super) last_time: f64,
+    /// The command answering `last_seq`, sent again verbatim for a duplicate. `None` after a
+    /// restart or a restore.
+    pub(super) last_command: Option<Answer>,
+    /// The samples refused as out of step since the last answered one, if they form a
+    /// consistent stream: its last sequence and time, and how many ([`RESYNC_AFTER`]).
+    pub(super) astray: Option<(u64, f64, u32)>,
+    /// Recent intervals between consecutive samples (s), for the period estimate that
+    /// bounds the rate limit's `dt`; kept across runs (the same rig, the same period).
+    pub(super) intervals: [f64; PERIOD_WINDOW],
+    /// How many of `intervals` are filled, and where the next goes.
+    pub(super) intervals_len: usize,
+    pub(super) intervals_next: usize,
+    /// The values of the last CONTROL command sent, kept across runs (the same actuator):
+    /// where the rate limit runs from when a sample does not say what is applied.
+    pub(super) held: Option<PerChannel<f64>>,
+    /// Each step's outputs per channel, a buffer reused from sample to sample.
+    pub(super) outputs: PerChannel<ChannelOutput>,
+    /// The references per channel at the current sample, likewise reused.
+    pub(super) refs: PerChannel<Reference>,
+    /// Samples for this device, counted before any check.
+    pub(super) samples: u64,
+    /// Commands computed (CONTROL or WARMING_UP); not resends for duplicates, not REJECTED
+    /// or STALE answers.
+    pub(super) commands: u64,
+    /// Sequence numbers skipped between one answered sample and the next; a sample that
+    /// arrived but was refused in between counts here too.
+    pub(super) lost: u64,
+    /// Samples repeating `last_seq`, answered with the cached command when there is one.
+    pub(super) duplicates: u64,
+    /// Samples older than `last_seq`, or of an ended run: answered STALE.
+    pub(super) stale: u64,
+    /// Samples answered REJECTED: another device's id, bad values, a sequence jump, or a
+    /// step the core refused.
+    pub(super) rejected: u64,
+    /// Samples replaced by a newer one before the worker read them (reported by the
+    /// service's inbox).
+    pub(super) superseded: u64,
+    /// Samples sent while the plant was holding, on its local fallback or in safe stop:
+    /// counts samples, not fallback episodes.
+    pub(super) samples_off_remote: u64,
+    /// Envelope changes accepted since the service started.
+    pub(super) envelope_changes: u64,
+    /// Commands the final envelope check clipped: 0 unless a law or map misbehaves, or a
+    /// rate-limited channel starts (a run, a restore) where the law's first value is not
+    /// within reach of what the actuator holds.
+    pub(super) clamped: u64,
+    /// Reference updates refused.
+    pub(super) references_refused: u64,
+    /// Runs started (the first sample's included).
+    pub(super) restarts: u64,
+    /// The plant's round-trip reports (µs), oldest first, at most `RTT_WINDOW`; a report of
+    /// 0 (no round trip yet) is not kept.
+    pub(super) rtts: VecDeque<u32>,
+    /// The last F estimate per channel; NaN until a step gives one.
+    pub(super) f_est: PerChannel<f64>,
+    /// Why the last refused sample or request was refused (already cut to printable
+    /// length); a later good one does not clear it.
+    pub(super) last_error: String,
+    /// Horizon and delay compensation of its commands (from the file).
+    pub(super) prediction: Prediction,
+    /// Lost samples recovered from the copy the next one carried.
+    pub(super) recovered: u64,
+    /// The last sample's flags (what its plant was doing), for the status.
+    pub(super) last_flags: u32,
+    /// With delay compensation: what the plant will apply in each coming period, as this
+    /// device's commands already sent will have it.
+    pub(super) schedule: Option<Box<Schedule>>,
+}
+
+/// What the plant will apply in each period, as far as the commands already sent decide
+/// it: a ring over the coming periods (absolute sequence numbers), `n` channels each. The
+/// delay compensation drives its prediction with these until its own command lands.
+#[derive(Debug, Clone)]
+pub(super) struct Schedule {
+    pub(super) n: usize,
+    /// The period each slot holds (`u64::MAX`: none).
+    pub(super) period: Vec<u64>,
+    pub(super) values: Vec<f64>,
+}
+
+impl Schedule {
+    const SLOTS: usize = MAX_HORIZON as usize + 1;
+
+    pub(super) fn new(n: usize) -> Self {
+        Self {
+            n,
+            period: vec![u64::MAX; Self::SLOTS],
+            values: vec![0.0; Self::SLOTS * n],
+        }
+    }
+
+    pub(super) fn get(&self, k: u64, i: usize) -> Option<f64> {
+        let slot = (k % Self::SLOTS as u64) as usize;
+        (self.period[slot] == k).then(|| self.values[slot * self.n + i])
+    }
+
+    pub(super) fn set(&mut self, k: u64, values: impl Iterator<Item = f64>) {
+        let slot = (k % Self::SLOTS as u64) as usize;
+        self.period[slot] = k;
+        for (x, v) in self.values[slot * self.n..(slot + 1) * self.n]
+            .iter_mut()
+            .zip(values)
+        {
+            *x = v;
+        }
+    }
+}
+
+impl Device {
+    pub(super) fn new(
+        channels: &[DeviceChannel],
+        prediction: Prediction,
+        from_template: bool,
+    ) -> Result<Self, String> {
+        let envelope: PerChannel<Limits> = channels.iter().map(DeviceChannel::limits).collect();
+        // The file's check already did this; a configuration built in code must not get
+        // past it either (a NaN limit would make the last check meaningless).
+        for (i, e) in envelope.iter().enumerate() {
+            e.check()
+                .map_err(|r| format!("channels[{i}].envelope: {r}"))?;
+        }
+        let configs = channels
+            .iter()
+            .zip(&envelope)
+            .enumerate()
+            .map(|(i, (c, e))| {
+                Ok(ChannelConfig {
+                    law: c.law,
+                    output: e.fit_request(c.output, &format!("channels[{i}].output"))?,
+                })
+            })
+            .collect::<Result<Vec<_>, String>>()?;
+        let n = configs.len();
+        Ok(Self {
+            home: 0,
+            restored: false,
+            from_template,
+            envelope,
+            mimo: MimoController::new(&configs).map_err(|e| e.to_string())?,
+            configs,
+            reference: channels.iter().map(|c| c.reference.clone()).collect(),
+            reference_start: 0.0,
+            run_id: None,
+            retired: VecDeque::with_capacity(RETIRED_RUNS),
+            run_samples: 0,
+            last_seq: None,
+            last_time: f64::NEG_INFINITY,
+            last_command: None,
+            astray: None,
+            held: None,
+            intervals: [0.0; PERIOD_WINDOW],
+            intervals_len: 0,
+            intervals_next: 0,
+            outputs: smallvec::smallvec![ChannelOutput::default(); n],
+            refs: smallvec::smallvec![Reference::default(); n],
+            samples: 0,
+            commands: 0,
+            lost: 0,
+            duplicates: 0,
+            stale: 0,
+            rejected: 0,
+            superseded: 0,
+            samples_off_remote: 0,
+            envelope_changes: 0,
+            clamped: 0,
+            references_refused: 0,
+            restarts: 0,
+            rtts: VecDeque::with_capacity(RTT_WINDOW),
+            f_est: smallvec::smallvec![f64::NAN; n],
+            last_error: String::new(),
+            prediction,
+            recovered: 0,
+            last_flags: 0,
+            schedule: prediction
+                .delay_compensation
+                .then(|| Box::new(Schedule::new(n))),
+        })
+    }
+
+    /// A new plant run: fresh control state, same configuration and reference. The
+    /// counters carry on across runs.
+    pub(super) fn start_run(&mut self, run_id: u64, fresh: MimoController) {
+        if let Some(old) = self.run_id {
+            if old != run_id {
+                if self.retired.len() == RETIRED_RUNS {
+                    self.retired.pop_front();
+                }
+                self.retired.push_back(old);
+            }
+        }
+        self.retired.retain(|r| *r != run_id);
+        self.mimo = fresh;
+        self.run_id = Some(run_id);
+        self.run_samples = 0;
+        self.restored = false;
+        self.last_seq = None;
+        self.last_time = f64::NEG_INFINITY;
+        self.last_command = None;
+        self.astray = None;
+        self.restarts += 1;
+        if let Some(s) = &mut self.schedule {
+            **s = Schedule::new(s.n);
+        }
+    }
+
+    /// The sample period: the lower median of the recent intervals; `None` before
+    /// [`PERIOD_MIN_INTERVALS`] of them.
+    pub(super) fn period(&self) -> Option<f64> {
+        let n = self.intervals_len;
+        if n < PERIOD_MIN_INTERVALS {
+            return None;
+        }
+        let mut v = self.intervals;
+        let v = &mut v[..n];
+        v.sort_unstable_by(f64::total_cmp);
+        Some(v[(n - 1) / 2])
+    }
+
+    /// Note the interval between two consecutive accepted samples (positive: time must
+    /// advance; finite, or it is not an interval anyone can use).
+    pub(super) fn note_interval(&mut self, dt: f64) {
+        if !(dt.is_finite() && dt > 0.0) {
+            return;
+        }
+        self.intervals[self.intervals_next] = dt;
+        self.intervals_next = (self.intervals_next + 1) % PERIOD_WINDOW;
+        self.intervals_len = (self.intervals_len + 1).min(PERIOD_WINDOW);
+    }
+
+    /// Count a sample of the run in force refused as out of step; true once
+    /// [`RESYNC_AFTER`] of them in a row form a stream of their own, which the device then
+    /// follows as a new run.
+    pub(super) fn out_of_step(&mut self, s: &pb::Sample) -> bool {
+        let n = match self.astray {
+            Some((seq, t, n)) if s.seq > seq && s.plant_time > t => n + 1,
+            _ => 1,
+        };
+        self.astray = Some((s.seq, s.plant_time, n));
+        n >= RESYNC_AFTER
+    }
+
+    pub(super) fn channels(&self) -> usize {
+        self.configs.len()
+    }
+
+    /// Rule 2, the part that depends on the device: how many values.
+    pub(super) fn check_values(&self, s: &pb::Sample) -> Result<(), String> {
+        let n = self.channels();
+        if s.outputs.len() != n {
+            return Err(format!("expected {n} outputs, got {}", s.outputs.len()));
+        }
+        if !s.applied.is_empty() && s.applied.len() != n {
+            return Err(format!(
+                "expected {n} applied values (or none), got {}",
+                s.applied.len()
+            ));
+        }
+        Ok(())
+    }
+
+    /// Rule 3.
+    pub(super) fn run_of(&self, s: &pb::Sample) -> Run {
+        match (self.run_id, self.last_seq) {
+            (None, _) => Run::New,
+            (Some(r), _) if s.run_id != r => {
+                if self.retired.contains(&s.run_id) && self.run_samples < REORDER_WINDOW {
+                    Run::Retired
+                } else {
+                    Run::New
+                }
+            }
+            // No run id from this plant: guess a restart from the sequence going back to
+            // a fresh start, or further back than any reordering and with an earlier time.
+            (Some(0), Some(last))
+                if s.seq < last
+                    && (s.seq <= 1
+                        || (last - s.seq > REORDER_WINDOW && s.plant_time < self.last_time)) =>
+            {
+                Run::New
+            }
+            _ => Run::Same,
+        }
+    }
+
+    pub(super) fn limits_pb(&self) -> pb::Envelope {
+        pb::Envelope {
+            channels: self
+                .envelope
+                .iter()
+                .map(|l| pb::ChannelLimits {
+                    min: l.min.is_finite().then_some(l.min),
+                    max: l.max.is_finite().then_some(l.max),
+                    rate_limit: l.rate_limit,
+                })
+                .collect(),
+        }
+    }
+
+    pub(super) fn config_pb(&self, id: &str) -> pb::DeviceConfig {
+        pb::DeviceConfig {
+            version: PROTOCOL_VERSION,
+            device_id: id.into(),
+            channels: self.configs.iter().map(channel_to_pb).collect(),
+            reference: Some(reference_to_pb(&self.reference, self.reference_start)),
+            envelope: Some(self.limits_pb()),
+        }
+    }
+
+    pub(super) fn status_pb(&self, id: &str) -> pb::DeviceStatus {
+        pb::DeviceStatus {
+            version: PROTOCOL_VERSION,
+            device_id: id.into(),
+            last_seq: self.last_seq.unwrap_or(0),
+            plant_time: if self.last_time.is_finite() {
+                self.last_time
+            } else {
+                0.0
+            },
+            samples: self.samples,
+            commands: self.commands,
+            lost: self.lost,
+            duplicates: self.duplicates,
+            stale: self.stale,
+            rejected: self.rejected,
+            samples_off_remote: self.samples_off_remote,
+            loop_rtt: Some(latency(&self.rtts)),
+            f_est: self.f_est.to_vec(),
+            last_error: self.last_error.clone(),
+            from_template: self.from_template,
+            superseded: self.superseded,
+            envelope: Some(self.limits_pb()),
+            envelope_changes: self.envelope_changes,
+            clamped: self.clamped,
+            references_refused: self.references_refused,
+            restarts: self.restarts,
+            recovered: self.recovered,
+            last_flags: self.last_flags,
+        }
+    }
+
+    /// The laws and maps a configuration request asks for, checked against the envelope,
+    /// and its reference; nothing changes here (the caller applies it all or nothing).
+    #[allow(clippy::type_complexity)]
+    pub(super) fn plan(
+        &self,
+        req: &pb::ConfigRequest,
+    ) -> Result<(Vec<ChannelConfig>, Option<(Vec<Vec<Piece>>, f64)>), String> {
+        let n = self.channels();
+        let mut configs = self.configs.clone();
+        if !req.channels.is_empty() {
+            if req.channels.len() != n {
+                return Err(format!(
+                    "device has {n} channels, request has {}",
+                    req.channels.len()
+                ));
+            }
+            for (i, c) in req.channels.iter().enumerate() {
+                let field = format!("channels[{i}]");
+                let cfg =
+                    channel_from_pb(c).map_err(|e| format!("{field}.{}: {}", e.field, e.reason))?;
+                // No output map in the request: keep the one in force (a client that sends
+                // only laws must not drop the limits).
+                let output = match c.output {
+                    None => configs[i].output,
+                    Some(_) => {
+                        self.envelope[i].fit_request(cfg.output, &format!("{field}.output"))?
+                    }
+                };
+                configs[i] = ChannelConfig {
+                    law: cfg.law,
+                    output,
+                };
+            }
+        }
+        for (k, u) in req.updates.iter().enumerate() {
+            let i = u.channel as usize;
+            if i >= n {
+                return Err(format!(
+                    "updates[{k}].channel: {} but the device has {n} channels",
+                    u.channel
+                ));
+            }
+            let next = apply_update(&configs[i], u)
+                .map_err(|e| format!("updates[{k}].{}: {}", e.field, e.reason))?;
+            let output = self.envelope[i].fit_request(next.output, &format!("updates[{k}]"))?;
+            configs[i] = ChannelConfig {
+                law: next.law,
+                output,
+            };
+        }
+        let reference = match &req.reference {
+            None => None,
+            Some(r) => match reference_from_pb(r) {
+                Ok((pieces, _)) if pieces.len() != n => {
+                    return Err(format!(
+                        "device has {n} channels, reference has {}",
+                        pieces.len()
+                    ))
+                }
+                Ok(r) => Some(r),
+                Err(e) => return Err(format!("reference.{}: {}", e.field, e.reason)),
+            },
+        };
+        Ok((configs, reference))
+    }
+}
+
+/// A command without control values (refusals and stale answers) for the sample `seq`
+/// sent at `sent_unix_ns`.
+pub(super) fn reply(
+    (controller_id, id): (&str, &str),
+    (seq, sent_unix_ns, now_unix_ns): (u64, u64, u64),
+    mode: pb::Mode,
+    error: String,
+) -> pb::Command {
+    pb::Command {
+        version: PROTOCOL_VERSION,
+        device_id: id.into(),
+        seq,
+        controller_unix_ns: now_unix_ns,
+        mode: mode as i32,
+        sample_sent_unix_ns: sent_unix_ns,
+        controller_id: controller_id.into(),
+        error,
+        ..Default::default()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::hash_map::RandomState;
+    use std::collections::HashMap;
+    use std::hash::BuildHasher;
+
+    #[test]
+    pub(super) fn a_device_key_is_its_id_inline_or_not() {
+        let short = "load-1234";
+        let edge = "a".repeat(INLINE_ID);
+        let long = "cell-7/a-rather-long-device-id-9";
+        assert!(matches!(DeviceKey::new(short), DeviceKey::Inline { .. }));
+        assert!(matches!(DeviceKey::new(&edge), DeviceKey::Inline { .. }));
+        assert!(matches!(DeviceKey::new(long), DeviceKey::Heap(_)));
+        let mut table: HashMap<DeviceKey, u32> = HashMap::new();
+        for (i, id) in [short, edge.as_str(), long, "é-ü", ""].iter().enumerate() {
+            table.insert(DeviceKey::new(id), i as u32);
+            assert_eq!(DeviceKey::new(id).as_str(), *id);
+            // `Borrow<str>` requires the same hash as the id's own.
+            let h = RandomState::new();
+            assert_eq!(h.hash_one(DeviceKey::new(id)), h.hash_one(*id));
+        }
+        assert_eq!(table.get(short), Some(&0));
+        assert_eq!(table.get(edge.as_str()), Some(&1));
+        assert_eq!(table.get(long), Some(&2));
+        assert_eq!(table.get("é-ü"), Some(&3));
+        assert_eq!(table.get("load-123"), None);
+        assert_eq!(table.get(&edge[1..]), None);
+    }
+}

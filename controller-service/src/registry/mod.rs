@@ -1,0 +1,472 @@
+//! Per-device control state and the rules for answering samples. No I/O, no clock, no
+//! logging: the Zenoh wiring in [`crate::service`] feeds it decoded messages and the time,
+//! publishes what it returns and decides what to log, so every rule here is tested without
+//! a network, with plain numbers for time. Snapshot files are read and written by
+//! [`crate::snapshot`]; this module only makes and restores their contents.
+//!
+//! * [`device`]: what the service holds for one device;
+//! * [`step`]: rules 2-7 for one sample of a served device;
+//! * [`requests`]: configuration, reference and envelope changes;
+//! * [`shards`]: a shard's state for a fleet handover, snapshots and their restore.
+//!
+//! A sample of device `d` is checked completely before anything about `d` changes (the
+//! rules, in order, are written for clients in the `.proto`, on `Sample`):
+//! 1. `d` must be served: declared, or provisioned from the first matching template while
+//!    the device table has room; otherwise it is counted and not answered (no publisher,
+//!    no state: a flood of unknown keys costs a counter);
+//! 2. its `device_id` must equal the key's, and its values must be usable (one finite
+//!    output per channel, finite applied values, finite plant time): else `REJECTED`;
+//! 3. a new `run_id` starts a new run (fresh control state); a late sample of one of the
+//!    last few runs, arriving within the new run's first [`REORDER_WINDOW`] samples, is
+//!    `STALE` (later, that run is taken to be back, so one stray sample can never lock the
+//!    real plant out); a plant that sends no `run_id` is recognised as restarted when its
+//!    sequence goes back far, or to 0 or 1;
+//! 4. within a run: the last sequence again is a duplicate (the cached command again, or
+//!    nothing if it was answered before a restore or by the member that handed the device
+//!    over: [`Served::AlreadyAnswered`]);
+//!    older is `STALE`; a forward jump of more than [`MAX_SEQ_JUMP`] is `REJECTED`; plant
+//!    time must advance (else `REJECTED`). After [`RESYNC_AFTER`] such refusals in a row
+//!    that form a consistent stream of their own, the device follows that stream as a new
+//!    run: no value of `seq` or of plant time can lock a device out for longer;
+//! 5. the step's inputs (time, outputs, the references at that time) are checked against
+//!    the controllers (a fresh one for a new run): else `REJECTED`. Only now does the
+//!    device change: a new run starts, the numbers skipped count as lost, what the plant
+//!    applied is reported, and the controllers step;
+//! 6. the command is checked against the device's envelope a last time: a non-finite value
+//!    is never sent (`REJECTED`); one outside `[min, max]`, or further than the rate limit
+//!    allows from what the actuator holds, is clipped and counted (`clamped`). The rate
+//!    limit runs from the last command when the plant applied it, otherwise from what the
+//!    sample says the plant applies, or the last command sent, or rest; over at most two
+//!    periods of plant time (the lower median of recent intervals), so a leap of plant
+//!    time cannot open it.
+
+mod device;
+mod requests;
+mod shards;
+mod step;
+
+use std::collections::{BTreeSet, HashMap, VecDeque};
+
+use protocol::{pb, printable, PROTOCOL_VERSION};
+
+use crate::config::ServiceConfig;
+use device::{reply, Device, DeviceKey};
+pub use shards::Restored;
+
+/// Unknown device ids listed in the status; samples from further unknown ids are still
+/// counted, just not named.
+const UNKNOWN_KEPT: usize = 64;
+/// Largest forward jump of `seq` within a run. An hour's outage at 100 Hz skips 360 000;
+/// anything larger is garbage or hostile, and accepting it would make every later sample
+/// of the real plant look stale.
+pub const MAX_SEQ_JUMP: u64 = 1_000_000;
+/// How far back (samples) a sequence may go and still be a late sample of the same run,
+/// for plants that send no `run_id`; further back is taken for a restart.
+pub const REORDER_WINDOW: u64 = 64;
+/// Longest reason stored or sent back (bytes): reasons quote values from the network.
+const MAX_REASON: usize = 240;
+/// Consecutive samples of the run in force that the device refused as out of step (older
+/// than the last answered one, past a sequence jump, or with a plant time that does not
+/// advance) while forming a consistent stream of their own (sequence and time increasing)
+/// before the device follows that stream as a new run. Whatever put the device ahead of
+/// the plant (a jump of `seq` inside [`MAX_SEQ_JUMP`], a glitch of the plant's clock, a
+/// forged sample), the real plant is locked out for at most this many samples.
+pub const RESYNC_AFTER: u32 = 64;
+
+/// A reason cut to [`MAX_REASON`] bytes (on a character boundary), so that no input can
+/// make what the service stores, sends or logs large.
+fn capped(mut reason: String) -> String {
+    if reason.len() > MAX_REASON {
+        let mut end = MAX_REASON;
+        while !reason.is_char_boundary(end) {
+            end -= 1;
+        }
+        reason.truncate(end);
+        reason.push_str("...");
+    }
+    reason
+}
+
+/// What [`Registry::handle_sample`] did with a sample.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Served {
+    /// The command to publish is in `out`: a new answer, the cached one again for a
+    /// duplicate, or a refusal (`REJECTED`/`STALE`, with the reason in `error`).
+    /// `provisioned`: this sample made its device from a template.
+    Answered {
+        /// Whether this sample provisioned its device from a template.
+        provisioned: bool,
+    },
+    /// Not a device this service serves, and no template provisions it: nothing to publish
+    /// (counted in `unknown_samples`).
+    Unknown,
+    /// A template matches but the device table is full: nothing to publish (counted in
+    /// `device_table_full`).
+    TableFull,
+    /// A sample answered before this state was restored (by this service before a
+    /// restart, or by the fleet member that handed the device over): its answer went out
+    /// then, so nothing is published again (counted in `duplicates`). Answering it, even
+    /// STALE, would make two answers to one sample, from two instances in a handover.
+    AlreadyAnswered,
+}
+
+impl Served {
+    /// Whether a command was written (to be published).
+    pub fn answered(self) -> bool {
+        matches!(self, Self::Answered { .. })
+    }
+}
+
+/// How a sample reached the registry: the device id of the key it came on (the key
+/// decides the device), and the shard of the path it came by, which is where the
+/// device's state is handed over from in a fleet: its own key's shard, or its gateway's
+/// for a sample in a gateway's batch.
+#[derive(Debug, Clone, Copy)]
+pub struct Via<'a> {
+    /// The device id from the key.
+    pub key_id: &'a str,
+    /// The shard of the path.
+    pub home: u32,
+}
+
+impl<'a> Via<'a> {
+    /// A sample on the device's own key.
+    pub fn key(key_id: &'a str) -> Self {
+        Self {
+            key_id,
+            home: protocol::shard_of(key_id),
+        }
+    }
+
+    /// A sample in the batch of a gateway whose shard is `home`.
+    pub fn gateway(key_id: &'a str, home: u32) -> Self {
+        Self { key_id, home }
+    }
+}
+
+/// Median, 99th percentile and maximum of round trips (µs), nearest rank on the sorted
+/// window; all zero (count 0) for an empty window.
+pub fn latency(rtts: &VecDeque<u32>) -> pb::LatencyStats {
+    if rtts.is_empty() {
+        return pb::LatencyStats::default();
+    }
+    let mut v: Vec<u32> = rtts.iter().copied().collect();
+    v.sort_unstable();
+    let pick = |q: f64| f64::from(v[((v.len() - 1) as f64 * q).round() as usize]);
+    pb::LatencyStats {
+        count: v.len() as u32,
+        p50_us: pick(0.5),
+        p99_us: pick(0.99),
+        max_us: f64::from(*v.last().unwrap_or(&0)),
+    }
+}
+
+/// The checks of rule 2 that need no state: the sample's `device_id` is the key's, and
+/// every value is finite. The service runs them in Zenoh's callback, before a sample may
+/// take its device's place in the inbox (so garbage cannot supersede a real sample), and
+/// [`Registry::handle_sample`] runs them again. The reason is cut to printable length.
+pub fn precheck(key_id: &str, s: &pb::Sample) -> Result<(), String> {
+    if s.device_id != key_id {
+        return Err(format!(
+            "device id \"{}\" in a sample on the key of \"{key_id}\"",
+            printable(&s.device_id)
+        ));
+    }
+    if let Some(bad) = s.outputs.iter().chain(&s.applied).find(|v| !v.is_finite()) {
+        return Err(format!("non-finite value {bad:?}"));
+    }
+    if !s.plant_time.is_finite() {
+        return Err(format!("non-finite plant time {:?}", s.plant_time));
+    }
+    Ok(())
+}
+
+/// Why a registry could not be built from a configuration.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RegistryError {
+    /// A declared device's channels do not make a controller, or its output map lies
+    /// outside its envelope ([`ServiceConfig::check`] catches these first).
+    #[error("device {id:?}: {reason}")]
+    Device {
+        /// The declared id.
+        id: String,
+        /// The core's or the envelope's reason.
+        reason: String,
+    },
+}
+
+/// All devices of one controller.
+#[derive(Debug)]
+pub struct Registry {
+    controller_id: String,
+    config: ServiceConfig,
+    /// A hash map: a gateway's batch looks up thousands of devices a period. Whatever
+    /// lists them sorts them first, so listings stay in id order.
+    ///
+    /// Each device is boxed: the table itself stays small enough for the caches (its slots
+    /// hold the key and a pointer), and a lookup reads only it.
+    devices: HashMap<DeviceKey, Box<Device>>,
+    /// Samples whose id is neither declared nor matched by a template.
+    unknown_samples: u64,
+    /// The first `UNKNOWN_KEPT` of those ids.
+    unknown_devices: BTreeSet<String>,
+    /// Samples a template would have provisioned, refused because the table was full.
+    device_table_full: u64,
+    /// Payloads that did not decode (samples, reference updates, requests).
+    undecodable: u64,
+    /// Samples answered REJECTED, every device.
+    rejected: u64,
+    /// Configuration, envelope and reference requests refused.
+    requests_refused: u64,
+    /// Samples in gateway batches whose device id is not an id.
+    bad_device_ids: u64,
+}
+
+impl Registry {
+    /// Build every declared device from a checked configuration.
+    pub fn new(config: ServiceConfig) -> Result<Self, RegistryError> {
+        let mut devices = HashMap::new();
+        for d in &config.devices {
+            let mut dev = Device::new(&d.channels, d.prediction, false).map_err(|reason| {
+                RegistryError::Device {
+                    id: d.id.clone(),
+                    reason,
+                }
+            })?;
+            dev.home = protocol::shard_of(&d.id);
+            devices.insert(DeviceKey::new(&d.id), Box::new(dev));
+        }
+        Ok(Self {
+            controller_id: config.controller_id.clone(),
+            config,
+            devices,
+            unknown_samples: 0,
+            unknown_devices: BTreeSet::new(),
+            device_table_full: 0,
+            undecodable: 0,
+            rejected: 0,
+            requests_refused: 0,
+            bad_device_ids: 0,
+        })
+    }
+
+    /// The snapshot settings, if any.
+    pub fn snapshot_spec(&self) -> Option<&crate::config::SnapshotSpec> {
+        self.config.snapshots.as_ref()
+    }
+
+    /// The fleet settings, if any.
+    pub fn fleet(&self) -> Option<&crate::config::FleetSpec> {
+        self.config.fleet.as_ref()
+    }
+
+    /// The hot-standby settings, if any.
+    pub fn standby(&self) -> Option<&crate::config::StandbySpec> {
+        self.config.standby.as_ref()
+    }
+
+    /// This controller's id, carried in every command and in the service status.
+    pub fn controller_id(&self) -> &str {
+        &self.controller_id
+    }
+
+    /// Ids of the devices served now: the declared ones and those provisioned so far.
+    pub fn device_ids(&self) -> impl Iterator<Item = &str> {
+        let mut ids: Vec<&str> = self.devices.keys().map(DeviceKey::as_str).collect();
+        ids.sort_unstable();
+        ids.into_iter()
+    }
+
+    /// The devices in id order.
+    fn sorted(&self) -> Vec<(&str, &Device)> {
+        let mut v: Vec<(&str, &Device)> = self
+            .devices
+            .iter()
+            .map(|(k, d)| (k.as_str(), &**d))
+            .collect();
+        v.sort_unstable_by(|a, b| a.0.cmp(b.0));
+        v
+    }
+
+    /// Whether `id` is served now.
+    pub fn serves(&self, id: &str) -> bool {
+        self.devices.contains_key(id)
+    }
+
+    /// How many devices are served now; never more than the file's `max_devices`.
+    pub fn device_count(&self) -> usize {
+        self.devices.len()
+    }
+
+    /// Count a payload that did not decode; reported as `undecodable` in the service status.
+    pub fn note_undecodable(&mut self) {
+        self.undecodable += 1;
+    }
+
+    /// Count a refused request that never reached a device (undecodable, bad key).
+    pub fn note_request_refused(&mut self) {
+        self.requests_refused += 1;
+    }
+
+    /// Count a sample in a gateway batch whose device id is not a valid id (nothing to
+    /// answer); reported as `bad_device_ids` in the service status.
+    pub fn note_bad_id(&mut self) {
+        self.bad_device_ids += 1;
+    }
+
+    /// Add `n` superseded samples to device `id`'s status (the service-wide count is the
+    /// inbox's own).
+    pub fn note_superseded(&mut self, id: &str, n: u64) {
+        if let Some(d) = self.devices.get_mut(id) {
+            d.superseded += n;
+        }
+    }
+
+    /// The templates' patterns, parsed (a pattern that does not parse matches nothing,
+    /// as in [`Registry::handle_sample`]): what zenoh's callbacks check an unknown id
+    /// against before they queue anything for it.
+    pub fn template_patterns(&self) -> Vec<zenoh::key_expr::OwnedKeyExpr> {
+        self.config
+            .templates
+            .iter()
+            .filter_map(|t| zenoh::key_expr::OwnedKeyExpr::try_from(t.pattern.clone()).ok())
+            .collect()
+    }
+
+    fn template_for(&self, id: &str) -> Option<&crate::config::TemplateSpec> {
+        let ke = zenoh::key_expr::KeyExpr::try_from(id).ok()?;
+        self.config.templates.iter().find(|t| {
+            zenoh::key_expr::KeyExpr::try_from(t.pattern.as_str()).is_ok_and(|p| p.includes(&ke))
+        })
+    }
+
+    /// Rule 1: serve `id` if it is declared or a template provisions it with room left;
+    /// otherwise why not ([`Served::Unknown`] or [`Served::TableFull`]).
+    fn provision(&mut self, id: &str) -> Result<(), Served> {
+        if self.devices.contains_key(id) {
+            return Ok(());
+        }
+        let Some(t) = self.template_for(id) else {
+            return Err(Served::Unknown);
+        };
+        if self.devices.len() >= self.config.max_devices {
+            return Err(Served::TableFull);
+        }
+        let mut d = Device::new(&t.channels, t.prediction, true).map_err(|_| Served::Unknown)?;
+        d.home = protocol::shard_of(id);
+        self.devices.insert(DeviceKey::new(id), Box::new(d));
+        Ok(())
+    }
+
+    /// Answer a sample by the rules of the module doc, writing the command into `out`
+    /// (reusing its buffers: a gateway's batch keeps one command per sample from batch to
+    /// batch, so answering allocates nothing). `now_unix_ns` is the time the answer
+    /// carries (`controller_unix_ns`). The hot path: one lookup of the device when it is
+    /// known, besides the step itself.
+    pub fn handle_sample(
+        &mut self,
+        via: Via<'_>,
+        s: &pb::Sample,
+        now_unix_ns: u64,
+        out: &mut pb::Command,
+    ) -> Served {
+        let mut provisioned = false;
+        if !self.devices.contains_key(via.key_id) {
+            // Not served yet (the rare path): a template may provision it, and then it is
+            // served as any other.
+            if let Err(why) = self.provision(via.key_id) {
+                self.count_unserved(via.key_id, why);
+                return why;
+            }
+            provisioned = true;
+        }
+        let Some(d) = self.devices.get_mut(via.key_id) else {
+            return Served::Unknown;
+        };
+        let answered = step::answer(
+            step::Context {
+                controller_id: &self.controller_id,
+                rejected: &mut self.rejected,
+                now_unix_ns,
+            },
+            d,
+            via,
+            s,
+            out,
+        );
+        if answered {
+            Served::Answered { provisioned }
+        } else {
+            Served::AlreadyAnswered
+        }
+    }
+
+    /// Count a sample whose device cannot be served (rule 1).
+    fn count_unserved(&mut self, key_id: &str, why: Served) {
+        if why == Served::TableFull {
+            self.device_table_full += 1;
+        } else {
+            self.unknown_samples += 1;
+            if self.unknown_devices.len() < UNKNOWN_KEPT {
+                self.unknown_devices.insert(printable(key_id));
+            }
+        }
+    }
+
+    /// Answer a sample that [`precheck`] refused before it reached the inbox: REJECTED with
+    /// `reason` if the key's device is served (`None`: counted as unknown; a malformed
+    /// sample never provisions a device).
+    pub fn refuse_sample(
+        &mut self,
+        key_id: &str,
+        (seq, sent_unix_ns): (u64, u64),
+        reason: String,
+        now_unix_ns: u64,
+    ) -> Option<pb::Command> {
+        let Some(d) = self.devices.get_mut(key_id) else {
+            self.count_unserved(key_id, Served::Unknown);
+            return None;
+        };
+        let reason = capped(reason);
+        d.samples += 1;
+        d.rejected += 1;
+        self.rejected += 1;
+        d.last_error.clone_from(&reason);
+        Some(reply(
+            (&self.controller_id, key_id),
+            (seq, sent_unix_ns, now_unix_ns),
+            pb::Mode::Rejected,
+            reason,
+        ))
+    }
+
+    /// Status of one device.
+    pub fn device_status(&self, id: &str) -> Option<pb::DeviceStatus> {
+        self.devices.get(id).map(|d| d.status_pb(id))
+    }
+
+    /// Status of the whole service, `uptime` in seconds. It reports `active` true and term
+    /// 0, and none of the inbox's drops: the caller fills those in.
+    pub fn service_status(&self, uptime: f64) -> pb::ServiceStatus {
+        pb::ServiceStatus {
+            version: PROTOCOL_VERSION,
+            controller_id: self.controller_id.clone(),
+            devices: self
+                .sorted()
+                .into_iter()
+                .map(|(id, d)| d.status_pb(id))
+                .collect(),
+            unknown_samples: self.unknown_samples,
+            unknown_devices: self.unknown_devices.iter().cloned().collect(),
+            undecodable: self.undecodable,
+            uptime,
+            active: true,
+            term: 0,
+            rejected: self.rejected,
+            device_table_full: self.device_table_full,
+            requests_refused: self.requests_refused,
+            bad_device_ids: self.bad_device_ids,
+            ..Default::default()
+        }
+    }
+}

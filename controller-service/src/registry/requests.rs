@@ -1,0 +1,156 @@
+//! Configuration, reference and envelope changes: each all or nothing, checked before
+//! anything changes, never outside the device's envelope; the reply carries the
+//! configuration in force afterwards.
+
+use mfc::ChannelConfig;
+use protocol::{pb, printable, PROTOCOL_VERSION};
+
+use super::device::Device;
+use super::{capped, Registry};
+use crate::envelope::Limits;
+
+impl Registry {
+    /// The safety envelope in force for a device, if served.
+    pub fn envelope_of(&self, id: &str) -> Option<Vec<Limits>> {
+        self.devices.get(id).map(|d| d.envelope.to_vec())
+    }
+
+    /// The configuration of a device, if served.
+    pub fn config_of(&self, id: &str) -> Option<pb::DeviceConfig> {
+        self.devices.get(id).map(|d| d.config_pb(id))
+    }
+
+    /// Apply a configuration request (see `ConfigRequest` in the `.proto`): all or nothing,
+    /// bumpless, never outside the envelope. The reply carries the configuration in force
+    /// afterwards, accepted or not (none for an unknown device).
+    pub fn configure(&mut self, id: &str, req: &pb::ConfigRequest) -> pb::ConfigReply {
+        let Some(d) = self.devices.get_mut(id) else {
+            self.requests_refused += 1;
+            return refused(format!("unknown device \"{}\"", printable(id)), None);
+        };
+        let planned = d.plan(req).and_then(|(configs, reference)| {
+            d.mimo.reconfigure(&configs).map_err(|e| e.to_string())?;
+            Ok((configs, reference))
+        });
+        let applied = planned.map(|(configs, reference)| {
+            d.configs = configs;
+            if let Some((pieces, start)) = reference {
+                d.reference = pieces.into();
+                d.reference_start = start;
+            }
+        });
+        conclude(d, &mut self.requests_refused, id, applied)
+    }
+
+    /// Replace a device's reference (live steering); the reply says why if refused.
+    pub fn set_reference(&mut self, id: &str, update: &pb::ReferenceUpdate) -> pb::ConfigReply {
+        let req = pb::ConfigRequest {
+            version: PROTOCOL_VERSION,
+            reference: Some(update.reference.clone().unwrap_or_default()),
+            ..Default::default()
+        };
+        let reply = self.configure(id, &req);
+        if !reply.accepted {
+            if let Some(d) = self.devices.get_mut(id) {
+                d.references_refused += 1;
+            }
+        }
+        reply
+    }
+
+    /// Change a device's envelope (see `EnvelopeRequest` in the `.proto`). Narrowing is
+    /// always accepted; widening only if the file sets `allow_remote_widening`. The output
+    /// maps in force are narrowed to fit, bumplessly.
+    pub fn change_envelope(&mut self, id: &str, req: &pb::EnvelopeRequest) -> pb::ConfigReply {
+        let allow_widening = self.config.allow_remote_widening;
+        let Some(d) = self.devices.get_mut(id) else {
+            self.requests_refused += 1;
+            return refused(format!("unknown device \"{}\"", printable(id)), None);
+        };
+        let n = d.channels();
+        let planned = (|| {
+            let asked = req.envelope.clone().unwrap_or_default().channels;
+            if asked.len() != n {
+                return Err(format!(
+                    "device has {n} channels, envelope has {}",
+                    asked.len()
+                ));
+            }
+            let limits = asked
+                .iter()
+                .enumerate()
+                .map(|(i, l)| limits_from_pb(l, i))
+                .collect::<Result<Vec<_>, _>>()?;
+            if !allow_widening {
+                if let Some(i) = (0..n).find(|&i| d.envelope[i].is_widened_by(&limits[i])) {
+                    return Err(format!(
+                        "envelope.channels[{i}] widens the envelope; this service allows only \
+                         narrowing (allow_remote_widening = false in its file)"
+                    ));
+                }
+            }
+            let configs: Vec<ChannelConfig> = d
+                .configs
+                .iter()
+                .zip(&limits)
+                .map(|(c, l)| ChannelConfig {
+                    law: c.law,
+                    output: l.narrow(c.output),
+                })
+                .collect();
+            d.mimo.reconfigure(&configs).map_err(|e| e.to_string())?;
+            Ok((limits, configs))
+        })();
+        let applied = planned.map(|(limits, configs)| {
+            d.envelope = limits.into();
+            d.configs = configs;
+            d.envelope_changes += 1;
+        });
+        conclude(d, &mut self.requests_refused, id, applied)
+    }
+}
+
+fn refused(reason: String, config: Option<pb::DeviceConfig>) -> pb::ConfigReply {
+    pb::ConfigReply {
+        version: PROTOCOL_VERSION,
+        accepted: false,
+        reason,
+        config,
+    }
+}
+
+/// The reply to a request on device `d` (`id`): the configuration in force afterwards,
+/// and for a refusal the reason, also kept as the device's last error and counted.
+fn conclude(
+    d: &mut Device,
+    requests_refused: &mut u64,
+    id: &str,
+    applied: Result<(), String>,
+) -> pb::ConfigReply {
+    match applied {
+        Ok(()) => pb::ConfigReply {
+            version: PROTOCOL_VERSION,
+            accepted: true,
+            reason: String::new(),
+            config: Some(d.config_pb(id)),
+        },
+        Err(reason) => {
+            let reason = capped(reason);
+            *requests_refused += 1;
+            d.last_error.clone_from(&reason);
+            refused(reason, Some(d.config_pb(id)))
+        }
+    }
+}
+
+/// Wire limits to core, checked; `i` names the channel in errors.
+fn limits_from_pb(l: &pb::ChannelLimits, i: usize) -> Result<Limits, String> {
+    let out = Limits {
+        min: l.min.unwrap_or(f64::NEG_INFINITY),
+        max: l.max.unwrap_or(f64::INFINITY),
+        rate_limit: l.rate_limit,
+    };
+    out.check()
+        .map_err(|e| format!("envelope.channels[{i}]: {e}"))?;
+    Ok(out)
+}

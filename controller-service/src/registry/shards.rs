@@ -1,0 +1,305 @@
+//! Fleet support ([`crate::fleet`]) and snapshots: which shard each device lives in, a
+//! shard's state as handed between members, a device's state as saved and restored. The
+//! files themselves are [`crate::snapshot`]'s.
+
+use mfc::{ChannelConfig, ChannelOutput, MimoController, Reference};
+use protocol::printable;
+
+use super::device::{Device, DeviceKey};
+use super::Registry;
+use crate::envelope::Limits;
+use crate::snapshot::{DeviceSnapshot, HandedDevice, ShardState, SNAPSHOT_VERSION};
+
+/// What [`Registry::restore_shard`] did.
+#[derive(Debug, Default, Clone, PartialEq)]
+pub struct Restored {
+    /// Devices restored.
+    pub restored: usize,
+    /// Devices refused: their id (printable) and why.
+    pub refused: Vec<(String, String)>,
+}
+
+/// Fleet support ([`crate::fleet`]): which shard each device lives in, and the state of a
+/// shard as handed between members.
+impl Registry {
+    /// The shard `id` lives in, if served.
+    pub fn home_of(&self, id: &str) -> Option<u32> {
+        self.devices.get(id).map(|d| d.home)
+    }
+
+    /// Ids of the devices served whose shard is in `mask` (bit `s` for shard `s`).
+    pub fn device_ids_in(&self, mask: u64) -> Vec<String> {
+        self.devices
+            .iter()
+            .filter(|(_, d)| mask & (1u64 << (d.home % 64)) != 0)
+            .map(|(id, _)| id.as_str().to_string())
+            .collect()
+    }
+
+    /// The state of the devices `ids` (those served), as a one-shard handover of `shard`:
+    /// what an owner sends its standby after a configuration change.
+    pub fn devices_state(&self, shard: u32, ids: &[&str]) -> ShardState {
+        ShardState {
+            version: SNAPSHOT_VERSION,
+            shard,
+            devices: ids
+                .iter()
+                .filter_map(|id| Self::handed(id, self.devices.get(*id)?))
+                .collect(),
+        }
+    }
+
+    /// The state of every device of `shard`, for a handover.
+    pub fn shard_state(&self, shard: u32) -> ShardState {
+        ShardState {
+            version: SNAPSHOT_VERSION,
+            shard,
+            devices: self
+                .sorted()
+                .into_iter()
+                .filter(|(_, d)| d.home == shard)
+                .filter_map(|(id, d)| Self::handed(id, d))
+                .collect(),
+        }
+    }
+
+    /// Take over a shard's state from another member: every device is restored as the
+    /// previous owner had it (configuration, envelope, estimators, sequence), so the next
+    /// sample continues bumplessly. Returns how many were restored, and each device
+    /// refused with its reason (for the caller to log).
+    pub fn restore_shard(&mut self, state: &ShardState) -> Restored {
+        let mut out = Restored::default();
+        for h in &state.devices {
+            match self.restore_handed(h) {
+                Ok(()) => out.restored += 1,
+                Err(reason) => out.refused.push((printable(&h.snapshot.id), reason)),
+            }
+        }
+        out
+    }
+
+    fn restore_handed(&mut self, h: &HandedDevice) -> Result<(), String> {
+        keys_check(&h.snapshot.id)?;
+        let envelope: Vec<Limits> = h
+            .envelope
+            .iter()
+            .map(|&(min, max, rate_limit)| Limits {
+                min,
+                max,
+                rate_limit,
+            })
+            .collect();
+        for l in &envelope {
+            l.check()?;
+        }
+        // Build the device if this member never saw it, then narrow its envelope to the
+        // handed one: a handover never widens what the file allows here.
+        if !self.devices.contains_key(h.snapshot.id.as_str()) {
+            self.provision(&h.snapshot.id)
+                .map_err(|why| format!("cannot serve it here: {why:?}"))?;
+        }
+        let d = self
+            .devices
+            .get_mut(h.snapshot.id.as_str())
+            .ok_or("not served here")?;
+        if envelope.len() != d.envelope.len() {
+            return Err(format!(
+                "{} envelope channels, the device has {}",
+                envelope.len(),
+                d.envelope.len()
+            ));
+        }
+        let narrowed: Vec<Limits> = d
+            .envelope
+            .iter()
+            .zip(&envelope)
+            .map(|(mine, theirs)| mine.intersect(theirs))
+            .collect();
+        for l in &narrowed {
+            l.check()?;
+        }
+        d.envelope = narrowed.into();
+        d.home = h.home;
+        self.restore_with(&h.snapshot, h.live_config)
+    }
+
+    /// Drop the state of every device of `shard` (this member no longer owns or backs it
+    /// up): template devices are removed (their ids are returned), declared ones rebuilt
+    /// from the file.
+    pub fn forget_shard(&mut self, shard: u32) -> Vec<String> {
+        let mut removed = Vec::new();
+        let ids: Vec<String> = self
+            .devices
+            .iter()
+            .filter(|(_, d)| d.home == shard)
+            .map(|(id, _)| id.as_str().to_string())
+            .collect();
+        for id in ids {
+            let declared = self.config.devices.iter().find(|d| d.id == id).cloned();
+            match declared.and_then(|spec| Device::new(&spec.channels, spec.prediction, false).ok())
+            {
+                Some(mut fresh) => {
+                    fresh.home = protocol::shard_of(&id);
+                    self.devices.insert(DeviceKey::new(&id), Box::new(fresh));
+                }
+                None => {
+                    self.devices.remove(id.as_str());
+                    removed.push(id);
+                }
+            }
+        }
+        removed
+    }
+}
+
+fn keys_check(id: &str) -> Result<(), String> {
+    protocol::keys::check_id(id)
+        .map(|_| ())
+        .map_err(|e| e.to_string())
+}
+
+impl Registry {
+    /// Snapshots of every device (for [`crate::snapshot`]); a device whose control state
+    /// does not encode is left out.
+    pub fn snapshots(&self) -> Vec<DeviceSnapshot> {
+        self.snapshots_where(|_, _| true)
+    }
+
+    fn snapshots_where(&self, keep: impl Fn(&str, &Device) -> bool) -> Vec<DeviceSnapshot> {
+        self.sorted()
+            .into_iter()
+            .filter(|(id, d)| keep(id, d))
+            .filter_map(|(id, d)| Self::snapshot_of(id, d))
+            .collect()
+    }
+
+    /// One device's snapshot; `None` if its control state does not encode.
+    fn snapshot_of(id: &str, d: &Device) -> Option<DeviceSnapshot> {
+        Some(DeviceSnapshot {
+            version: SNAPSHOT_VERSION,
+            id: id.to_string(),
+            mimo: mfc::snapshot::to_bytes(&d.mimo).ok()?,
+            reference: d.reference.to_vec(),
+            reference_start: d.reference_start,
+            run_id: d.run_id,
+            last_seq: d.last_seq,
+            last_time: d.last_time,
+            counters: [
+                d.samples,
+                d.commands,
+                d.lost,
+                d.duplicates,
+                d.stale,
+                d.rejected,
+                d.samples_off_remote,
+            ],
+            from_template: d.from_template,
+        })
+    }
+
+    /// One device as handed to another fleet member: its snapshot, shard and envelope.
+    fn handed(id: &str, d: &Device) -> Option<HandedDevice> {
+        Some(HandedDevice {
+            snapshot: Self::snapshot_of(id, d)?,
+            home: d.home,
+            envelope: d
+                .envelope
+                .iter()
+                .map(|l| (l.min, l.max, l.rate_limit))
+                .collect(),
+            live_config: true,
+        })
+    }
+
+    /// Restore a device from its snapshot. Refused (and the device left as configured) if
+    /// the snapshot's laws differ from the configuration in force: a changed configuration
+    /// wins over an old state.
+    pub fn restore(&mut self, snap: &DeviceSnapshot) -> Result<(), String> {
+        self.restore_with(snap, false)
+    }
+
+    /// [`Registry::restore`]; with `live_config`, a declared device takes the snapshot's
+    /// laws even where they differ from the file's (a handover from a member on which they
+    /// were changed remotely). The output maps must still lie inside the envelope.
+    fn restore_with(&mut self, snap: &DeviceSnapshot, live_config: bool) -> Result<(), String> {
+        let mimo: MimoController =
+            mfc::snapshot::from_bytes(&snap.mimo).map_err(|e| e.to_string())?;
+        let configs: Vec<ChannelConfig> = mimo.channels().iter().map(|c| *c.config()).collect();
+        let d = match self.devices.get_mut(snap.id.as_str()) {
+            Some(d) => d,
+            None if snap.from_template => {
+                // Rebuilt from the template that matches it now, for its envelope; a device
+                // no template matches any more is not served any more.
+                let Some(t) = self.template_for(&snap.id) else {
+                    return Err(format!("no template matches device {:?} any more", snap.id));
+                };
+                if self.devices.len() >= self.config.max_devices {
+                    return Err(format!("device {:?}: the device table is full", snap.id));
+                }
+                let d = Device::new(&t.channels, t.prediction, true)?;
+                self.devices
+                    .entry(DeviceKey::new(&snap.id))
+                    .or_insert(Box::new(d))
+            }
+            None => return Err(format!("device {:?} is no longer configured", snap.id)),
+        };
+        if configs.len() != d.channels() {
+            return Err(format!(
+                "device {:?}: the snapshot has {} channels, the device {}",
+                snap.id,
+                configs.len(),
+                d.channels()
+            ));
+        }
+        if !snap.from_template && !live_config && configs != d.configs {
+            return Err(format!(
+                "device {:?}: configuration changed since the snapshot",
+                snap.id
+            ));
+        }
+        // A template device's laws may have been changed remotely; its maps must still lie
+        // inside the envelope it has now.
+        for (i, (c, l)) in configs.iter().zip(&d.envelope).enumerate() {
+            if *c
+                != (ChannelConfig {
+                    law: c.law,
+                    output: l.narrow(c.output),
+                })
+            {
+                return Err(format!(
+                    "device {:?}: channel {i}'s output map lies outside its envelope",
+                    snap.id
+                ));
+            }
+        }
+        if snap.reference.len() != configs.len() {
+            return Err(format!(
+                "device {:?}: reference has the wrong number of channels",
+                snap.id
+            ));
+        }
+        d.outputs = smallvec::smallvec![ChannelOutput::default(); configs.len()];
+        d.refs = smallvec::smallvec![Reference::default(); configs.len()];
+        d.f_est = smallvec::smallvec![f64::NAN; configs.len()];
+        d.configs = configs;
+        d.mimo = mimo;
+        d.reference = snap.reference.iter().cloned().collect();
+        d.reference_start = snap.reference_start;
+        d.run_id = snap.run_id;
+        d.last_seq = snap.last_seq;
+        d.last_time = snap.last_time;
+        [
+            d.samples,
+            d.commands,
+            d.lost,
+            d.duplicates,
+            d.stale,
+            d.rejected,
+            d.samples_off_remote,
+        ] = snap.counters;
+        d.last_command = None;
+        d.retired.clear();
+        d.restored = true;
+        Ok(())
+    }
+}

@@ -1,0 +1,459 @@
+//! What answering a sample needs, shared by the worker's task and zenoh's callbacks: the
+//! registry, the observers, the command publishers ([`Core`]), and the inboxes and masks
+//! the callbacks read without waiting ([`Shared`]).
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+
+use protocol::{encode, keys, pb, printable};
+use tokio::sync::Notify;
+use zenoh::pubsub::Publisher;
+use zenoh::{Session, Wait};
+
+use super::intake::Drops;
+use super::log::{throttled, Warnings};
+use super::{lock, GATEWAY_PUBLISHERS};
+use crate::inbox::{Inbox, Taken};
+use crate::observe::{thread_cpu, DeviceHistograms, ServiceMetrics};
+use crate::registry::{Registry, Served, Via};
+use telemetry::{Recording, Topic};
+
+/// Which shards this member steps and answers, read by zenoh's callbacks (bit `s` for
+/// shard `s`); all of them without a fleet.
+#[derive(Debug)]
+pub(super) struct Masks {
+    step: AtomicU64,
+    /// The shards whose samples are answered (all or none without a fleet: whether this
+    /// member is active). Written only with the [`Core`] held, and read with it held by
+    /// whoever answers, so that a handover's state and the answers agree (see
+    /// `Worker::handle_handover`).
+    answer: AtomicU64,
+}
+
+impl Masks {
+    pub(super) fn new(step: u64, answer: u64) -> Self {
+        Self {
+            step: AtomicU64::new(step),
+            answer: AtomicU64::new(answer),
+        }
+    }
+
+    pub(super) fn steps(&self, shard: u32) -> bool {
+        self.step.load(Ordering::Relaxed) & (1u64 << (shard % 64)) != 0
+    }
+
+    pub(super) fn answers(&self, shard: u32) -> bool {
+        self.answer.load(Ordering::Relaxed) & (1u64 << (shard % 64)) != 0
+    }
+
+    /// Store new masks; call it with the [`Core`] held (the `_held` guard says so).
+    pub(super) fn store(&self, _held: &Core, step: u64, answer: u64) {
+        self.step.store(step, Ordering::Relaxed);
+        self.answer.store(answer, Ordering::Relaxed);
+    }
+}
+
+/// What the worker and zenoh's callbacks share. Lock order: the core, then an inbox.
+pub(super) struct Shared {
+    pub(super) core: Mutex<Core>,
+    /// Samples waiting for the worker: the latest per device.
+    pub(super) inbox: Mutex<Inbox<pb::Sample>>,
+    /// Gateway batches waiting for the worker: the latest per gateway.
+    pub(super) gateways: Mutex<Inbox<pb::SampleBatch>>,
+    pub(super) masks: Masks,
+    /// Drops counted in the callbacks, before the worker sees anything.
+    pub(super) drops: Drops,
+    /// Wakes the worker when a sample or a batch waits.
+    pub(super) wake: Notify,
+}
+
+/// What the answer to a sample needs: the device state, its observers and the publishers
+/// of its commands. Shared by the worker's task and zenoh's callbacks: a callback that
+/// finds the core free and nothing queued answers its sample at once, on its own thread,
+/// as the echo anchor does; otherwise the sample is queued for the worker. Waking the
+/// worker's task costs a thread switch per sample (about 20 us on the reference machine,
+/// and much more in the tail when the other core is busy), which was most of what the
+/// service cost beyond the anchor. The callbacks only ever `try_lock` it, so they never
+/// wait for the worker; the worker never holds it across an `.await`.
+pub(super) struct Core {
+    pub(super) registry: Registry,
+    pub(super) watch: Watch,
+    /// Throttles for what is logged while answering (the worker keeps its own for the rest).
+    pub(super) warn: Warnings,
+    /// One publisher per served device, made at its first command: bounded by the file's
+    /// `max_devices`, never by what arrives. Shared out, so the worker can publish with
+    /// the core released.
+    publishers: HashMap<String, Arc<Publisher<'static>>>,
+    /// The same for gateways' command batches (at most [`GATEWAY_PUBLISHERS`]).
+    gw_publishers: HashMap<String, Arc<Publisher<'static>>>,
+    /// The commands of the last batch, kept with their buffers for the next one.
+    pool: Vec<pb::Command>,
+}
+
+impl Core {
+    pub(super) fn new(registry: Registry, watch: Watch) -> Self {
+        Self {
+            registry,
+            watch,
+            warn: Warnings::default(),
+            publishers: HashMap::new(),
+            gw_publishers: HashMap::new(),
+            pool: Vec::new(),
+        }
+    }
+
+    /// Step one sample of its device; the command to send, if this worker answers it.
+    pub(super) fn serve_sample(
+        &mut self,
+        answers: bool,
+        inbox: &Mutex<Inbox<pb::Sample>>,
+        taken: Taken<pb::Sample>,
+    ) -> Option<pb::Command> {
+        let dev = taken.id.as_str();
+        let sample = taken.item;
+        let log_ns = protocol::unix_ns();
+        let cpu0 = self.watch.timing().then(thread_cpu);
+        // Every member follows every sample (a standby stays warm); only the active one
+        // answers.
+        let mut cmd = pb::Command::default();
+        let served = self
+            .registry
+            .handle_sample(Via::key(dev), &sample, log_ns, &mut cmd);
+        let cpu = cpu0.map(|c| thread_cpu() - c);
+        if taken.superseded > 0 {
+            self.registry.note_superseded(dev, taken.superseded);
+        }
+        let provisioned = self.note_served(dev, None, served, &cmd);
+        if !served.answered() {
+            return None;
+        }
+        if provisioned {
+            lock(inbox).serve(dev);
+        }
+        self.watch
+            .served(&self.registry, dev, &sample, &cmd, cpu, provisioned, log_ns);
+        answers.then_some(cmd)
+    }
+
+    /// Log what the registry did with a sample of `dev` (from gateway `gw`, if any), as a
+    /// warning throttled by kind; whether it provisioned its device.
+    fn note_served(
+        &mut self,
+        dev: &str,
+        gw: Option<&str>,
+        served: Served,
+        cmd: &pb::Command,
+    ) -> bool {
+        let warn = &mut self.warn;
+        match (served, gw) {
+            (Served::Answered { provisioned }, _) => {
+                match (provisioned, gw) {
+                    (true, Some(gw)) => {
+                        tracing::info!(device = %dev, gateway = %gw, "provisioned from a template");
+                    }
+                    (true, None) => tracing::info!(device = %dev, "provisioned from a template"),
+                    (false, _) => {}
+                }
+                if cmd.mode == pb::Mode::Rejected as i32 {
+                    throttled!(warn.rejected, warn, device = %dev, seq = cmd.seq, "sample refused: {}", cmd.error);
+                }
+                return provisioned;
+            }
+            (Served::Unknown, Some(gw)) => {
+                throttled!(warn.unknown, warn, device = %dev, gateway = %gw, "sample from a device this service does not serve (no template matches): dropped");
+            }
+            (Served::Unknown, None) => {
+                throttled!(warn.unknown, warn, device = %dev, "sample from a device this service does not serve (no template matches): dropped");
+            }
+            (Served::TableFull, _) => {
+                throttled!(warn.table_full, warn, device = %dev, "a template matches but the device table is full (max_devices): dropped");
+            }
+            // Answered before a restore or by the member that handed it over: once is enough.
+            (Served::AlreadyAnswered, _) => {}
+        }
+        false
+    }
+
+    /// Answer one gateway batch with one batch: every sample is handled exactly as a lone
+    /// sample of its device would be (the registry's rules, per device), and every answer
+    /// goes back in one [`pb::CommandBatch`] on the gateway's command key. The commands
+    /// are written into the pool's, kept from batch to batch, so that answering thousands
+    /// of samples a period allocates nothing. Returns the gateway and the encoded batch to
+    /// send, if this worker answers it.
+    pub(super) fn serve_batch(
+        &mut self,
+        answers: bool,
+        inbox: &Mutex<Inbox<pb::Sample>>,
+        taken: Taken<pb::SampleBatch>,
+    ) -> Option<(String, Vec<u8>)> {
+        let gw = taken.id;
+        let home = protocol::shard_of(&gw);
+        let batch = taken.item;
+        let mut commands = std::mem::take(&mut self.pool);
+        let mut n = 0;
+        let log_ns = protocol::unix_ns();
+        // One clock read for the batch: its time is shared by its samples (reading the
+        // clock per sample would cost as much as a step).
+        let cpu0 = self.watch.timing().then(thread_cpu);
+        let mut answered: Vec<(usize, usize, bool)> = Vec::new();
+        for (k, sample) in batch.samples.iter().enumerate() {
+            let dev = sample.device_id.as_str();
+            if keys::check_id(dev).is_err() {
+                // No device to answer: an id that could not even be a key.
+                self.registry.note_bad_id();
+                let warn = &mut self.warn;
+                throttled!(warn.rejected, warn, gateway = %gw, device = %printable(dev), "sample in a batch with an invalid device id: dropped");
+                continue;
+            }
+            if commands.len() == n {
+                commands.push(pb::Command::default());
+            }
+            let via = Via::gateway(dev, home);
+            let served = self
+                .registry
+                .handle_sample(via, sample, log_ns, &mut commands[n]);
+            let provisioned = self.note_served(dev, Some(&gw), served, &commands[n]);
+            if provisioned {
+                lock(inbox).serve(dev);
+            }
+            if served.answered() {
+                if self.watch.timing() || self.watch.recording.is_some() {
+                    answered.push((k, n, provisioned));
+                }
+                n += 1;
+            }
+        }
+        if !answered.is_empty() {
+            let cpu = cpu0.map(|c| (thread_cpu() - c) / answered.len() as f64);
+            for &(k, i, provisioned) in &answered {
+                let (sample, cmd) = (&batch.samples[k], &commands[i]);
+                let dev = &sample.device_id;
+                self.watch
+                    .served(&self.registry, dev, sample, cmd, cpu, provisioned, log_ns);
+            }
+        }
+        // Only the answered ones go out; the spare ones keep their buffers for the next
+        // batch.
+        let spare = commands.split_off(n);
+        let out = pb::CommandBatch {
+            version: protocol::PROTOCOL_VERSION,
+            gateway_id: gw.clone(),
+            commands,
+            controller_id: self.registry.controller_id().to_string(),
+        };
+        let payload = (answers && n > 0).then(|| encode(&out));
+        self.pool = out.commands;
+        self.pool.extend(spare);
+        payload.map(|p| (gw, p))
+    }
+
+    /// Publish `cmd` from one of zenoh's callbacks (a blocking put there is zenoh's own
+    /// way, never in async code), declaring the device's publisher the first time.
+    pub(super) fn publish_now(&mut self, session: &Session, dev: &str, cmd: &pb::Command) {
+        if !self.publishers.contains_key(dev) {
+            match transport::control_publisher_now(session, keys::command(dev)) {
+                Ok(p) => {
+                    self.publishers.insert(dev.to_string(), Arc::new(p));
+                }
+                Err(e) => {
+                    tracing::error!(device = %dev, "{e}");
+                    return;
+                }
+            }
+        }
+        if let Some(p) = self.publishers.get(dev) {
+            if let Err(e) = p.put(encode(cmd)).wait() {
+                tracing::warn!(device = %dev, "publishing a command: {e}");
+            }
+        }
+    }
+
+    /// Drop the publishers (at the end: they are declarations too).
+    pub(super) fn undeclare_publishers(&mut self) {
+        self.publishers.clear();
+        self.gw_publishers.clear();
+    }
+
+    /// A device's state is gone from here: its histograms go with it.
+    pub(super) fn forget(&mut self, dev: &str) {
+        self.watch.histograms.remove(dev);
+    }
+}
+
+/// Publish a command on a served device's key from the worker's task, declaring its
+/// publisher the first time; the core is not held while sending.
+pub(super) async fn publish(session: &Session, core: &Mutex<Core>, dev: &str, cmd: &pb::Command) {
+    let known = lock(core).publishers.get(dev).cloned();
+    let publisher = match known {
+        Some(p) => p,
+        None => match transport::control_publisher(session, keys::command(dev)).await {
+            Ok(p) => lock(core)
+                .publishers
+                .entry(dev.to_string())
+                .or_insert_with(|| Arc::new(p))
+                .clone(),
+            Err(e) => {
+                tracing::error!(device = %dev, "{e}");
+                return;
+            }
+        },
+    };
+    if let Err(e) = publisher.put(encode(cmd)).await {
+        tracing::warn!(device = %dev, "publishing a command: {e}");
+    }
+}
+
+/// Send a gateway's command batch from the worker's task, declaring its publisher the
+/// first time (up to [`GATEWAY_PUBLISHERS`]; beyond, through the session); the core is
+/// not held while sending.
+pub(super) async fn publish_batch(
+    session: &Session,
+    core: &Mutex<Core>,
+    gw: String,
+    payload: Vec<u8>,
+) {
+    let key = keys::gateway_commands(&gw);
+    let known = {
+        let c = lock(core);
+        c.gw_publishers
+            .get(&gw)
+            .cloned()
+            .ok_or(c.gw_publishers.len() < GATEWAY_PUBLISHERS)
+    };
+    let publisher = match known {
+        Ok(p) => Some(p),
+        Err(room) if room => match transport::control_publisher(session, key.clone()).await {
+            Ok(p) => Some(
+                lock(core)
+                    .gw_publishers
+                    .entry(gw.clone())
+                    .or_insert_with(|| Arc::new(p))
+                    .clone(),
+            ),
+            Err(e) => {
+                tracing::error!(gateway = %gw, "{e}");
+                None
+            }
+        },
+        Err(_) => None,
+    };
+    let sent = match publisher {
+        Some(p) => p.put(payload).await,
+        None => {
+            session
+                .put(key, payload)
+                .congestion_control(zenoh::qos::CongestionControl::Drop)
+                .priority(zenoh::qos::Priority::RealTime)
+                .express(true)
+                .await
+        }
+    };
+    if let Err(e) = sent {
+        tracing::warn!(gateway = %gw, "publishing a command batch: {e}");
+    }
+}
+
+/// What a worker feeds its observers, and the histogram handles of its devices (one entry
+/// per device it served: bounded by its device table).
+pub(super) struct Watch {
+    pub(super) controller: String,
+    pub(super) recording: Option<Recording>,
+    pub(super) metrics: Option<Arc<ServiceMetrics>>,
+    pub(super) histograms: HashMap<String, Option<DeviceHistograms>>,
+}
+
+impl Watch {
+    /// Whether samples are timed (only for the metrics: the clock costs a system call).
+    fn timing(&self) -> bool {
+        self.metrics.is_some()
+    }
+
+    /// Note a served sample: its round trip and CPU time, and into the recording the
+    /// sample, its answer and, for a device just provisioned, its configuration.
+    #[allow(clippy::too_many_arguments)]
+    fn served(
+        &mut self,
+        registry: &Registry,
+        dev: &str,
+        sample: &pb::Sample,
+        cmd: &pb::Command,
+        cpu: Option<f64>,
+        provisioned: bool,
+        log_ns: u64,
+    ) {
+        if let Some(m) = &self.metrics {
+            let h = self
+                .histograms
+                .entry(dev.to_string())
+                .or_insert_with(|| m.device(&self.controller, dev));
+            if let Some(h) = h {
+                if sample.last_rtt_us > 0 {
+                    h.rtt.record(f64::from(sample.last_rtt_us) * 1e-6);
+                }
+                if let Some(c) = cpu {
+                    h.cpu.record(c);
+                }
+            }
+        }
+        if let Some(r) = &self.recording {
+            if provisioned {
+                record_config(r, registry, dev, "provisioned from a template");
+            }
+            r.record(
+                dev,
+                Topic::Sample,
+                log_ns,
+                sample.sent_unix_ns,
+                encode(sample),
+            );
+            let now = protocol::unix_ns();
+            r.record(
+                dev,
+                Topic::Command,
+                now,
+                cmd.controller_unix_ns,
+                encode(cmd),
+            );
+            if cmd.mode == pb::Mode::Rejected as i32 {
+                r.event(dev, "rejected", cmd.error.clone(), sample.plant_time);
+            }
+        }
+    }
+
+    /// Record a refusal the worker answered (a sample refused by the callback's precheck).
+    pub(super) fn refused(&self, dev: &str, cmd: &pb::Command) {
+        if let Some(r) = &self.recording {
+            let now = protocol::unix_ns();
+            r.record(dev, Topic::Command, now, now, encode(cmd));
+            r.event(dev, "rejected", cmd.error.clone(), 0.0);
+        }
+    }
+
+    /// Record an accepted change: the request as it came, the configuration it left, and
+    /// an event saying who changed what.
+    pub(super) fn changed(
+        &self,
+        registry: &Registry,
+        dev: &str,
+        topic: Topic,
+        request: &[u8],
+        what: &str,
+    ) {
+        if let Some(r) = &self.recording {
+            let now = protocol::unix_ns();
+            r.record(dev, topic, now, now, request.to_vec());
+            record_config(r, registry, dev, what);
+        }
+    }
+}
+
+/// The device's configuration in force, and an event saying why it is recorded.
+pub(super) fn record_config(r: &Recording, registry: &Registry, dev: &str, why: &str) {
+    if let Some(c) = registry.config_of(dev) {
+        let now = protocol::unix_ns();
+        r.record(dev, Topic::Config, now, now, encode(&c));
+    }
+    let t = registry.device_status(dev).map_or(0.0, |s| s.plant_time);
+    r.event(dev, "config", why, t);
+}

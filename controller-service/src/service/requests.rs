@@ -1,0 +1,316 @@
+//! The worker's handlers of operators' requests: configuration, envelope and reference
+//! changes (as queries, and the reference as a put), device and service status. The
+//! registry decides; here a request is matched to a served device, decoded, applied with
+//! the core held, logged, recorded, replied to, and an accepted change is sent on to the
+//! shard's standby.
+
+use protocol::{decode, encode, keys, pb, printable, Versioned};
+use telemetry::Topic;
+use zenoh::query::Query;
+
+use super::core::Core;
+use super::lock;
+use super::log::throttled;
+use super::worker::Worker;
+use crate::Registry;
+
+impl Worker {
+    /// A live reference update (put). A put reaches every service, and every fleet
+    /// member: one that does not serve the device, or does not step its shard, lets it
+    /// pass, uncounted, as it does a request for a device served elsewhere.
+    pub(super) fn handle_reference_put(&mut self, dev: &str, bytes: &[u8]) {
+        let home = lock(&self.shared.core).registry.home_of(dev);
+        let stepped = match (&self.member, home) {
+            (_, None) => false,
+            (None, Some(_)) => true,
+            (Some(m), Some(h)) => m.fleet.steps(h),
+        };
+        if !stepped {
+            return;
+        }
+        let u = match decode::<pb::ReferenceUpdate>(bytes) {
+            Ok(u) => u,
+            Err(e) => return self.undecodable("reference", dev, &e),
+        };
+        let reply = {
+            let mut c = lock(&self.shared.core);
+            let Core {
+                registry, watch, ..
+            } = &mut *c;
+            let reply = registry.set_reference(dev, &u);
+            if reply.accepted {
+                watch.changed(
+                    registry,
+                    dev,
+                    Topic::ReferenceUpdate,
+                    bytes,
+                    "reference changed",
+                );
+            }
+            reply
+        };
+        if !reply.accepted {
+            self.refused(dev, "reference", &reply.reason);
+        }
+    }
+
+    /// A configuration query: a read, or a change of laws, gains, maps or reference.
+    pub(super) async fn handle_config(&mut self, q: Query) {
+        self.change_query(
+            q,
+            "configuration",
+            |core, dev, req: &pb::ConfigRequest, bytes| {
+                let r = core.registry.configure(dev, req);
+                if r.accepted {
+                    let warn = &mut core.warn;
+                    throttled!(warn.changed, info, device = %dev, "configuration changed");
+                    core.watch.changed(
+                        &core.registry,
+                        dev,
+                        Topic::ConfigRequest,
+                        bytes,
+                        "configuration changed",
+                    );
+                }
+                r
+            },
+        )
+        .await;
+    }
+
+    /// An envelope query: a read, or a change (narrowing; widening where the file allows).
+    pub(super) async fn handle_envelope(&mut self, q: Query) {
+        self.change_query(q, "envelope change", |core, dev, req: &pb::EnvelopeRequest, bytes| {
+            let before = core.registry.envelope_of(dev);
+            let r = core.registry.change_envelope(dev, req);
+            if !r.accepted {
+                return r;
+            }
+            let after = core.registry.envelope_of(dev);
+            let widened = before
+                .iter()
+                .flatten()
+                .zip(after.iter().flatten())
+                .any(|(b, a)| b.is_widened_by(a));
+            let by = printable(&req.reason);
+            let what = format!("envelope {} by {by}", if widened { "WIDENED" } else { "narrowed" });
+            core.watch
+                .changed(&core.registry, dev, Topic::EnvelopeRequest, bytes, &what);
+            let envelope = r.config.as_ref().and_then(|c| c.envelope.clone());
+            if widened {
+                // Every widening has its own line: it is rare (the file must allow it) and
+                // it is what an audit looks for.
+                tracing::warn!(device = %dev, by = %by, envelope = ?envelope, "envelope WIDENED");
+            } else {
+                let warn = &mut core.warn;
+                throttled!(warn.envelope, info, device = %dev, by = %by, envelope = ?envelope, "envelope narrowed");
+            }
+            r
+        })
+        .await;
+    }
+
+    /// A reference update sent as a query, to be answered.
+    pub(super) async fn handle_reference_query(&mut self, q: Query) {
+        self.change_query(
+            q,
+            "reference",
+            |core, dev, u: &pb::ReferenceUpdate, bytes| {
+                let r = core.registry.set_reference(dev, u);
+                if r.accepted {
+                    core.watch.changed(
+                        &core.registry,
+                        dev,
+                        Topic::ReferenceUpdate,
+                        bytes,
+                        "reference changed",
+                    );
+                }
+                r
+            },
+        )
+        .await;
+    }
+
+    /// A configuration, envelope or reference query on a device this member answers for:
+    /// no payload reads the configuration in force; a payload is decoded as `R` and
+    /// applied by `apply` with the core held. A refusal is logged, the reply sent, and an
+    /// accepted change sent on to the standby.
+    async fn change_query<R: Versioned>(
+        &mut self,
+        q: Query,
+        what: &str,
+        apply: impl FnOnce(&mut Core, &str, &R, &[u8]) -> pb::ConfigReply,
+    ) {
+        let Some(dev) = self.served(&q).await else {
+            return;
+        };
+        let body = q.payload().map(|p| p.to_bytes().into_owned());
+        let reply = {
+            let mut c = lock(&self.shared.core);
+            match &body {
+                None => read_config(&c.registry, &dev),
+                Some(bytes) => match decode::<R>(bytes) {
+                    Ok(r) => apply(&mut c, &dev, &r, bytes),
+                    Err(e) => undecodable_request(&mut c.registry, &dev, e),
+                },
+            }
+        };
+        if !reply.accepted {
+            self.refused(&dev, what, &reply.reason);
+        }
+        let _ = q.reply(q.key_expr().clone(), encode(&reply)).await;
+        if reply.accepted && body.is_some() {
+            self.sync_device(&dev).await;
+        }
+    }
+
+    /// The device a request names, if this member answers for it. Otherwise the query
+    /// gets its error reply, or silence for a device another fleet member answers for
+    /// (the client takes the one good reply, never another member's "does not serve").
+    /// A key that names no single device (a wildcard, a bad id) is counted as refused; a
+    /// device served elsewhere is not, since with several services that is every other
+    /// service's normal answer.
+    async fn served(&self, q: &Query) -> Option<String> {
+        let why = {
+            let mut c = lock(&self.shared.core);
+            let registry = &mut c.registry;
+            match keys::device_of(q.key_expr().as_str()) {
+                None => {
+                    registry.note_request_refused();
+                    Some("not the key of one device".to_string())
+                }
+                Some(dev) => {
+                    let home = registry
+                        .home_of(dev)
+                        .unwrap_or_else(|| protocol::shard_of(dev));
+                    if self.member.as_ref().is_some_and(|m| !m.fleet.answers(home)) {
+                        return None;
+                    }
+                    if registry.serves(dev) {
+                        return Some(dev.to_string());
+                    }
+                    Some(format!(
+                        "controller {} does not serve device \"{dev}\"",
+                        self.id
+                    ))
+                }
+            }
+        };
+        if let Some(why) = why {
+            let _ = q.reply_err(why).await;
+        }
+        None
+    }
+
+    /// A device status query; a wildcard key gets one reply per device answered here,
+    /// each on its own key.
+    pub(super) async fn handle_status(&mut self, q: Query) {
+        if q.key_expr().as_str().contains('*') {
+            for (key, bytes) in self.statuses_matching(&q) {
+                let _ = q.reply(key, bytes).await;
+            }
+            return;
+        }
+        let reply = match keys::device_of(q.key_expr().as_str()) {
+            Some(d) => {
+                let c = lock(&self.shared.core);
+                if self.member.is_some() && !self.answers_for(&c.registry, d) {
+                    // Another member's device: its owner answers, the others stay silent.
+                    None
+                } else {
+                    Some(
+                        c.registry
+                            .device_status(d)
+                            .map(|s| encode(&s))
+                            .ok_or_else(|| {
+                                format!("controller {} does not serve device \"{d}\"", self.id)
+                            }),
+                    )
+                }
+            }
+            None => Some(Err("not the key of one device".to_string())),
+        };
+        match reply {
+            Some(Ok(bytes)) => {
+                let _ = q.reply(q.key_expr().clone(), bytes).await;
+            }
+            Some(Err(why)) => {
+                let _ = q.reply_err(why).await;
+            }
+            None => {}
+        }
+    }
+
+    /// Whether this member answers for device `d` (always, without a fleet).
+    fn answers_for(&self, registry: &Registry, d: &str) -> bool {
+        self.member
+            .as_ref()
+            .is_none_or(|m| registry.home_of(d).is_some_and(|h| m.fleet.answers(h)))
+    }
+
+    /// The statuses a wildcard status query asks for, each with the key it goes on (the
+    /// shard's key if the query was on shard keys).
+    fn statuses_matching(&self, q: &Query) -> Vec<(String, Vec<u8>)> {
+        let sharded = q
+            .key_expr()
+            .as_str()
+            .starts_with(&format!("{}/shard/", keys::PREFIX));
+        let c = lock(&self.shared.core);
+        let registry = &c.registry;
+        registry
+            .device_ids()
+            .filter(|d| self.answers_for(registry, d))
+            .filter_map(|d| {
+                let key = match (sharded, registry.home_of(d)) {
+                    (true, Some(h)) => format!("{}/shard/{h}/device/{d}/status", keys::PREFIX),
+                    _ => keys::status(d),
+                };
+                let wanted = zenoh::key_expr::KeyExpr::try_from(key.clone())
+                    .is_ok_and(|k| q.key_expr().intersects(&k));
+                wanted
+                    .then(|| registry.device_status(d))
+                    .flatten()
+                    .map(|s| (key, encode(&s)))
+            })
+            .collect()
+    }
+
+    /// A service status query, on this service's own key, so that a wildcard query over
+    /// several services gets one reply from each, each telling which service it is.
+    pub(super) async fn handle_service_status(&mut self, q: Query) {
+        let s = self.service_status();
+        let _ = q.reply(keys::service_status(&self.id), encode(&s)).await;
+    }
+}
+
+fn read_config(registry: &Registry, dev: &str) -> pb::ConfigReply {
+    match registry.config_of(dev) {
+        Some(c) => pb::ConfigReply {
+            version: protocol::PROTOCOL_VERSION,
+            accepted: true,
+            reason: String::new(),
+            config: Some(c),
+        },
+        None => pb::ConfigReply {
+            version: protocol::PROTOCOL_VERSION,
+            accepted: false,
+            reason: format!("unknown device \"{dev}\""),
+            config: None,
+        },
+    }
+}
+
+fn undecodable_request(
+    registry: &mut Registry,
+    dev: &str,
+    e: protocol::DecodeError,
+) -> pb::ConfigReply {
+    registry.note_undecodable();
+    pb::ConfigReply {
+        version: protocol::PROTOCOL_VERSION,
+        accepted: false,
+        reason: e.to_string(),
+        config: registry.config_of(dev),
+    }
+}

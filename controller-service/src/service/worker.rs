@@ -1,0 +1,457 @@
+//! The worker: it owns the registry (through the [`Core`] it shares with zenoh's
+//! callbacks), waits for whatever comes next, and hands each event to one handler. The
+//! handlers of operators' queries are in [`super::requests`], those of the fleet and the
+//! hot standby in [`super::handover`].
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use protocol::{keys, pb, printable};
+use tokio::sync::{mpsc, Notify};
+use tokio::time::{interval, Interval, MissedTickBehavior};
+use zenoh::liveliness::LivelinessToken;
+use zenoh::Session;
+
+use super::core::{publish, publish_batch, record_config, Core, Masks, Shared, Watch};
+use super::intake::{Drops, Intake, Msg, UNKNOWN_NAMED};
+use super::log::{throttled, Warnings};
+use super::routes::{FleetRoutes, Routes, ShardRoutes, StandbyRoutes};
+use super::{declare_err, lock, ServiceError};
+use super::{
+    BATCH, FLEET_TICK, GATEWAYS_PENDING, GATEWAY_TURN, HEARTBEATS, LOG_INTERVAL, OTHERS, QUEUE,
+};
+use crate::config::{FleetSpec, SnapshotSpec};
+use crate::fleet::{Action, Fleet, FleetTiming};
+use crate::inbox::Inbox;
+use crate::observe::{Observers, ScrapeRequest, Scraped};
+use crate::standby::HotStandby;
+use crate::Registry;
+
+/// A fleet member's view and its settings.
+pub(super) struct Member {
+    pub(super) fleet: Fleet,
+    pub(super) spec: FleetSpec,
+}
+
+/// One worker: its declarations (fields drop in order: its liveliness token goes first,
+/// so plants and standbys see it leave at once), its shared core, and the state of its
+/// rules.
+pub(super) struct Worker {
+    _token: LivelinessToken,
+    pub(super) standby_routes: Option<StandbyRoutes>,
+    _routes: Routes,
+    _fleet_routes: Option<FleetRoutes>,
+    pub(super) shard_routes: ShardRoutes,
+    pub(super) id: String,
+    pub(super) session: Session,
+    pub(super) shared: Arc<Shared>,
+    pub(super) intake: Arc<Intake>,
+    /// The worker's own queue, for the results of its request tasks.
+    pub(super) tx: mpsc::Sender<Msg>,
+    pub(super) member: Option<Member>,
+    pub(super) standby: HotStandby,
+    snapshots: Option<SnapshotSpec>,
+    /// Throttles for what the worker logs (the core keeps its own).
+    pub(super) warn: Warnings,
+    /// The drop counts last reported, in [`Drops::counts`]'s order then superseded.
+    reported: [u64; 6],
+    started: Instant,
+}
+
+/// What the worker waits on besides its own fields.
+pub(super) struct Inputs {
+    rx: mpsc::Receiver<Msg>,
+    heartbeats: mpsc::Receiver<Vec<u8>>,
+    scrapes: Option<mpsc::Receiver<ScrapeRequest>>,
+    heartbeat_tick: Interval,
+    snapshot_tick: Interval,
+    report_tick: Interval,
+    fleet_tick: Interval,
+}
+
+fn ticker(period: Duration) -> Interval {
+    let mut t = interval(period);
+    t.set_missed_tick_behavior(MissedTickBehavior::Skip);
+    t
+}
+
+impl Worker {
+    /// Restore the snapshots, declare everything, join the fleet or the standby group if
+    /// the file says so, and announce the service.
+    pub(super) async fn start(
+        session: Session,
+        mut registry: Registry,
+        observers: Observers,
+    ) -> Result<(Self, Inputs), ServiceError> {
+        let started = Instant::now();
+        let id = registry.controller_id().to_string();
+        let snapshots = registry.snapshot_spec().cloned();
+        if let Some(sn) = &snapshots {
+            restore_snapshots(&mut registry, sn, &observers);
+        }
+        let (fleet_spec, standby_spec) = (registry.fleet().cloned(), registry.standby().cloned());
+        let watch = Watch {
+            controller: id.clone(),
+            recording: observers.recording.clone(),
+            metrics: observers.metrics.clone(),
+            histograms: HashMap::new(),
+        };
+        if let Some(r) = &watch.recording {
+            for d in registry.device_ids() {
+                record_config(r, &registry, d, "recording starts");
+            }
+        }
+        let (tx, rx) = mpsc::channel::<Msg>(QUEUE);
+        let (hb_tx, hb_rx) = mpsc::channel::<Vec<u8>>(HEARTBEATS);
+        let templates = registry.template_patterns();
+        let mut inbox = Inbox::<pb::Sample>::new(OTHERS);
+        for d in registry.device_ids() {
+            inbox.serve(d);
+        }
+        let shared = Arc::new(Shared {
+            core: std::sync::Mutex::new(Core::new(registry, watch)),
+            inbox: std::sync::Mutex::new(inbox),
+            gateways: std::sync::Mutex::new(Inbox::new(GATEWAYS_PENDING)),
+            // Nothing answered until the roles are known (`sync_masks` below).
+            masks: Masks::new(if fleet_spec.is_some() { 0 } else { u64::MAX }, 0),
+            drops: Drops::default(),
+            wake: Notify::new(),
+        });
+        let intake = Arc::new(Intake {
+            shared: shared.clone(),
+            tx: tx.clone(),
+            heartbeats: hb_tx,
+            templates,
+            session: session.clone(),
+        });
+        let routes = Routes::declare(&session, &intake, &id, fleet_spec.is_some()).await?;
+        let (fleet_routes, member, actions) = match &fleet_spec {
+            Some(spec) => {
+                let (routes, member, actions) = join_fleet(&session, &intake, &id, spec).await?;
+                (Some(routes), Some(member), actions)
+            }
+            None => (None, None, Vec::new()),
+        };
+        let standby_routes = match &standby_spec {
+            Some(sb) => Some(StandbyRoutes::declare(&session, &intake, &sb.group).await?),
+            None => None,
+        };
+        let token = session
+            .liveliness()
+            .declare_token(keys::alive_controller(&id))
+            .await
+            .map_err(declare_err("liveliness token"))?;
+        let standby = HotStandby::new(standby_spec.as_ref(), Instant::now());
+        let inputs = Inputs {
+            rx,
+            heartbeats: hb_rx,
+            scrapes: observers.metrics.as_ref().map(|m| m.join()),
+            heartbeat_tick: ticker(standby.heartbeat),
+            snapshot_tick: ticker(Duration::from_millis(
+                snapshots.as_ref().map_or(3_600_000, |s| s.interval_ms),
+            )),
+            report_tick: ticker(LOG_INTERVAL),
+            fleet_tick: ticker(FLEET_TICK),
+        };
+        let mut worker = Self {
+            _token: token,
+            standby_routes,
+            _routes: routes,
+            _fleet_routes: fleet_routes,
+            shard_routes: ShardRoutes::default(),
+            id,
+            session,
+            shared,
+            intake,
+            tx,
+            member,
+            standby,
+            snapshots,
+            warn: Warnings::default(),
+            reported: [0; 6],
+            started,
+        };
+        tracing::info!(controller = %worker.id, devices = lock(&worker.shared.core).registry.device_count(), "serving");
+        worker.apply_fleet(actions).await;
+        if let Some(m) = &worker.member {
+            let f = &m.fleet;
+            tracing::info!(controller = %worker.id, owned = f.answer_mask().count_ones(), stepped = f.step_mask().count_ones(), "fleet shards at start");
+        }
+        Ok((worker, inputs))
+    }
+
+    /// Serve until `shutdown` resolves or the queue closes; then save the snapshots and
+    /// undeclare everything (by dropping `self`).
+    pub(super) async fn run(
+        mut self,
+        mut inputs: Inputs,
+        shutdown: impl std::future::Future<Output = ()>,
+    ) {
+        tokio::pin!(shutdown);
+        loop {
+            tokio::select! {
+                () = self.shared.wake.notified() => self.serve_waiting().await,
+                Some(reply) = next_scrape(&mut inputs.scrapes) => self.handle_scrape(reply),
+                m = inputs.rx.recv() => match m {
+                    Some(m) => self.handle(m).await,
+                    None => break,
+                },
+                Some(bytes) = inputs.heartbeats.recv() => self.handle_heartbeat(&bytes),
+                _ = inputs.heartbeat_tick.tick(), if self.standby_routes.is_some() => {
+                    self.on_heartbeat_tick().await;
+                }
+                _ = inputs.snapshot_tick.tick(), if self.snapshots.is_some() => self.save_snapshots(),
+                _ = inputs.report_tick.tick() => self.report_drops(),
+                _ = inputs.fleet_tick.tick(), if self.member.is_some() => self.on_fleet_tick().await,
+                () = &mut shutdown => break,
+            }
+        }
+        tracing::info!(controller = %self.id, "shutting down");
+        self.save_snapshots();
+        lock(&self.shared.core).undeclare_publishers();
+    }
+
+    /// One handler per message.
+    async fn handle(&mut self, msg: Msg) {
+        match msg {
+            Msg::Refused {
+                dev,
+                seq,
+                sent_unix_ns,
+                reason,
+            } => self.handle_refused(&dev, (seq, sent_unix_ns), reason).await,
+            Msg::Reference(dev, bytes) => self.handle_reference_put(&dev, &bytes),
+            Msg::Config(q) => self.handle_config(q).await,
+            Msg::Envelope(q) => self.handle_envelope(q).await,
+            Msg::ReferenceQuery(q) => self.handle_reference_query(q).await,
+            Msg::Status(q) => self.handle_status(q).await,
+            Msg::ServiceStatus(q) => self.handle_service_status(q).await,
+            Msg::Member(m, alive) => self.handle_member(&m, alive).await,
+            Msg::Handover(q) => self.handle_handover(q).await,
+            Msg::Answer { shard, kind, reply } => self.handle_answer(shard, kind, reply).await,
+            Msg::Sync(shard, bytes) => self.handle_sync(shard, &bytes),
+        }
+    }
+
+    /// Serve what waits in the inboxes: up to [`BATCH`] samples and [`GATEWAY_TURN`]
+    /// batches, then let the other inputs have their turn.
+    async fn serve_waiting(&mut self) {
+        let shared = &self.shared;
+        for _ in 0..BATCH {
+            let out = {
+                let mut c = lock(&shared.core);
+                let Some(taken) = lock(&shared.inbox).pop() else {
+                    break;
+                };
+                let dev = taken.id.clone();
+                let answers = shared.masks.answers(protocol::shard_of(&dev));
+                c.serve_sample(answers, &shared.inbox, taken)
+                    .map(|cmd| (dev, cmd))
+            };
+            if let Some((dev, cmd)) = out {
+                publish(&self.session, &shared.core, &dev, &cmd).await;
+            }
+        }
+        for _ in 0..GATEWAY_TURN {
+            let out = {
+                let mut c = lock(&shared.core);
+                let Some(taken) = lock(&shared.gateways).pop() else {
+                    break;
+                };
+                let answers = shared.masks.answers(protocol::shard_of(&taken.id));
+                c.serve_batch(answers, &shared.inbox, taken)
+            };
+            if let Some((gw, payload)) = out {
+                publish_batch(&self.session, &shared.core, gw, payload).await;
+            }
+        }
+        if !lock(&shared.inbox).is_empty() || !lock(&shared.gateways).is_empty() {
+            // More waits: come back after the other inputs had their turn.
+            shared.wake.notify_one();
+        }
+    }
+
+    /// The metrics endpoint asks for this worker's status.
+    fn handle_scrape(&self, reply: ScrapeRequest) {
+        let _ = reply.send(Scraped {
+            status: self.service_status(),
+            inbox: lock(&self.shared.inbox).len(),
+            gateways: lock(&self.shared.gateways).len(),
+            queue: self.tx.max_capacity() - self.tx.capacity(),
+        });
+    }
+
+    /// A sample the callback's precheck refused: answered REJECTED, if the device is
+    /// served here.
+    async fn handle_refused(&mut self, dev: &str, seq_sent: (u64, u64), reason: String) {
+        let cmd = {
+            let mut c = lock(&self.shared.core);
+            let cmd = c
+                .registry
+                .refuse_sample(dev, seq_sent, reason, protocol::unix_ns());
+            if let Some(cmd) = &cmd {
+                c.watch.refused(dev, cmd);
+            }
+            cmd
+        };
+        let Some(cmd) = cmd else { return };
+        throttled!(self.warn.rejected, warn, device = %dev, seq = seq_sent.0, "sample refused: {}", cmd.error);
+        if self.shared.masks.answers(protocol::shard_of(dev)) {
+            publish(&self.session, &self.shared.core, dev, &cmd).await;
+        }
+    }
+
+    /// Write the snapshots, if the file asks for them.
+    fn save_snapshots(&self) {
+        let Some(sn) = &self.snapshots else { return };
+        let saved = tokio::task::block_in_place(|| {
+            crate::snapshot::save_dir(&lock(&self.shared.core).registry, &sn.dir)
+        });
+        if let Err(e) = saved {
+            tracing::warn!(dir = %sn.dir.display(), "writing snapshots: {e}");
+        }
+    }
+
+    /// The callbacks' drops cannot log themselves (they run on zenoh's threads, possibly
+    /// thousands of times a second): one line per interval, if any.
+    fn report_drops(&mut self) {
+        let shared = &self.shared;
+        let (superseded, full) = {
+            let ib = lock(&shared.inbox);
+            (ib.superseded(), ib.full())
+        };
+        let full = full + lock(&shared.gateways).full();
+        let [oversized, bad_key, queue_full, undecodable, unknown] = shared.drops.counts();
+        let now = [
+            oversized,
+            bad_key,
+            queue_full + full,
+            superseded,
+            undecodable,
+            unknown,
+        ];
+        let d: Vec<u64> = now.iter().zip(&self.reported).map(|(a, b)| a - b).collect();
+        if d.iter().any(|&x| x > 0) {
+            tracing::warn!(oversized = d[0], bad_key = d[1], queue_full = d[2], superseded = d[3], undecodable_samples = d[4],
+                unknown_devices = d[5], "messages dropped since the last report (every drop is counted in the service status)");
+        }
+        self.reported = now;
+        self.warn.flush(Instant::now());
+    }
+
+    /// The worker's status as a `ServiceStatus` query gets it: the registry's, with the
+    /// drops counted before anything reached the worker and the standby and fleet state.
+    pub(super) fn service_status(&self) -> pb::ServiceStatus {
+        let shared = &self.shared;
+        let core = lock(&shared.core);
+        let registry = &core.registry;
+        let mut s = registry.service_status(self.started.elapsed().as_secs_f64());
+        let (superseded, full) = {
+            let ib = lock(&shared.inbox);
+            (ib.superseded(), ib.full())
+        };
+        let (superseded_batches, gw_full) = {
+            let g = lock(&shared.gateways);
+            (g.superseded(), g.full())
+        };
+        let [oversized, bad_key, queue_full, undecodable, unknown] = shared.drops.counts();
+        s.superseded_batches = superseded_batches;
+        s.unknown_samples += unknown;
+        for name in lock(&shared.drops.unknown_names).iter() {
+            if s.unknown_devices.len() >= UNKNOWN_NAMED {
+                break;
+            }
+            if !s.unknown_devices.contains(name) {
+                s.unknown_devices.push(name.clone());
+            }
+        }
+        s.oversized = oversized;
+        s.undecodable += undecodable;
+        s.bad_key = bad_key;
+        s.queue_full = queue_full + full + gw_full;
+        s.superseded = superseded;
+        s.active = self.standby.active;
+        s.term = self.standby.term;
+        if let Some(m) = &self.member {
+            let f = &m.fleet;
+            s.devices
+                .retain(|d| registry.home_of(&d.device_id).is_some_and(|h| f.answers(h)));
+            s.owned_shards = (0..protocol::SHARDS).filter(|&x| f.answers(x)).collect();
+            s.fleet_members = f.members().iter().cloned().collect();
+        }
+        s
+    }
+
+    /// Log a refusal of a device's request (throttled).
+    pub(super) fn refused(&mut self, dev: &str, what: &str, reason: &str) {
+        throttled!(self.warn.refused, warn, device = %printable(dev), "{what} refused: {reason}");
+    }
+
+    /// Count and log an undecodable payload.
+    pub(super) fn undecodable(&mut self, what: &str, dev: &str, e: &protocol::DecodeError) {
+        lock(&self.shared.core).registry.note_undecodable();
+        throttled!(self.warn.undecodable, warn, device = %printable(dev), "undecodable {what}: {e}");
+    }
+}
+
+/// The next scrape request, or never without metrics.
+async fn next_scrape(scrapes: &mut Option<mpsc::Receiver<ScrapeRequest>>) -> Option<ScrapeRequest> {
+    match scrapes.as_mut() {
+        Some(s) => s.recv().await,
+        None => std::future::pending().await,
+    }
+}
+
+/// Restore the devices' snapshots from the directory the file names, and attach them to
+/// the recording: a replay starts from the state these devices were restored to.
+fn restore_snapshots(registry: &mut Registry, sn: &SnapshotSpec, observers: &Observers) {
+    let loaded = crate::snapshot::load_dir(registry, &sn.dir);
+    for (file, reason) in &loaded.refused {
+        tracing::warn!(file = %file.display(), "snapshot not restored: {reason}");
+    }
+    tracing::info!(dir = %sn.dir.display(), restored = loaded.restored, refused = loaded.refused.len(), "snapshots");
+    let Some(r) = observers.recording.as_ref().filter(|_| loaded.restored > 0) else {
+        return;
+    };
+    for snap in registry.snapshots() {
+        if snap.last_seq.is_some() {
+            if let Ok(bytes) = crate::snapshot::encode(&snap) {
+                r.attach(
+                    &format!("snapshot/{}", snap.id),
+                    "application/x-mfc-snapshot",
+                    bytes,
+                );
+            }
+        }
+    }
+}
+
+/// Join the fleet: listen to the members and to requests, look for the members already
+/// there (what was theirs stays theirs until they hand it over), then declare this
+/// member's token.
+async fn join_fleet(
+    session: &Session,
+    intake: &Arc<Intake>,
+    id: &str,
+    spec: &FleetSpec,
+) -> Result<(FleetRoutes, Member, Vec<Action>), ServiceError> {
+    let listening = FleetRoutes::declare(session, intake, (&spec.name, id)).await?;
+    let wait = Duration::from_millis(spec.discover_ms);
+    let others = super::routes::fleet_members(session, &spec.name, id, wait).await;
+    // The token before any request: a member that hears from this one can also hear it
+    // leave.
+    let routes = FleetRoutes::join(session, listening, (&spec.name, id)).await?;
+    tracing::info!(controller = %id, fleet = %spec.name, others = ?others, "joining the fleet");
+    let timing = FleetTiming {
+        release_timeout: Duration::from_millis(spec.release_timeout_ms),
+        retry: FleetTiming::default().retry,
+    };
+    let mut fleet = Fleet::new(id, spec.standby, timing);
+    let actions = fleet.start(others);
+    let member = Member {
+        fleet,
+        spec: spec.clone(),
+    };
+    Ok((routes, member, actions))
+}
