@@ -2,18 +2,26 @@
 //!
 //! Every state type derives bincode's `Encode`/`Decode`, except the ones generic over the
 //! window capacity `CAP`, whose derive bincode cannot generate (it copies the parameter's
-//! default into the impl); those are written here, field by field, and the decoder checks
-//! what a corrupted snapshot could break (ring indices within `CAP`).
+//! default into the impl); those are written here, field by field.
+//!
+//! A snapshot may come over the network (a standby's state, a handover), so the decoder
+//! refuses what a corrupted one could break, and a decoded controller is one the
+//! constructors could have built: ring indices within `CAP`; each channel's configuration
+//! valid, its law and output map running that configuration (the parameters in force, the
+//! map's limits: an inverted clamp would panic at the next step), and its times and last
+//! outputs finite. The laws' inner state (integrals, filters) is not checked: a non-finite
+//! value there gives a non-finite `u`, which the channel never sends.
 
 use bincode::de::Decoder;
 use bincode::enc::Encoder;
 use bincode::error::{DecodeError, EncodeError};
 use bincode::{Decode, Encode};
 
-use crate::channel::{Channel, Law};
+use crate::channel::{Channel, Law, LawConfig};
 use crate::estimator::Estimator;
 use crate::intelligent::IntelligentController;
 use crate::mimo::MimoController;
+use crate::output_map::{OutputMap, OutputMapConfig};
 
 macro_rules! snapshot_struct {
     ($t:ident { $($f:ident),* $(,)? } $(check $check:expr)?) => {
@@ -56,14 +64,83 @@ snapshot_struct!(IntelligentController {
     rest,
     trend
 });
-snapshot_struct!(Channel {
-    law,
-    config,
-    map,
-    last_t,
-    last_v
-});
 snapshot_struct!(MimoController { channels });
+
+impl<const CAP: usize> Encode for Channel<CAP> {
+    fn encode<E: Encoder>(&self, e: &mut E) -> Result<(), EncodeError> {
+        self.law.encode(e)?;
+        self.config.encode(e)?;
+        self.map.encode(e)?;
+        self.last_t.encode(e)?;
+        self.last_v.encode(e)
+    }
+}
+
+impl<Ctx, const CAP: usize> Decode<Ctx> for Channel<CAP> {
+    fn decode<D: Decoder<Context = Ctx>>(d: &mut D) -> Result<Self, DecodeError> {
+        let law: Law<CAP> = Decode::decode(d)?;
+        let config = Decode::decode(d)?;
+        // The map as `OutputMap` encodes it (its configuration, then the last output for
+        // the rate limit), rebuilt through its constructor: its fields are its own.
+        let map_config: OutputMapConfig = Decode::decode(d)?;
+        let last: Option<(f64, f64)> = Decode::decode(d)?;
+        let mut map = OutputMap::new(map_config).map_err(|_| invalid("output map"))?;
+        if let Some((t, v)) = last {
+            if !(t.is_finite() && v.is_finite()) {
+                return Err(invalid("output map's last output"));
+            }
+            map.record_applied(t, v);
+        }
+        let c = Self {
+            law,
+            config,
+            map,
+            last_t: Decode::decode(d)?,
+            last_v: Decode::decode(d)?,
+        };
+        check_channel(&c)?;
+        Ok(c)
+    }
+}
+
+fn invalid(what: &'static str) -> DecodeError {
+    DecodeError::Other(what)
+}
+
+/// A decoded channel runs its own, valid, configuration (module documentation).
+fn check_channel<const CAP: usize>(c: &Channel<CAP>) -> Result<(), DecodeError> {
+    if c.map.config() != &c.config.output {
+        return Err(invalid(
+            "output map differs from the channel's configuration",
+        ));
+    }
+    if !c.last_v.is_finite() || c.last_t.is_some_and(|t| !t.is_finite()) {
+        return Err(invalid("channel's last output or time not finite"));
+    }
+    let valid = match (&c.law, &c.config.law) {
+        (Law::Intelligent(l), LawConfig::Intelligent { params, estimator }) => {
+            l.params() == params
+                && l.estimator.config() == estimator
+                && params.validate().is_ok()
+                && l.params.validate().is_ok()
+                && estimator.validate(params.order, CAP).is_ok()
+        }
+        (Law::Pid(l), LawConfig::Pid { params }) => {
+            l.params() == params && params.validate().is_ok()
+        }
+        (Law::Adrc(l), LawConfig::Adrc { params }) => {
+            l.params() == params && params.validate().is_ok()
+        }
+        _ => false,
+    };
+    if valid {
+        Ok(())
+    } else {
+        Err(invalid(
+            "control law differs from the channel's configuration or is invalid",
+        ))
+    }
+}
 
 impl<const CAP: usize> Encode for Law<CAP> {
     fn encode<E: Encoder>(&self, e: &mut E) -> Result<(), EncodeError> {

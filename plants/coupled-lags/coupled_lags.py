@@ -28,13 +28,13 @@ Integration
     Classic RK4 with a fixed 10 ms sub-step (50 steps per fastest time constant); an
     `advance` that is not a multiple of it ends with one shorter step, so any DT (including
     0) is integrated to the same accuracy. The inputs are held between writes. At most
-    600 s per `advance` (split longer waits).
+    60 s per `advance` (split longer waits), as for every driver (plants/driver_loop.py).
 
-Protocol (one answer per request, flushed)
+Protocol (one answer per request, flushed; the loop and its limits are plants/driver_loop.py)
     (start)            -> hello channels=N
     read               -> y_0 ... y_{N-1}
     write v_0 .. v_N-1 -> ok a_0 ... a_{N-1}   (a = v clamped to -10 .. 10)
-    advance DT         -> ok                   (DT >= 0 and finite, seconds)
+    advance DT         -> ok                   (0 <= DT <= 60 and finite, seconds)
     stop               -> ok, all inputs 0, exit 0
     end of stdin       -> all inputs 0, exit 0
     anything else      -> err MESSAGE (nothing changes)
@@ -51,11 +51,15 @@ import random
 import sys
 from math import cos, log, sin, sqrt
 
+# The serve loop, shared by the drivers: plants/driver_loop.py, found from this file's place
+# so that the driver runs from any working directory (bytecode is not written into the tree).
+sys.dont_write_bytecode = True
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), os.pardir))
+from driver_loop import MAX_CHANNELS, run  # noqa: E402
+
 U_MIN = -10.0
 U_MAX = 10.0
 SUBSTEP = 0.01  # s
-MAX_ADVANCE = 600.0  # s per request
-MAX_CHANNELS = 64
 TWO_PI = 2.0 * math.pi
 
 
@@ -154,75 +158,9 @@ def parse_args(argv):
     return a
 
 
-def serve(plant, channels):
-    """The request loop. Returns the exit status."""
-    readline = sys.stdin.readline
-    write = sys.stdout.write
-    flush = sys.stdout.flush
-    isfinite = math.isfinite
-    write(f"hello channels={channels}\n")
-    flush()
-    while True:
-        line = readline()
-        if not line:  # EOF: the agent is gone
-            plant.safe_stop()
-            return 0
-        words = line.split()
-        cmd = words[0] if words else ""
-        if cmd == "read":
-            if len(words) == 1:
-                answer = " ".join(map(repr, plant.read())) + "\n"
-            else:
-                answer = "err read takes no arguments\n"
-        elif cmd == "write":
-            if len(words) != channels + 1:
-                answer = f"err write needs {channels} number(s), got {len(words) - 1}\n"
-            else:
-                try:
-                    v = [float(w) for w in words[1:]]
-                except ValueError:
-                    v = None
-                if v is not None and all(map(isfinite, v)):
-                    answer = "ok " + " ".join(map(repr, plant.write(v))) + "\n"
-                else:
-                    answer = "err write: every input must be a finite number\n"
-        elif cmd == "advance":
-            try:
-                dt = float(words[1]) if len(words) == 2 else math.nan
-            except ValueError:
-                dt = math.nan
-            if isfinite(dt) and 0.0 <= dt <= MAX_ADVANCE:
-                plant.advance(dt)
-                answer = "ok\n"
-            else:
-                answer = f"err advance needs one finite duration in 0 ..= {MAX_ADVANCE:g} (s)\n"
-        elif cmd == "stop":
-            plant.safe_stop()
-            write("ok\n")
-            flush()
-            return 0
-        else:
-            answer = f"err unknown request {line.strip()[:80]!r}\n"
-        write(answer)
-        flush()
-
-
 def main(argv=None):
     args = parse_args(argv)
-    plant = CoupledLags(args.channels, args.coupling, args.noise, args.seed)
-    sys.stdin.reconfigure(errors="replace")  # stray bytes become an `err`, not a traceback
-    try:
-        status = serve(plant, args.channels)
-    except (BrokenPipeError, KeyboardInterrupt):
-        plant.safe_stop()
-        status = 0
-    # Whatever happened to stdout, do not let the interpreter's final flush complain.
-    try:
-        sys.stdout.flush()
-    except BrokenPipeError:
-        pass
-    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-    return status
+    return run(CoupledLags(args.channels, args.coupling, args.noise, args.seed), args.channels)
 
 
 if __name__ == "__main__":

@@ -58,13 +58,14 @@ Measurement
 Integration
     Semi-implicit (symplectic) Euler with a fixed sub-step; an `advance` that is not a
     multiple of it ends with one shorter step, so any DT (including 0) works. The input is
-    held between writes. At most 60 s per `advance` (split longer waits).
+    held between writes. At most 60 s per `advance` (split longer waits), as for every
+    driver (plants/driver_loop.py).
 
-Protocol (one answer per request, flushed)
+Protocol (one answer per request, flushed; the loop and its limits are plants/driver_loop.py)
     (start)          -> hello channels=1
     read             -> theta_L               (rad)
     write v          -> ok a                  (a = v clamped to -12 .. 12 V)
-    advance DT       -> ok                    (DT >= 0 and finite, seconds)
+    advance DT       -> ok                    (0 <= DT <= 60 and finite, seconds)
     stop             -> ok, 0 V, exit 0
     end of stdin     -> 0 V, exit 0
     anything else    -> err MESSAGE (nothing changes)
@@ -80,9 +81,14 @@ import os
 import random
 import sys
 
+# The serve loop, shared by the drivers: plants/driver_loop.py, found from this file's place
+# so that the driver runs from any working directory (bytecode is not written into the tree).
+sys.dont_write_bytecode = True
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), os.pardir))
+from driver_loop import run  # noqa: E402
+
 V_MIN = -12.0  # V
 V_MAX = 12.0  # V
-MAX_ADVANCE = 60.0  # s per request
 
 
 class DcMotor:
@@ -113,12 +119,13 @@ class DcMotor:
         y = self.theta_l
         if self.noise > 0.0:
             y += self.rng.gauss(0.0, self.noise)
-        return round(y / self.count) * self.count
+        return [round(y / self.count) * self.count]
 
-    def write(self, v):
+    def write(self, values):
+        (v,) = values
         a = V_MIN if v < V_MIN else V_MAX if v > V_MAX else v
         self.applied = a
-        return a
+        return [a]
 
     def _integrate(self, steps, h):
         """`steps` semi-implicit Euler steps of h seconds (the hot loop: locals only)."""
@@ -175,7 +182,7 @@ class DcMotor:
             self._integrate(1, rest)
 
     def safe_stop(self):
-        self.write(0.0)
+        self.write([0.0])
 
 
 def parse_args(argv):
@@ -226,75 +233,8 @@ def parse_args(argv):
     return a
 
 
-def serve(plant, channels):
-    """The request loop. Returns the exit status."""
-    readline = sys.stdin.readline
-    write = sys.stdout.write
-    flush = sys.stdout.flush
-    isfinite = math.isfinite
-    write(f"hello channels={channels}\n")
-    flush()
-    while True:
-        line = readline()
-        if not line:  # EOF: the agent is gone
-            plant.safe_stop()
-            return 0
-        words = line.split()
-        cmd = words[0] if words else ""
-        if cmd == "read":
-            if len(words) == 1:
-                answer = repr(plant.read()) + "\n"
-            else:
-                answer = "err read takes no arguments\n"
-        elif cmd == "write":
-            if len(words) != 2:
-                answer = f"err write needs {channels} number(s), got {len(words) - 1}\n"
-            else:
-                try:
-                    v = float(words[1])
-                except ValueError:
-                    v = math.nan
-                if isfinite(v):
-                    answer = "ok " + repr(plant.write(v)) + "\n"
-                else:
-                    answer = f"err write: not a finite number: {words[1]}\n"
-        elif cmd == "advance":
-            try:
-                dt = float(words[1]) if len(words) == 2 else math.nan
-            except ValueError:
-                dt = math.nan
-            if isfinite(dt) and 0.0 <= dt <= MAX_ADVANCE:
-                plant.advance(dt)
-                answer = "ok\n"
-            else:
-                answer = f"err advance needs one finite duration in 0 ..= {MAX_ADVANCE:g} (s)\n"
-        elif cmd == "stop":
-            plant.safe_stop()
-            write("ok\n")
-            flush()
-            return 0
-        else:
-            answer = f"err unknown request {line.strip()[:80]!r}\n"
-        write(answer)
-        flush()
-
-
 def main(argv=None):
-    args = parse_args(argv)
-    plant = DcMotor(args)
-    sys.stdin.reconfigure(errors="replace")  # stray bytes become an `err`, not a traceback
-    try:
-        status = serve(plant, 1)
-    except (BrokenPipeError, KeyboardInterrupt):
-        plant.safe_stop()
-        status = 0
-    # Whatever happened to stdout, do not let the interpreter's final flush complain.
-    try:
-        sys.stdout.flush()
-    except BrokenPipeError:
-        pass
-    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-    return status
+    return run(DcMotor(parse_args(argv)), 1)
 
 
 if __name__ == "__main__":

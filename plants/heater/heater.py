@@ -32,11 +32,11 @@ Integration
     time is a time-stamped history of the applied inputs (not a queue of samples), so it
     does not depend on how the agent slices time.
 
-Protocol (one answer per request, flushed)
+Protocol (one answer per request, flushed; the loop and its limits are plants/driver_loop.py)
     (start)          -> hello channels=1
     read             -> T                    (degC)
     write v          -> ok a                 (a = v clamped to 0 .. 24 V)
-    advance DT       -> ok                   (DT >= 0 and finite, seconds)
+    advance DT       -> ok                   (0 <= DT <= 60 and finite, seconds)
     stop             -> ok, heater off (0 V), exit 0
     end of stdin     -> heater off, exit 0
     anything else    -> err MESSAGE (nothing changes)
@@ -52,6 +52,12 @@ import os
 import random
 import sys
 from collections import deque
+
+# The serve loop, shared by the drivers: plants/driver_loop.py, found from this file's place
+# so that the driver runs from any working directory (bytecode is not written into the tree).
+sys.dont_write_bytecode = True
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), os.pardir))
+from driver_loop import run  # noqa: E402
 
 V_MIN = 0.0  # V: the heater cannot cool
 V_MAX = 24.0  # V
@@ -79,9 +85,10 @@ class Heater:
         if self.noise > 0.0:
             y += self.rng.gauss(0.0, self.noise)
         # Quantise to 0.01 degC; k / 100 is the double nearest the decimal (prints as 45.03).
-        return round(y * 100.0) / 100.0
+        return [round(y * 100.0) / 100.0]
 
-    def write(self, v):
+    def write(self, values):
+        (v,) = values
         a = V_MIN if v < V_MIN else V_MAX if v > V_MAX else v
         if a != self.applied:
             self.applied = a
@@ -91,7 +98,7 @@ class Heater:
                 # Several writes at the same instant: the last one wins.
                 pending.pop()
             pending.append((at, a))
-        return a
+        return [a]
 
     def _evolve(self, h):
         """Exact solution over h seconds with the delayed input held."""
@@ -112,7 +119,7 @@ class Heater:
         self.t = end
 
     def safe_stop(self):
-        self.write(0.0)
+        self.write([0.0])
 
 
 def parse_args(argv):
@@ -138,75 +145,9 @@ def parse_args(argv):
     return a
 
 
-def serve(plant, channels):
-    """The request loop. Returns the exit status."""
-    readline = sys.stdin.readline
-    write = sys.stdout.write
-    flush = sys.stdout.flush
-    isfinite = math.isfinite
-    write(f"hello channels={channels}\n")
-    flush()
-    while True:
-        line = readline()
-        if not line:  # EOF: the agent is gone
-            plant.safe_stop()
-            return 0
-        words = line.split()
-        cmd = words[0] if words else ""
-        if cmd == "read":
-            if len(words) == 1:
-                answer = repr(plant.read()) + "\n"
-            else:
-                answer = "err read takes no arguments\n"
-        elif cmd == "write":
-            if len(words) != 2:
-                answer = f"err write needs {channels} number(s), got {len(words) - 1}\n"
-            else:
-                try:
-                    v = float(words[1])
-                except ValueError:
-                    v = math.nan
-                if isfinite(v):
-                    answer = "ok " + repr(plant.write(v)) + "\n"
-                else:
-                    answer = f"err write: not a finite number: {words[1]}\n"
-        elif cmd == "advance":
-            try:
-                dt = float(words[1]) if len(words) == 2 else math.nan
-            except ValueError:
-                dt = math.nan
-            if isfinite(dt) and dt >= 0.0:
-                plant.advance(dt)
-                answer = "ok\n"
-            else:
-                answer = "err advance needs one finite duration >= 0 (s)\n"
-        elif cmd == "stop":
-            plant.safe_stop()
-            write("ok\n")
-            flush()
-            return 0
-        else:
-            answer = f"err unknown request {line.strip()[:80]!r}\n"
-        write(answer)
-        flush()
-
-
 def main(argv=None):
     args = parse_args(argv)
-    plant = Heater(args.ambient, args.gain, args.tau, args.dead_time, args.noise, args.seed)
-    sys.stdin.reconfigure(errors="replace")  # stray bytes become an `err`, not a traceback
-    try:
-        status = serve(plant, 1)
-    except (BrokenPipeError, KeyboardInterrupt):
-        plant.safe_stop()
-        status = 0
-    # Whatever happened to stdout, do not let the interpreter's final flush complain.
-    try:
-        sys.stdout.flush()
-    except BrokenPipeError:
-        pass
-    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-    return status
+    return run(Heater(args.ambient, args.gain, args.tau, args.dead_time, args.noise, args.seed), 1)
 
 
 if __name__ == "__main__":

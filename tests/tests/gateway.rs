@@ -281,31 +281,31 @@ async fn every_rule_holds_per_device_inside_a_batch() {
     let _ = s.close().await;
 }
 
-/// A gateway agent hosting four simulated AERO rigs through one batch per period: every
-/// plant is served (its own loop, its own safety), tracks as it does offline, and the
-/// service counts every one of its samples under its own device.
-#[tokio::test(flavor = "multi_thread")]
-async fn a_gateway_agent_serves_its_plants_in_one_batch_per_period() {
+/// Runs of the gateway test, as in `tests/any_plant.rs`: an attempt whose rigs held more
+/// than [`system_tests::max_held_fraction`] of their periods (the machine missing its
+/// deadlines, not the service) is run again, at most this many times.
+const ATTEMPTS: usize = 3;
+
+/// One run of four simulated AERO rigs behind one gateway agent, on a fresh service: each
+/// rig's report, and the service's status at the end.
+async fn gateway_run(
+    sc: &plant_agent::scenario::Scenario,
+    c: &plant_agent::scenario::ControllerSet,
+    ids: &[String],
+) -> (Vec<plant_agent::agent::AgentReport>, pb::ServiceStatus) {
     use mfc_lab::harness::{default_safety, service_config, ServiceHandle};
     use plant_agent::agent::{open_plant, LoopConfig};
-    use plant_agent::scenario::{load_scenario, shipped_controller};
 
-    let _s = SERIAL.lock().await;
-    let mut sc = load_scenario("1").unwrap();
-    sc.duration = 8.0;
-    let c = shipped_controller("ipd").unwrap();
-    let offline = mfc_lab::offline::simulate(&sc, &c, false).unwrap().summary;
-    let ids: Vec<String> = (0..4).map(|i| format!("cell-aero-{i}")).collect();
-    let service = ServiceHandle::start(service_config(&sc, &c, &ids), None)
+    let service = ServiceHandle::start(service_config(sc, c, ids), None)
         .await
         .unwrap();
     let session = service.client().await.unwrap();
     let mut plants = Vec::new();
-    for id in &ids {
-        let mut safety = default_safety(&sc);
+    for id in ids {
+        let mut safety = default_safety(sc);
         safety.hold_periods += system_tests::margin_periods();
-        let plant = open_plant(&sc, sc.seed).await.unwrap();
-        plants.push((plant, LoopConfig::new(&sc, &c, id, safety)));
+        let plant = open_plant(sc, sc.seed).await.unwrap();
+        plants.push((plant, LoopConfig::new(sc, c, id, safety)));
     }
     let runs = plant_agent::gateway::run_gateway(
         &session,
@@ -321,43 +321,86 @@ async fn a_gateway_agent_serves_its_plants_in_one_batch_per_period() {
         .unwrap();
     let _ = session.close().await;
     service.stop().await.unwrap();
-    for run in runs {
-        let r = run.unwrap().report;
-        eprintln!("{}", r.headline());
-        assert!(r.completed() && r.safe_stop_applied, "{r:?}");
-        assert_eq!(r.link, plant_agent::agent::Link::Kept, "{r:?}");
-        let k = &r.counters;
-        assert_eq!(k.periods as usize, sc.steps());
-        assert_eq!(
-            k.duplicates + k.malformed + k.future + k.rejected,
-            0,
-            "{k:?}"
-        );
-        let dev = status
-            .devices
-            .iter()
-            .find(|d| d.device_id == r.device_id)
-            .unwrap();
-        // Every sample reached the service under its own device, in a batch.
-        assert_eq!(dev.samples, k.periods, "{dev:?}");
-        assert_eq!((dev.rejected, dev.stale, dev.duplicates), (0, 0, 0));
-        let held = (k.holding_periods + k.local_periods) as f64 / k.periods as f64;
-        if held <= system_tests::max_held_fraction() {
+    let reports = runs.into_iter().map(|run| run.unwrap().report).collect();
+    (reports, status)
+}
+
+/// A gateway agent hosting four simulated AERO rigs through one batch per period: every
+/// plant is served (its own loop, its own safety), and the service counts every one of its
+/// samples under its own device, on every attempt; on an attempt whose commands came in
+/// time, every plant tracks as it does offline. The test fails if no attempt of
+/// [`ATTEMPTS`] came in time: tracking must have been judged.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_gateway_agent_serves_its_plants_in_one_batch_per_period() {
+    use plant_agent::scenario::{load_scenario, shipped_controller};
+
+    let _s = SERIAL.lock().await;
+    let mut sc = load_scenario("1").unwrap();
+    sc.duration = 8.0;
+    let c = shipped_controller("ipd").unwrap();
+    let offline = mfc_lab::offline::simulate(&sc, &c, false).unwrap().summary;
+    let ids: Vec<String> = (0..4).map(|i| format!("cell-aero-{i}")).collect();
+    let mut judged = false;
+    for attempt in 1..=ATTEMPTS {
+        let (reports, status) = gateway_run(&sc, &c, &ids).await;
+        assert_eq!(reports.len(), ids.len());
+        let mut in_time = true;
+        for r in &reports {
+            eprintln!("attempt {attempt}: {}", r.headline());
+            assert!(r.completed() && r.safe_stop_applied, "{r:?}");
+            assert_eq!(r.link, plant_agent::agent::Link::Kept, "{r:?}");
+            let k = &r.counters;
+            assert_eq!(k.periods as usize, sc.steps());
+            assert_eq!(
+                k.duplicates + k.malformed + k.future + k.rejected,
+                0,
+                "{k:?}"
+            );
+            let dev = status
+                .devices
+                .iter()
+                .find(|d| d.device_id == r.device_id)
+                .unwrap();
+            // Every sample reached the service under its own device, in a batch.
+            assert_eq!(dev.samples, k.periods, "{dev:?}");
+            assert_eq!((dev.rejected, dev.stale, dev.duplicates), (0, 0, 0));
+            let held = (k.holding_periods + k.local_periods) as f64 / k.periods as f64;
+            if held > system_tests::max_held_fraction() {
+                eprintln!(
+                    "attempt {attempt}: {}: {:.1} % of periods held (bound {:.1} %): tracking \
+                     not judged on this attempt (the counts were)",
+                    r.device_id,
+                    100.0 * held,
+                    100.0 * system_tests::max_held_fraction()
+                );
+                in_time = false;
+            }
+        }
+        if !in_time {
+            continue;
+        }
+        for r in &reports {
             for (net, off) in r.channels.iter().zip(&offline.channels) {
                 let ratio = net.rms / off.rms;
-                eprintln!("{} {}: ratio {ratio:.3}", r.device_id, net.name);
+                eprintln!(
+                    "attempt {attempt}: {} {}: ratio {ratio:.3}",
+                    r.device_id, net.name
+                );
                 assert!(
                     ratio < system_tests::rms_ratio_bound(),
-                    "{}: {ratio}",
+                    "{} {}: {ratio}",
+                    r.device_id,
                     net.name
                 );
             }
-        } else {
-            eprintln!(
-                "{}: {:.1} % of periods held: tracking not judged on this run (the counts were)",
-                r.device_id,
-                100.0 * held
-            );
         }
+        judged = true;
+        break;
     }
+    assert!(
+        judged,
+        "no attempt of {ATTEMPTS} had its commands in time (held periods over {:.1} %): this \
+         machine cannot judge tracking now",
+        100.0 * system_tests::max_held_fraction()
+    );
 }
