@@ -206,28 +206,7 @@ const TAU: f64 = 0.5;
 
 /// Run the generator on `session` (already connected to the target) and report.
 pub async fn run(session: &Session, spec: &Spec) -> Result<Report, GenError> {
-    if spec.devices == 0 || !(spec.rate_hz > 0.0 && spec.rate_hz <= 10_000.0) {
-        return Err(GenError::Spec(
-            "devices must be > 0 and rate_hz in (0, 10000]".into(),
-        ));
-    }
-    if spec.gateways > 0 && spec.devices.div_ceil(spec.gateways) > protocol::MAX_BATCH_SAMPLES {
-        return Err(GenError::Spec(format!(
-            "{} devices over {} gateways exceed {} per batch",
-            spec.devices,
-            spec.gateways,
-            protocol::MAX_BATCH_SAMPLES
-        )));
-    }
-    if spec.resend > protocol::RESENT_SAMPLES {
-        return Err(GenError::Spec(format!(
-            "resend is at most {}, got {}",
-            protocol::RESENT_SAMPLES,
-            spec.resend
-        )));
-    }
-    keys::check_id(&format!("{}-gw-{}", spec.prefix, spec.devices))
-        .map_err(|e| GenError::Spec(e.to_string()))?;
+    check(spec)?;
     let wait = Duration::from_secs(20);
     if !transport::wait_for_token(session, &keys::alive_controller("*"), wait).await {
         return Err(GenError::NoTarget(wait));
@@ -253,52 +232,8 @@ pub async fn run(session: &Session, spec: &Spec) -> Result<Report, GenError> {
         duplicates: AtomicU64::new(0),
         max_gap: AtomicU64::new(0),
     });
-    let sub = if spec.gateways == 0 {
-        let sh = shared.clone();
-        session
-            .declare_subscriber(keys::all_devices("command"))
-            .callback(move |s| {
-                let now = protocol::unix_ns();
-                if let Ok(c) = decode::<pb::Command>(&s.payload().to_bytes()) {
-                    sh.take(&mut lock(&sh.rx), &c, now);
-                }
-            })
-            .await
-            .map_err(zerr)?
-    } else {
-        let sh = shared.clone();
-        session
-            .declare_subscriber(keys::all_gateways("commands"))
-            .callback(move |s| {
-                let now = protocol::unix_ns();
-                if let Ok(b) = decode::<pb::CommandBatch>(&s.payload().to_bytes()) {
-                    let mut rx = lock(&sh.rx);
-                    for c in &b.commands {
-                        sh.take(&mut rx, c, now);
-                    }
-                }
-            })
-            .await
-            .map_err(zerr)?
-    };
-    // One publisher per sending key: per device, or per gateway.
-    let senders: Vec<String> = if spec.gateways == 0 {
-        (0..spec.devices)
-            .map(|i| keys::shard_sample(&format!("{}-{i}", spec.prefix)))
-            .collect()
-    } else {
-        (0..spec.gateways)
-            .map(|g| keys::shard_gateway_samples(&format!("{}-gw-{g}", spec.prefix)))
-            .collect()
-    };
-    let mut publishers = Vec::with_capacity(senders.len());
-    for k in senders {
-        publishers.push(
-            transport::control_publisher(session, k)
-                .await
-                .map_err(zerr)?,
-        );
-    }
+    let sub = subscribe_commands(session, &shared, spec.gateways > 0).await?;
+    let publishers = publishers(session, spec).await?;
     let late = Arc::new(AtomicU64::new(0));
     let stop = Arc::new(AtomicBool::new(false));
     let thread = {
@@ -336,6 +271,92 @@ pub async fn run(session: &Session, spec: &Spec) -> Result<Report, GenError> {
         p999_us: sh.hist.quantile(0.999),
         max_us: sh.hist.max(),
     })
+}
+
+/// Refuse a spec the generator cannot run, saying why.
+fn check(spec: &Spec) -> Result<(), GenError> {
+    if spec.devices == 0 || !(spec.rate_hz > 0.0 && spec.rate_hz <= 10_000.0) {
+        return Err(GenError::Spec(
+            "devices must be > 0 and rate_hz in (0, 10000]".into(),
+        ));
+    }
+    if spec.gateways > 0 && spec.devices.div_ceil(spec.gateways) > protocol::MAX_BATCH_SAMPLES {
+        return Err(GenError::Spec(format!(
+            "{} devices over {} gateways exceed {} per batch",
+            spec.devices,
+            spec.gateways,
+            protocol::MAX_BATCH_SAMPLES
+        )));
+    }
+    if spec.resend > protocol::RESENT_SAMPLES {
+        return Err(GenError::Spec(format!(
+            "resend is at most {}, got {}",
+            protocol::RESENT_SAMPLES,
+            spec.resend
+        )));
+    }
+    keys::check_id(&format!("{}-gw-{}", spec.prefix, spec.devices))
+        .map_err(|e| GenError::Spec(e.to_string()))?;
+    Ok(())
+}
+
+/// Take every command (or, through gateways, every command batch) into `shared`.
+async fn subscribe_commands(
+    session: &Session,
+    shared: &Arc<Shared>,
+    gateways: bool,
+) -> Result<zenoh::pubsub::Subscriber<()>, GenError> {
+    let sh = shared.clone();
+    if !gateways {
+        return session
+            .declare_subscriber(keys::all_devices("command"))
+            .callback(move |s| {
+                let now = protocol::unix_ns();
+                if let Ok(c) = decode::<pb::Command>(&s.payload().to_bytes()) {
+                    sh.take(&mut lock(&sh.rx), &c, now);
+                }
+            })
+            .await
+            .map_err(zerr);
+    }
+    session
+        .declare_subscriber(keys::all_gateways("commands"))
+        .callback(move |s| {
+            let now = protocol::unix_ns();
+            if let Ok(b) = decode::<pb::CommandBatch>(&s.payload().to_bytes()) {
+                let mut rx = lock(&sh.rx);
+                for c in &b.commands {
+                    sh.take(&mut rx, c, now);
+                }
+            }
+        })
+        .await
+        .map_err(zerr)
+}
+
+/// One publisher per sending key: per device, or per gateway.
+async fn publishers(
+    session: &Session,
+    spec: &Spec,
+) -> Result<Vec<zenoh::pubsub::Publisher<'static>>, GenError> {
+    let senders: Vec<String> = if spec.gateways == 0 {
+        (0..spec.devices)
+            .map(|i| keys::shard_sample(&format!("{}-{i}", spec.prefix)))
+            .collect()
+    } else {
+        (0..spec.gateways)
+            .map(|g| keys::shard_gateway_samples(&format!("{}-gw-{g}", spec.prefix)))
+            .collect()
+    };
+    let mut publishers = Vec::with_capacity(senders.len());
+    for k in senders {
+        publishers.push(
+            transport::control_publisher(session, k)
+                .await
+                .map_err(zerr)?,
+        );
+    }
+    Ok(publishers)
 }
 
 /// The pacing loop: period `k` = 1, 2, ... up to `end` (exclusive); within a period,

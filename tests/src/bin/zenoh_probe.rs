@@ -115,146 +115,185 @@ async fn run(cli: Cli) -> anyhow::Result<serde_json::Value> {
     let session = tokio::time::timeout(Duration::from_secs_f64(cli.open_timeout), cli.zenoh.open())
         .await
         .map_err(|_| anyhow::anyhow!("no session after {} s", cli.open_timeout))??;
+    let s = &session;
     let out = match cli.what {
-        What::Open => json!({ "opened": true }),
+        What::Open => Ok(json!({ "opened": true })),
         What::Put {
             key,
             count,
             interval_ms,
             marker,
-        } => {
-            let mut errors = 0;
-            for i in 0..count {
-                if session.put(&key, format!("{marker}-{i}")).await.is_err() {
-                    errors += 1;
-                }
-                tokio::time::sleep(Duration::from_millis(interval_ms)).await;
-            }
-            json!({ "put": count, "errors": errors })
-        }
-        What::Sub { key, secs, marker } => {
-            let counts = std::sync::Arc::new(std::sync::Mutex::new(std::collections::BTreeMap::<
-                String,
-                (u64, u64, u64),
-            >::new()));
-            let mut subs = Vec::new();
-            for k in key {
-                counts.lock().unwrap().insert(k.clone(), (0, 0, 0));
-                let (c, m, kk) = (counts.clone(), marker.clone(), k.clone());
-                subs.push(
-                    session
-                        .declare_subscriber(&k)
-                        .callback(move |s| {
-                            let forged = s.payload().to_bytes().starts_with(m.as_bytes());
-                            let delete = s.kind() == zenoh::sample::SampleKind::Delete;
-                            if let Some(e) = c.lock().unwrap().get_mut(&kk) {
-                                e.0 += 1;
-                                e.1 += forged as u64;
-                                e.2 += delete as u64;
-                            }
-                        })
-                        .await
-                        .map_err(|e| anyhow::anyhow!("subscriber {k}: {e}"))?,
-                );
-            }
-            tokio::time::sleep(Duration::from_secs_f64(secs)).await;
-            drop(subs);
-            let counts = counts.lock().unwrap().clone();
-            let per_key: serde_json::Map<String, serde_json::Value> = counts
-                .iter()
-                .map(|(k, (r, m, d))| {
-                    (
-                        k.clone(),
-                        json!({ "received": r, "marked": m, "deletes": d }),
-                    )
-                })
-                .collect();
-            json!({
-                "received": counts.values().map(|c| c.0).sum::<u64>(),
-                "marked": counts.values().map(|c| c.1).sum::<u64>(),
-                "per_key": per_key,
-            })
-        }
+        } => put(s, &key, count, interval_ms, &marker).await,
+        What::Sub { key, secs, marker } => sub(s, key, secs, &marker).await,
         What::Get {
             key,
             count,
             payload_hex,
             marker,
-        } => {
-            let payload = payload_hex.as_deref().map(hex).transpose()?;
-            let (mut ok, mut err, mut marked) = (0u64, 0u64, 0u64);
-            for _ in 0..count {
-                let mut get = session.get(&key).timeout(Duration::from_secs(1));
-                if let Some(p) = &payload {
-                    get = get.payload(p.clone());
-                }
-                let replies = get.await.map_err(|e| anyhow::anyhow!("query {key}: {e}"))?;
-                while let Ok(r) = replies.recv_async().await {
-                    match r.result() {
-                        Ok(s) => {
-                            ok += 1;
-                            marked += s.payload().to_bytes().starts_with(marker.as_bytes()) as u64;
-                        }
-                        Err(_) => err += 1,
-                    }
-                }
-            }
-            json!({ "queries": count, "replies": ok, "marked_replies": marked, "error_replies": err })
-        }
-        What::Delete { key, count } => {
-            let mut errors = 0;
-            for _ in 0..count {
-                if session.delete(&key).await.is_err() {
-                    errors += 1;
-                }
-                tokio::time::sleep(Duration::from_millis(5)).await;
-            }
-            json!({ "deleted": count, "errors": errors })
-        }
-        What::Queryable { key, secs, marker } => {
-            let n = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
-            let seen = n.clone();
-            let _q = session
-                .declare_queryable(&key)
-                .callback(move |q| {
-                    seen.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                    let key = q.key_expr().clone();
-                    let marker = marker.clone();
-                    tokio::spawn(async move {
-                        let _ = q.reply(key, marker).await;
-                    });
-                })
-                .await
-                .map_err(|e| anyhow::anyhow!("queryable {key}: {e}"))?;
-            tokio::time::sleep(Duration::from_secs_f64(secs)).await;
-            json!({ "queries_seen": n.load(std::sync::atomic::Ordering::Relaxed) })
-        }
-        What::Token { key, secs } => {
-            let _t = session
-                .liveliness()
-                .declare_token(&key)
-                .await
-                .map_err(|e| anyhow::anyhow!("token {key}: {e}"))?;
-            tokio::time::sleep(Duration::from_secs_f64(secs)).await;
-            json!({ "token": key })
-        }
-        What::Alive { key } => {
-            let replies = session
-                .liveliness()
-                .get(&key)
-                .timeout(Duration::from_secs(2))
-                .await
-                .map_err(|e| anyhow::anyhow!("liveliness {key}: {e}"))?;
-            let mut keys = Vec::new();
-            while let Ok(r) = replies.recv_async().await {
-                if let Ok(s) = r.result() {
-                    keys.push(s.key_expr().to_string());
-                }
-            }
-            keys.sort();
-            json!({ "alive": keys })
-        }
+        } => get(s, &key, count, payload_hex.as_deref(), &marker).await,
+        What::Delete { key, count } => delete(s, &key, count).await,
+        What::Queryable { key, secs, marker } => queryable(s, &key, secs, marker).await,
+        What::Token { key, secs } => token(s, &key, secs).await,
+        What::Alive { key } => alive(s, &key).await,
     };
     let _ = session.close().await;
-    Ok(out)
+    out
+}
+
+type Session = zenoh::Session;
+
+async fn put(
+    session: &Session,
+    key: &str,
+    count: u32,
+    interval_ms: u64,
+    marker: &str,
+) -> anyhow::Result<serde_json::Value> {
+    let mut errors = 0;
+    for i in 0..count {
+        if session.put(key, format!("{marker}-{i}")).await.is_err() {
+            errors += 1;
+        }
+        tokio::time::sleep(Duration::from_millis(interval_ms)).await;
+    }
+    Ok(json!({ "put": count, "errors": errors }))
+}
+
+/// Per key: received, marked, deletes.
+type Counts = std::sync::Arc<std::sync::Mutex<std::collections::BTreeMap<String, (u64, u64, u64)>>>;
+
+async fn sub(
+    session: &Session,
+    keys: Vec<String>,
+    secs: f64,
+    marker: &str,
+) -> anyhow::Result<serde_json::Value> {
+    let counts = Counts::default();
+    let mut subs = Vec::new();
+    for k in keys {
+        counts.lock().unwrap().insert(k.clone(), (0, 0, 0));
+        let (c, m, kk) = (counts.clone(), marker.to_string(), k.clone());
+        subs.push(
+            session
+                .declare_subscriber(&k)
+                .callback(move |s| {
+                    let forged = s.payload().to_bytes().starts_with(m.as_bytes());
+                    let delete = s.kind() == zenoh::sample::SampleKind::Delete;
+                    if let Some(e) = c.lock().unwrap().get_mut(&kk) {
+                        e.0 += 1;
+                        e.1 += forged as u64;
+                        e.2 += delete as u64;
+                    }
+                })
+                .await
+                .map_err(|e| anyhow::anyhow!("subscriber {k}: {e}"))?,
+        );
+    }
+    tokio::time::sleep(Duration::from_secs_f64(secs)).await;
+    drop(subs);
+    let counts = counts.lock().unwrap().clone();
+    let per_key: serde_json::Map<String, serde_json::Value> = counts
+        .iter()
+        .map(|(k, (r, m, d))| {
+            (
+                k.clone(),
+                json!({ "received": r, "marked": m, "deletes": d }),
+            )
+        })
+        .collect();
+    Ok(json!({
+        "received": counts.values().map(|c| c.0).sum::<u64>(),
+        "marked": counts.values().map(|c| c.1).sum::<u64>(),
+        "per_key": per_key,
+    }))
+}
+
+async fn get(
+    session: &Session,
+    key: &str,
+    count: u32,
+    payload_hex: Option<&str>,
+    marker: &str,
+) -> anyhow::Result<serde_json::Value> {
+    let payload = payload_hex.map(hex).transpose()?;
+    let (mut ok, mut err, mut marked) = (0u64, 0u64, 0u64);
+    for _ in 0..count {
+        let mut get = session.get(key).timeout(Duration::from_secs(1));
+        if let Some(p) = &payload {
+            get = get.payload(p.clone());
+        }
+        let replies = get.await.map_err(|e| anyhow::anyhow!("query {key}: {e}"))?;
+        while let Ok(r) = replies.recv_async().await {
+            match r.result() {
+                Ok(s) => {
+                    ok += 1;
+                    marked += s.payload().to_bytes().starts_with(marker.as_bytes()) as u64;
+                }
+                Err(_) => err += 1,
+            }
+        }
+    }
+    Ok(json!({ "queries": count, "replies": ok, "marked_replies": marked, "error_replies": err }))
+}
+
+async fn delete(session: &Session, key: &str, count: u32) -> anyhow::Result<serde_json::Value> {
+    let mut errors = 0;
+    for _ in 0..count {
+        if session.delete(key).await.is_err() {
+            errors += 1;
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    Ok(json!({ "deleted": count, "errors": errors }))
+}
+
+async fn queryable(
+    session: &Session,
+    key: &str,
+    secs: f64,
+    marker: String,
+) -> anyhow::Result<serde_json::Value> {
+    let n = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let seen = n.clone();
+    let _q = session
+        .declare_queryable(key)
+        .callback(move |q| {
+            seen.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            let key = q.key_expr().clone();
+            let marker = marker.clone();
+            tokio::spawn(async move {
+                let _ = q.reply(key, marker).await;
+            });
+        })
+        .await
+        .map_err(|e| anyhow::anyhow!("queryable {key}: {e}"))?;
+    tokio::time::sleep(Duration::from_secs_f64(secs)).await;
+    Ok(json!({ "queries_seen": n.load(std::sync::atomic::Ordering::Relaxed) }))
+}
+
+async fn token(session: &Session, key: &str, secs: f64) -> anyhow::Result<serde_json::Value> {
+    let _t = session
+        .liveliness()
+        .declare_token(key)
+        .await
+        .map_err(|e| anyhow::anyhow!("token {key}: {e}"))?;
+    tokio::time::sleep(Duration::from_secs_f64(secs)).await;
+    Ok(json!({ "token": key }))
+}
+
+async fn alive(session: &Session, key: &str) -> anyhow::Result<serde_json::Value> {
+    let replies = session
+        .liveliness()
+        .get(key)
+        .timeout(Duration::from_secs(2))
+        .await
+        .map_err(|e| anyhow::anyhow!("liveliness {key}: {e}"))?;
+    let mut keys = Vec::new();
+    while let Ok(r) = replies.recv_async().await {
+        if let Ok(s) = r.result() {
+            keys.push(s.key_expr().to_string());
+        }
+    }
+    keys.sort();
+    Ok(json!({ "alive": keys }))
 }
