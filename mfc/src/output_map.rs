@@ -182,7 +182,10 @@ impl OutputMap {
         let mut v = c.compensate(u).clamp(c.min, c.max);
         if let (Some(rate), Some((t0, v0))) = (c.rate_limit, self.last) {
             let dt = (t - t0).max(0.0);
-            v = v.clamp(v0 - rate * dt, v0 + rate * dt);
+            // The range wins over the rate: where the last output lies outside it (what
+            // the plant reported applying, or a restored state), the map returns into it
+            // at once rather than leave it at the rate's pace.
+            v = v.clamp(v0 - rate * dt, v0 + rate * dt).clamp(c.min, c.max);
         }
         self.last = Some((t, v));
         Ok(v)

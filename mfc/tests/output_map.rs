@@ -106,3 +106,28 @@ fn smoothing_must_not_be_negative_or_nan() {
         assert!(OutputMap::new(c).is_err(), "smoothing {s} accepted");
     }
 }
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(2000))]
+
+    /// Whatever the plant reported applying last (inside the range or far outside it, as
+    /// a fallback with other limits or a restored state may leave it), the next output
+    /// stays inside `[min, max]`, and inside the rate limit's reach wherever that reach
+    /// meets the range.
+    #[test]
+    fn the_range_holds_after_any_reported_output(
+        applied in -100.0f64..100.0,
+        u in -100.0f64..100.0,
+        dt in 0.0f64..1.0,
+    ) {
+        let c = OutputMapConfig { rate_limit: Some(10.0), ..smooth(0.0, 1.0) };
+        let mut m = OutputMap::new(c).unwrap();
+        m.record_applied(0.0, applied);
+        let v = m.apply(dt, u).unwrap();
+        prop_assert!((-24.0..=24.0).contains(&v), "v {v}");
+        let (lo, hi) = (applied - 10.0 * dt, applied + 10.0 * dt);
+        if hi >= -24.0 && lo <= 24.0 {
+            prop_assert!(v >= lo - 1e-9 && v <= hi + 1e-9, "v {v} outside [{lo}, {hi}]");
+        }
+    }
+}
