@@ -41,9 +41,9 @@ use mfc::{ChannelConfig, ChannelOutput, MimoController, Reference};
 use protocol::convert::{
     apply_update, channel_from_pb, channel_to_pb, reference_from_pb, reference_to_pb,
 };
-use protocol::{pb, printable, PROTOCOL_VERSION};
+use protocol::{pb, printable, MAX_HORIZON, PROTOCOL_VERSION};
 
-use crate::config::{DeviceChannel, Prediction, ServiceConfig, MAX_HORIZON};
+use crate::config::{DeviceChannel, Prediction, ServiceConfig};
 use crate::envelope::Limits;
 
 /// A gap longer than this (s) between a snapshot and the next sample makes the restored
