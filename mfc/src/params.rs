@@ -268,7 +268,7 @@ pub static PARAMS: [Param; 18] = [
     Param {
         name: "kp",
         scope: Scope::Laws(I_PID),
-        unit: "1/s^n (intelligent); u per y (PID)",
+        unit: "1/s^n (intelligent); u/y (PID)",
         meaning: "proportional gain on the tracking error",
         bounds: GAIN,
         slot: shared!(kp),
@@ -276,7 +276,7 @@ pub static PARAMS: [Param; 18] = [
     Param {
         name: "ki",
         scope: Scope::Laws(I_PID),
-        unit: "1/s^(n+1) (intelligent); u per y s (PID)",
+        unit: "1/s^(n+1) (intelligent); u/(y s) (PID)",
         meaning: "integral gain (iPI, iPID, PID)",
         bounds: GAIN,
         slot: shared!(ki),
@@ -284,7 +284,7 @@ pub static PARAMS: [Param; 18] = [
     Param {
         name: "kd",
         scope: Scope::Laws(I_PID),
-        unit: "1/s^(n-1) (intelligent); u s per y (PID)",
+        unit: "1/s^(n-1) (intelligent); u s/y (PID)",
         meaning: "derivative gain (iPD, iPID, PID)",
         bounds: GAIN,
         slot: shared!(kd),
@@ -292,7 +292,7 @@ pub static PARAMS: [Param; 18] = [
     Param {
         name: "alpha",
         scope: Scope::Laws(I),
-        unit: "y/s^n per u",
+        unit: "y/(u s^n)",
         meaning: "alpha of y^(n) = F + alpha u: the scale of u, its sign the plant's",
         bounds: INPUT_GAIN,
         slot: |c| intelligent(c).map(|p| &mut p.alpha),
@@ -340,7 +340,7 @@ pub static PARAMS: [Param; 18] = [
     Param {
         name: "b0",
         scope: Scope::Laws(ADRC),
-        unit: "y/s^n per u",
+        unit: "y/(u s^n)",
         meaning: "input gain b0 of y^(n) = f + b0 u, its sign the plant's",
         bounds: INPUT_GAIN,
         slot: |c| adrc(c).map(|p| &mut p.b0),
