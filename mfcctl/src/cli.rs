@@ -176,6 +176,42 @@ struct ReferenceFile {
     channels: Vec<Vec<mfc::trajectory::Piece>>,
 }
 
+/// The pieces of `reference` and their start (plant time): one constant per channel, or a
+/// file's pieces, whose times count from the plant's time now unless `absolute`.
+async fn reference(
+    session: &zenoh::Session,
+    device: &str,
+    constant: &[f64],
+    file: Option<&std::path::Path>,
+    absolute: bool,
+    timeout: Duration,
+) -> Result<(Vec<Vec<mfc::trajectory::Piece>>, f64)> {
+    Ok(match file {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading {}", path.display()))?;
+            let f: ReferenceFile =
+                toml::from_str(&text).with_context(|| format!("{}", path.display()))?;
+            let start = if absolute {
+                0.0
+            } else {
+                ops::device_status(session, device, timeout)
+                    .await?
+                    .plant_time
+            };
+            (f.channels, start)
+        }
+        None if !constant.is_empty() => (
+            constant
+                .iter()
+                .map(|&value| vec![mfc::trajectory::Piece::Constant { value }])
+                .collect(),
+            0.0,
+        ),
+        None => bail!("give --constant V[,V...] or --file FILE"),
+    })
+}
+
 /// `params`: the table as text, JSON or Markdown.
 fn params(markdown: bool, json: bool) -> Result<String> {
     if markdown && json {
@@ -251,30 +287,15 @@ async fn command(
             file,
             absolute,
         } => {
-            let (pieces, start) = match file {
-                Some(path) => {
-                    let text = std::fs::read_to_string(path)
-                        .with_context(|| format!("reading {}", path.display()))?;
-                    let f: ReferenceFile =
-                        toml::from_str(&text).with_context(|| format!("{}", path.display()))?;
-                    let start = if *absolute {
-                        0.0
-                    } else {
-                        ops::device_status(session, device, timeout)
-                            .await?
-                            .plant_time
-                    };
-                    (f.channels, start)
-                }
-                None if !constant.is_empty() => (
-                    constant
-                        .iter()
-                        .map(|&value| vec![mfc::trajectory::Piece::Constant { value }])
-                        .collect(),
-                    0.0,
-                ),
-                None => bail!("give --constant V[,V...] or --file FILE"),
-            };
+            let (pieces, start) = reference(
+                session,
+                device,
+                constant,
+                file.as_deref(),
+                *absolute,
+                timeout,
+            )
+            .await?;
             let r = protocol::convert::reference_to_pb(&pieces, start);
             let c = ops::set_reference(session, device, r, timeout).await?;
             out(json, &c, render::config)?
