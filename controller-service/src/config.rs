@@ -27,6 +27,7 @@ use std::path::Path;
 
 use mfc::trajectory::Piece;
 use mfc::{ChannelConfig, LawConfig, OutputMapConfig};
+use protocol::MAX_HORIZON;
 use serde::{Deserialize, Serialize};
 
 use crate::envelope::Limits;
@@ -163,10 +164,6 @@ impl Default for Prediction {
         }
     }
 }
-
-/// Longest horizon a command carries (periods), with or without delay compensation: a
-/// prediction a second ahead at 100 Hz has long stopped meaning anything.
-pub const MAX_HORIZON: u32 = 100;
 
 impl Prediction {
     /// The offending field (`horizon`, `trend`, `trend_at_rest`) and why.

@@ -5,7 +5,7 @@
 //! `now`, seconds on the console's monotonic clock). The Zenoh wiring (`crate::net`) feeds
 //! it what arrives; the HTTP side (`crate::http`) reads it. Everything from the network is
 //! checked whole here ([`parse_sample`], [`parse_command`], the batch parsers,
-//! [`Fleet::apply_services`]) before any state changes: size, decoding and version, ids
+//! [`FleetView::apply_services`]) before any state changes: size, decoding and version, ids
 //! (`protocol::keys::check_id`, and the key's id equal to the message's), at most
 //! [`MAX_CHANNELS`] values per vector, finite numbers. What is refused is counted, once,
 //! in [`Counters`].
@@ -27,6 +27,8 @@
 
 use std::collections::{BTreeMap, VecDeque};
 
+use mfc::params::{Scope, PARAMS};
+use protocol::convert::update_values;
 use protocol::{keys, pb};
 use serde::Serialize;
 
@@ -37,7 +39,7 @@ pub const MAX_CHANNELS: usize = 16;
 /// Samples of one device waiting for their command before they are committed without one.
 pub const PENDING: usize = 8;
 
-/// Most points one [`Fleet::series`] answer carries (a reader asks again from `next`).
+/// Most points one [`FleetView::series`] answer carries (a reader asks again from `next`).
 pub const MAX_POINTS_PER_READ: usize = 4000;
 
 /// The bounds of the view.
@@ -411,15 +413,16 @@ pub struct Series {
     pub points: Vec<Point>,
 }
 
-/// The fleet.
+/// The console's view of the fleet: every device it holds, what it knows of each, and its
+/// counters. (The service's `Fleet` is another thing: the shards it owns.)
 #[derive(Debug, Clone, Default)]
-pub struct Fleet {
+pub struct FleetView {
     limits: Limits,
     devices: BTreeMap<String, Device>,
     counters: Counters,
 }
 
-impl Fleet {
+impl FleetView {
     /// An empty view with these bounds.
     pub fn new(limits: Limits) -> Self {
         Self {
@@ -758,30 +761,11 @@ pub fn check_update(update: &pb::ChannelUpdate, config: &pb::DeviceConfig) -> Re
             config.channels.len()
         ));
     };
-    let set = [
-        ("kp", update.kp),
-        ("ki", update.ki),
-        ("kd", update.kd),
-        ("alpha", update.alpha),
-        ("derivative_filter", update.derivative_filter),
-        ("derivative_observer", update.derivative_observer),
-        ("estimate_filter", update.estimate_filter),
-        ("hold_estimate_filter", update.hold_estimate_filter),
-        ("hold_after", update.hold_after),
-        ("b0", update.b0),
-        ("wc", update.wc),
-        ("wo", update.wo),
-        ("setpoint_weight", update.setpoint_weight),
-        ("dead_zone", update.dead_zone),
-        ("smoothing", update.smoothing),
-        ("min", update.min),
-        ("max", update.max),
-        ("rate_limit", update.rate_limit),
-    ];
-    if set.iter().all(|(_, v)| v.is_none()) {
+    let set: Vec<(&str, f64)> = update_values(update).map(|(p, v)| (p.name, v)).collect();
+    if set.is_empty() {
         return Err("nothing to change: give at least one field".into());
     }
-    if let Some((name, v)) = set.iter().find(|(_, v)| v.is_some_and(|x| !x.is_finite())) {
+    if let Some((name, v)) = set.iter().find(|(_, v)| !v.is_finite()) {
         return Err(format!("{name} {v:?} is not a finite number"));
     }
     let env = config
@@ -830,88 +814,78 @@ pub fn check_update(update: &pb::ChannelUpdate, config: &pb::DeviceConfig) -> Re
 }
 
 /// One channel's configuration for a form: the law and its parameters by the names a
-/// partial change uses, the output map and the envelope.
+/// partial change uses, the output map and the envelope. The names, their order and their
+/// help come from the core's table ([`mfc::params::PARAMS`]).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct ChannelView {
     /// `ip`, `ipi`, `ipd`, `ipid`, `pid`, `adrc` or `none`.
     pub law: String,
-    /// The law's parameters a change may set, with their values.
+    /// The law's parameters a change may set, with their values (none if the configuration
+    /// does not convert to the core's, which a service never sends).
     pub params: Vec<(String, f64)>,
     /// The output map's fields a change may set (`dead_zone`, `smoothing`, `min`, `max`,
     /// `rate_limit`; a missing limit is `null`).
     pub output: Vec<(String, Option<f64>)>,
+    /// Per field of `params` and `output`: its meaning, unit and sane bounds, in one line.
+    pub help: BTreeMap<&'static str, String>,
     /// The envelope's limits (`null`: unbounded, no rate limit).
     pub envelope: pb::ChannelLimits,
 }
 
+/// The law's name as a form shows it (`ipd`, `pid`, `adrc`).
+fn law_name(c: &pb::ChannelConfig) -> String {
+    use pb::channel_config::Law;
+    match &c.law {
+        Some(Law::Intelligent(x)) => pb::IntelligentKind::try_from(x.kind)
+            .map(|k| {
+                k.as_str_name()
+                    .trim_start_matches("INTELLIGENT_KIND_")
+                    .to_lowercase()
+            })
+            .unwrap_or_else(|_| "intelligent".into()),
+        Some(Law::Pid(_)) => "pid".into(),
+        Some(Law::Adrc(_)) => "adrc".into(),
+        None => "none".into(),
+    }
+}
+
+/// One channel as a form shows it: every parameter of the table its law has, read from
+/// the core's configuration (a limit or rate that is not there is `null`).
+fn channel_view(c: &pb::ChannelConfig, envelope: pb::ChannelLimits) -> ChannelView {
+    let core = protocol::convert::channel_from_pb(c).ok();
+    let (mut params, mut output, mut help) = (Vec::new(), Vec::new(), BTreeMap::new());
+    for p in PARAMS.iter() {
+        let Some(v) = core.as_ref().and_then(|k| p.get(k).ok()) else {
+            continue;
+        };
+        match p.scope {
+            Scope::OutputMap => {
+                output.push((p.name.to_string(), Some(v).filter(|v| v.is_finite())))
+            }
+            Scope::Laws(_) => params.push((p.name.to_string(), v)),
+        }
+        help.insert(
+            p.name,
+            format!("{} ({}; sane: {})", p.meaning, p.unit, p.bounds),
+        );
+    }
+    ChannelView {
+        law: law_name(c),
+        params,
+        output,
+        help,
+        envelope,
+    }
+}
+
 /// The configuration as channel views.
 pub fn channel_views(config: &pb::DeviceConfig) -> Vec<ChannelView> {
-    use pb::channel_config::Law;
     let env = config.envelope.clone().unwrap_or_default();
     config
         .channels
         .iter()
         .enumerate()
-        .map(|(i, c)| {
-            let p = |n: &str, v: f64| (n.to_string(), v);
-            let (law, params) = match &c.law {
-                Some(Law::Intelligent(x)) => {
-                    let kind = pb::IntelligentKind::try_from(x.kind)
-                        .map(|k| {
-                            k.as_str_name()
-                                .trim_start_matches("INTELLIGENT_KIND_")
-                                .to_lowercase()
-                        })
-                        .unwrap_or_else(|_| "intelligent".into());
-                    (
-                        kind,
-                        vec![
-                            p("kp", x.kp),
-                            p("ki", x.ki),
-                            p("kd", x.kd),
-                            p("alpha", x.alpha),
-                            p("derivative_filter", x.derivative_filter),
-                            p("derivative_observer", x.derivative_observer),
-                            p("estimate_filter", x.estimate_filter),
-                            p("hold_estimate_filter", x.hold_estimate_filter),
-                            p(
-                                "hold_after",
-                                x.hold_after
-                                    .unwrap_or(mfc::IntelligentParams::default().hold_after),
-                            ),
-                        ],
-                    )
-                }
-                Some(Law::Pid(x)) => (
-                    "pid".into(),
-                    vec![
-                        p("kp", x.kp),
-                        p("ki", x.ki),
-                        p("kd", x.kd),
-                        p("derivative_filter", x.derivative_filter),
-                        p("setpoint_weight", x.setpoint_weight),
-                    ],
-                ),
-                Some(Law::Adrc(x)) => (
-                    "adrc".into(),
-                    vec![p("b0", x.b0), p("wc", x.wc), p("wo", x.wo)],
-                ),
-                None => ("none".into(), vec![]),
-            };
-            let o = c.output.unwrap_or_default();
-            ChannelView {
-                law,
-                params,
-                output: vec![
-                    ("dead_zone".into(), Some(o.dead_zone)),
-                    ("smoothing".into(), Some(o.smoothing)),
-                    ("min".into(), o.min),
-                    ("max".into(), o.max),
-                    ("rate_limit".into(), o.rate_limit),
-                ],
-                envelope: env.channels.get(i).copied().unwrap_or_default(),
-            }
-        })
+        .map(|(i, c)| channel_view(c, env.channels.get(i).copied().unwrap_or_default()))
         .collect()
 }
 
@@ -968,7 +942,7 @@ mod tests {
         }
     }
 
-    fn feed(f: &mut Fleet, id: &str, seq: u64, with_command: bool) {
+    fn feed(f: &mut FleetView, id: &str, seq: u64, with_command: bool) {
         let s = parse_sample(
             &keys::sample(id),
             &encode(&sample(id, seq, seq as f64 * 0.01, &[seq as f64])),
@@ -1054,7 +1028,7 @@ mod tests {
                 .len(),
             2
         );
-        let mut f = Fleet::new(Limits::default());
+        let mut f = FleetView::new(Limits::default());
         f.dropped(Drop::BadId);
         f.dropped(Drop::Oversized);
         assert_eq!((f.counters().bad_id, f.counters().oversized), (1, 1));
@@ -1063,7 +1037,7 @@ mod tests {
 
     #[test]
     fn samples_and_commands_join_into_points_in_order() {
-        let mut f = Fleet::new(limits(4, 100));
+        let mut f = FleetView::new(limits(4, 100));
         for seq in 1..=3 {
             feed(&mut f, "a", seq, true);
         }
@@ -1101,7 +1075,7 @@ mod tests {
 
     #[test]
     fn a_command_that_overtakes_its_sample_is_joined_when_the_sample_comes() {
-        let mut f = Fleet::new(limits(4, 100));
+        let mut f = FleetView::new(limits(4, 100));
         feed(&mut f, "a", 1, true);
         let c = parse_command(&keys::command("a"), &encode(&command("a", 2, 3.0))).unwrap();
         f.apply_command(c);
@@ -1124,7 +1098,7 @@ mod tests {
 
     #[test]
     fn duplicates_late_commands_and_refusals_are_counted_not_plotted() {
-        let mut f = Fleet::new(limits(4, 100));
+        let mut f = FleetView::new(limits(4, 100));
         feed(&mut f, "a", 1, true);
         feed(&mut f, "a", 1, false); // the same sample on the shard key
         let c = parse_command(&keys::command("a"), &encode(&command("a", 1, 1.0))).unwrap();
@@ -1149,7 +1123,7 @@ mod tests {
 
     #[test]
     fn a_new_run_starts_the_history_again() {
-        let mut f = Fleet::new(limits(4, 100));
+        let mut f = FleetView::new(limits(4, 100));
         for seq in 1..=3 {
             feed(&mut f, "a", seq, true);
         }
@@ -1165,7 +1139,7 @@ mod tests {
 
     #[test]
     fn the_ring_is_bounded_and_a_slow_reader_resumes_at_the_oldest() {
-        let mut f = Fleet::new(limits(4, 5));
+        let mut f = FleetView::new(limits(4, 5));
         for seq in 1..=12 {
             feed(&mut f, "a", seq, true);
         }
@@ -1181,7 +1155,7 @@ mod tests {
 
     #[test]
     fn liveliness_and_services_make_the_list_and_the_table_is_bounded() {
-        let mut f = Fleet::new(limits(2, 10));
+        let mut f = FleetView::new(limits(2, 10));
         f.plant_up("a", 0.0);
         f.plant_up("b", 0.0);
         f.plant_up("c", 1.0); // full of live plants: refused
@@ -1233,7 +1207,7 @@ mod tests {
 
     #[test]
     fn configuration_is_polled_only_while_read() {
-        let mut f = Fleet::new(limits(4, 10));
+        let mut f = FleetView::new(limits(4, 10));
         f.plant_up("a", 0.0);
         let svc = pb::ServiceStatus {
             version: PROTOCOL_VERSION,
@@ -1258,7 +1232,13 @@ mod tests {
             channels: vec![pb::ChannelConfig {
                 law: Some(pb::channel_config::Law::Intelligent(pb::Intelligent {
                     kind: pb::IntelligentKind::Ipd as i32,
+                    order: 2,
+                    alpha: 1.0,
                     kp: 9.0,
+                    estimator: Some(pb::Estimator {
+                        window: 20,
+                        ..Default::default()
+                    }),
                     ..Default::default()
                 })),
                 output: Some(pb::OutputMap {
@@ -1310,12 +1290,64 @@ mod tests {
         assert_eq!(v[0].law, "ipd");
         assert_eq!(v[0].params[0], ("kp".to_string(), 9.0));
         assert_eq!(v[0].envelope.max, Some(12.0));
-        for (name, _) in v[0].params.iter() {
-            assert!(transport::ops::UPDATE_FIELDS.contains(&name.as_str()));
+        fn names<T>(l: &[(String, T)]) -> Vec<String> {
+            l.iter().map(|(n, _)| n.clone()).collect()
         }
-        for (name, _) in v[0].output.iter() {
-            assert!(transport::ops::UPDATE_FIELDS.contains(&name.as_str()));
+        assert_eq!(
+            names(&v[0].params),
+            [
+                "kp",
+                "ki",
+                "kd",
+                "alpha",
+                "derivative_filter",
+                "derivative_observer",
+                "estimate_filter",
+                "hold_estimate_filter",
+                "hold_after"
+            ]
+        );
+        assert_eq!(
+            v[0].output,
+            [
+                ("dead_zone".to_string(), Some(0.0)),
+                ("smoothing".to_string(), Some(0.0)),
+                ("min".to_string(), Some(-10.0)),
+                ("max".to_string(), Some(10.0)),
+                ("rate_limit".to_string(), None),
+            ]
+        );
+        // Every field shown is one a change accepts, with its help.
+        for name in names(&v[0].params).iter().chain(&names(&v[0].output)) {
+            assert!(transport::ops::parse_update(0, &[format!("{name}=1")]).is_ok());
+            assert!(v[0].help[name.as_str()].contains("sane: "), "{name}");
         }
+        // A PID shows its own parameters; a law the core refuses shows none.
+        let mut pid = config(-10.0, 10.0, (-12.0, 12.0, None));
+        pid.channels[0].law = Some(pb::channel_config::Law::Pid(pb::Pid {
+            kp: 2.0,
+            ..Default::default()
+        }));
+        let v = channel_views(&pid);
+        assert_eq!(
+            (v[0].law.as_str(), names(&v[0].params)),
+            (
+                "pid",
+                vec![
+                    "kp".to_string(),
+                    "ki".into(),
+                    "kd".into(),
+                    "derivative_filter".into(),
+                    "setpoint_weight".into()
+                ]
+            )
+        );
+        let mut bad = config(-10.0, 10.0, (-12.0, 12.0, None));
+        if let Some(pb::channel_config::Law::Intelligent(i)) = &mut bad.channels[0].law {
+            i.alpha = 0.0;
+        }
+        let v = channel_views(&bad);
+        assert!(v[0].params.is_empty() && v[0].output.is_empty(), "{v:?}");
         assert!(check_reference(&[0.0], 1).is_ok());
         assert!(check_reference(&[0.0, 1.0], 1).is_err());
         assert!(check_reference(&[f64::NAN], 1).is_err());

@@ -316,7 +316,7 @@ async fn gains(
     if let Err(e) = keys::check_id(&id) {
         return refused(StatusCode::BAD_REQUEST, "console", e.to_string());
     }
-    if change.fields.len() > ops::UPDATE_FIELDS.len() {
+    if change.fields.len() > mfc::params::PARAMS.len() {
         return refused(StatusCode::BAD_REQUEST, "console", "too many fields".into());
     }
     let assignments: Vec<String> = change

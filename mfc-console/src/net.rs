@@ -25,7 +25,7 @@ use zenoh::pubsub::Subscriber;
 use zenoh::sample::{Sample, SampleKind};
 use zenoh::Session;
 
-use crate::fleet::{self, Fleet};
+use crate::fleet::{self, FleetView};
 use crate::settings::Settings;
 use crate::ConsoleError;
 
@@ -39,7 +39,7 @@ pub struct Console {
     pub session: Session,
     /// The settings.
     pub settings: Settings,
-    fleet: Mutex<Fleet>,
+    fleet: Mutex<FleetView>,
     start: Instant,
     /// Wakes the configuration poll (a page opened a device not read yet).
     pub config_wanted: tokio::sync::Notify,
@@ -49,7 +49,7 @@ impl Console {
     /// A console on `session` with `settings`.
     pub fn new(session: Session, settings: Settings) -> Self {
         Self {
-            fleet: Mutex::new(Fleet::new(settings.limits())),
+            fleet: Mutex::new(FleetView::new(settings.limits())),
             session,
             settings,
             start: Instant::now(),
@@ -65,7 +65,7 @@ impl Console {
     /// The fleet, locked (briefly: never held across an `.await`). A panic elsewhere while
     /// it was held leaves a view that is still consistent message by message, so a poisoned
     /// lock is taken as it is.
-    pub fn fleet(&self) -> MutexGuard<'_, Fleet> {
+    pub fn fleet(&self) -> MutexGuard<'_, FleetView> {
         self.fleet.lock().unwrap_or_else(|e| e.into_inner())
     }
 

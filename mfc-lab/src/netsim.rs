@@ -200,7 +200,10 @@ pub fn simulate_net(
             match events[i as usize].take() {
                 Some(Event::Sample(s)) => {
                     let mut cmd = pb::Command::default();
-                    if registry.handle_sample(Via::key(&id), &s, at, &mut cmd).answered() {
+                    if registry
+                        .handle_sample(Via::key(&id), &s, at, &mut cmd)
+                        .answered()
+                    {
                         let (lost, delay) = draw();
                         if lost && link.lossy != Lossy::Up {
                             commands_lost += 1;

@@ -4,6 +4,7 @@
 //! `Err` always means "nothing changed": a caller fed bad network data can log the error and
 //! carry on with the same controller.
 
+use crate::params::LawKind;
 use crate::{ControllerKind, Order};
 
 /// Why a call into the control core was refused.
@@ -82,6 +83,15 @@ pub enum MfcError {
         kind: ControllerKind,
         /// Requested order.
         order: Order,
+    },
+    /// A parameter asked of a law that has no such parameter (`alpha` of a PID): see
+    /// [`crate::params`].
+    #[error("the {law} law in force has no {name}")]
+    NoSuchParameter {
+        /// The parameter's name.
+        name: &'static str,
+        /// The law in force.
+        law: LawKind,
     },
     /// The closed-loop (integral) estimator only exists for n = 1.
     #[error("the closed-loop estimator is only defined for order One")]

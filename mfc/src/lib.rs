@@ -32,7 +32,9 @@
 //!   tells the estimator what the plant really got;
 //! * baselines for honest comparisons: [`Pid`] and linear [`Adrc`];
 //! * [`trajectory`]: references as sums of smooth pieces with analytic derivatives;
-//! * [`Channel`] (a law plus its output map) and, with `alloc`, [`mimo::MimoController`].
+//! * [`Channel`] (a law plus its output map) and, with `alloc`, [`mimo::MimoController`];
+//! * [`params`]: the table of the parameters an operator tunes by name (`kp`, `alpha`,
+//!   `dead_zone`, ...), with their laws, units, meanings and sanity bounds.
 //!
 //! Every fallible call checks its input first and returns a [`MfcError`] with the state
 //! untouched; nothing here panics on data.
@@ -87,6 +89,7 @@ pub mod intelligent;
 #[cfg(feature = "alloc")]
 pub mod mimo;
 pub mod output_map;
+pub mod params;
 pub mod pid;
 #[cfg(feature = "snapshot")]
 pub mod snapshot;

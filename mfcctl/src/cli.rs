@@ -8,6 +8,7 @@
 //! mfcctl status aero-1
 //! mfcctl config aero-1
 //! mfcctl set aero-1 --channel 1 kp=450 alpha=5
+//! mfcctl params                                      # the tunable parameters (no network)
 //! mfcctl reference aero-1 --constant 0,0.2
 //! mfcctl reference aero-1 --file steps.toml          # pieces start now on the plant's clock
 //! mfcctl envelope aero-1 --channel 1 --min -12 --max 12 --reason "commissioning"
@@ -57,8 +58,7 @@ pub enum Command {
         device: String,
     },
     /// Change single parameters of one channel (a partial change: nothing else moves).
-    /// Fields: kp ki kd alpha derivative_filter derivative_observer estimate_filter hold_estimate_filter hold_after b0 wc wo setpoint_weight dead_zone smoothing min max
-    /// rate_limit. Output limits must stay inside the envelope.
+    #[command(after_help = render::set_fields())]
     Set {
         /// Device id.
         device: String,
@@ -68,6 +68,12 @@ pub enum Command {
         /// FIELD=VALUE pairs.
         #[arg(required = true, value_name = "FIELD=VALUE")]
         fields: Vec<String>,
+    },
+    /// The tunable parameters: name, laws, unit, sane bounds, meaning (no network).
+    Params {
+        /// Print the table as Markdown (what docs/parameters.md holds); not with --json.
+        #[arg(long)]
+        markdown: bool,
     },
     /// Steer the reference: a constant per channel, or pieces from a TOML file
     /// (`channels = [[{ kind = "smooth_step", start = 1.0, duration = 2.0, height = 0.1 }], ...]`).
@@ -170,8 +176,60 @@ struct ReferenceFile {
     channels: Vec<Vec<mfc::trajectory::Piece>>,
 }
 
+/// The pieces of `reference` and their start (plant time): one constant per channel, or a
+/// file's pieces, whose times count from the plant's time now unless `absolute`.
+async fn reference(
+    session: &zenoh::Session,
+    device: &str,
+    constant: &[f64],
+    file: Option<&std::path::Path>,
+    absolute: bool,
+    timeout: Duration,
+) -> Result<(Vec<Vec<mfc::trajectory::Piece>>, f64)> {
+    Ok(match file {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading {}", path.display()))?;
+            let f: ReferenceFile =
+                toml::from_str(&text).with_context(|| format!("{}", path.display()))?;
+            let start = if absolute {
+                0.0
+            } else {
+                ops::device_status(session, device, timeout)
+                    .await?
+                    .plant_time
+            };
+            (f.channels, start)
+        }
+        None if !constant.is_empty() => (
+            constant
+                .iter()
+                .map(|&value| vec![mfc::trajectory::Piece::Constant { value }])
+                .collect(),
+            0.0,
+        ),
+        None => bail!("give --constant V[,V...] or --file FILE"),
+    })
+}
+
+/// `params`: the table as text, JSON or Markdown.
+fn params(markdown: bool, json: bool) -> Result<String> {
+    if markdown && json {
+        bail!("params: give --json or --markdown, not both");
+    }
+    if markdown {
+        Ok(render::params_markdown())
+    } else {
+        out(json, &render::params_json(), |_| render::params())
+    }
+}
+
 /// Run one command; the text (or JSON) to print.
 pub async fn run(cli: Cli) -> Result<String> {
+    // The table is the core's: no session needed.
+    if let Command::Params { markdown } = cli.command {
+        return params(markdown, cli.json);
+    }
     let timeout = Duration::from_millis(cli.timeout_ms);
     let session = cli.zenoh.open().await?;
     let result = command(&session, &cli.command, cli.json, timeout).await;
@@ -222,36 +280,22 @@ async fn command(
             let c = ops::update(session, device, u, timeout).await?;
             out(json, &c, render::config)?
         }
+        Command::Params { markdown } => params(*markdown, json)?,
         Command::Reference {
             device,
             constant,
             file,
             absolute,
         } => {
-            let (pieces, start) = match file {
-                Some(path) => {
-                    let text = std::fs::read_to_string(path)
-                        .with_context(|| format!("reading {}", path.display()))?;
-                    let f: ReferenceFile =
-                        toml::from_str(&text).with_context(|| format!("{}", path.display()))?;
-                    let start = if *absolute {
-                        0.0
-                    } else {
-                        ops::device_status(session, device, timeout)
-                            .await?
-                            .plant_time
-                    };
-                    (f.channels, start)
-                }
-                None if !constant.is_empty() => (
-                    constant
-                        .iter()
-                        .map(|&value| vec![mfc::trajectory::Piece::Constant { value }])
-                        .collect(),
-                    0.0,
-                ),
-                None => bail!("give --constant V[,V...] or --file FILE"),
-            };
+            let (pieces, start) = reference(
+                session,
+                device,
+                constant,
+                file.as_deref(),
+                *absolute,
+                timeout,
+            )
+            .await?;
             let r = protocol::convert::reference_to_pb(&pieces, start);
             let c = ops::set_reference(session, device, r, timeout).await?;
             out(json, &c, render::config)?
@@ -295,6 +339,27 @@ mod tests {
         assert!(cli.json);
         assert!(
             matches!(cli.command, Command::Reference { ref constant, .. } if constant == &[-1.0, 0.5])
+        );
+        // `params` needs no network: it answers even with nothing to connect to.
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .unwrap();
+        let md = Cli::try_parse_from(["mfcctl", "params", "--markdown"]).unwrap();
+        assert_eq!(rt.block_on(run(md)).unwrap(), render::params_markdown());
+        let json = Cli::try_parse_from(["mfcctl", "--json", "params"]).unwrap();
+        let v: serde_json::Value = serde_json::from_str(&rt.block_on(run(json)).unwrap()).unwrap();
+        assert_eq!(v[3]["name"], "alpha");
+        let both = Cli::try_parse_from(["mfcctl", "--json", "params", "--markdown"]).unwrap();
+        assert!(rt.block_on(run(both)).is_err());
+        // `set`'s help lists the table's names.
+        let help = Cli::command()
+            .find_subcommand_mut("set")
+            .unwrap()
+            .render_long_help()
+            .to_string();
+        assert!(
+            help.contains("hold_estimate_filter") && help.contains("rate_limit"),
+            "{help}"
         );
     }
 }

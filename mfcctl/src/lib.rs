@@ -6,7 +6,8 @@
 //!
 //! * [`ops`]: the queries, decoded, with typed errors (in `transport`, shared with the
 //!   browser console);
-//! * [`render`]: text for people (pure);
+//! * [`render`]: text for people (pure), and the table of tunable parameters as text,
+//!   JSON and Markdown (`mfcctl params`, `docs/parameters.md`);
 //! * [`cli`]: the command line (the binary is a one-line `main`).
 
 pub mod cli;

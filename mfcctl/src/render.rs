@@ -3,7 +3,9 @@
 
 use std::fmt::Write;
 
+use mfc::params::{LawKind, Param, Scope, PARAMS};
 use protocol::pb;
+use serde::Serialize;
 
 fn opt(v: Option<f64>) -> String {
     v.map_or("-".into(), |x| format!("{x}"))
@@ -217,6 +219,168 @@ pub fn config(c: &pb::DeviceConfig) -> String {
     out
 }
 
+/// The laws that have a parameter, as the table says them (`intelligent, pid`, or
+/// `every law (output map)`).
+fn laws(p: &Param) -> String {
+    match p.scope {
+        Scope::OutputMap => "every law (output map)".into(),
+        Scope::Laws(l) => l.iter().map(|k| k.name()).collect::<Vec<_>>().join(", "),
+    }
+}
+
+/// `mfcctl params`: the table of tunable parameters, one per line, in aligned columns.
+pub fn params() -> String {
+    let rows: Vec<[String; 5]> = PARAMS
+        .iter()
+        .map(|p| {
+            let bounds = p.bounds.to_string();
+            [
+                p.name.into(),
+                laws(p),
+                p.unit.into(),
+                bounds,
+                p.meaning.into(),
+            ]
+        })
+        .collect();
+    let head = ["name", "laws", "unit", "sane bounds", "meaning"].map(String::from);
+    let mut width = [0; 4];
+    for r in rows.iter().chain([&head]) {
+        for (w, c) in width.iter_mut().zip(r) {
+            *w = (*w).max(c.chars().count());
+        }
+    }
+    let mut out = String::new();
+    for r in [&head].into_iter().chain(&rows) {
+        for (w, c) in width.iter().zip(r) {
+            let _ = write!(out, "{c:<w$}  ");
+        }
+        let _ = writeln!(out, "{}", r[4]);
+    }
+    out
+}
+
+/// A table cell of Markdown: `|` would end the cell.
+fn cell(s: &str) -> String {
+    s.replace('|', "\\|")
+}
+
+/// What `docs/parameters.md` says before the table.
+const PARAMS_MD_HEAD: &str = r#"# Tunable parameters
+
+The parameters an operator changes on a running channel, by name: `mfcctl set DEVICE
+--channel N kp=450`, the console's gain form, the Python client's `Operator.update`. Each is
+one optional field of the protocol's partial change, `ChannelUpdate`, of the same name. A
+parameter the law in force does not have is refused, with its name.
+
+Generated from the control core's table (`mfc::params::PARAMS` in `mfc/src/params.rs`) by
+`mfcctl params --markdown`. `cargo test -p mfcctl` fails when this file differs from it;
+`MFC_BLESS=1 cargo test -p mfcctl` writes it again.
+
+Units: `y` is the unit of the channel's measured output, `u` of the law's command, `v` of
+what the actuator gets (the output map's side, e.g. volts), and `n` the order of the
+ultra-local model `y^(n) = F + alpha u`. An output limit or rate limit that is not set reads
+as infinite.
+
+The bounds are sanity limits, data only for now: no value is refused for lying outside them.
+The laws' own checks still decide (`alpha` and `b0` not 0; the intelligent laws' gains and
+every time constant >= 0; the PID's gains of one sign; `wc`, `wo`, `rate_limit` > 0;
+`min <= 0 <= max`).
+
+| name | laws | unit | sane bounds | meaning |
+|---|---|---|---|---|
+"#;
+
+/// `docs/parameters.md`, as `mfcctl params --markdown` prints it.
+pub fn params_markdown() -> String {
+    let mut out = String::from(PARAMS_MD_HEAD);
+    for p in PARAMS.iter() {
+        let _ = writeln!(
+            out,
+            "| `{}` | {} | {} | {} | {} |",
+            p.name,
+            laws(p),
+            cell(p.unit),
+            cell(&p.bounds.to_string()),
+            cell(p.meaning)
+        );
+    }
+    out
+}
+
+/// One parameter in `mfcctl --json params`.
+#[derive(Debug, Serialize)]
+pub struct ParamJson {
+    /// The name operators write.
+    pub name: &'static str,
+    /// The laws that have it (`intelligent`, `pid`, `adrc`): all three for the output map's.
+    pub laws: Vec<&'static str>,
+    /// Whether it belongs to the output map (which every law has).
+    pub output_map: bool,
+    /// Its unit.
+    pub unit: &'static str,
+    /// The sane bounds as text (`[-1e6, 1e6]`, `|x| in [1e-6, 1e6]`).
+    pub bounds: String,
+    /// The lowest sane value (of the magnitude, if `magnitude`); `null`: unbounded.
+    pub lo: Option<f64>,
+    /// The highest sane value (of the magnitude, if `magnitude`); `null`: unbounded.
+    pub hi: Option<f64>,
+    /// Whether the bounds are on `|x|` (either sign, never 0).
+    pub magnitude: bool,
+    /// What it does.
+    pub meaning: &'static str,
+}
+
+/// The table for `mfcctl --json params`.
+pub fn params_json() -> Vec<ParamJson> {
+    use mfc::params::Bounds;
+    PARAMS
+        .iter()
+        .map(|p| {
+            let (lo, hi, magnitude) = match p.bounds {
+                Bounds::Range { lo, hi } => (lo, hi, false),
+                Bounds::Magnitude { lo, hi } => (lo, hi, true),
+            };
+            ParamJson {
+                name: p.name,
+                laws: LawKind::ALL
+                    .iter()
+                    .filter(|k| p.applies_to(**k))
+                    .map(|k| k.name())
+                    .collect(),
+                output_map: p.scope == Scope::OutputMap,
+                unit: p.unit,
+                bounds: p.bounds.to_string(),
+                lo: Some(lo).filter(|x| x.is_finite()),
+                hi: Some(hi).filter(|x| x.is_finite()),
+                magnitude,
+                meaning: p.meaning,
+            }
+        })
+        .collect()
+}
+
+/// The fields `mfcctl set` accepts, per law, from the table (its help).
+pub fn set_fields() -> String {
+    let mut out = String::from("Fields (`mfcctl params` for units, bounds and meanings):\n");
+    let names = |f: &dyn Fn(&Param) -> bool| {
+        PARAMS
+            .iter()
+            .filter(|p| f(p))
+            .map(|p| p.name)
+            .collect::<Vec<_>>()
+            .join(" ")
+    };
+    for k in LawKind::ALL {
+        let law = names(&|p| matches!(p.scope, Scope::Laws(l) if l.contains(&k)));
+        let _ = writeln!(out, "  {:<12} {law}", k.name());
+    }
+    let map = names(&|p| p.scope == Scope::OutputMap);
+    let _ = writeln!(out, "  {:<12} {map} (every law)", "output map");
+    out.push_str("Output limits must stay inside the envelope.");
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -261,6 +425,67 @@ mod tests {
         assert!(
             text.contains("samples 10") && text.contains("last error: non-finite"),
             "{text}"
+        );
+    }
+
+    #[test]
+    fn the_parameter_table_reads_well_in_every_form() {
+        let text = params();
+        assert_eq!(text.lines().count(), PARAMS.len() + 1);
+        assert!(
+            text.lines().any(|l| l.starts_with("alpha ")
+                && l.contains("intelligent")
+                && l.contains("|x| in [1e-6, 1e6]")),
+            "{text}"
+        );
+        let md = params_markdown();
+        assert!(
+            md.contains("| `alpha` | intelligent | y/(u s^n) | \\|x\\| in [1e-6, 1e6] |"),
+            "{md}"
+        );
+        assert!(md.contains("| `rate_limit` | every law (output map) | v/s | [1e-6, inf] |"));
+        let json = serde_json::to_value(params_json()).unwrap();
+        assert_eq!(json.as_array().unwrap().len(), PARAMS.len());
+        let kp = &json[0];
+        assert_eq!(kp["name"], "kp");
+        assert_eq!(kp["laws"], serde_json::json!(["intelligent", "pid"]));
+        assert_eq!(
+            (kp["lo"].as_f64(), kp["hi"].as_f64()),
+            (Some(-1e6), Some(1e6))
+        );
+        let max = &json[PARAMS.len() - 2];
+        assert_eq!(
+            (max["name"].as_str(), max["hi"].is_null()),
+            (Some("max"), true)
+        );
+        assert_eq!(
+            max["laws"],
+            serde_json::json!(["intelligent", "pid", "adrc"])
+        );
+        let help = set_fields();
+        assert!(
+            help.contains("  pid          kp ki kd derivative_filter setpoint_weight\n"),
+            "{help}"
+        );
+        assert!(
+            help.contains("dead_zone smoothing min max rate_limit (every law)"),
+            "{help}"
+        );
+    }
+
+    /// `docs/parameters.md` is the table's rendering; `MFC_BLESS=1` writes it again.
+    #[test]
+    fn docs_parameters_md_is_the_rendered_table() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/parameters.md");
+        let want = params_markdown();
+        if std::env::var("MFC_BLESS").is_ok_and(|v| v == "1") {
+            std::fs::write(&path, &want).unwrap();
+        }
+        let got = std::fs::read_to_string(&path).unwrap_or_default();
+        assert!(
+            got == want,
+            "docs/parameters.md differs from `mfcctl params --markdown` (the table in \
+             mfc/src/params.rs): run `MFC_BLESS=1 cargo test -p mfcctl` to write it again"
         );
     }
 

@@ -49,6 +49,7 @@ use std::fmt;
 use std::str::FromStr;
 
 use mfc::{ChannelConfig, ChannelOutput, MfcError, MimoController, Reference};
+use protocol::MAX_HORIZON;
 use serde::{Deserialize, Serialize};
 
 /// Longest `max_age` accepted: beyond a thousand periods a command describes a plant that is
@@ -56,8 +57,6 @@ use serde::{Deserialize, Serialize};
 pub const MAX_AGE_LIMIT: u32 = 1000;
 /// Longest `hold_periods` accepted: holding a command for longer is not a safety setting.
 const HOLD_PERIODS_LIMIT: u32 = 100_000;
-/// Longest horizon accepted in a command (periods): the controller sends at most 100.
-pub const MAX_HORIZON: usize = 100;
 
 /// What to do when commands stop coming.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -631,7 +630,7 @@ impl Supervisor {
                 }
                 CommandBody::Control(_)
                     if cmd.horizon.len() % n.max(1) != 0
-                        || cmd.horizon.len() > MAX_HORIZON * n
+                        || cmd.horizon.len() > MAX_HORIZON as usize * n
                         || !cmd.horizon.iter().all(|x| x.is_finite()) =>
                 {
                     Some(Ignored::Malformed)
@@ -1030,7 +1029,7 @@ mod tests {
             ignored(&mut s, planned(0, &v, &[1.0, f64::NAN])),
             Ignored::Malformed
         );
-        let long = vec![0.0; 2 * (MAX_HORIZON + 1)];
+        let long = vec![0.0; 2 * (MAX_HORIZON as usize + 1)];
         assert_eq!(ignored(&mut s, planned(0, &v, &long)), Ignored::Malformed);
         // A whole horizon is accepted; then the link dies and the safe stop engages.
         command(&mut s, 0.1, planned(0, &v, &[2.0, 2.0, 3.0, 3.0, 4.0, 4.0]));

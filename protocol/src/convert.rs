@@ -3,6 +3,7 @@
 //! `*_from_pb` checks everything a peer could get wrong and returns a typed error naming the
 //! field; the result is then checked again by the core when a controller is built from it.
 
+use mfc::params::{Param, PARAMS};
 use mfc::trajectory::Piece;
 use mfc::{
     AdrcParams, ChannelConfig, ControllerKind, EstimatorConfig, EstimatorKind, IntelligentParams,
@@ -205,11 +206,50 @@ pub fn channel_from_pb(c: &pb::ChannelConfig) -> Result<ChannelConfig, ConvertEr
     Ok(cfg)
 }
 
+/// The field of a [`pb::ChannelUpdate`] that carries the tunable parameter `name` (a name
+/// of [`mfc::params::PARAMS`]); `None` for any other name. The one place that binds the
+/// table's names to the wire's fields: a test checks through the schema that the update's
+/// optional numbers are exactly the table's names, each bound to the field of its name.
+pub fn update_field<'a>(u: &'a mut pb::ChannelUpdate, name: &str) -> Option<&'a mut Option<f64>> {
+    Some(match name {
+        "kp" => &mut u.kp,
+        "ki" => &mut u.ki,
+        "kd" => &mut u.kd,
+        "alpha" => &mut u.alpha,
+        "derivative_filter" => &mut u.derivative_filter,
+        "derivative_observer" => &mut u.derivative_observer,
+        "estimate_filter" => &mut u.estimate_filter,
+        "hold_estimate_filter" => &mut u.hold_estimate_filter,
+        "hold_after" => &mut u.hold_after,
+        "b0" => &mut u.b0,
+        "wc" => &mut u.wc,
+        "wo" => &mut u.wo,
+        "setpoint_weight" => &mut u.setpoint_weight,
+        "dead_zone" => &mut u.dead_zone,
+        "smoothing" => &mut u.smoothing,
+        "min" => &mut u.min,
+        "max" => &mut u.max,
+        "rate_limit" => &mut u.rate_limit,
+        _ => return None,
+    })
+}
+
+/// The parameters `u` sets, in the table's order, with their values.
+pub fn update_values(u: &pb::ChannelUpdate) -> impl Iterator<Item = (&'static Param, f64)> {
+    let mut u = *u;
+    PARAMS.iter().filter_map(move |p| {
+        update_field(&mut u, p.name)
+            .and_then(|v| *v)
+            .map(|v| (p, v))
+    })
+}
+
 /// Apply a merge change ([`pb::ChannelUpdate`]) to one channel's configuration: a new law
 /// first if the update carries one (the output map is kept), then every single parameter
-/// present. A parameter the law in force does not have is refused with its name, so a
-/// client never believes a gain changed when it did not. Output-map limits come out as
-/// asked; fitting them into the device's envelope is the caller's job.
+/// present, through the table ([`mfc::params`]). A parameter the law in force does not
+/// have is refused with its name, so a client never believes a gain changed when it did
+/// not. Output-map limits come out as asked; fitting them into the device's envelope is
+/// the caller's job.
 pub fn apply_update(
     c: &ChannelConfig,
     u: &pb::ChannelUpdate,
@@ -227,105 +267,8 @@ pub fn apply_update(
         wire.law = Some(law);
         cfg.law = channel_from_pb(&wire)?.law;
     }
-    let kind = match cfg.law {
-        LawConfig::Intelligent { .. } => "intelligent",
-        LawConfig::Pid { .. } => "pid",
-        LawConfig::Adrc { .. } => "adrc",
-    };
-    let missing = |name: &str| err(name, format!("the {kind} law in force has no {name}"));
-    let set = |name: &'static str, value: Option<f64>, slot: Option<&mut f64>| match (value, slot) {
-        (None, _) => Ok(()),
-        (Some(v), Some(slot)) => {
-            *slot = v;
-            Ok(())
-        }
-        (Some(_), None) => Err(missing(name)),
-    };
-    match &mut cfg.law {
-        LawConfig::Intelligent { params, .. } => {
-            set("kp", u.kp, Some(&mut params.kp))?;
-            set("ki", u.ki, Some(&mut params.ki))?;
-            set("kd", u.kd, Some(&mut params.kd))?;
-            set("alpha", u.alpha, Some(&mut params.alpha))?;
-            set(
-                "derivative_filter",
-                u.derivative_filter,
-                Some(&mut params.derivative_filter),
-            )?;
-            set(
-                "derivative_observer",
-                u.derivative_observer,
-                Some(&mut params.derivative_observer),
-            )?;
-            set(
-                "estimate_filter",
-                u.estimate_filter,
-                Some(&mut params.estimate_filter),
-            )?;
-            set(
-                "hold_estimate_filter",
-                u.hold_estimate_filter,
-                Some(&mut params.hold_estimate_filter),
-            )?;
-            set("hold_after", u.hold_after, Some(&mut params.hold_after))?;
-            set("b0", u.b0, None)?;
-            set("wc", u.wc, None)?;
-            set("wo", u.wo, None)?;
-            set("setpoint_weight", u.setpoint_weight, None)?;
-        }
-        LawConfig::Pid { params } => {
-            set("kp", u.kp, Some(&mut params.kp))?;
-            set("ki", u.ki, Some(&mut params.ki))?;
-            set("kd", u.kd, Some(&mut params.kd))?;
-            set("alpha", u.alpha, None)?;
-            set(
-                "derivative_filter",
-                u.derivative_filter,
-                Some(&mut params.derivative_filter),
-            )?;
-            set("derivative_observer", u.derivative_observer, None)?;
-            set("estimate_filter", u.estimate_filter, None)?;
-            set("hold_estimate_filter", u.hold_estimate_filter, None)?;
-            set("hold_after", u.hold_after, None)?;
-            set("b0", u.b0, None)?;
-            set("wc", u.wc, None)?;
-            set("wo", u.wo, None)?;
-            set(
-                "setpoint_weight",
-                u.setpoint_weight,
-                Some(&mut params.setpoint_weight),
-            )?;
-        }
-        LawConfig::Adrc { params } => {
-            set("kp", u.kp, None)?;
-            set("ki", u.ki, None)?;
-            set("kd", u.kd, None)?;
-            set("alpha", u.alpha, None)?;
-            set("derivative_filter", u.derivative_filter, None)?;
-            set("derivative_observer", u.derivative_observer, None)?;
-            set("estimate_filter", u.estimate_filter, None)?;
-            set("hold_estimate_filter", u.hold_estimate_filter, None)?;
-            set("hold_after", u.hold_after, None)?;
-            set("b0", u.b0, Some(&mut params.b0))?;
-            set("wc", u.wc, Some(&mut params.wc))?;
-            set("wo", u.wo, Some(&mut params.wo))?;
-            set("setpoint_weight", u.setpoint_weight, None)?;
-        }
-    }
-    if let Some(v) = u.dead_zone {
-        cfg.output.dead_zone = v;
-    }
-    if let Some(v) = u.smoothing {
-        cfg.output.smoothing = v;
-    }
-    if let Some(v) = u.min {
-        cfg.output.min = v;
-    }
-    if let Some(v) = u.max {
-        cfg.output.max = v;
-    }
-    if let Some(v) = u.rate_limit {
-        cfg.output.rate_limit = Some(v);
+    for (p, v) in update_values(u) {
+        p.set(&mut cfg, v).map_err(|e| err(p.name, e.to_string()))?;
     }
     // Let the core say what is out of range (a NaN gain, a negative alpha, min above max).
     mfc::Channel::<{ mfc::DEFAULT_CAPACITY }>::new(&cfg)
@@ -451,6 +394,109 @@ pub fn reference_from_pb(r: &pb::Reference) -> Result<(Vec<Vec<Piece>>, f64), Co
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The `.proto` cannot drift from the table: the optional numbers of `ChannelUpdate`
+    /// are exactly the table's names, and [`update_field`] binds each name to the field of
+    /// that name (set through the binding, read back through the schema).
+    #[test]
+    fn channel_update_carries_exactly_the_tables_parameters() {
+        use prost::Message;
+        use prost_reflect::{Cardinality, DescriptorPool, DynamicMessage, Kind, Value};
+        let pool = DescriptorPool::decode(crate::FILE_DESCRIPTOR_SET).unwrap();
+        let update = pool
+            .get_message_by_name(&format!("{}.ChannelUpdate", crate::PACKAGE))
+            .unwrap();
+        let mut wire: Vec<String> = update
+            .fields()
+            .filter(|f| {
+                f.kind() == Kind::Double
+                    && f.cardinality() == Cardinality::Optional
+                    && f.supports_presence()
+            })
+            .map(|f| f.name().to_string())
+            .collect();
+        let mut table: Vec<String> = mfc::params::names().map(String::from).collect();
+        wire.sort();
+        table.sort();
+        assert_eq!(
+            wire, table,
+            "ChannelUpdate's optional doubles against the table"
+        );
+        for (i, p) in PARAMS.iter().enumerate() {
+            let mut u = pb::ChannelUpdate::default();
+            *update_field(&mut u, p.name).unwrap() = Some(i as f64 + 0.5);
+            let dm = DynamicMessage::decode(update.clone(), u.encode_to_vec().as_slice()).unwrap();
+            let set: Vec<_> = dm
+                .fields()
+                .map(|(f, v)| (f.name().to_string(), v.clone()))
+                .collect();
+            assert_eq!(set, [(p.name.to_string(), Value::F64(i as f64 + 0.5))]);
+            assert_eq!(
+                update_values(&u)
+                    .map(|(q, v)| (q.name, v))
+                    .collect::<Vec<_>>(),
+                [(p.name, i as f64 + 0.5)]
+            );
+        }
+        assert!(update_field(&mut pb::ChannelUpdate::default(), "channel").is_none());
+    }
+
+    #[test]
+    fn an_update_sets_what_the_law_has_and_names_what_it_has_not() {
+        let pid = ChannelConfig {
+            law: LawConfig::Pid {
+                params: PidParams::default(),
+            },
+            output: OutputMapConfig::AERO,
+        };
+        let u = pb::ChannelUpdate {
+            kp: Some(2.5),
+            setpoint_weight: Some(0.5),
+            rate_limit: Some(40.0),
+            ..Default::default()
+        };
+        let c = apply_update(&pid, &u).unwrap();
+        let LawConfig::Pid { params } = c.law else {
+            panic!("{c:?}")
+        };
+        assert_eq!((params.kp, params.setpoint_weight), (2.5, 0.5));
+        assert_eq!(c.output.rate_limit, Some(40.0));
+        let e = apply_update(
+            &pid,
+            &pb::ChannelUpdate {
+                kp: Some(3.0),
+                alpha: Some(2.0),
+                ..Default::default()
+            },
+        )
+        .unwrap_err();
+        assert_eq!(
+            (e.field.as_str(), e.reason.as_str()),
+            ("alpha", "the pid law in force has no alpha")
+        );
+        // A new law comes first: its parameters may then be set.
+        let to_adrc = pb::ChannelUpdate {
+            law: Some(pb::channel_update::Law::Adrc(pb::Adrc {
+                order: 1,
+                b0: 1.0,
+                wc: 5.0,
+                wo: 25.0,
+            })),
+            wc: Some(7.0),
+            ..Default::default()
+        };
+        let c = apply_update(&pid, &to_adrc).unwrap();
+        assert!(matches!(c.law, LawConfig::Adrc { params } if params.wc == 7.0));
+        assert_eq!(c.output, OutputMapConfig::AERO);
+        let e = apply_update(
+            &c,
+            &pb::ChannelUpdate {
+                kp: Some(1.0),
+                ..Default::default()
+            },
+        );
+        assert_eq!(e.unwrap_err().reason, "the adrc law in force has no kp");
+    }
 
     #[test]
     fn round_trips() {

@@ -57,6 +57,12 @@ pub const SHARDS: u32 = 64;
 /// channel each.
 pub const RESENT_SAMPLES: usize = 3;
 
+/// Longest horizon a command carries (periods, `Command::horizon` holds this many values
+/// per channel at most), with or without delay compensation: a prediction a second ahead
+/// at 100 Hz has long stopped meaning anything. The service plans no further; the agent
+/// ignores a longer horizon as malformed.
+pub const MAX_HORIZON: u32 = 100;
+
 /// The shard of an id (a device's, or a gateway's for the plants it hosts): FNV-1a, so
 /// it is the same on every platform and easy to compute in any language (64-bit FNV-1a
 /// of the UTF-8 bytes, modulo [`SHARDS`]).

@@ -5,6 +5,8 @@
 
 use std::time::Duration;
 
+use mfc::params::param;
+use protocol::convert::update_field;
 use protocol::{decode, encode, keys, pb, PROTOCOL_VERSION};
 use zenoh::Session;
 
@@ -230,31 +232,10 @@ pub async fn change_envelope(
     accepted(&keys::envelope(id), reply)
 }
 
-/// The fields a [`pb::ChannelUpdate`] can change, by the names operators write
-/// (`FIELD=VALUE`): the law's parameters, then the output map's.
-pub const UPDATE_FIELDS: [&str; 18] = [
-    "kp",
-    "ki",
-    "kd",
-    "alpha",
-    "derivative_filter",
-    "derivative_observer",
-    "estimate_filter",
-    "hold_estimate_filter",
-    "hold_after",
-    "b0",
-    "wc",
-    "wo",
-    "setpoint_weight",
-    "dead_zone",
-    "smoothing",
-    "min",
-    "max",
-    "rate_limit",
-];
-
 /// A `FIELD=VALUE` list as a partial change of `channel`: only the named fields are set,
-/// so the service changes those and nothing else. Shared by `mfcctl set` and the browser
+/// so the service changes those and nothing else. The names are the tunable parameters of
+/// the core's table ([`mfc::params::PARAMS`]), the fields of a [`pb::ChannelUpdate`]
+/// ([`protocol::convert::update_field`]). Shared by `mfcctl set` and the browser
 /// console's gain form, so both accept exactly the same names.
 pub fn parse_update(channel: u32, fields: &[String]) -> Result<pb::ChannelUpdate, OpError> {
     let mut u = pb::ChannelUpdate {
@@ -269,31 +250,13 @@ pub fn parse_update(channel: u32, fields: &[String]) -> Result<pb::ChannelUpdate
             .trim()
             .parse()
             .map_err(|_| OpError::Usage(format!("{f:?}: {v:?} is not a number")))?;
-        let slot = match k.trim() {
-            "kp" => &mut u.kp,
-            "ki" => &mut u.ki,
-            "kd" => &mut u.kd,
-            "alpha" => &mut u.alpha,
-            "derivative_filter" => &mut u.derivative_filter,
-            "b0" => &mut u.b0,
-            "wc" => &mut u.wc,
-            "wo" => &mut u.wo,
-            "setpoint_weight" => &mut u.setpoint_weight,
-            "dead_zone" => &mut u.dead_zone,
-            "smoothing" => &mut u.smoothing,
-            "derivative_observer" => &mut u.derivative_observer,
-            "estimate_filter" => &mut u.estimate_filter,
-            "hold_estimate_filter" => &mut u.hold_estimate_filter,
-            "hold_after" => &mut u.hold_after,
-            "min" => &mut u.min,
-            "max" => &mut u.max,
-            "rate_limit" => &mut u.rate_limit,
-            other => {
-                return Err(OpError::Usage(format!(
-                    "unknown field {other:?}: {}",
-                    UPDATE_FIELDS.join(" ")
-                )))
-            }
+        let name = k.trim();
+        let Some(slot) = param(name).and_then(|p| update_field(&mut u, p.name)) else {
+            let known: Vec<&str> = mfc::params::names().collect();
+            return Err(OpError::Usage(format!(
+                "unknown field {name:?}: {}",
+                known.join(" ")
+            )));
         };
         *slot = Some(v);
     }
@@ -333,9 +296,15 @@ mod tests {
         for bad in ["kp", "kp=x", "gain=1"] {
             assert!(parse_update(0, &[bad.into()]).is_err(), "{bad}");
         }
-        // Every name the list advertises is accepted.
-        for f in UPDATE_FIELDS {
-            assert!(parse_update(0, &[format!("{f}=1")]).is_ok(), "{f}");
+        // Every name of the table is accepted, and sets the field of that name.
+        for (i, p) in mfc::params::PARAMS.iter().enumerate() {
+            let mut u = parse_update(0, &[format!("{}={i}", p.name)]).unwrap();
+            assert_eq!(*update_field(&mut u, p.name).unwrap(), Some(i as f64));
         }
+        let e = parse_update(0, &["gain=1".into()]).unwrap_err().to_string();
+        assert!(
+            e.contains("unknown field \"gain\"") && e.contains("hold_after"),
+            "{e}"
+        );
     }
 }

@@ -21,13 +21,21 @@ from .reference import reference as make_reference
 
 M = TypeVar("M", bound=Message)
 
-#: The single-value fields of a ChannelUpdate (see the .proto for which law has which).
-UPDATE_FIELDS = (
-    "kp", "ki", "kd", "alpha", "derivative_filter", "derivative_observer", "estimate_filter", "hold_estimate_filter", "hold_after", "b0", "wc", "wo", "setpoint_weight",
-    "dead_zone", "smoothing", "min", "max", "rate_limit",
-)
+
+def _update_fields() -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The single-value and the law fields of a ChannelUpdate, read from the generated
+    module's descriptor (the .proto the Rust side is built from, whose optional numbers a
+    Rust test holds equal to the control core's table of tunable parameters)."""
+    d = pb.ChannelUpdate.DESCRIPTOR
+    law = d.oneofs_by_name["law"]
+    values = tuple(f.name for f in d.fields if f.type == f.TYPE_DOUBLE and f.has_presence)
+    return values, tuple(f.name for f in law.fields)
+
+
+#: The single-value fields of a ChannelUpdate: the tunable parameters by name (units,
+#: bounds and which law has which in docs/parameters.md, or ``mfcctl params``).
 #: Its law fields: a new law replacing the one in force (its output map kept).
-LAW_FIELDS = ("intelligent", "pid", "adrc")
+UPDATE_FIELDS, LAW_FIELDS = _update_fields()
 
 
 class MfcError(Exception):

@@ -12,8 +12,9 @@ use protocol::convert::{
 use protocol::{pb, PROTOCOL_VERSION};
 
 use super::{latency, REORDER_WINDOW, RESYNC_AFTER};
-use crate::config::{DeviceChannel, Prediction, MAX_HORIZON};
+use crate::config::{DeviceChannel, Prediction};
 use crate::envelope::Limits;
+use protocol::MAX_HORIZON;
 
 /// Most recent round trips kept per device for the status percentiles; older ones drop out.
 pub(super) const RTT_WINDOW: usize = 1000;

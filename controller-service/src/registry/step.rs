@@ -9,7 +9,7 @@ use protocol::pb;
 
 use super::device::{reply, Answer, Answered, Device, PerChannel, Run};
 use super::{capped, precheck, Via, MAX_SEQ_JUMP};
-use crate::config::MAX_HORIZON;
+use protocol::MAX_HORIZON;
 
 /// A gap longer than this (s) between a snapshot and the next sample makes the restored
 /// estimators start a fresh window.

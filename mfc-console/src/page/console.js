@@ -387,7 +387,9 @@ function buildGainFields() {
     }
     const td = el('td');
     td.append(input);
-    tr.append(el('td', {}, name), el('td', { 'data-now': name }, ''), td, el('td', { class: 'env' }, allowed));
+    // The field's meaning, unit and sane bounds (the service's table) on hover.
+    const help = (c.help && c.help[name]) || '';
+    tr.append(el('td', { title: help }, name), el('td', { 'data-now': name }, ''), td, el('td', { class: 'env' }, allowed));
     return tr;
   });
   $('gain-fields').replaceChildren(head, ...trs);
