@@ -112,7 +112,7 @@ impl DeviceChannel {
 }
 
 /// What a device's commands predict beyond their own period, for plants on lossy or slow
-/// links (packetized predictive control, `docs/results.md`). Off by default: a command
+/// links (packetized predictive control, `docs/results-faults.md`). Off by default: a command
 /// then carries its own outputs only, as before.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -144,14 +144,14 @@ pub struct Prediction {
 /// (`mfc-lab netsim`, AERO scenarios 1 to 4, four link seeds) it took the pitch RMS ratio
 /// of `ipd+h10+dc` at 50 / 100 ms from 1.44 / 2.03 to 1.09 / 1.46 on scenario 2 and from
 /// 1.49 / 2.14 to 1.12 / 1.52 on scenario 4, helped scenarios 1 and 3 at 20 and 50 ms and
-/// left them where they were at 100 ms (`docs/results.md`); a whole trend (1)
+/// left them where they were at 100 ms (`docs/results-faults.md`); a whole trend (1)
 /// over-extrapolates the estimate's noise at 100 ms. The price is more chatter.
 pub const DEFAULT_TREND: f64 = 0.5;
 
 /// Default [`Prediction::trend_at_rest`]: `F` held. In the lockstep simulator (AERO
 /// scenarios 1 to 4, three link seeds) following half the trend at rest too left scenarios
 /// 1 and 3 at 1.60 and 1.51 at 100 ms with 1.7 V of pitch chatter per sample; holding `F`
-/// there, 1.46 and 1.39 with 1.3, and scenarios 2 and 4 unchanged (`docs/results.md`).
+/// there, 1.46 and 1.39 with 1.3, and scenarios 2 and 4 unchanged (`docs/results-faults.md`).
 pub const DEFAULT_TREND_AT_REST: f64 = 0.0;
 
 impl Default for Prediction {

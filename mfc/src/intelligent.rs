@@ -21,7 +21,7 @@
 //! An encoder's output is a staircase. Differentiating it (even filtered) turns every count
 //! into a spike of `e'`, and the estimate of `F` jumps at every count too; through `1/α`
 //! both reach the actuator as chatter, and while holding an angle between two counts the
-//! loop hunts from one to the other (`docs/results.md`). Two options, off by default:
+//! loop hunts from one to the other (`docs/results-aero.md`). Two options, off by default:
 //!
 //! * `derivative_observer = ω` (n = 2): `e'` comes from an observer of `y` and `y'` driven by
 //!   the ultra-local model itself (`y'' = F_est + α u_applied`), corrected by the
@@ -43,7 +43,7 @@
 //! [`crate::Channel::plan`] runs the ultra-local model forward from the controller's state.
 //! With `trend = 0`, `F` is held at the filtered `F_est`: an estimate that already lags
 //! the plant by the filter's `τ` (and the window), held for the whole round trip. That
-//! staleness is most of what a delay costs (`docs/results.md`). With `trend = g > 0`, the
+//! staleness is most of what a delay costs (`docs/results-faults.md`). With `trend = g > 0`, the
 //! prediction uses the estimate's trend `Ḟ`, the low-passed (time constant
 //! [`TREND_FILTER`]` × τ`) difference between the raw and the filtered estimate divided by
 //! `τ` (exact for an `F` that ramps): `F(s) = F_est + Ḟ (τ + g s)` at `s` after the sample,

@@ -8,7 +8,7 @@
 //! That *step* compensation makes every `v` with `0 < |v| < dead_zone` unreachable. A real
 //! actuator's dead zone is soft (the AERO's measured torque is already a ninth of full
 //! torque at 7.3 V), so holding a small angle needs a voltage inside the gap, and the loop
-//! can only reach it on average, by switching across it: a limit cycle (`docs/results.md`).
+//! can only reach it on average, by switching across it: a limit cycle (`docs/results-aero.md`).
 //! With `smoothing = s > 0` the compensation is `v = u + dead_zone · tanh(u / s)`: odd,
 //! continuous, strictly increasing with slope between 1 and `1 + dead_zone / s`, equal to
 //! the step's within `dead_zone · (1 - tanh(|u| / s))` away from 0, and onto the whole

@@ -63,7 +63,7 @@ fn profile(name: &str, imp: Impairment) -> Profile {
 /// fallback (the hold is widened by the test margin: at 10 % loss each way a run of five
 /// lost periods is rare but not impossible in 1500). With 20 ± 5 ms one-way latency on top
 /// (40 ms round trips: every command lands four periods late) the example bar
-/// (1.5x) is NOT met: the pitch RMS about doubles (`docs/results.md`, "Faults"). This test
+/// (1.5x) is NOT met: the pitch RMS about doubles (`docs/results-faults.md`). This test
 /// asserts the safety envelope there, not the bar: no runaway to saturation for the MFC
 /// with and without the packetized horizon, and a pitch excursion under 0.05 rad for the
 /// configuration a slow link calls for, the horizon with delay compensation. The bare
