@@ -58,13 +58,15 @@ fn bad_measurements_and_times_are_refused_state_untouched() {
     assert_eq!(snapshot(&ch), before);
 }
 
+/// An intelligent controller from `p` and `e`, or why not.
+fn make(p: IntelligentParams, e: EstimatorConfig) -> Result<(), MfcError> {
+    IntelligentController::<256>::new(p, e).map(|_| ())
+}
+
 #[test]
-fn bad_configurations_are_refused() {
+fn bad_gains_are_refused() {
     let params = IntelligentParams::default();
     let est = EstimatorConfig::default();
-    let make = |p: IntelligentParams, e: EstimatorConfig| {
-        IntelligentController::<256>::new(p, e).map(|_| ())
-    };
     assert!(matches!(
         make(
             IntelligentParams {
@@ -109,6 +111,12 @@ fn bad_configurations_are_refused() {
         ),
         Err(MfcError::InvalidParameter { name: "kd", .. })
     ));
+}
+
+#[test]
+fn bad_orders_windows_and_estimators_are_refused() {
+    let params = IntelligentParams::default();
+    let est = EstimatorConfig::default();
     assert!(matches!(
         make(
             IntelligentParams {
@@ -175,6 +183,10 @@ fn bad_configurations_are_refused() {
             ..
         })
     ));
+}
+
+#[test]
+fn bad_maps_and_baselines_are_refused() {
     assert!(matches!(
         mfc::OutputMap::new(OutputMapConfig {
             min: 1.0,
