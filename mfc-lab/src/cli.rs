@@ -6,23 +6,23 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
-use plant_agent::observe::ProgressBoard;
 
 use faultlab::profile::ProfileSet;
 use faultlab::relay::Link;
-use plant_agent::agent::AgentReport;
-use plant_agent::record::write_run;
-use plant_agent::safety::{parse_fallback, FallbackPolicy, SafetyConfig};
-use plant_agent::scenario::{
+use plant::progress::ProgressBoard;
+use plant::record::write_run;
+use plant::scenario::{
     load_controller, load_scenario, shipped_controller, ControllerSet, Scenario,
     SHIPPED_CONTROLLERS, SHIPPED_SCENARIOS,
 };
+use plant_agent::agent::AgentReport;
+use plant_agent::safety::{parse_fallback, FallbackPolicy, SafetyConfig};
 
 use crate::campaign::{run_case, Campaign, CaseOptions};
 use crate::compare::compare;
 use crate::demo::{demo, DemoOptions};
 use crate::harness::service_config;
-use crate::offline::{simulate, Summary};
+use crate::offline::{simulate, OfflineSummary};
 use crate::tune::{starting_point, tune, KINDS};
 
 #[derive(Parser)]
@@ -338,7 +338,7 @@ fn real_main() -> Result<()> {
             write_run(
                 &out,
                 &format!("{} — {}", scenario.name, set.name),
-                &r.recording,
+                &r.record,
                 &r.summary,
             )?;
             print_summary(&r.summary);
@@ -547,7 +547,7 @@ fn real_main() -> Result<()> {
     }
 }
 
-fn print_summary(s: &Summary) {
+fn print_summary(s: &OfflineSummary) {
     println!("{} with {}:", s.scenario, s.controller);
     for c in &s.channels {
         println!(
@@ -565,7 +565,7 @@ fn print_summary(s: &Summary) {
     }
 }
 
-fn print_reports(reports: &[AgentReport], offline: Option<&Summary>) {
+fn print_reports(reports: &[AgentReport], offline: Option<&OfflineSummary>) {
     if let Some(first) = reports.first() {
         print!("| plant |");
         for c in &first.channels {

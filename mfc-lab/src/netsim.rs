@@ -17,10 +17,10 @@ use controller_service::config::Prediction;
 use controller_service::registry::{Outcome, Registry};
 use mfc::trajectory::evaluate;
 use mfc::Reference;
-use plant_agent::agent::{flags, incoming};
-use plant_agent::record::{Accumulator, ChannelMetrics};
-use plant_agent::safety::{Counters, SafetyConfig, Supervisor, Verdict};
-use plant_agent::scenario::{ControllerSet, Scenario};
+use plant::record::{Accumulator, ChannelMetrics};
+use plant::scenario::{ControllerSet, Scenario};
+use plant_agent::safety::{IncomingCommand, SafetyConfig, Supervisor, SupervisorCounters, Verdict};
+use plant_agent::wire::sample_flags;
 use protocol::{pb, PROTOCOL_VERSION};
 use rand_xoshiro::rand_core::{Rng as _, SeedableRng};
 use rand_xoshiro::Xoshiro256StarStar;
@@ -88,7 +88,7 @@ pub struct NetRun {
     /// Per channel, over the whole run.
     pub channels: Vec<ChannelMetrics>,
     /// The agent's counters.
-    pub counters: Counters,
+    pub counters: SupervisorCounters,
     /// Samples the link lost, and commands.
     pub samples_lost: u64,
     pub commands_lost: u64,
@@ -122,7 +122,7 @@ pub fn simulate_net(
     let mut registry = Registry::new(config).map_err(|e| RunError::Link {
         reason: e.to_string(),
     })?;
-    let mut plant = plant_agent::plant::open(&scenario.plant, scenario.seed, n)?;
+    let mut plant = plant::open(&scenario.plant, scenario.seed, n)?;
     let initial = plant.write(&vec![0.0; n])?;
     let mut sup =
         Supervisor::new(safety, &scenario.channel_configs(controller), initial).map_err(|e| {
@@ -171,7 +171,7 @@ pub fn simulate_net(
             plant_time: t,
             outputs: y.clone(),
             applied: begin.applied_mean.clone(),
-            flags: flags(begin.sample_mode),
+            flags: sample_flags(begin.sample_mode),
             sent_unix_ns: ns(t),
             last_rtt_us,
             run_id: 1,
@@ -213,7 +213,7 @@ pub fn simulate_net(
                 Some(Event::Command(cmd, sent)) => {
                     let now = at as f64 * 1e-9;
                     last_rtt_us = ((now - sent) * 1e6).round().clamp(1.0, u32::MAX as f64) as u32;
-                    let (verdict, _) = sup.on_command(now - t, incoming(&cmd));
+                    let (verdict, _) = sup.on_command(now - t, IncomingCommand::from_wire(&cmd));
                     if let Verdict::Apply { v, advance, .. } = verdict {
                         plant.advance(advance)?;
                         let a = plant.write(&v)?;

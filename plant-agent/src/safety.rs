@@ -122,37 +122,9 @@ impl FromStr for FallbackPolicy {
     }
 }
 
-/// Who drives the plant.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Mode {
-    /// Applying the remote controller's commands.
-    Remote,
-    /// A command is missing: the last one applied is held, or its horizon played.
-    Holding,
-    /// The fallback engaged: the local controller drives the plant.
-    Local,
-    /// The fallback engaged (or the local controller could not run): zero inputs.
-    SafeStop,
-}
-
-impl Mode {
-    /// Whether this is a fallback mode (the agent, not the remote controller, decides the
-    /// inputs).
-    pub fn is_fallback(self) -> bool {
-        matches!(self, Mode::Local | Mode::SafeStop)
-    }
-
-    /// The name used in records and logs (the same as its serde name).
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Mode::Remote => "remote",
-            Mode::Holding => "holding",
-            Mode::Local => "local",
-            Mode::SafeStop => "safe_stop",
-        }
-    }
-}
+/// Who drives the plant: defined with the run's record, which keeps it per period, and
+/// decided here, by the [`Supervisor`].
+pub use plant::Mode;
 
 /// The safety settings of the loop.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -348,7 +320,7 @@ pub enum Verdict {
 ///
 /// Deliberately not `Copy` (fifteen counters): copies are explicit `clone()`s.
 #[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
-pub struct Counters {
+pub struct SupervisorCounters {
     /// Periods ended.
     pub periods: u64,
     /// Commands applied.
@@ -391,7 +363,7 @@ pub struct Counters {
 
 /// What to do at the start of a period.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Begin {
+pub struct PeriodBegin {
     /// The mode to put in the sample's flags: the mode at sampling time, before this
     /// period's decisions.
     pub sample_mode: Mode,
@@ -405,7 +377,7 @@ pub struct Begin {
 
 /// What to do at the end of a period.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct End {
+pub struct PeriodEnd {
     /// The mode of the period (for the record; already counted).
     pub mode: Mode,
     /// Plant time (s) still to let pass in this period, with the inputs applied now.
@@ -438,7 +410,7 @@ pub struct Supervisor {
     local: MimoController,
     local_out: Vec<ChannelOutput>,
     mode: Mode,
-    counters: Counters,
+    counters: SupervisorCounters,
     missing_streak: u32,
     last_applied_seq: Option<u64>,
     /// What the plant applies now.
@@ -481,7 +453,7 @@ impl Supervisor {
             local,
             local_out: vec![ChannelOutput::default(); n],
             mode: Mode::Remote,
-            counters: Counters::default(),
+            counters: SupervisorCounters::default(),
             missing_streak: 0,
             last_applied_seq: None,
             mean: initial_applied.clone(),
@@ -515,7 +487,7 @@ impl Supervisor {
         t: f64,
         y: &[f64],
         refs: &[Reference],
-    ) -> Result<Begin, SafetyError> {
+    ) -> Result<PeriodBegin, SafetyError> {
         if let Some(p) = &self.period {
             return Err(SafetyError::PeriodOpen { open: p.k });
         }
@@ -577,7 +549,7 @@ impl Supervisor {
             None
         };
         self.period = Some(period);
-        Ok(Begin {
+        Ok(PeriodBegin {
             sample_mode,
             applied_mean: self.mean.clone(),
             write,
@@ -715,7 +687,7 @@ impl Supervisor {
     ///
     /// The period's mode is the fallback's if it wrote at the start and no command came,
     /// Holding if the period was missing while holding, Remote otherwise.
-    pub fn end_period(&mut self) -> Result<End, SafetyError> {
+    pub fn end_period(&mut self) -> Result<PeriodEnd, SafetyError> {
         let p = self.period.take().ok_or(SafetyError::NoOpenPeriod)?;
         let h = self.config.period;
         let missing = !p.got && !p.warming;
@@ -746,7 +718,7 @@ impl Supervisor {
         for ((m, s), a) in self.mean.iter_mut().zip(&self.segments).zip(&self.applied) {
             *m = (s + a * advance) / h;
         }
-        Ok(End {
+        Ok(PeriodEnd {
             mode,
             advance,
             missing,
@@ -759,7 +731,7 @@ impl Supervisor {
     }
 
     /// The counters so far.
-    pub fn counters(&self) -> &Counters {
+    pub fn counters(&self) -> &SupervisorCounters {
         &self.counters
     }
 
@@ -866,7 +838,7 @@ mod tests {
     }
 
     /// Begin period k with y = 0.1 k on every channel, applying any fallback write exactly.
-    fn begin(s: &mut Supervisor, k: u64) -> Begin {
+    fn begin(s: &mut Supervisor, k: u64) -> PeriodBegin {
         let n = s.channels();
         let b = s
             .begin_period(k, k as f64 * H, &vec![0.1 * k as f64; n], &refs(n))
@@ -887,7 +859,7 @@ mod tests {
     }
 
     /// A whole period with an optional on-time command at 0.2 s.
-    fn period(s: &mut Supervisor, k: u64, v: Option<f64>) -> (Begin, End) {
+    fn period(s: &mut Supervisor, k: u64, v: Option<f64>) -> (PeriodBegin, PeriodEnd) {
         let b = begin(s, k);
         if let Some(v) = v {
             let cmd = vec![v; s.channels()];
@@ -916,7 +888,7 @@ mod tests {
         }
     }
 
-    fn total(c: &Counters) -> u64 {
+    fn total(c: &SupervisorCounters) -> u64 {
         c.commands
             + c.too_old
             + c.superseded
@@ -1123,7 +1095,7 @@ mod tests {
         assert_eq!(s.applied_now(), &[1.0, -2.0]);
         assert_eq!(s.missing_streak(), 0);
         assert_eq!(s.last_applied_seq(), None);
-        assert_eq!(s.counters().clone(), Counters::default());
+        assert_eq!(s.counters().clone(), SupervisorCounters::default());
         assert_eq!(*s.config(), cfg);
     }
 
@@ -1209,7 +1181,7 @@ mod tests {
         let end = s.end_period().unwrap();
         assert_eq!(
             end,
-            End {
+            PeriodEnd {
                 mode: Mode::Remote,
                 advance: 0.3,
                 missing: false
@@ -1472,7 +1444,7 @@ mod tests {
         let (_, end) = period(&mut s, 1, None);
         assert_eq!(
             end,
-            End {
+            PeriodEnd {
                 mode: Mode::Holding,
                 advance: H,
                 missing: true
@@ -1671,7 +1643,7 @@ mod tests {
             let end = s.end_period().unwrap();
             assert_eq!(
                 end,
-                End {
+                PeriodEnd {
                     mode: Mode::Remote,
                     advance: H,
                     missing: false
@@ -1978,7 +1950,7 @@ mod tests {
 
     #[test]
     fn randomised_command_sequences_keep_the_invariants() {
-        let mut seen = Counters::default();
+        let mut seen = SupervisorCounters::default();
         for seed in 0..40u64 {
             let mut rng = Lcg(seed);
             let n = 1 + rng.below(2) as usize;

@@ -287,8 +287,8 @@ async fn every_rule_holds_per_device_inside_a_batch() {
 #[tokio::test(flavor = "multi_thread")]
 async fn a_gateway_agent_serves_its_plants_in_one_batch_per_period() {
     use mfc_lab::harness::{default_safety, service_config, ServiceHandle};
+    use plant::scenario::{load_scenario, shipped_controller};
     use plant_agent::agent::{open_plant, LoopConfig};
-    use plant_agent::scenario::{load_scenario, shipped_controller};
 
     let _s = SERIAL.lock().await;
     let mut sc = load_scenario("1").unwrap();
@@ -311,7 +311,7 @@ async fn a_gateway_agent_serves_its_plants_in_one_batch_per_period() {
         &session,
         "cell-t",
         plants,
-        plant_agent::cli::run_id,
+        plant::run_id,
         std::future::pending(),
     )
     .await
@@ -325,7 +325,7 @@ async fn a_gateway_agent_serves_its_plants_in_one_batch_per_period() {
         let r = run.unwrap().report;
         eprintln!("{}", r.headline());
         assert!(r.completed() && r.safe_stop_applied, "{r:?}");
-        assert_eq!(r.link, plant_agent::agent::Link::Kept, "{r:?}");
+        assert_eq!(r.link, plant_agent::agent::ControllerLink::Kept, "{r:?}");
         let k = &r.counters;
         assert_eq!(k.periods as usize, sc.steps());
         assert_eq!(
