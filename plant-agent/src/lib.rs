@@ -29,8 +29,11 @@
 //!   and what a run returns ([`agent::AgentRun`], [`agent::AgentReport`] with its
 //!   [`agent::End`] and [`agent::ControllerLink`]); a gateway: [`gateway::run_gateway`];
 //! * the rules, for a loop run elsewhere with exactly the agent's decisions (the bench's
-//!   lockstep network simulator): [`safety::Supervisor`], [`safety::SafetyConfig`],
-//!   [`safety::FallbackPolicy`], and their mapping to the protocol in [`wire`];
+//!   lockstep network simulator): [`safety::Supervisor`] and the types of its calls
+//!   ([`safety::SafetyConfig`] with [`safety::MAX_AGE_LIMIT`], [`safety::FallbackPolicy`]
+//!   with [`safety::parse_fallback`], [`safety::IncomingCommand`], [`safety::Verdict`],
+//!   [`safety::PeriodBegin`], [`safety::SupervisorCounters`], [`safety::Mode`]), and their
+//!   mapping to the protocol in [`wire`];
 //! * what a loop feeds: [`observe::LoopObservers`], [`observe::AgentMetrics`].
 //!
 //! Everything else public here serves the binary and may change with it.
