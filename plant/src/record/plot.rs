@@ -1,5 +1,6 @@
 //! Plots in the paper's style: the output (blue, solid) against the reference (red, dashed)
-//! above, the applied voltage below; one PNG and one SVG per channel.
+//! above, the applied voltage below; one PNG and one SVG per channel. The axes tick at
+//! round values with plain labels and carry their unit ([`crate::chart`]).
 
 use std::path::Path;
 
