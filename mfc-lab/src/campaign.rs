@@ -9,10 +9,11 @@ use anyhow::Result;
 use controller_service::config::{Prediction, ServiceConfig};
 use faultlab::profile::{Profile, ProfileSet};
 use faultlab::relay::{Link, Relay, RelayStats};
+use plant::chart::{ensure_font, Ticks};
+use plant::record::RunRecord;
+use plant::scenario::{ControllerSet, Scenario};
 use plant_agent::agent::AgentReport;
-use plant_agent::record::Recording;
-use plant_agent::safety::FallbackPolicy;
-use plant_agent::scenario::{ControllerSet, Scenario};
+use plant_agent::safety::{FallbackPolicy, SafetyConfig};
 use plotters::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -35,7 +36,7 @@ pub struct CaseResult {
     pub relay: RelayStats,
     /// The run, period by period.
     #[serde(skip)]
-    pub recording: Recording,
+    pub record: RunRecord,
 }
 
 /// Wait (at most 5 s) until the service reports round trips for every device.
@@ -76,15 +77,15 @@ pub struct CaseOptions {
     /// controllers (missing: none).
     pub predictions: Vec<Prediction>,
     /// Where the plants show their progress while they run (none: nowhere).
-    pub progress: Option<std::sync::Arc<plant_agent::observe::ProgressBoard>>,
+    pub progress: Option<std::sync::Arc<plant::progress::ProgressBoard>>,
 }
 
 impl Default for CaseOptions {
     fn default() -> Self {
         Self {
-            hold_periods: plant_agent::safety::SafetyConfig::DEFAULT_HOLD_PERIODS,
+            hold_periods: SafetyConfig::DEFAULT_HOLD_PERIODS,
             fallback: FallbackPolicy::LocalController,
-            max_age: plant_agent::safety::SafetyConfig::DEFAULT_MAX_AGE,
+            max_age: SafetyConfig::DEFAULT_MAX_AGE,
             predictions: Vec::new(),
             progress: None,
         }
@@ -207,7 +208,7 @@ pub async fn run_case(
             report: run.report,
             rms_ratio: Vec::new(),
             relay: relay.stats(),
-            recording: run.recording,
+            record: run.record,
         });
     }
     drop(relay);
@@ -340,7 +341,7 @@ pub fn plots(out: &Path, c: &Campaign, set: &ProfileSet) -> Result<()> {
             .filter(|y| y.is_finite())
             .fold(2.0, f64::max)
             * 1.2;
-        plant_agent::record::plot::ensure_font();
+        ensure_font();
         let png = out.join(format!("{file}.png"));
         let svg = out.join(format!("{file}.svg"));
         draw(
@@ -375,20 +376,30 @@ where
     root.fill(&WHITE).map_err(e)?;
     // A ratio axis on a log scale: a controller that breaks down (ratios of 10 or 20) must
     // not flatten the ones that matter, between 1 and 3.
+    const Y_MIN: f64 = 0.8;
+    let (x_ticks, y_ticks) = (Ticks::linear(0.0, xmax, 10), Ticks::log(Y_MIN, ymax, 10));
     let mut chart = ChartBuilder::on(&root)
         .caption(
             "Pitch tracking under faults (RMS / unimpaired RMS, log scale)",
             ("sans-serif", 22),
         )
         .margin(15)
+        .margin_right(30)
         .x_label_area_size(40)
         .y_label_area_size(60)
-        .build_cartesian_2d(0.0..xmax, (0.8..ymax).log_scale())
+        .build_cartesian_2d(
+            x_ticks.axis(0.0..xmax),
+            y_ticks
+                .axis((Y_MIN..ymax).log_scale())
+                .with_minor(Ticks::log_minor(Y_MIN, ymax)),
+        )
         .map_err(e)?;
     chart
         .configure_mesh()
         .x_desc(xlabel)
-        .y_desc("RMS ratio")
+        .y_desc("pitch RMS / unimpaired pitch RMS")
+        .x_label_formatter(&|v| x_ticks.label(*v))
+        .y_label_formatter(&|v| y_ticks.label(*v))
         .draw()
         .map_err(e)?;
     // One colour per controller, the same over both links; TCP thin with open markers,

@@ -6,23 +6,23 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
-use plant_agent::observe::ProgressBoard;
 
 use faultlab::profile::ProfileSet;
 use faultlab::relay::Link;
-use plant_agent::agent::AgentReport;
-use plant_agent::record::write_run;
-use plant_agent::safety::{parse_fallback, FallbackPolicy, SafetyConfig};
-use plant_agent::scenario::{
+use plant::progress::ProgressBoard;
+use plant::record::write_run;
+use plant::scenario::{
     load_controller, load_scenario, shipped_controller, ControllerSet, Scenario,
     SHIPPED_CONTROLLERS, SHIPPED_SCENARIOS,
 };
+use plant_agent::agent::AgentReport;
+use plant_agent::safety::{parse_fallback, FallbackPolicy, SafetyConfig};
 
 use crate::campaign::{run_case, Campaign, CaseOptions};
 use crate::compare::compare;
 use crate::demo::{demo, DemoOptions};
 use crate::harness::service_config;
-use crate::offline::{simulate, Summary};
+use crate::offline::{simulate, OfflineSummary};
 use crate::tune::{starting_point, tune, KINDS};
 
 #[derive(Parser)]
@@ -40,195 +40,216 @@ struct Cli {
 enum Command {
     /// Run a scenario closed-loop offline, in lockstep (no network, no real time), or
     /// compare every shipped controller on the shipped AERO scenarios.
-    Sim {
-        /// Scenario file (any plant, including a driver), or a shipped AERO one: 1, 2, 3, 4.
-        #[arg(long, default_value = "2")]
-        scenario: String,
-        /// Controller: a controller file (as written by `tune`) or a shipped AERO name (ip,
-        /// ipi, ipd, ipd-hold, ipd-plain, ipd-tuned, pid, adrc). Default: the scenario's.
-        #[arg(long)]
-        controller: Option<String>,
-        /// Output directory.
-        #[arg(long, default_value = "out/sim")]
-        out: PathBuf,
-        /// Run every shipped controller on the four shipped scenarios and print the table;
-        /// with --scenario and --controllers, those instead.
-        #[arg(long)]
-        compare: bool,
-        /// With --compare: controller files or shipped names, comma-separated.
-        #[arg(long, value_delimiter = ',', requires = "compare")]
-        controllers: Vec<String>,
-        /// Run length (s), instead of the scenario's: the offline twin of a shortened live
-        /// run (`plant-agent run --duration`).
-        #[arg(long, conflicts_with = "compare")]
-        duration: Option<f64>,
-        /// Actuator maps: `scenario` (the files' own: the smooth dead-zone compensation on
-        /// the shipped AERO), `paper` (the paper's step, `smoothing = 0` on every channel,
-        /// for the reproduction), or `both` (with --compare: one table each).
-        #[arg(long, value_enum, default_value = "scenario")]
-        map: MapChoice,
-    },
+    Sim(SimArgs),
     /// Run the main job: a controller service and N simulated plants over Zenoh on
     /// loopback, in real time.
-    Demo {
-        /// Number of plants.
-        #[arg(long, default_value_t = 2)]
-        plants: usize,
-        /// Scenario file or shipped AERO one.
-        #[arg(long, default_value = "2")]
-        scenario: String,
-        /// Controller file or shipped name (default: the scenario's).
-        #[arg(long)]
-        controller: Option<String>,
-        /// Periods to hold the last command before falling back.
-        #[arg(long, default_value_t = SafetyConfig::DEFAULT_HOLD_PERIODS)]
-        hold_periods: u32,
-        /// What to fall back to: `local` (the local controller) or `safe-stop` (zero inputs).
-        #[arg(long, default_value = "local", value_parser = parse_fallback)]
-        fallback: FallbackPolicy,
-        /// Output directory (per plant: run.csv, summary.json, plots; and the MCAP
-        /// recordings `service.mcap` and `plants.mcap`).
-        #[arg(long, default_value = "out/demo")]
-        out: PathBuf,
-        /// Do not record to MCAP.
-        #[arg(long)]
-        no_record: bool,
-        /// Serve the service's Prometheus metrics on this address (e.g. 127.0.0.1:9464).
-        #[arg(long, value_name = "ADDR")]
-        metrics: Option<String>,
-        /// No live progress on stderr.
-        #[arg(long)]
-        quiet: bool,
-    },
+    Demo(DemoArgs),
     /// Re-run a controller service's MCAP recording through the controller, offline, and
     /// say whether the commands match the recorded ones: a regression check. Exit status
     /// 0 when they match, 1 when they differ.
-    Replay {
-        /// The recording (a service's: `service.mcap` of a demo, or `controller-service
-        /// --record`).
-        file: PathBuf,
-        /// Largest difference of `u` and `v` still counted as a match.
-        #[arg(long, default_value_t = controller_service::replay::DEFAULT_TOLERANCE)]
-        tolerance: f64,
-        /// Print the report as JSON.
-        #[arg(long)]
-        json: bool,
-    },
+    Replay(ReplayArgs),
     /// Tune one controller with a fixed budget of offline runs.
-    Tune {
-        /// Scenario file or shipped AERO one.
-        #[arg(long, default_value = "1")]
-        scenario: String,
-        /// Starting point: a built-in AERO kind (ip, ipi, ipd, pid, adrc) ...
-        #[arg(long, required_unless_present = "start", conflicts_with = "start")]
-        controller: Option<String>,
-        /// ... or a controller file (any plant): its gains are the first guess.
-        #[arg(long)]
-        start: Option<PathBuf>,
-        /// Where to write the tuned controller (TOML, usable by `sim --controller`).
-        #[arg(long)]
-        out: PathBuf,
-        /// Number of offline runs (the same for every kind makes the comparison fair).
-        #[arg(long, default_value_t = 150)]
-        budget: usize,
-        /// Seed of the random phase.
-        #[arg(long, default_value_t = 1)]
-        seed: u64,
-        /// Name of the written controller set. Default: the starting point's.
-        #[arg(long)]
-        name: Option<String>,
-    },
+    Tune(TuneArgs),
     /// Run the service and simulated plants through the impairment relay for every
     /// profile, over TCP and UDP, with several controllers side by side.
-    Campaign {
-        /// Profile file (or `default` for the shipped set).
-        #[arg(long, default_value = "default")]
-        profiles: String,
-        /// Output directory (campaign.md, campaign.json, plots).
-        #[arg(long, default_value = "out/campaign")]
-        out: PathBuf,
-        /// Scenario (shortened to --duration).
-        #[arg(long, default_value = "2")]
-        scenario: String,
-        /// Seconds per run.
-        #[arg(long, default_value_t = 20.0)]
-        duration: f64,
-        /// Controllers, side by side on the same link: shipped names or files, each
-        /// optionally with `+hN` (the service sends a horizon of N periods with each
-        /// command), `+dc` (delay compensation), `+notrend` (predict with `F` held, not
-        /// following half its trend) or `+trendG` (`prediction.trend = G`), and `+restG`
-        /// (`prediction.trend_at_rest = G`; default 0), e.g. `ipd,ipd+h10,ipd+h10+dc,pid`.
-        #[arg(long, value_delimiter = ',', default_value = "ipd,pid")]
-        controllers: Vec<String>,
-        /// Links.
-        #[arg(long, value_delimiter = ',', default_value = "tcp,udp")]
-        links: Vec<Link>,
-        /// The agents' oldest command still applied (periods, at most 1000): a command
-        /// later than that is dropped, so a link whose round trips reach it loses commands.
-        #[arg(long, default_value_t = SafetyConfig::DEFAULT_MAX_AGE)]
-        max_age: u32,
-        /// Run nothing: draw the plots again from a finished campaign's `campaign.json` in
-        /// this directory (with the same --profiles), into --out.
-        #[arg(long)]
-        replot: Option<PathBuf>,
-    },
+    Campaign(CampaignArgs),
     /// The networked loop in lockstep (the service's and the agent's own rules, a seeded
     /// model of the link): each controller under each loss rate and each round trip, as
     /// an RMS ratio against itself on a perfect link. Fast and repeatable; the campaign
     /// measures the real network.
-    Netsim {
-        /// Scenario (a file or a shipped AERO one).
-        #[arg(long, default_value = "2")]
-        scenario: String,
-        /// Shorten the scenario to this many seconds (the campaign runs 20 s of its own).
-        #[arg(long)]
-        duration: Option<f64>,
-        /// Controllers, as for the campaign (`ipd+h10+dc`...).
-        #[arg(
-            long,
-            value_delimiter = ',',
-            default_value = "ipd,ipd+h10,ipd+h10+dc,pid,adrc"
-        )]
-        controllers: Vec<String>,
-        /// Loss rates each way (0 to 1), each run with no delay.
-        #[arg(long, value_delimiter = ',', default_value = "0.1,0.3,0.5")]
-        loss: Vec<f64>,
-        /// Round trips (ms), each run with no loss; each one-way delay spreads by
-        /// ±`jitter` of itself.
-        #[arg(long, value_delimiter = ',', default_value = "20,50,100")]
-        rtt_ms: Vec<f64>,
-        /// Spread of each one-way delay, as a fraction of it (uniform in ±jitter; 0 to 1).
-        /// The default, 0.2, is the campaign's latency profiles (50 ms ± 10 ms each way).
-        #[arg(long, default_value_t = 0.2)]
-        jitter: f64,
-        /// Seed of the link's draws.
-        #[arg(long, default_value_t = 1)]
-        seed: u64,
-        /// The agent's hold before its fallback (periods).
-        #[arg(long, default_value_t = SafetyConfig::DEFAULT_HOLD_PERIODS)]
-        hold_periods: u32,
-        /// The agent's oldest command still applied (periods), as for the campaign.
-        #[arg(long, default_value_t = SafetyConfig::DEFAULT_MAX_AGE)]
-        max_age: u32,
-        /// Which way the loss rates apply: both, up (samples only), down (commands only).
-        #[arg(long, value_enum, default_value = "both")]
-        lossy: crate::netsim::Lossy,
-        /// Output directory (netsim.md, netsim.json).
-        #[arg(long, default_value = "out/netsim")]
-        out: PathBuf,
-    },
+    Netsim(NetsimArgs),
     /// Print a controller-service configuration that serves these devices on a scenario.
-    ServiceConfig {
-        /// Device ids, comma-separated.
-        #[arg(long, value_delimiter = ',', required = true)]
-        devices: Vec<String>,
-        /// Scenario whose references and output maps to use.
-        #[arg(long, default_value = "2")]
-        scenario: String,
-        /// Controller file or shipped name (default: the scenario's).
-        #[arg(long)]
-        controller: Option<String>,
-    },
+    ServiceConfig(ServiceConfigArgs),
+}
+
+#[derive(clap::Args)]
+struct SimArgs {
+    /// Scenario file (any plant, including a driver), or a shipped AERO one: 1, 2, 3, 4.
+    #[arg(long, default_value = "2")]
+    scenario: String,
+    /// Controller: a controller file (as written by `tune`) or a shipped AERO name (ip,
+    /// ipi, ipd, ipd-hold, ipd-plain, ipd-tuned, pid, adrc). Default: the scenario's.
+    #[arg(long)]
+    controller: Option<String>,
+    /// Output directory.
+    #[arg(long, default_value = "out/sim")]
+    out: PathBuf,
+    /// Run every shipped controller on the four shipped scenarios and print the table;
+    /// with --scenario and --controllers, those instead.
+    #[arg(long)]
+    compare: bool,
+    /// With --compare: controller files or shipped names, comma-separated.
+    #[arg(long, value_delimiter = ',', requires = "compare")]
+    controllers: Vec<String>,
+    /// Run length (s), instead of the scenario's: the offline twin of a shortened live
+    /// run (`plant-agent run --duration`).
+    #[arg(long, conflicts_with = "compare")]
+    duration: Option<f64>,
+    /// Actuator maps: `scenario` (the files' own: the smooth dead-zone compensation on
+    /// the shipped AERO), `paper` (the paper's step, `smoothing = 0` on every channel,
+    /// for the reproduction), or `both` (with --compare: one table each).
+    #[arg(long, value_enum, default_value = "scenario")]
+    map: MapChoice,
+}
+
+#[derive(clap::Args)]
+struct DemoArgs {
+    /// Number of plants.
+    #[arg(long, default_value_t = 2)]
+    plants: usize,
+    /// Scenario file or shipped AERO one.
+    #[arg(long, default_value = "2")]
+    scenario: String,
+    /// Controller file or shipped name (default: the scenario's).
+    #[arg(long)]
+    controller: Option<String>,
+    /// Periods to hold the last command before falling back.
+    #[arg(long, default_value_t = SafetyConfig::DEFAULT_HOLD_PERIODS)]
+    hold_periods: u32,
+    /// What to fall back to: `local` (the local controller) or `safe-stop` (zero inputs).
+    #[arg(long, default_value = "local", value_parser = parse_fallback)]
+    fallback: FallbackPolicy,
+    /// Output directory (per plant: run.csv, summary.json, plots; and the MCAP
+    /// recordings `service.mcap` and `plants.mcap`).
+    #[arg(long, default_value = "out/demo")]
+    out: PathBuf,
+    /// Do not record to MCAP.
+    #[arg(long)]
+    no_record: bool,
+    /// Serve the service's Prometheus metrics on this address (e.g. 127.0.0.1:9464).
+    #[arg(long, value_name = "ADDR")]
+    metrics: Option<String>,
+    /// No live progress on stderr.
+    #[arg(long)]
+    quiet: bool,
+}
+
+#[derive(clap::Args)]
+struct ReplayArgs {
+    /// The recording (a service's: `service.mcap` of a demo, or `controller-service
+    /// --record`).
+    file: PathBuf,
+    /// Largest difference of `u` and `v` still counted as a match.
+    #[arg(long, default_value_t = controller_service::replay::DEFAULT_TOLERANCE)]
+    tolerance: f64,
+    /// Print the report as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(clap::Args)]
+struct TuneArgs {
+    /// Scenario file or shipped AERO one.
+    #[arg(long, default_value = "1")]
+    scenario: String,
+    /// Starting point: a built-in AERO kind (ip, ipi, ipd, pid, adrc) ...
+    #[arg(long, required_unless_present = "start", conflicts_with = "start")]
+    controller: Option<String>,
+    /// ... or a controller file (any plant): its gains are the first guess.
+    #[arg(long)]
+    start: Option<PathBuf>,
+    /// Where to write the tuned controller (TOML, usable by `sim --controller`).
+    #[arg(long)]
+    out: PathBuf,
+    /// Number of offline runs (the same for every kind makes the comparison fair).
+    #[arg(long, default_value_t = 150)]
+    budget: usize,
+    /// Seed of the random phase.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Name of the written controller set. Default: the starting point's.
+    #[arg(long)]
+    name: Option<String>,
+}
+
+#[derive(clap::Args)]
+struct CampaignArgs {
+    /// Profile file (or `default` for the shipped set).
+    #[arg(long, default_value = "default")]
+    profiles: String,
+    /// Output directory (campaign.md, campaign.json, plots).
+    #[arg(long, default_value = "out/campaign")]
+    out: PathBuf,
+    /// Scenario (shortened to --duration).
+    #[arg(long, default_value = "2")]
+    scenario: String,
+    /// Seconds per run.
+    #[arg(long, default_value_t = 20.0)]
+    duration: f64,
+    /// Controllers, side by side on the same link: shipped names or files, each
+    /// optionally with `+hN` (the service sends a horizon of N periods with each
+    /// command), `+dc` (delay compensation), `+notrend` (predict with `F` held, not
+    /// following half its trend) or `+trendG` (`prediction.trend = G`), and `+restG`
+    /// (`prediction.trend_at_rest = G`; default 0), e.g. `ipd,ipd+h10,ipd+h10+dc,pid`.
+    #[arg(long, value_delimiter = ',', default_value = "ipd,pid")]
+    controllers: Vec<String>,
+    /// Links.
+    #[arg(long, value_delimiter = ',', default_value = "tcp,udp")]
+    links: Vec<Link>,
+    /// The agents' oldest command still applied (periods, at most 1000): a command
+    /// later than that is dropped, so a link whose round trips reach it loses commands.
+    #[arg(long, default_value_t = SafetyConfig::DEFAULT_MAX_AGE)]
+    max_age: u32,
+    /// Run nothing: draw the plots again from a finished campaign's `campaign.json` in
+    /// this directory (with the same --profiles), into --out.
+    #[arg(long)]
+    replot: Option<PathBuf>,
+}
+
+#[derive(clap::Args)]
+struct NetsimArgs {
+    /// Scenario (a file or a shipped AERO one).
+    #[arg(long, default_value = "2")]
+    scenario: String,
+    /// Shorten the scenario to this many seconds (the campaign runs 20 s of its own).
+    #[arg(long)]
+    duration: Option<f64>,
+    /// Controllers, as for the campaign (`ipd+h10+dc`...).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "ipd,ipd+h10,ipd+h10+dc,pid,adrc"
+    )]
+    controllers: Vec<String>,
+    /// Loss rates each way (0 to 1), each run with no delay.
+    #[arg(long, value_delimiter = ',', default_value = "0.1,0.3,0.5")]
+    loss: Vec<f64>,
+    /// Round trips (ms), each run with no loss; each one-way delay spreads by
+    /// ±`jitter` of itself.
+    #[arg(long, value_delimiter = ',', default_value = "20,50,100")]
+    rtt_ms: Vec<f64>,
+    /// Spread of each one-way delay, as a fraction of it (uniform in ±jitter; 0 to 1).
+    /// The default, 0.2, is the campaign's latency profiles (50 ms ± 10 ms each way).
+    #[arg(long, default_value_t = 0.2)]
+    jitter: f64,
+    /// Seed of the link's draws.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// The agent's hold before its fallback (periods).
+    #[arg(long, default_value_t = SafetyConfig::DEFAULT_HOLD_PERIODS)]
+    hold_periods: u32,
+    /// The agent's oldest command still applied (periods), as for the campaign.
+    #[arg(long, default_value_t = SafetyConfig::DEFAULT_MAX_AGE)]
+    max_age: u32,
+    /// Which way the loss rates apply: both, up (samples only), down (commands only).
+    #[arg(long, value_enum, default_value = "both")]
+    lossy: crate::netsim::Lossy,
+    /// Output directory (netsim.md, netsim.json).
+    #[arg(long, default_value = "out/netsim")]
+    out: PathBuf,
+}
+
+#[derive(clap::Args)]
+struct ServiceConfigArgs {
+    /// Device ids, comma-separated.
+    #[arg(long, value_delimiter = ',', required = true)]
+    devices: Vec<String>,
+    /// Scenario whose references and output maps to use.
+    #[arg(long, default_value = "2")]
+    scenario: String,
+    /// Controller file or shipped name (default: the scenario's).
+    #[arg(long)]
+    controller: Option<String>,
 }
 
 /// Parse the process's arguments and run.
@@ -295,259 +316,200 @@ fn paper_map(mut s: Scenario) -> Scenario {
 
 fn real_main() -> Result<()> {
     match Cli::parse().command {
-        Command::Sim {
-            scenario,
-            controller,
-            out,
-            compare: true,
-            controllers,
-            map,
-            ..
-        } => {
-            if controller.is_some() {
+        Command::Sim(args) if args.compare => {
+            if args.controller.is_some() {
                 bail!("--compare takes --controllers (a list), not --controller");
             }
-            sim_compare(
-                &out,
-                (!controllers.is_empty()).then_some((&scenario, &controllers)),
-                map,
-            )
+            let only =
+                (!args.controllers.is_empty()).then_some((&args.scenario, &args.controllers));
+            sim_compare(&args.out, only, args.map)
         }
-        Command::Sim {
-            scenario,
-            controller,
-            out,
-            compare: false,
-            duration,
-            map,
-            ..
-        } => {
-            let (mut scenario, set) = scenario_and_controller(&scenario, controller.as_deref())?;
-            match map {
-                MapChoice::Scenario => {}
-                MapChoice::Paper => scenario = paper_map(scenario),
-                MapChoice::Both => bail!("--map both needs --compare"),
-            }
-            if let Some(d) = duration {
-                if !(d.is_finite() && d > 0.0) {
-                    bail!("--duration must be a positive number of seconds, not {d}");
-                }
-                scenario.duration = d;
-            }
-            let r = simulate(&scenario, &set, true)?;
-            write_run(
-                &out,
-                &format!("{} — {}", scenario.name, set.name),
-                &r.recording,
-                &r.summary,
-            )?;
-            print_summary(&r.summary);
-            println!(
-                "wrote {}/{{run.csv, summary.json, *.png, *.svg}}",
-                out.display()
-            );
-            Ok(())
-        }
-        Command::Demo {
-            plants,
-            scenario,
-            controller,
-            hold_periods,
-            fallback,
-            out,
-            no_record,
-            metrics,
-            quiet,
-        } => {
-            if plants == 0 || plants > 64 {
-                bail!("--plants must be between 1 and 64");
-            }
-            let (scenario, set) = scenario_and_controller(&scenario, controller.as_deref())?;
-            let offline = simulate(&scenario, &set, false)?.summary;
-            println!(
-                "{}: {} plant(s) and a controller service over Zenoh on loopback, {:.0} s in real time...",
-                scenario.name, plants, scenario.duration
-            );
-            let runtime = tokio::runtime::Builder::new_multi_thread()
-                .enable_all()
-                .build()?;
-            let reports = runtime.block_on(demo(
-                &scenario,
-                &set,
-                &DemoOptions {
-                    plants,
-                    safety: SafetyConfig {
-                        period: scenario.period,
-                        max_age: SafetyConfig::DEFAULT_MAX_AGE,
-                        hold_periods,
-                        fallback,
-                    },
-                    out: Some(out.clone()),
-                    record: (!no_record).then(|| out.clone()),
-                    metrics,
-                    progress: !quiet,
-                },
-            ))?;
-            print_reports(&reports, Some(&offline));
-            println!(
-                "wrote {}/<device>/{{run.csv, summary.json, *.png, *.svg}}",
-                out.display()
-            );
-            if !no_record {
-                println!(
-                    "recorded {0}/service.mcap and {0}/plants.mcap (Foxglove opens them; `mfc-lab replay {0}/service.mcap` re-runs the controller on them)",
-                    out.display()
-                );
-            }
-            Ok(())
-        }
-        Command::Replay {
-            file,
-            tolerance,
-            json,
-        } => {
-            if !(tolerance.is_finite() && tolerance >= 0.0) {
-                bail!("--tolerance must be a finite number >= 0");
-            }
-            let bytes =
-                std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
-            let report = controller_service::replay::replay(&bytes, tolerance)
-                .with_context(|| file.display().to_string())?;
-            if json {
-                println!("{}", serde_json::to_string_pretty(&report)?);
-            } else {
-                print!("{}", controller_service::replay::render(&report));
-            }
-            if !report.matched {
-                std::process::exit(1);
-            }
-            Ok(())
-        }
-        Command::Tune {
-            scenario,
-            controller,
-            start,
-            out,
-            budget,
-            seed,
-            name,
-        } => {
-            if budget == 0 {
-                bail!("--budget must be at least 1");
-            }
-            let scenario = load_scenario(&scenario)?;
-            let (start_set, from) = match (&controller, &start) {
-                (Some(kind), _) => (
-                    starting_point(kind).with_context(|| {
-                        format!(
-                            "unknown controller kind `{kind}` (built-in AERO starting points: {}; for another plant give --start FILE)",
-                            KINDS.join(", ")
-                        )
-                    })?,
-                    format!("--controller {kind}"),
-                ),
-                (None, Some(file)) => (
-                    load_controller(&file.to_string_lossy())?,
-                    format!("--start {}", file.display()),
-                ),
-                (None, None) => bail!("give --controller KIND or --start FILE"),
-            };
-            scenario.check_controller(&start_set)?;
-            let label = start_set.name.clone();
-            let bar = bar(budget as u64, "{msg} [{bar:30}] {pos}/{len} runs ({eta})");
-            let tuned = tune(&scenario, &start_set, budget, seed, |done, best| {
-                bar.set_position(done as u64);
-                bar.set_message(format!("tuning {label}: best {best:.4}"));
-            })?;
-            bar.finish_and_clear();
-            let mut set = tuned.set;
-            if let Some(name) = &name {
-                set.name = name.clone();
-            }
-            let text = toml::to_string_pretty(&set)?;
-            if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
-                std::fs::create_dir_all(dir)?;
-            }
-            let command = format!(
-                "mfc-lab tune --scenario {} {from} --budget {budget} --seed {seed}{}",
-                scenario.name,
-                name.as_ref()
-                    .map(|n| format!(" --name {n}"))
-                    .unwrap_or_default()
-            );
-            std::fs::write(&out, format!("# Written by `{command}`.\n{text}"))
-                .with_context(|| format!("writing {}", out.display()))?;
-            println!(
-                "{label} on {}: objective {:.4} (start {:.4}) in {} runs; wrote {}",
-                scenario.name,
-                tuned.cost,
-                tuned.start_cost,
-                tuned.runs,
-                out.display()
-            );
-            Ok(())
-        }
-        Command::Campaign {
-            profiles,
-            out,
-            scenario,
-            duration,
-            controllers,
-            links,
-            max_age,
-            replot,
-        } => match replot {
-            Some(from) => replot_campaign(&profiles, &from, &out),
-            None => campaign(
-                &profiles,
-                &out,
-                (&scenario, duration),
-                &controllers,
-                &links,
-                max_age,
-            ),
+        Command::Sim(args) => sim(&args),
+        Command::Demo(args) => demo_command(&args),
+        Command::Replay(args) => replay(&args),
+        Command::Tune(args) => tune_command(&args),
+        Command::Campaign(args) => match &args.replot {
+            Some(from) => replot_campaign(&args.profiles, from, &args.out),
+            None => campaign(&args),
         },
-        Command::Netsim {
-            scenario,
-            duration,
-            controllers,
-            loss,
-            rtt_ms,
-            jitter,
-            seed,
-            hold_periods,
-            max_age,
-            lossy,
-            out,
-        } => netsim(
-            (&scenario, duration),
-            &controllers,
-            (&loss, lossy),
-            (&rtt_ms, jitter),
-            (seed, hold_periods, max_age),
-            &out,
-        ),
-        Command::ServiceConfig {
-            devices,
-            scenario,
-            controller,
-        } => {
-            let (scenario, set) = scenario_and_controller(&scenario, controller.as_deref())?;
-            let config = service_config(&scenario, &set, &devices);
-            config.check("(generated)")?;
-            println!(
-                "# controller-service configuration: {} on {} for {}\n{}",
-                set.name,
-                scenario.name,
-                devices.join(", "),
-                toml::to_string_pretty(&config)?
-            );
-            Ok(())
-        }
+        Command::Netsim(args) => netsim(&args),
+        Command::ServiceConfig(args) => print_service_config(&args),
     }
 }
 
-fn print_summary(s: &Summary) {
+/// `sim`: one scenario offline, its record written.
+fn sim(args: &SimArgs) -> Result<()> {
+    let (mut scenario, set) = scenario_and_controller(&args.scenario, args.controller.as_deref())?;
+    match args.map {
+        MapChoice::Scenario => {}
+        MapChoice::Paper => scenario = paper_map(scenario),
+        MapChoice::Both => bail!("--map both needs --compare"),
+    }
+    if let Some(d) = args.duration {
+        if !(d.is_finite() && d > 0.0) {
+            bail!("--duration must be a positive number of seconds, not {d}");
+        }
+        scenario.duration = d;
+    }
+    let r = simulate(&scenario, &set, true)?;
+    let out = &args.out;
+    write_run(
+        out,
+        &format!("{} — {}", scenario.name, set.name),
+        &r.record,
+        &r.summary,
+    )?;
+    print_summary(&r.summary);
+    println!(
+        "wrote {}/{{run.csv, summary.json, *.png, *.svg}}",
+        out.display()
+    );
+    Ok(())
+}
+
+/// `demo`: the service and N plants over Zenoh, beside the offline twin.
+fn demo_command(args: &DemoArgs) -> Result<()> {
+    let plants = args.plants;
+    if plants == 0 || plants > 64 {
+        bail!("--plants must be between 1 and 64");
+    }
+    let (scenario, set) = scenario_and_controller(&args.scenario, args.controller.as_deref())?;
+    let offline = simulate(&scenario, &set, false)?.summary;
+    println!(
+        "{}: {} plant(s) and a controller service over Zenoh on loopback, {:.0} s in real time...",
+        scenario.name, plants, scenario.duration
+    );
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?;
+    let out = &args.out;
+    let options = DemoOptions {
+        plants,
+        safety: SafetyConfig {
+            period: scenario.period,
+            max_age: SafetyConfig::DEFAULT_MAX_AGE,
+            hold_periods: args.hold_periods,
+            fallback: args.fallback,
+        },
+        out: Some(out.clone()),
+        record: (!args.no_record).then(|| out.clone()),
+        metrics: args.metrics.clone(),
+        progress: !args.quiet,
+    };
+    let reports = runtime.block_on(demo(&scenario, &set, &options))?;
+    print_reports(&reports, Some(&offline));
+    println!(
+        "wrote {}/<device>/{{run.csv, summary.json, *.png, *.svg}}",
+        out.display()
+    );
+    if !args.no_record {
+        println!(
+            "recorded {0}/service.mcap and {0}/plants.mcap (Foxglove opens them; `mfc-lab replay {0}/service.mcap` re-runs the controller on them)",
+            out.display()
+        );
+    }
+    Ok(())
+}
+
+/// `replay`: a service's recording through the controller again; exit 1 on a mismatch.
+fn replay(args: &ReplayArgs) -> Result<()> {
+    let (file, tolerance) = (&args.file, args.tolerance);
+    if !(tolerance.is_finite() && tolerance >= 0.0) {
+        bail!("--tolerance must be a finite number >= 0");
+    }
+    let bytes = std::fs::read(file).with_context(|| format!("reading {}", file.display()))?;
+    let report = controller_service::replay::replay(&bytes, tolerance)
+        .with_context(|| file.display().to_string())?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        print!("{}", controller_service::replay::render(&report));
+    }
+    if !report.matched {
+        std::process::exit(1);
+    }
+    Ok(())
+}
+
+/// `tune`: the tuner from a built-in kind or a controller file, the result written with
+/// the command that made it.
+fn tune_command(args: &TuneArgs) -> Result<()> {
+    let budget = args.budget;
+    if budget == 0 {
+        bail!("--budget must be at least 1");
+    }
+    let scenario = load_scenario(&args.scenario)?;
+    let (start_set, from) = match (&args.controller, &args.start) {
+        (Some(kind), _) => (
+            starting_point(kind).with_context(|| {
+                format!(
+                    "unknown controller kind `{kind}` (built-in AERO starting points: {}; for another plant give --start FILE)",
+                    KINDS.join(", ")
+                )
+            })?,
+            format!("--controller {kind}"),
+        ),
+        (None, Some(file)) => (
+            load_controller(&file.to_string_lossy())?,
+            format!("--start {}", file.display()),
+        ),
+        (None, None) => bail!("give --controller KIND or --start FILE"),
+    };
+    scenario.check_controller(&start_set)?;
+    let label = start_set.name.clone();
+    let bar = bar(budget as u64, "{msg} [{bar:30}] {pos}/{len} runs ({eta})");
+    let tuned = tune(&scenario, &start_set, budget, args.seed, |done, best| {
+        bar.set_position(done as u64);
+        bar.set_message(format!("tuning {label}: best {best:.4}"));
+    })?;
+    bar.finish_and_clear();
+    let mut set = tuned.set;
+    if let Some(name) = &args.name {
+        set.name = name.clone();
+    }
+    let text = toml::to_string_pretty(&set)?;
+    let out = &args.out;
+    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir)?;
+    }
+    let command = format!(
+        "mfc-lab tune --scenario {} {from} --budget {budget} --seed {}{}",
+        scenario.name,
+        args.seed,
+        args.name
+            .as_ref()
+            .map(|n| format!(" --name {n}"))
+            .unwrap_or_default()
+    );
+    std::fs::write(out, format!("# Written by `{command}`.\n{text}"))
+        .with_context(|| format!("writing {}", out.display()))?;
+    println!(
+        "{label} on {}: objective {:.4} (start {:.4}) in {} runs; wrote {}",
+        scenario.name,
+        tuned.cost,
+        tuned.start_cost,
+        tuned.runs,
+        out.display()
+    );
+    Ok(())
+}
+
+/// `service-config`: the service's configuration for these devices, as TOML.
+fn print_service_config(args: &ServiceConfigArgs) -> Result<()> {
+    let (scenario, set) = scenario_and_controller(&args.scenario, args.controller.as_deref())?;
+    let config = service_config(&scenario, &set, &args.devices);
+    config.check("(generated)")?;
+    println!(
+        "# controller-service configuration: {} on {} for {}\n{}",
+        set.name,
+        scenario.name,
+        args.devices.join(", "),
+        toml::to_string_pretty(&config)?
+    );
+    Ok(())
+}
+
+fn print_summary(s: &OfflineSummary) {
     println!("{} with {}:", s.scenario, s.controller);
     for c in &s.channels {
         println!(
@@ -565,7 +527,7 @@ fn print_summary(s: &Summary) {
     }
 }
 
-fn print_reports(reports: &[AgentReport], offline: Option<&Summary>) {
+fn print_reports(reports: &[AgentReport], offline: Option<&OfflineSummary>) {
     if let Some(first) = reports.first() {
         print!("| plant |");
         for c in &first.channels {
@@ -662,14 +624,9 @@ fn sim_compare(out: &Path, only: Option<(&String, &Vec<String>)>, map: MapChoice
     Ok(())
 }
 
-fn campaign(
-    profiles: &str,
-    out: &Path,
-    (scenario, duration): (&str, f64),
-    controllers: &[String],
-    links: &[Link],
-    max_age: u32,
-) -> Result<()> {
+fn campaign(args: &CampaignArgs) -> Result<()> {
+    let (profiles, out, duration) = (args.profiles.as_str(), &args.out, args.duration);
+    let (controllers, links, max_age) = (&args.controllers, &args.links, args.max_age);
     if !(duration.is_finite() && duration >= 2.0) {
         bail!("--duration must be at least 2 s");
     }
@@ -678,7 +635,7 @@ fn campaign(
     if !set.profiles.iter().any(|p| p.name == "none") {
         bail!("{profiles}: the campaign needs a profile named `none` (the unimpaired baseline)");
     }
-    let mut s = load_scenario(scenario)?;
+    let mut s = load_scenario(&args.scenario)?;
     s.duration = duration;
     let (sets, predictions): (Vec<_>, Vec<_>) = load_variants(&s, controllers)?.into_iter().unzip();
     let board = std::sync::Arc::new(ProgressBoard::new());
@@ -810,17 +767,10 @@ fn replot_campaign(profiles: &str, from: &Path, out: &Path) -> Result<()> {
     Ok(())
 }
 
-fn netsim(
-    (scenario, duration): (&str, Option<f64>),
-    controllers: &[String],
-    (loss, lossy): (&[f64], crate::netsim::Lossy),
-    (rtt_ms, jitter): (&[f64], f64),
-    (seed, hold_periods, max_age): (u64, u32, u32),
-    out: &Path,
-) -> Result<()> {
-    use crate::netsim::{simulate_net, LinkModel};
-    let mut s = load_scenario(scenario)?;
-    if let Some(d) = duration {
+fn netsim(args: &NetsimArgs) -> Result<()> {
+    use crate::netsim::simulate_net;
+    let mut s = load_scenario(&args.scenario)?;
+    if let Some(d) = args.duration {
         if !(d.is_finite() && d >= s.period) {
             bail!(
                 "--duration must be at least one period ({} s), not {d}",
@@ -829,51 +779,18 @@ fn netsim(
         }
         s.duration = d;
     }
-    check_max_age(max_age)?;
+    check_max_age(args.max_age)?;
+    let jitter = args.jitter;
     if !(0.0..=1.0).contains(&jitter) {
         bail!("--jitter must be between 0 and 1 (a fraction of the one-way delay), not {jitter}");
     }
-    let sets = load_variants(&s, controllers)?;
+    let sets = load_variants(&s, &args.controllers)?;
     let safety = SafetyConfig {
-        hold_periods,
-        max_age,
+        hold_periods: args.hold_periods,
+        max_age: args.max_age,
         ..crate::harness::default_safety(&s)
     };
-    let mut links = vec![("perfect".to_string(), LinkModel::PERFECT)];
-    for &l in loss {
-        links.push((
-            format!(
-                "loss {:.0} %{}",
-                100.0 * l,
-                match lossy {
-                    crate::netsim::Lossy::Both => "",
-                    crate::netsim::Lossy::Up => " (samples)",
-                    crate::netsim::Lossy::Down => " (commands)",
-                }
-            ),
-            LinkModel {
-                loss: l,
-                lossy,
-                seed,
-                ..LinkModel::PERFECT
-            },
-        ));
-    }
-    for &r in rtt_ms {
-        let one_way = r / 2000.0;
-        links.push((
-            format!("{r:.0} ms round trip"),
-            LinkModel {
-                delay: one_way,
-                jitter: jitter * one_way,
-                seed,
-                ..LinkModel::PERFECT
-            },
-        ));
-    }
-    for (name, l) in &links {
-        l.check().map_err(|e| anyhow::anyhow!("{name}: {e}"))?;
-    }
+    let links = netsim_links(args)?;
     let bar = bar(
         (links.len() * sets.len()) as u64,
         "{msg:<40} [{bar:30}] {pos}/{len} runs",
@@ -888,6 +805,66 @@ fn netsim(
         }
     }
     bar.finish_and_clear();
+    let md = netsim_markdown(&rows);
+    let out = &args.out;
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    std::fs::write(out.join("netsim.md"), &md)?;
+    let json: Vec<_> = rows
+        .iter()
+        .map(|(name, r)| serde_json::json!({ "link": name, "run": r }))
+        .collect();
+    std::fs::write(
+        out.join("netsim.json"),
+        serde_json::to_string_pretty(&json)? + "\n",
+    )?;
+    println!("{md}");
+    println!("wrote {0}/netsim.md and {0}/netsim.json", out.display());
+    Ok(())
+}
+
+/// The links of a `netsim` run, named for its table: a perfect one, each loss rate with
+/// no delay, each round trip with no loss.
+fn netsim_links(args: &NetsimArgs) -> Result<Vec<(String, crate::netsim::LinkModel)>> {
+    use crate::netsim::{LinkModel, Lossy};
+    let (lossy, seed) = (args.lossy, args.seed);
+    let mut links = vec![("perfect".to_string(), LinkModel::PERFECT)];
+    for &l in &args.loss {
+        let way = match lossy {
+            Lossy::Both => "",
+            Lossy::Up => " (samples)",
+            Lossy::Down => " (commands)",
+        };
+        links.push((
+            format!("loss {:.0} %{way}", 100.0 * l),
+            LinkModel {
+                loss: l,
+                lossy,
+                seed,
+                ..LinkModel::PERFECT
+            },
+        ));
+    }
+    for &r in &args.rtt_ms {
+        let one_way = r / 2000.0;
+        links.push((
+            format!("{r:.0} ms round trip"),
+            LinkModel {
+                delay: one_way,
+                jitter: args.jitter * one_way,
+                seed,
+                ..LinkModel::PERFECT
+            },
+        ));
+    }
+    for (name, l) in &links {
+        l.check().map_err(|e| anyhow::anyhow!("{name}: {e}"))?;
+    }
+    Ok(links)
+}
+
+/// The `netsim` table: each run's RMS per channel and its ratio to the same controller on
+/// the perfect link, then what the agent counted.
+fn netsim_markdown(rows: &[(String, crate::netsim::NetRun)]) -> String {
     use std::fmt::Write as _;
     let mut md = String::new();
     let channels: Vec<String> = rows
@@ -907,7 +884,7 @@ fn netsim(
         "|---|---|{}---:|---:|---:|---:|---:|",
         "---:|---:|".repeat(channels.len())
     );
-    for (name, r) in &rows {
+    for (name, r) in rows {
         let base = rows
             .iter()
             .find(|(n, b)| n == "perfect" && b.controller == r.controller)
@@ -933,19 +910,7 @@ fn netsim(
             k.fallbacks
         );
     }
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    std::fs::write(out.join("netsim.md"), &md)?;
-    let json: Vec<_> = rows
-        .iter()
-        .map(|(name, r)| serde_json::json!({ "link": name, "run": r }))
-        .collect();
-    std::fs::write(
-        out.join("netsim.json"),
-        serde_json::to_string_pretty(&json)? + "\n",
-    )?;
-    println!("{md}");
-    println!("wrote {0}/netsim.md and {0}/netsim.json", out.display());
-    Ok(())
+    md
 }
 
 #[cfg(test)]

@@ -4,9 +4,9 @@ use std::fmt::Write as _;
 
 use serde::{Deserialize, Serialize};
 
-use plant_agent::scenario::{ControllerSet, Scenario};
+use plant::scenario::{ControllerSet, Scenario};
 
-use crate::offline::{simulate, RunError, Summary};
+use crate::offline::{simulate, OfflineSummary, RunError};
 
 /// The comparison: one summary per (scenario, controller).
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -16,7 +16,7 @@ pub struct Comparison {
     /// Controller names, in order.
     pub controllers: Vec<String>,
     /// Summaries, scenario-major.
-    pub runs: Vec<Summary>,
+    pub runs: Vec<OfflineSummary>,
 }
 
 /// Run every controller on every scenario; `progress` is called after each run.

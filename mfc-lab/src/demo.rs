@@ -3,14 +3,15 @@
 
 use std::path::PathBuf;
 
+use plant::progress::ProgressBoard;
+use plant::record::write_run;
+use plant::scenario::{ControllerSet, PlantSource, Scenario};
 use plant_agent::agent::AgentReport;
-use plant_agent::record::write_run;
+use plant_agent::observe::LoopObservers;
 use plant_agent::safety::SafetyConfig;
-use plant_agent::scenario::{ControllerSet, PlantSource, Scenario};
+use telemetry::{RecordSpec, Recording};
 
 use crate::harness::{run_fleet, service_config, PlantSpec};
-use plant_agent::observe::{LoopObservers, ProgressBoard};
-use telemetry::{RecordSpec, Recording};
 
 /// Options of a demo run.
 #[derive(Debug, Clone)]
@@ -138,7 +139,7 @@ pub async fn demo(
             write_run(
                 &dir.join(&run.report.device_id),
                 &title,
-                &run.recording,
+                &run.record,
                 &run.report,
             )?;
         }

@@ -5,9 +5,9 @@
 
 use controller_service::config::{DeviceChannel, DeviceSpec, ServiceConfig};
 use controller_service::{service, Registry};
+use plant::scenario::{ControllerSet, Scenario};
 use plant_agent::agent::{self, AgentRun, LoopConfig};
 use plant_agent::safety::{FallbackPolicy, SafetyConfig};
-use plant_agent::scenario::{ControllerSet, Scenario};
 use transport::ZenohArgs;
 use zenoh::Session;
 
@@ -224,7 +224,7 @@ pub async fn run_plant(
 
 /// A run id that differs between runs and between plants of one run.
 pub fn run_id(salt: u64) -> u64 {
-    (plant_agent::cli::run_id() ^ salt.wrapping_mul(0x9E37_79B9_7F4A_7C15)).max(1)
+    (plant::run_id() ^ salt.wrapping_mul(0x9E37_79B9_7F4A_7C15)).max(1)
 }
 
 /// Start a service for `plants` and run them all concurrently; returns their runs in order.

@@ -11,16 +11,18 @@
 //! in real time.
 
 use std::cmp::Reverse;
-use std::collections::BinaryHeap;
+use std::collections::{BinaryHeap, VecDeque};
 
 use controller_service::config::Prediction;
 use controller_service::registry::{Registry, Via};
 use mfc::trajectory::evaluate;
 use mfc::Reference;
-use plant_agent::agent::{flags, incoming};
-use plant_agent::record::{Accumulator, ChannelMetrics};
-use plant_agent::safety::{Counters, SafetyConfig, Supervisor, Verdict};
-use plant_agent::scenario::{ControllerSet, Scenario};
+use plant::record::{Accumulator, ChannelMetrics};
+use plant::scenario::{ControllerSet, Scenario};
+use plant_agent::safety::{
+    IncomingCommand, PeriodBegin, SafetyConfig, Supervisor, SupervisorCounters, Verdict,
+};
+use plant_agent::wire::sample_flags;
 use protocol::{pb, PROTOCOL_VERSION};
 use rand_xoshiro::rand_core::{Rng as _, SeedableRng};
 use rand_xoshiro::Xoshiro256StarStar;
@@ -88,7 +90,7 @@ pub struct NetRun {
     /// Per channel, over the whole run.
     pub channels: Vec<ChannelMetrics>,
     /// The agent's counters.
-    pub counters: Counters,
+    pub counters: SupervisorCounters,
     /// Samples the link lost, and commands.
     pub samples_lost: u64,
     pub commands_lost: u64,
@@ -119,36 +121,18 @@ pub fn simulate_net(
     for d in &mut config.devices {
         d.prediction = prediction;
     }
-    let mut registry = Registry::new(config).map_err(|e| RunError::Link {
-        reason: e.to_string(),
-    })?;
-    let mut plant = plant_agent::plant::open(&scenario.plant, scenario.seed, n)?;
+    let mut registry = Registry::new(config).map_err(lockstep_error)?;
+    let mut plant = plant::open(&scenario.plant, scenario.seed, n)?;
     let initial = plant.write(&vec![0.0; n])?;
-    let mut sup =
-        Supervisor::new(safety, &scenario.channel_configs(controller), initial).map_err(|e| {
-            RunError::Link {
-                reason: e.to_string(),
-            }
-        })?;
-    let mut rng = Xoshiro256StarStar::seed_from_u64(link.seed);
-    let mut uniform = move || (rng.next_u64() >> 11) as f64 / (1u64 << 53) as f64;
-    // One draw says whether a message is lost, the next how long it takes.
-    let mut draw = move || {
-        let lost = uniform() < link.loss;
-        let delay = (link.delay + link.jitter * (2.0 * uniform() - 1.0)).max(0.0);
-        (lost, delay)
-    };
+    let mut sup = Supervisor::new(safety, &scenario.channel_configs(controller), initial)
+        .map_err(lockstep_error)?;
+    let mut net = InFlight::new(link);
     let h = scenario.period;
-    let mut queue: BinaryHeap<Reverse<(u64, u64)>> = BinaryHeap::new();
-    let mut events: Vec<Option<Event>> = Vec::new();
-    // Times in integer nanoseconds, so that the heap orders them exactly.
-    let ns = |s: f64| (s * 1e9).round() as u64;
     let mut acc = vec![Accumulator::default(); n];
     let mut refs = vec![Reference::default(); n];
-    let (mut samples_lost, mut commands_lost) = (0, 0);
     let mut last_rtt_us = 0u32;
-    let mut previous: std::collections::VecDeque<(f64, Vec<f64>, Vec<f64>)> =
-        std::collections::VecDeque::with_capacity(protocol::RESENT_SAMPLES);
+    let mut previous: VecDeque<(f64, Vec<f64>, Vec<f64>)> =
+        VecDeque::with_capacity(protocol::RESENT_SAMPLES);
     for k in 0..scenario.steps() {
         let t = k as f64 * h;
         let y = plant.read()?;
@@ -157,79 +141,41 @@ pub fn simulate_net(
         }
         let begin = sup
             .begin_period(k as u64, t, &y, &refs)
-            .map_err(|e| RunError::Link {
-                reason: e.to_string(),
-            })?;
+            .map_err(lockstep_error)?;
         if let Some(v) = &begin.write {
             let a = plant.write(v)?;
             sup.applied(&a);
         }
-        let sample = pb::Sample {
-            version: PROTOCOL_VERSION,
-            device_id: id.clone(),
-            seq: k as u64,
-            plant_time: t,
-            outputs: y.clone(),
-            applied: begin.applied_mean.clone(),
-            flags: flags(begin.sample_mode),
-            sent_unix_ns: ns(t),
-            last_rtt_us,
-            run_id: 1,
-            previous_plant_time: previous.iter().map(|p| p.0).collect(),
-            previous_outputs: previous.iter().flat_map(|p| p.1.iter().copied()).collect(),
-            previous_applied: previous.iter().flat_map(|p| p.2.iter().copied()).collect(),
-        };
+        let sample = sample(&id, (k, t), &y, &begin, last_rtt_us, &previous);
         if previous.len() == protocol::RESENT_SAMPLES {
             previous.pop_back();
         }
         previous.push_front((t, y.clone(), begin.applied_mean.clone()));
-        let (lost, delay) = draw();
-        if lost && link.lossy != Lossy::Down {
-            samples_lost += 1;
-        } else {
-            let at = ns(t + delay);
-            queue.push(Reverse((at, events.len() as u64)));
-            events.push(Some(Event::Sample(sample)));
-        }
-        let end_ns = ns(t + h);
-        while let Some(Reverse((at, i))) = queue.peek().copied() {
-            if at >= end_ns {
-                break;
-            }
-            queue.pop();
-            match events[i as usize].take() {
-                Some(Event::Sample(s)) => {
+        net.send_sample(t, sample);
+        while let Some((at, event)) = net.next_before(ns(t + h)) {
+            match event {
+                Event::Sample(s) => {
                     let mut cmd = pb::Command::default();
                     if registry
                         .handle_sample(Via::key(&id), &s, at, &mut cmd)
                         .answered()
                     {
-                        let (lost, delay) = draw();
-                        if lost && link.lossy != Lossy::Up {
-                            commands_lost += 1;
-                        } else {
-                            let arrive = at + ns(delay);
-                            queue.push(Reverse((arrive, events.len() as u64)));
-                            events.push(Some(Event::Command(cmd, s.plant_time)));
-                        }
+                        net.send_command(at, cmd, s.plant_time);
                     }
                 }
-                Some(Event::Command(cmd, sent)) => {
+                Event::Command(cmd, sent) => {
                     let now = at as f64 * 1e-9;
                     last_rtt_us = ((now - sent) * 1e6).round().clamp(1.0, u32::MAX as f64) as u32;
-                    let (verdict, _) = sup.on_command(now - t, incoming(&cmd));
+                    let (verdict, _) = sup.on_command(now - t, IncomingCommand::from_wire(&cmd));
                     if let Verdict::Apply { v, advance, .. } = verdict {
                         plant.advance(advance)?;
                         let a = plant.write(&v)?;
                         sup.applied(&a);
                     }
                 }
-                None => {}
             }
         }
-        let end = sup.end_period().map_err(|e| RunError::Link {
-            reason: e.to_string(),
-        })?;
+        let end = sup.end_period().map_err(lockstep_error)?;
         plant.advance(end.advance)?;
         let applied = sup.applied_now();
         for (i, c) in scenario.channels.iter().enumerate() {
@@ -241,7 +187,119 @@ pub fn simulate_net(
         controller: controller.name.clone(),
         channels: crate::offline::finish(&acc, scenario),
         counters: sup.counters().clone(),
-        samples_lost,
-        commands_lost,
+        samples_lost: net.samples_lost,
+        commands_lost: net.commands_lost,
     })
+}
+
+fn lockstep_error(e: impl std::fmt::Display) -> RunError {
+    RunError::Link {
+        reason: e.to_string(),
+    }
+}
+
+/// Seconds as integer nanoseconds, so that the heap orders times exactly.
+fn ns(s: f64) -> u64 {
+    (s * 1e9).round() as u64
+}
+
+/// Sample `k` (at plant time `t`) as the agent would publish it, with the earlier ones it
+/// carries again, timestamped with the simulated clock.
+fn sample(
+    id: &str,
+    (k, t): (usize, f64),
+    y: &[f64],
+    begin: &PeriodBegin,
+    last_rtt_us: u32,
+    previous: &VecDeque<(f64, Vec<f64>, Vec<f64>)>,
+) -> pb::Sample {
+    pb::Sample {
+        version: PROTOCOL_VERSION,
+        device_id: id.to_string(),
+        seq: k as u64,
+        plant_time: t,
+        outputs: y.to_vec(),
+        applied: begin.applied_mean.clone(),
+        flags: sample_flags(begin.sample_mode),
+        sent_unix_ns: ns(t),
+        last_rtt_us,
+        run_id: 1,
+        previous_plant_time: previous.iter().map(|p| p.0).collect(),
+        previous_outputs: previous.iter().flat_map(|p| p.1.iter().copied()).collect(),
+        previous_applied: previous.iter().flat_map(|p| p.2.iter().copied()).collect(),
+    }
+}
+
+/// The link's messages in flight, in the order they arrive, with its seeded draws.
+struct InFlight {
+    link: LinkModel,
+    rng: Xoshiro256StarStar,
+    /// (arrival in ns, index into `events`): the smallest first.
+    queue: BinaryHeap<Reverse<(u64, u64)>>,
+    events: Vec<Option<Event>>,
+    samples_lost: u64,
+    commands_lost: u64,
+}
+
+impl InFlight {
+    fn new(link: &LinkModel) -> Self {
+        Self {
+            link: *link,
+            rng: Xoshiro256StarStar::seed_from_u64(link.seed),
+            queue: BinaryHeap::new(),
+            events: Vec::new(),
+            samples_lost: 0,
+            commands_lost: 0,
+        }
+    }
+
+    fn uniform(&mut self) -> f64 {
+        (self.rng.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    /// One draw says whether a message is lost, the next how long it takes.
+    fn draw(&mut self) -> (bool, f64) {
+        let lost = self.uniform() < self.link.loss;
+        let delay = (self.link.delay + self.link.jitter * (2.0 * self.uniform() - 1.0)).max(0.0);
+        (lost, delay)
+    }
+
+    fn push(&mut self, at: u64, event: Event) {
+        self.queue.push(Reverse((at, self.events.len() as u64)));
+        self.events.push(Some(event));
+    }
+
+    /// The agent sends a sample at plant time `t`.
+    fn send_sample(&mut self, t: f64, sample: pb::Sample) {
+        let (lost, delay) = self.draw();
+        if lost && self.link.lossy != Lossy::Down {
+            self.samples_lost += 1;
+        } else {
+            self.push(ns(t + delay), Event::Sample(sample));
+        }
+    }
+
+    /// The service answers at `at` (ns) the sample taken at plant time `sent`.
+    fn send_command(&mut self, at: u64, cmd: pb::Command, sent: f64) {
+        let (lost, delay) = self.draw();
+        if lost && self.link.lossy != Lossy::Up {
+            self.commands_lost += 1;
+        } else {
+            self.push(at + ns(delay), Event::Command(cmd, sent));
+        }
+    }
+
+    /// The next message to arrive before `end` (ns), with its arrival time.
+    fn next_before(&mut self, end: u64) -> Option<(u64, Event)> {
+        while let Some(Reverse((at, i))) = self.queue.peek().copied() {
+            if at >= end {
+                return None;
+            }
+            self.queue.pop();
+            if let Some(event) = self.events[i as usize].take() {
+                return Some((at, event));
+            }
+        }
+        None
+    }
 }

@@ -4,15 +4,15 @@
 //! Each period: read the plant, step the MIMO controller, write the inputs (the plant
 //! reports what it really applied: saturation, a driver's own limits), tell the controller
 //! what was really applied, let one period of plant time pass. The plant is any
-//! [`plant_agent::plant::Plant`]: the built-in AERO simulator or a driver process, so a
+//! [`plant::Plant`]: the built-in AERO simulator or a driver process, so a
 //! user tries and tunes a controller on their own simulator before going live. This is
 //! also the reference the networked loop is compared against.
 
 use mfc::trajectory::evaluate;
 use mfc::{ChannelOutput, MimoController, Reference};
-use plant_agent::plant::PlantError;
-use plant_agent::record::{Accumulator, ChannelMetrics, Period, Recording};
-use plant_agent::scenario::{ControllerSet, Scenario};
+use plant::record::{Accumulator, ChannelMetrics, Period, RunRecord};
+use plant::scenario::{ControllerSet, Scenario};
+use plant::PlantError;
 use serde::{Deserialize, Serialize};
 
 /// Why a run could not be done.
@@ -28,7 +28,7 @@ pub enum RunError {
     },
     /// The controller does not fit the scenario.
     #[error(transparent)]
-    Scenario(#[from] plant_agent::scenario::ScenarioError),
+    Scenario(#[from] plant::scenario::ScenarioError),
     /// The plant could not be started or failed during the run.
     #[error("plant: {0}")]
     Plant(#[from] PlantError),
@@ -40,9 +40,9 @@ pub enum RunError {
     },
 }
 
-/// Summary of an offline run, as written to `summary.json`.
+/// OfflineSummary of an offline run, as written to `summary.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Summary {
+pub struct OfflineSummary {
     /// Scenario name.
     pub scenario: String,
     /// Controller name.
@@ -59,9 +59,9 @@ pub struct Summary {
 #[derive(Debug, Clone)]
 pub struct Simulation {
     /// Period by period (empty unless recorded).
-    pub recording: Recording,
+    pub record: RunRecord,
     /// Metrics.
-    pub summary: Summary,
+    pub summary: OfflineSummary,
 }
 
 /// Run `scenario` closed-loop with `controller`, recording every period if `record`.
@@ -78,11 +78,11 @@ pub fn simulate(
             controller: controller.name.clone(),
             source,
         })?;
-    let mut plant = plant_agent::plant::open(&scenario.plant, scenario.seed, n)?;
+    let mut plant = plant::open(&scenario.plant, scenario.seed, n)?;
     let h = scenario.period;
     let steps = scenario.steps();
     let mut acc = vec![Accumulator::default(); n];
-    let mut recording = Recording::new(
+    let mut periods = RunRecord::new(
         scenario.names(),
         scenario.channels.iter().map(|c| c.unit.clone()).collect(),
         if record { steps } else { 0 },
@@ -117,7 +117,7 @@ pub fn simulate(
             let y_ref: Vec<f64> = refs.iter().map(|r| r.y).collect();
             let u: Vec<f64> = out.iter().map(|o| o.u).collect();
             let f: Vec<f64> = out.iter().map(|o| o.f_est.unwrap_or(f64::NAN)).collect();
-            recording.push(Period {
+            periods.push(Period {
                 t,
                 y_ref: &y_ref,
                 y: &y,
@@ -131,14 +131,17 @@ pub fn simulate(
     }
     let limit_hits = plant.limit_hits();
     plant.stop()?;
-    let summary = Summary {
+    let summary = OfflineSummary {
         scenario: scenario.name.clone(),
         controller: controller.name.clone(),
         channels: finish(&acc, scenario),
         limit_hits,
         completed: !failed,
     };
-    Ok(Simulation { recording, summary })
+    Ok(Simulation {
+        record: periods,
+        summary,
+    })
 }
 
 /// Each channel's accumulated errors as its metrics, named as the scenario names it.

@@ -19,7 +19,7 @@
 use mfc::{AdrcParams, ControllerKind, LawConfig, Order, PidParams};
 
 use aero_sim::rng::Rng;
-use plant_agent::scenario::{ControllerSet, Scenario};
+use plant::scenario::{ControllerSet, Scenario};
 
 use crate::offline::{simulate, RunError};
 use mfc::trajectory::evaluate;

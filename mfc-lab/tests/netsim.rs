@@ -6,7 +6,7 @@ use controller_service::config::Prediction;
 use mfc_lab::harness::default_safety;
 use mfc_lab::netsim::{simulate_net, LinkModel, Lossy};
 use mfc_lab::offline::simulate;
-use plant_agent::scenario::{load_scenario, shipped_controller};
+use plant::scenario::{load_scenario, shipped_controller};
 
 #[test]
 fn on_a_perfect_link_the_service_and_the_agent_reproduce_the_offline_run() {

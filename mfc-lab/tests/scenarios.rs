@@ -5,7 +5,7 @@ use std::io::Write;
 
 use mfc_lab::offline::simulate;
 use mfc_lab::tune::{starting_point, tune};
-use plant_agent::scenario::{
+use plant::scenario::{
     load_controller, load_scenario, shipped_controller, ScenarioError, SHIPPED_CONTROLLERS,
     SHIPPED_SCENARIOS,
 };
@@ -50,7 +50,7 @@ fn full_offline_scenario_tracks_within_bounds() {
     let r = simulate(&s, &shipped_controller("ipd").unwrap(), true).unwrap();
     assert!(r.summary.completed);
     assert_eq!(r.summary.limit_hits, 0);
-    assert_eq!(r.recording.len(), s.steps());
+    assert_eq!(r.record.len(), s.steps());
     let yaw = &r.summary.channels[0];
     let pitch = &r.summary.channels[1];
     // Reference ranges: azimuth velocity about 1.1e-3 rad/ms, pitch about 0.5 rad.
@@ -61,7 +61,7 @@ fn full_offline_scenario_tracks_within_bounds() {
 }
 
 /// RMS of channel `ch`'s tracking error over the periods from `from` seconds on.
-fn rms_from(r: &plant_agent::record::Recording, ch: usize, from: f64) -> f64 {
+fn rms_from(r: &plant::record::RunRecord, ch: usize, from: f64) -> f64 {
     let tr = &r.traces[ch];
     let (sum, n) =
         r.t.iter()
@@ -86,7 +86,7 @@ fn mass_does_not_deteriorate_mfc_tracking() {
         let a = simulate(&load_scenario(nominal).unwrap(), &c, true).unwrap();
         let b = simulate(&load_scenario(mass).unwrap(), &c, true).unwrap();
         for ch in 0..2 {
-            let ratio = rms_from(&b.recording, ch, 1.0) / rms_from(&a.recording, ch, 1.0);
+            let ratio = rms_from(&b.record, ch, 1.0) / rms_from(&a.record, ch, 1.0);
             assert!(
                 ratio < 1.10,
                 "scenario {mass} vs {nominal}, channel {ch}: ratio {ratio}"

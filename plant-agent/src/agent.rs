@@ -16,6 +16,7 @@
 //! duration, a stop signal, a plant that fails), the loop ends the same way: the plant
 //! gets its safe stop and the run's record is returned for writing.
 
+use std::collections::VecDeque;
 use std::future::Future;
 use std::time::Duration;
 
@@ -27,13 +28,16 @@ use tokio::sync::{mpsc, oneshot};
 use tokio::time::Instant;
 use zenoh::Session;
 
-use crate::observe::{LoopObservers, PeriodFigures, Progress};
-use crate::plant::{Plant, PlantError};
-use crate::record::{percentile, Accumulator, ChannelMetrics, Period, Recording};
+use crate::observe::{DeviceMetrics, LoopObservers, PeriodFigures};
 use crate::safety::{
-    CommandBody, Counters, IncomingCommand, Mode, SafetyConfig, SafetyError, Supervisor, Verdict,
+    IncomingCommand, Mode, PeriodBegin, SafetyConfig, SafetyError, Supervisor, SupervisorCounters,
+    Verdict,
 };
-use crate::scenario::{ControllerSet, Scenario, ScenarioChannel};
+use crate::wire::sample_flags;
+use plant::progress::Progress;
+use plant::record::{percentile, Accumulator, ChannelMetrics, Period, RunRecord};
+use plant::scenario::{ControllerSet, Scenario, ScenarioChannel};
+use plant::{Plant, PlantError};
 use telemetry::Topic;
 
 /// What the loop runs: one device on one scenario, with its local controller and its
@@ -111,7 +115,7 @@ pub enum End {
 /// is a network or service problem.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
-pub enum Link {
+pub enum ControllerLink {
     /// No controller ever answered: the plant ran on its fallback all along.
     Never,
     /// A controller answered, then stopped, and the run ended on the fallback.
@@ -121,11 +125,11 @@ pub enum Link {
 }
 
 /// How the run stood with its controller, from the mode of every period and whether any
-/// controller answered: the link, and for [`Link::Lost`] the plant time at which the
+/// controller answered: the link, and for [`ControllerLink::Lost`] the plant time at which the
 /// final stretch off remote control began.
-pub fn link_of(modes: &[Mode], times: &[f64], reached: bool) -> (Link, Option<f64>) {
+pub fn link_of(modes: &[Mode], times: &[f64], reached: bool) -> (ControllerLink, Option<f64>) {
     if !reached {
-        return (Link::Never, None);
+        return (ControllerLink::Never, None);
     }
     match modes.last() {
         Some(Mode::Local | Mode::SafeStop) => {
@@ -133,9 +137,9 @@ pub fn link_of(modes: &[Mode], times: &[f64], reached: bool) -> (Link, Option<f6
                 .iter()
                 .rposition(|m| *m == Mode::Remote)
                 .map_or(0, |k| k + 1);
-            (Link::Lost, times.get(start).copied())
+            (ControllerLink::Lost, times.get(start).copied())
         }
-        _ => (Link::Kept, None),
+        _ => (ControllerLink::Kept, None),
     }
 }
 
@@ -159,13 +163,13 @@ pub struct AgentReport {
     /// Whether any controller answered (a command or a warm-up answer) during the run.
     pub controller_reached: bool,
     /// Never reached, lost (and ended on the fallback), or kept.
-    pub link: Link,
+    pub link: ControllerLink,
     /// For a lost link: the plant time (s) from which the plant stayed off remote control.
     pub lost_at: Option<f64>,
     /// Tracking per channel.
     pub channels: Vec<ChannelMetrics>,
     /// What the supervisor counted: periods, commands, late, missing, stale, fallbacks...
-    pub counters: Counters,
+    pub counters: SupervisorCounters,
     /// Sample-to-command round trip, µs: median.
     pub rtt_p50_us: f64,
     /// 99th percentile.
@@ -192,9 +196,9 @@ impl AgentReport {
             4
         } else {
             match self.link {
-                Link::Never => 3,
-                Link::Lost => 5,
-                Link::Kept => 0,
+                ControllerLink::Never => 3,
+                ControllerLink::Lost => 5,
+                ControllerLink::Kept => 0,
             }
         }
     }
@@ -221,14 +225,16 @@ impl AgentReport {
             )
         };
         let ctl = match (self.link, self.lost_at) {
-            (Link::Kept, _) => String::new(),
-            (Link::Never, _) if self.counters.periods == 0 => {
+            (ControllerLink::Kept, _) => String::new(),
+            (ControllerLink::Never, _) if self.counters.periods == 0 => {
                 "; NO CONTROLLER EVER ANSWERED (check the endpoint, TLS and access control)".into()
             }
-            (Link::Never, _) => "; NO CONTROLLER EVER ANSWERED (check the endpoint, TLS and \
+            (ControllerLink::Never, _) => {
+                "; NO CONTROLLER EVER ANSWERED (check the endpoint, TLS and \
                                  access control): the plant ran on its fallback"
-                .into(),
-            (Link::Lost, at) => format!(
+                    .into()
+            }
+            (ControllerLink::Lost, at) => format!(
                 "; CONTROLLER LOST at t = {:.2} s: the run ended on the fallback",
                 at.unwrap_or(0.0)
             ),
@@ -246,7 +252,7 @@ pub struct AgentRun {
     /// What the run measured.
     pub report: AgentReport,
     /// Period by period.
-    pub recording: Recording,
+    pub record: RunRecord,
 }
 
 /// Why the loop could not start. Once it runs, nothing is an error: a failure ends the
@@ -276,12 +282,12 @@ enum PlantRequest {
 
 type PlantReply = oneshot::Sender<Result<Vec<f64>, PlantError>>;
 
-/// Open the plant `scenario` names (see [`crate::plant::open`]) on a blocking thread:
+/// Open the plant `scenario` names (see [`plant::open`]) on a blocking thread:
 /// a driver's `hello` may take seconds (an interpreter, a vendor SDK), and plant I/O never
 /// runs on an async worker.
 pub async fn open_plant(scenario: &Scenario, seed: u64) -> Result<Box<dyn Plant>, PlantError> {
     let (source, n) = (scenario.plant.clone(), scenario.channels.len());
-    tokio::task::spawn_blocking(move || crate::plant::open(&source, seed, n))
+    tokio::task::spawn_blocking(move || plant::open(&source, seed, n))
         .await
         .unwrap_or_else(|e| Err(PlantError::Driver(format!("opening the plant: {e}"))))
 }
@@ -296,7 +302,7 @@ pub struct PlantThread {
 
 impl PlantThread {
     /// Move `plant` to a new thread. The thread ends after `stop` or when the handle is
-    /// dropped (dropping a [`crate::plant::DriverPlant`] asks its driver for a safe stop).
+    /// dropped (dropping a [`plant::driver::DriverPlant`] asks its driver for a safe stop).
     pub fn spawn(mut plant: Box<dyn Plant>) -> Self {
         let channels = plant.channels();
         let (tx, rx) = std::sync::mpsc::channel::<(PlantRequest, PlantReply)>();
@@ -364,32 +370,6 @@ impl PlantThread {
     }
 }
 
-/// A decoded command as the supervisor judges it (a mode this agent does not know, STALE
-/// included, is `Unknown`).
-pub fn incoming(cmd: &pb::Command) -> IncomingCommand<'_> {
-    let body = match pb::Mode::try_from(cmd.mode) {
-        Ok(pb::Mode::Control) => CommandBody::Control(&cmd.v),
-        Ok(pb::Mode::WarmingUp) => CommandBody::WarmingUp,
-        Ok(pb::Mode::Rejected) => CommandBody::Rejected(&cmd.error),
-        _ => CommandBody::Unknown,
-    };
-    IncomingCommand {
-        seq: cmd.seq,
-        body,
-        horizon: &cmd.horizon,
-    }
-}
-
-/// The sample flags that report `mode`.
-pub fn flags(mode: Mode) -> u32 {
-    match mode {
-        Mode::Remote => 0,
-        Mode::Holding => pb::SampleFlags::Holding as u32,
-        Mode::Local => pb::SampleFlags::Fallback as u32,
-        Mode::SafeStop => pb::SampleFlags::SafeStop as u32,
-    }
-}
-
 /// Counts a noisy event and says when to log it: the first few, then every thousandth,
 /// so a flood of garbage cannot flood the log.
 #[derive(Default)]
@@ -418,13 +398,13 @@ pub fn never_started(config: &LoopConfig, stopped: Result<(), PlantError>) -> Ag
         safe_stop_applied: stopped.is_ok(),
         safe_stop_error: stopped.err().map(|e| e.to_string()),
         controller_reached: false,
-        link: Link::Never,
+        link: ControllerLink::Never,
         lost_at: None,
         channels: names
             .iter()
             .map(|n| Accumulator::default().finish(n))
             .collect(),
-        counters: Counters::default(),
+        counters: SupervisorCounters::default(),
         rtt_p50_us: 0.0,
         rtt_p99_us: 0.0,
         overruns: 0,
@@ -432,7 +412,7 @@ pub fn never_started(config: &LoopConfig, stopped: Result<(), PlantError>) -> Ag
     };
     AgentRun {
         report,
-        recording: Recording::new(names, units, 0),
+        record: RunRecord::new(names, units, 0),
     }
 }
 
@@ -580,374 +560,492 @@ pub async fn run_hosted(
 async fn periods(
     plant: &PlantThread,
     config: &LoopConfig,
-    mut sup: Supervisor,
-    mut rx: mpsc::Receiver<(Instant, Vec<u8>)>,
+    sup: Supervisor,
+    rx: mpsc::Receiver<(Instant, Vec<u8>)>,
     publisher: &SampleOut<'_>,
     run_id: u64,
     stop: impl Future<Output = ()>,
 ) -> AgentRun {
-    let id = config.device_id.as_str();
-    let n = plant.channels();
-    let h = config.safety.period;
-    let period = Duration::from_secs_f64(h);
-    let references: Vec<&[Piece]> = config
-        .channels
-        .iter()
-        .map(|c| c.reference.as_slice())
-        .collect();
-    let mut recording = Recording::new(
-        config.channels.iter().map(|c| c.name.clone()).collect(),
-        config.channels.iter().map(|c| c.unit.clone()).collect(),
-        config.steps,
-    );
-    let mut acc = vec![Accumulator::default(); n];
-    let mut refs = vec![Reference::default(); n];
-    let mut rtts: Vec<u32> = Vec::with_capacity(config.steps);
-    let mut sent_at: std::collections::VecDeque<(u64, Instant)> = std::collections::VecDeque::new();
-    let mut last_rtt_us: u32 = 0;
-    // The last samples' times, outputs and applied, newest first, sent again with the next
-    // one (`pb::Sample::previous_plant_time`).
-    let mut previous: std::collections::VecDeque<(f64, Vec<f64>, Vec<f64>)> =
-        std::collections::VecDeque::with_capacity(protocol::RESENT_SAMPLES);
-    let mut overruns = 0u64;
-    let mut end = End::Completed;
-    let mut error: Option<String> = None;
-    let (mut bad_commands, mut refusals) = (LogBudget::default(), LogBudget::default());
-    let obs = &config.observers;
-    let dev_metrics = obs.metrics.as_ref().map(|m| m.device(id, n));
-    let mcap = obs.recording.as_ref();
-    let duration = config.steps as f64 * h;
-    // The board is refreshed ten times a second of plant time: enough for a person.
-    let board_every = ((0.1 / h).round() as usize).max(1);
-    let mut last_f: Option<Vec<f64>> = None;
-    // A plant's line on the progress board.
-    let progress =
-        |t: f64, rtt_us: u32, mode: Mode, acc: &[Accumulator], sup: &Supervisor, done: bool| {
-            Progress {
-                device: id.to_string(),
-                t,
-                duration,
-                rms: acc
-                    .iter()
-                    .zip(&config.channels)
-                    .map(|(a, c)| a.finish(&c.name).rms)
-                    .collect(),
-                rtt_us,
-                mode,
-                fallbacks: sup.counters().fallbacks,
-                missing: sup.counters().missing,
-                done,
-            }
-        };
-    if let Some(r) = mcap {
-        r.event(
-            id,
-            "start",
-            format!("run {run_id:#x}: {} periods of {h} s", config.steps),
-            0.0,
-        );
-    }
+    let mut run = PeriodLoop::new(plant, config, sup, rx, publisher, run_id);
     tokio::pin!(stop);
+    let ended = run.all_periods(stop.as_mut()).await.err().unwrap_or(Ended {
+        end: End::Completed,
+        error: None,
+    });
+    run.finish(ended).await
+}
 
-    tokio::select! {
-        _ = tokio::time::sleep(config.startup_delay) => {}
-        _ = &mut stop => end = End::Interrupted,
+/// Why the periods stopped before the last: interrupted, or the plant (or the wiring)
+/// failed, and what went wrong.
+struct Ended {
+    end: End,
+    error: Option<String>,
+}
+
+impl Ended {
+    const INTERRUPTED: Self = Self {
+        end: End::Interrupted,
+        error: None,
+    };
+
+    fn plant_failed(error: impl std::fmt::Display) -> Self {
+        Self {
+            end: End::PlantFailed,
+            error: Some(error.to_string()),
+        }
     }
-    let start = Instant::now();
-    // "Never connected" is said every 5 s of plant time until a controller answers.
-    let never_every = ((5.0 / h).round() as usize).max(1);
-    'run: for k in 0..config.steps {
-        if end != End::Completed {
-            break;
+}
+
+/// One period as it goes: what the deadline measured and what the commands brought.
+struct OpenPeriod {
+    k: usize,
+    /// Plant time `k h`.
+    t: f64,
+    deadline: Instant,
+    y: Vec<f64>,
+    /// The mode before this period's decisions.
+    mode_before: Mode,
+    /// The round trip of the command applied in this period (µs; 0: none).
+    rtt_us: u32,
+    /// The applied command's `u` and `F` estimates.
+    remote: Option<(Vec<f64>, Vec<f64>)>,
+}
+
+/// The loop's state between periods, with one method per event: a deadline
+/// ([`PeriodLoop::on_deadline`]), a command ([`PeriodLoop::on_command`]), the period's end
+/// ([`PeriodLoop::on_period_end`]), and the run's end ([`PeriodLoop::finish`]).
+struct PeriodLoop<'a, 'p> {
+    plant: &'a PlantThread,
+    config: &'a LoopConfig,
+    sup: Supervisor,
+    rx: mpsc::Receiver<(Instant, Vec<u8>)>,
+    out: &'a SampleOut<'p>,
+    run_id: u64,
+    /// Each channel's reference pieces.
+    references: Vec<&'a [Piece]>,
+    refs: Vec<Reference>,
+    record: RunRecord,
+    acc: Vec<Accumulator>,
+    rtts: Vec<u32>,
+    /// When each recent sample was sent, for the round trip of its command.
+    sent_at: VecDeque<(u64, Instant)>,
+    last_rtt_us: u32,
+    /// The last samples' times, outputs and applied, newest first, sent again with the
+    /// next one (`pb::Sample::previous_plant_time`).
+    previous: VecDeque<(f64, Vec<f64>, Vec<f64>)>,
+    overruns: u64,
+    bad_commands: LogBudget,
+    refusals: LogBudget,
+    metrics: Option<DeviceMetrics>,
+    /// The last F estimates received, for the metrics.
+    last_f: Option<Vec<f64>>,
+}
+
+impl<'a, 'p> PeriodLoop<'a, 'p> {
+    fn new(
+        plant: &'a PlantThread,
+        config: &'a LoopConfig,
+        sup: Supervisor,
+        rx: mpsc::Receiver<(Instant, Vec<u8>)>,
+        out: &'a SampleOut<'p>,
+        run_id: u64,
+    ) -> Self {
+        let n = plant.channels();
+        let channels = &config.channels;
+        Self {
+            plant,
+            config,
+            sup,
+            rx,
+            out,
+            run_id,
+            references: channels.iter().map(|c| c.reference.as_slice()).collect(),
+            refs: vec![Reference::default(); n],
+            record: RunRecord::new(
+                channels.iter().map(|c| c.name.clone()).collect(),
+                channels.iter().map(|c| c.unit.clone()).collect(),
+                config.steps,
+            ),
+            acc: vec![Accumulator::default(); n],
+            rtts: Vec::with_capacity(config.steps),
+            sent_at: VecDeque::new(),
+            last_rtt_us: 0,
+            previous: VecDeque::with_capacity(protocol::RESENT_SAMPLES),
+            overruns: 0,
+            bad_commands: LogBudget::default(),
+            refusals: LogBudget::default(),
+            metrics: config
+                .observers
+                .metrics
+                .as_ref()
+                .map(|m| m.device(&config.device_id, n)),
+            last_f: None,
         }
-        let deadline = start + period * k as u32;
-        let next = deadline + period;
+    }
+
+    fn id(&self) -> &'a str {
+        self.config.device_id.as_str()
+    }
+
+    fn mcap(&self) -> Option<&'a telemetry::Recording> {
+        self.config.observers.recording.as_ref()
+    }
+
+    /// Every period until the last, or until `stop` or a failure ends them early.
+    async fn all_periods(
+        &mut self,
+        mut stop: std::pin::Pin<&mut impl Future<Output = ()>>,
+    ) -> Result<(), Ended> {
+        let (config, h) = (self.config, self.config.safety.period);
+        let period = Duration::from_secs_f64(h);
+        if let Some(r) = self.mcap() {
+            let what = format!("run {:#x}: {} periods of {h} s", self.run_id, config.steps);
+            r.event(self.id(), "start", what, 0.0);
+        }
         tokio::select! {
-            _ = crate::pace::wait_until(deadline, config.precise_wake) => {}
-            _ = &mut stop => { end = End::Interrupted; break 'run; }
+            _ = tokio::time::sleep(config.startup_delay) => {}
+            _ = stop.as_mut() => return Err(Ended::INTERRUPTED),
         }
-        if Instant::now() > deadline + period / 2 {
-            overruns += 1;
+        let start = Instant::now();
+        for k in 0..config.steps {
+            let deadline = start + period * k as u32;
+            tokio::select! {
+                _ = crate::pace::wait_until(deadline, config.precise_wake) => {}
+                _ = stop.as_mut() => return Err(Ended::INTERRUPTED),
+            }
+            let mut p = self.on_deadline(k, deadline).await?;
+            // One timer for the whole period, so that a command's arrival does not
+            // restart it.
+            let period_end = crate::pace::wait_until(deadline + period, config.precise_wake);
+            tokio::pin!(period_end);
+            loop {
+                let arrived = tokio::select! {
+                    r = self.rx.recv() => r,
+                    () = &mut period_end => None,
+                    _ = stop.as_mut() => return Err(Ended::INTERRUPTED),
+                };
+                let Some((arrival, bytes)) = arrived else {
+                    break;
+                };
+                if self.on_command(&mut p, arrival, bytes).await? {
+                    break;
+                }
+            }
+            self.on_period_end(p).await?;
+        }
+        Ok(())
+    }
+
+    /// A deadline: read the plant, begin the period, publish its sample, and write what
+    /// the supervisor says to write at the start (the fallback, or a horizon's element).
+    async fn on_deadline(&mut self, k: usize, deadline: Instant) -> Result<OpenPeriod, Ended> {
+        let h = self.config.safety.period;
+        if Instant::now() > deadline + Duration::from_secs_f64(h) / 2 {
+            self.overruns += 1;
         }
         let t = k as f64 * h;
-        let y = match plant.read().await {
-            Ok(y) => y,
-            Err(e) => {
-                (end, error) = (End::PlantFailed, Some(e.to_string()));
-                break;
-            }
-        };
-        for (r, pieces) in refs.iter_mut().zip(&references) {
+        let y = self.plant.read().await.map_err(Ended::plant_failed)?;
+        for (r, pieces) in self.refs.iter_mut().zip(&self.references) {
             *r = evaluate(pieces, t);
         }
-        let mode_before = sup.mode();
-        let begin = match sup.begin_period(k as u64, t, &y, &refs) {
-            Ok(b) => b,
-            Err(e) => {
-                (end, error) = (End::PlantFailed, Some(format!("supervisor: {e}")));
-                break;
-            }
-        };
-        let sample = pb::Sample {
-            version: PROTOCOL_VERSION,
-            device_id: id.to_string(),
-            seq: k as u64,
-            plant_time: t,
-            outputs: y.clone(),
-            applied: begin.applied_mean.clone(),
-            flags: flags(begin.sample_mode),
-            sent_unix_ns: protocol::unix_ns(),
-            last_rtt_us,
-            run_id,
-            previous_plant_time: previous.iter().map(|p| p.0).collect(),
-            previous_outputs: previous.iter().flat_map(|p| p.1.iter().copied()).collect(),
-            previous_applied: previous.iter().flat_map(|p| p.2.iter().copied()).collect(),
-        };
-        previous.push_front((t, y.clone(), begin.applied_mean.clone()));
-        previous.truncate(config.resend.min(protocol::RESENT_SAMPLES));
-        sent_at.push_back((k as u64, Instant::now()));
-        if sent_at.len() > config.safety.max_age as usize + 2 {
-            sent_at.pop_front();
-        }
-        if let Some(r) = mcap {
-            r.record(
-                id,
-                Topic::Sample,
-                sample.sent_unix_ns,
-                sample.sent_unix_ns,
-                encode(&sample),
-            );
-        }
-        if let Err(e) = publisher.send(sample).await {
-            tracing::warn!(device = id, "publishing sample {k}: {e}");
-        }
+        let mode_before = self.sup.mode();
+        let begin = self
+            .sup
+            .begin_period(k as u64, t, &y, &self.refs)
+            .map_err(|e| Ended::plant_failed(format!("supervisor: {e}")))?;
+        self.publish(k, t, &y, &begin).await;
         let answered_once = {
-            let c = sup.counters();
+            let c = self.sup.counters();
             c.commands + c.warming_up > 0
         };
+        // "Never connected" is said every 5 s of plant time until a controller answers.
+        let never_every = ((5.0 / h).round() as usize).max(1);
         if !answered_once && k > 0 && k % never_every == 0 {
             tracing::warn!(
-                device = id,
+                device = self.id(),
                 "no controller has answered after {:.0} s: check the endpoint, TLS and access \
                  control (the plant runs on its {:?})",
                 t,
-                sup.mode()
+                self.sup.mode()
             );
         }
         if let Some(v) = begin.write {
             // A write at the start of a period is the fallback engaging, or (in Remote or
             // Holding) the last command's horizon playing its element: only the first is
             // news.
-            if sup.mode().is_fallback() && !mode_before.is_fallback() {
-                if answered_once {
-                    tracing::warn!(
-                        device = id,
-                        seq = k,
-                        "controller lost: no command for {} periods, now {:?}",
-                        sup.missing_streak(),
-                        sup.mode()
-                    );
-                } else {
-                    tracing::warn!(
-                        device = id,
-                        seq = k,
-                        "no controller yet: {:?} after {} periods",
-                        sup.mode(),
-                        sup.missing_streak()
-                    );
-                }
+            if self.sup.mode().is_fallback() && !mode_before.is_fallback() {
+                self.warn_fallback(k, answered_once);
             }
-            match plant.write(v).await {
-                Ok(a) => sup.applied(&a),
-                Err(e) => {
-                    (end, error) = (End::PlantFailed, Some(e.to_string()));
-                    break;
-                }
-            }
+            let a = self.plant.write(v).await.map_err(Ended::plant_failed)?;
+            self.sup.applied(&a);
         }
+        Ok(OpenPeriod {
+            k,
+            t,
+            deadline,
+            y,
+            mode_before,
+            rtt_us: 0,
+            remote: None,
+        })
+    }
 
-        let mut rtt_us = 0;
-        let mut remote: Option<(Vec<f64>, Vec<f64>)> = None;
-        // One timer for the whole period, so that a command's arrival does not restart it.
-        let period_end = crate::pace::wait_until(next, config.precise_wake);
-        tokio::pin!(period_end);
-        loop {
-            let arrived = tokio::select! {
-                r = rx.recv() => r,
-                () = &mut period_end => None,
-                _ = &mut stop => { end = End::Interrupted; break 'run; }
-            };
-            let Some((arrival, bytes)) = arrived else {
-                break;
-            };
-            let cmd = match decode::<pb::Command>(&bytes) {
-                Ok(c) if c.device_id == id => {
-                    if let Some(r) = mcap {
-                        r.record(
-                            id,
-                            Topic::Command,
-                            protocol::unix_ns(),
-                            c.controller_unix_ns,
-                            bytes.clone(),
-                        );
-                    }
-                    c
-                }
-                Ok(_) => continue,
-                Err(e) => {
-                    if bad_commands.hit() {
-                        tracing::warn!(device = id, "undecodable command: {e}");
-                    }
-                    continue;
-                }
-            };
-            let at = arrival.saturating_duration_since(deadline).as_secs_f64();
-            let was = sup.mode();
-            let (verdict, answered) = sup.on_command(at, incoming(&cmd));
-            match verdict {
-                Verdict::Apply { v, advance, .. } => {
-                    let written = match plant.advance(advance).await {
-                        Ok(()) => plant.write(v).await,
-                        Err(e) => Err(e),
-                    };
-                    match written {
-                        Ok(a) => sup.applied(&a),
-                        Err(e) => {
-                            (end, error) = (End::PlantFailed, Some(e.to_string()));
-                            break 'run;
-                        }
-                    }
-                    if let Some((_, sent)) = sent_at.iter().find(|(q, _)| *q == cmd.seq) {
-                        rtt_us =
-                            u32::try_from(arrival.saturating_duration_since(*sent).as_micros())
-                                .unwrap_or(u32::MAX);
-                        rtts.push(rtt_us);
-                    }
-                    if matches!(was, Mode::Local | Mode::SafeStop) {
-                        tracing::info!(
-                            device = id,
-                            seq = k,
-                            "commands are back: remote control resumes"
-                        );
-                    }
-                    remote = Some((cmd.u.clone(), cmd.f_est.clone()));
-                }
-                Verdict::Rejected => {
-                    if refusals.hit() {
-                        tracing::warn!(
-                            device = id,
-                            seq = cmd.seq,
-                            "sample refused by the controller: {}",
-                            cmd.error
-                        );
-                    }
-                }
-                Verdict::WarmingUp | Verdict::Ignored(_) => {}
-            }
-            if answered {
-                break;
-            }
+    /// Sample `k` out, with the earlier ones it carries again, and into the recording.
+    async fn publish(&mut self, k: usize, t: f64, y: &[f64], begin: &PeriodBegin) {
+        let config = self.config;
+        let sample = pb::Sample {
+            version: PROTOCOL_VERSION,
+            device_id: config.device_id.clone(),
+            seq: k as u64,
+            plant_time: t,
+            outputs: y.to_vec(),
+            applied: begin.applied_mean.clone(),
+            flags: sample_flags(begin.sample_mode),
+            sent_unix_ns: protocol::unix_ns(),
+            last_rtt_us: self.last_rtt_us,
+            run_id: self.run_id,
+            previous_plant_time: self.previous.iter().map(|p| p.0).collect(),
+            previous_outputs: self
+                .previous
+                .iter()
+                .flat_map(|p| p.1.iter().copied())
+                .collect(),
+            previous_applied: self
+                .previous
+                .iter()
+                .flat_map(|p| p.2.iter().copied())
+                .collect(),
+        };
+        self.previous
+            .push_front((t, y.to_vec(), begin.applied_mean.clone()));
+        self.previous
+            .truncate(config.resend.min(protocol::RESENT_SAMPLES));
+        self.sent_at.push_back((k as u64, Instant::now()));
+        if self.sent_at.len() > config.safety.max_age as usize + 2 {
+            self.sent_at.pop_front();
         }
-        let done = match sup.end_period() {
-            Ok(d) => d,
+        if let Some(r) = self.mcap() {
+            let at = sample.sent_unix_ns;
+            r.record(self.id(), Topic::Sample, at, at, encode(&sample));
+        }
+        if let Err(e) = self.out.send(sample).await {
+            tracing::warn!(device = self.id(), "publishing sample {k}: {e}");
+        }
+    }
+
+    fn warn_fallback(&self, k: usize, answered_once: bool) {
+        let (id, streak, mode) = (self.id(), self.sup.missing_streak(), self.sup.mode());
+        if answered_once {
+            tracing::warn!(
+                device = id,
+                seq = k,
+                "controller lost: no command for {streak} periods, now {mode:?}"
+            );
+        } else {
+            tracing::warn!(
+                device = id,
+                seq = k,
+                "no controller yet: {mode:?} after {streak} periods"
+            );
+        }
+    }
+
+    /// A command arrived: decode it, let the supervisor judge it, and do what it says.
+    /// Returns whether the period's own command has been handled (no need to wait for
+    /// more).
+    async fn on_command(
+        &mut self,
+        p: &mut OpenPeriod,
+        arrival: Instant,
+        bytes: Vec<u8>,
+    ) -> Result<bool, Ended> {
+        let id = self.id();
+        let cmd = match decode::<pb::Command>(&bytes) {
+            Ok(c) if c.device_id == id => c,
+            Ok(_) => return Ok(false),
             Err(e) => {
-                (end, error) = (End::PlantFailed, Some(format!("supervisor: {e}")));
-                break;
+                if self.bad_commands.hit() {
+                    tracing::warn!(device = id, "undecodable command: {e}");
+                }
+                return Ok(false);
             }
         };
-        if let Err(e) = plant.advance(done.advance).await {
-            (end, error) = (End::PlantFailed, Some(e.to_string()));
-            break;
+        if let Some(r) = self.mcap() {
+            r.record(
+                id,
+                Topic::Command,
+                protocol::unix_ns(),
+                cmd.controller_unix_ns,
+                bytes,
+            );
         }
-        last_rtt_us = rtt_us;
-        let applied = sup.applied_now().to_vec();
-        for (i, c) in config.channels.iter().enumerate() {
-            acc[i].add(y[i] - refs[i].y, h, applied[i], c.saturated(applied[i]));
+        let at = arrival.saturating_duration_since(p.deadline).as_secs_f64();
+        let was = self.sup.mode();
+        let (verdict, answered) = self.sup.on_command(at, IncomingCommand::from_wire(&cmd));
+        match verdict {
+            Verdict::Apply { v, advance, .. } => {
+                let written = match self.plant.advance(advance).await {
+                    Ok(()) => self.plant.write(v).await,
+                    Err(e) => Err(e),
+                };
+                let a = written.map_err(Ended::plant_failed)?;
+                self.sup.applied(&a);
+                if let Some((_, sent)) = self.sent_at.iter().find(|(q, _)| *q == cmd.seq) {
+                    p.rtt_us = u32::try_from(arrival.saturating_duration_since(*sent).as_micros())
+                        .unwrap_or(u32::MAX);
+                    self.rtts.push(p.rtt_us);
+                }
+                if matches!(was, Mode::Local | Mode::SafeStop) {
+                    tracing::info!(
+                        device = id,
+                        seq = p.k,
+                        "commands are back: remote control resumes"
+                    );
+                }
+                p.remote = Some((cmd.u, cmd.f_est));
+            }
+            Verdict::Rejected => {
+                if self.refusals.hit() {
+                    tracing::warn!(
+                        device = id,
+                        seq = cmd.seq,
+                        "sample refused by the controller: {}",
+                        cmd.error
+                    );
+                }
+            }
+            Verdict::WarmingUp | Verdict::Ignored(_) => {}
         }
-        if let (Some(r), true) = (&remote, dev_metrics.is_some()) {
-            last_f = Some(r.1.clone());
-        }
-        if let (Some(r), true) = (mcap, done.mode != mode_before) {
-            r.event(id, "mode", format!("{mode_before:?} -> {:?}", done.mode), t);
-        }
-        if let Some(d) = &dev_metrics {
-            d.period(&PeriodFigures {
-                counters: sup.counters(),
-                rtt_us,
-                mode: done.mode,
-                f_est: last_f.as_deref(),
-                queue: rx.len(),
-                overruns,
-            });
-        }
-        if let (Some(b), true) = (&obs.progress, k % board_every == 0) {
-            b.update(progress(t, rtt_us, done.mode, &acc, &sup, false));
-        }
-        let y_ref: Vec<f64> = refs.iter().map(|r| r.y).collect();
-        recording.push(Period {
-            t,
-            y_ref: &y_ref,
-            y: &y,
-            u: remote.as_ref().map(|r| r.0.as_slice()),
-            v: &applied,
-            f_est: remote.as_ref().map(|r| r.1.as_slice()),
-            net: Some((done.mode, rtt_us)),
-        });
+        Ok(answered)
     }
 
-    // However the run ended, the plant gets its safe stop.
-    let (safe_stop_applied, safe_stop_error) = match plant.stop().await {
-        Ok(()) => (true, None),
-        Err(e) => {
-            tracing::error!(device = id, "safe stop not confirmed: {e}");
-            (false, Some(e.to_string()))
+    /// The period's end: the supervisor closes it, the plant's time moves on, and the
+    /// period goes into the metrics, the progress board and the record.
+    async fn on_period_end(&mut self, p: OpenPeriod) -> Result<(), Ended> {
+        let (id, h) = (self.id(), self.config.safety.period);
+        let done = self
+            .sup
+            .end_period()
+            .map_err(|e| Ended::plant_failed(format!("supervisor: {e}")))?;
+        self.plant
+            .advance(done.advance)
+            .await
+            .map_err(Ended::plant_failed)?;
+        self.last_rtt_us = p.rtt_us;
+        let applied = self.sup.applied_now().to_vec();
+        for (i, c) in self.config.channels.iter().enumerate() {
+            let e = p.y[i] - self.refs[i].y;
+            self.acc[i].add(e, h, applied[i], c.saturated(applied[i]));
         }
-    };
-    if let Some(e) = &error {
-        tracing::error!(device = id, "run ended: {e}");
+        if let (Some(r), true) = (&p.remote, self.metrics.is_some()) {
+            self.last_f = Some(r.1.clone());
+        }
+        if let (Some(r), true) = (self.mcap(), done.mode != p.mode_before) {
+            let change = format!("{:?} -> {:?}", p.mode_before, done.mode);
+            r.event(id, "mode", change, p.t);
+        }
+        if let Some(d) = &self.metrics {
+            d.period(&PeriodFigures {
+                counters: self.sup.counters(),
+                rtt_us: p.rtt_us,
+                mode: done.mode,
+                f_est: self.last_f.as_deref(),
+                queue: self.rx.len(),
+                overruns: self.overruns,
+            });
+        }
+        // The board is refreshed ten times a second of plant time: enough for a person.
+        let board_every = ((0.1 / h).round() as usize).max(1);
+        if let (Some(b), true) = (&self.config.observers.progress, p.k % board_every == 0) {
+            b.update(self.progress(p.t, p.rtt_us, done.mode, false));
+        }
+        let y_ref: Vec<f64> = self.refs.iter().map(|r| r.y).collect();
+        self.record.push(Period {
+            t: p.t,
+            y_ref: &y_ref,
+            y: &p.y,
+            u: p.remote.as_ref().map(|r| r.0.as_slice()),
+            v: &applied,
+            f_est: p.remote.as_ref().map(|r| r.1.as_slice()),
+            net: Some((done.mode, p.rtt_us)),
+        });
+        Ok(())
     }
-    if let Some(b) = &obs.progress {
-        let t = recording.t.last().copied().unwrap_or(0.0);
-        b.update(progress(t, last_rtt_us, sup.mode(), &acc, &sup, true));
+
+    /// A plant's line on the progress board.
+    fn progress(&self, t: f64, rtt_us: u32, mode: Mode, done: bool) -> Progress {
+        let counters = self.sup.counters();
+        Progress {
+            device: self.config.device_id.clone(),
+            t,
+            duration: self.config.steps as f64 * self.config.safety.period,
+            rms: self
+                .acc
+                .iter()
+                .zip(&self.config.channels)
+                .map(|(a, c)| a.finish(&c.name).rms)
+                .collect(),
+            rtt_us,
+            mode,
+            fallbacks: counters.fallbacks,
+            missing: counters.missing,
+            done,
+        }
     }
-    if let Some(r) = mcap {
-        r.event(
-            id,
-            "end",
-            format!(
-                "{end:?}{}",
-                error.as_ref().map(|e| format!(": {e}")).unwrap_or_default()
-            ),
-            0.0,
-        );
+
+    /// However the run ended, the plant gets its safe stop; then the report.
+    async fn finish(mut self, Ended { end, error }: Ended) -> AgentRun {
+        let id = self.id();
+        let (safe_stop_applied, safe_stop_error) = match self.plant.stop().await {
+            Ok(()) => (true, None),
+            Err(e) => {
+                tracing::error!(device = id, "safe stop not confirmed: {e}");
+                (false, Some(e.to_string()))
+            }
+        };
+        if let Some(e) = &error {
+            tracing::error!(device = id, "run ended: {e}");
+        }
+        if let Some(b) = &self.config.observers.progress {
+            let t = self.record.t.last().copied().unwrap_or(0.0);
+            b.update(self.progress(t, self.last_rtt_us, self.sup.mode(), true));
+        }
+        if let Some(r) = self.mcap() {
+            let why = error.as_ref().map(|e| format!(": {e}")).unwrap_or_default();
+            r.event(id, "end", format!("{end:?}{why}"), 0.0);
+        }
+        self.rtts.sort_unstable();
+        let counters = self.sup.counters().clone();
+        let reached = counters.commands + counters.warming_up > 0;
+        let (link, lost_at) = link_of(&self.record.modes, &self.record.t, reached);
+        let report = AgentReport {
+            device_id: id.to_string(),
+            scenario: self.config.scenario.clone(),
+            controller: self.config.controller.clone(),
+            end,
+            error,
+            safe_stop_applied,
+            safe_stop_error,
+            controller_reached: reached,
+            link,
+            lost_at,
+            channels: self
+                .acc
+                .iter()
+                .zip(&self.config.channels)
+                .map(|(a, c)| a.finish(&c.name))
+                .collect(),
+            counters,
+            rtt_p50_us: percentile(&self.rtts, 0.5),
+            rtt_p99_us: percentile(&self.rtts, 0.99),
+            overruns: self.overruns,
+            limit_hits: self.plant.limit_hits(),
+        };
+        AgentRun {
+            report,
+            record: self.record,
+        }
     }
-    rtts.sort_unstable();
-    let counters = sup.counters().clone();
-    let reached = counters.commands + counters.warming_up > 0;
-    let (link, lost_at) = link_of(&recording.modes, &recording.t, reached);
-    let report = AgentReport {
-        device_id: id.to_string(),
-        scenario: config.scenario.clone(),
-        controller: config.controller.clone(),
-        end,
-        error,
-        safe_stop_applied,
-        safe_stop_error,
-        controller_reached: reached,
-        link,
-        lost_at,
-        channels: acc
-            .iter()
-            .zip(&config.channels)
-            .map(|(a, c)| a.finish(&c.name))
-            .collect(),
-        counters,
-        rtt_p50_us: percentile(&rtts, 0.5),
-        rtt_p99_us: percentile(&rtts, 0.99),
-        overruns,
-        limit_hits: plant.limit_hits(),
-    };
-    AgentRun { report, recording }
 }
 
 #[cfg(test)]
@@ -958,21 +1056,27 @@ mod link_tests {
     fn never_lost_and_kept_are_told_apart() {
         use Mode::*;
         let t: Vec<f64> = (0..8).map(|k| k as f64 * 0.01).collect();
-        assert_eq!(link_of(&[Local; 8], &t, false), (Link::Never, None));
+        assert_eq!(
+            link_of(&[Local; 8], &t, false),
+            (ControllerLink::Never, None)
+        );
         let lost = [
             Remote, Remote, Remote, Holding, Holding, Local, Local, Local,
         ];
-        assert_eq!(link_of(&lost, &t, true), (Link::Lost, Some(0.03)));
+        assert_eq!(link_of(&lost, &t, true), (ControllerLink::Lost, Some(0.03)));
         // Lost, then back: kept. Holding at the very end is not a loss either.
         let back = [
             Remote, Holding, Local, Local, Remote, Remote, Remote, Holding,
         ];
-        assert_eq!(link_of(&back, &t, true), (Link::Kept, None));
+        assert_eq!(link_of(&back, &t, true), (ControllerLink::Kept, None));
         // A warm-up answer counts as reached, even if no command was ever applied.
-        assert_eq!(link_of(&[Local; 8], &t, true), (Link::Lost, Some(0.0)));
+        assert_eq!(
+            link_of(&[Local; 8], &t, true),
+            (ControllerLink::Lost, Some(0.0))
+        );
         assert_eq!(
             link_of(&[Remote, SafeStop], &t, true),
-            (Link::Lost, Some(0.01))
+            (ControllerLink::Lost, Some(0.01))
         );
     }
 }

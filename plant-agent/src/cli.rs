@@ -9,8 +9,9 @@ use clap::{Parser, Subcommand};
 use crate::agent::{self, AgentReport};
 use crate::config::AgentFile;
 use crate::observe;
-use crate::record::write_run;
 use crate::safety::FallbackPolicy;
+use plant::record::write_run;
+use plant::run_id;
 
 #[derive(Parser)]
 #[command(
@@ -193,7 +194,7 @@ fn run(args: RunArgs) -> Result<u8> {
     runtime.shutdown_background();
     let run = run?;
     let title = format!("{} — {} over Zenoh", r.scenario.name, run.report.device_id);
-    write_run(&r.out, &title, &run.recording, &run.report)
+    write_run(&r.out, &title, &run.record, &run.report)
         .with_context(|| format!("writing the record to {}", r.out.display()))?;
     print_report(&run.report);
     println!(
@@ -203,8 +204,6 @@ fn run(args: RunArgs) -> Result<u8> {
     Ok(run.report.exit_code())
 }
 
-/// A run id that differs between runs: the service rebuilds a device's state when it
-/// changes (a restarted plant). Never 0, which the protocol reserves for "not set".
 fn gateway(args: GatewayArgs) -> Result<u8> {
     let g = crate::gateway::GatewayFile::load(&args.config)?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -258,7 +257,7 @@ fn gateway(args: GatewayArgs) -> Result<u8> {
                     "{} — {} via gateway {}",
                     r.scenario.name, run.report.device_id, g.gateway
                 );
-                write_run(&out, &title, &run.recording, &run.report)
+                write_run(&out, &title, &run.record, &run.report)
                     .with_context(|| format!("writing the record to {}", out.display()))?;
                 print_report(&run.report);
                 code = code.max(run.report.exit_code());
@@ -274,10 +273,6 @@ fn gateway(args: GatewayArgs) -> Result<u8> {
         g.out.display()
     );
     Ok(code)
-}
-
-pub fn run_id() -> u64 {
-    (protocol::unix_ns() ^ u64::from(std::process::id()).rotate_left(32)).max(1)
 }
 
 fn print_report(r: &AgentReport) {

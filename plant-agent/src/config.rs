@@ -20,11 +20,11 @@ use serde::{Deserialize, Serialize};
 
 use crate::agent::LoopConfig;
 use crate::safety::{FallbackPolicy, SafetyConfig};
-use crate::scenario::{load_controller, load_scenario, ControllerSet, Scenario, ScenarioError};
+use plant::scenario::{load_controller, load_scenario, ControllerSet, Scenario, ScenarioError};
 
 /// Why the agent's configuration was refused.
 #[derive(Debug, thiserror::Error)]
-pub enum ConfigError {
+pub enum AgentConfigError {
     /// The file could not be read.
     #[error("{file}: cannot read: {source}")]
     Io {
@@ -135,12 +135,12 @@ pub struct Resolved {
 
 impl AgentFile {
     /// Read a configuration file.
-    pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
+    pub fn load(path: &Path) -> Result<Self, AgentConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| AgentConfigError::Io {
             file: path.to_path_buf(),
             source,
         })?;
-        let mut file: AgentFile = toml::from_str(&text).map_err(|e| ConfigError::Parse {
+        let mut file: AgentFile = toml::from_str(&text).map_err(|e| AgentConfigError::Parse {
             file: path.to_path_buf(),
             message: e.to_string().trim_end().into(),
         })?;
@@ -154,8 +154,8 @@ impl AgentFile {
 
     /// Load the scenario and the controller and check every value; `file` names the
     /// source in errors.
-    pub fn resolve(&self, file: &Path) -> Result<Resolved, ConfigError> {
-        let invalid = |field: &'static str, reason: String| ConfigError::Invalid {
+    pub fn resolve(&self, file: &Path) -> Result<Resolved, AgentConfigError> {
+        let invalid = |field: &'static str, reason: String| AgentConfigError::Invalid {
             file: file.to_path_buf(),
             field,
             reason,

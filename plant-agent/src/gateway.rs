@@ -36,8 +36,8 @@ use tokio::time::Instant;
 use zenoh::Session;
 
 use crate::agent::{self, AgentError, AgentRun};
-use crate::config::{AgentFile, ConfigError, Resolved};
-use crate::plant::Plant;
+use crate::config::{AgentConfigError, AgentFile, Resolved};
+use plant::Plant;
 
 /// Longest a period's batch waits for a late plant after its first sample.
 pub const FLUSH_AFTER: Duration = Duration::from_millis(2);
@@ -77,12 +77,12 @@ pub struct ResolvedGateway {
 
 impl GatewayFile {
     /// Read and check a gateway file; scenario paths are relative to it.
-    pub fn load(path: &Path) -> Result<ResolvedGateway, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
+    pub fn load(path: &Path) -> Result<ResolvedGateway, AgentConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| AgentConfigError::Io {
             file: path.to_path_buf(),
             source,
         })?;
-        let file: GatewayFile = toml::from_str(&text).map_err(|e| ConfigError::Parse {
+        let file: GatewayFile = toml::from_str(&text).map_err(|e| AgentConfigError::Parse {
             file: path.to_path_buf(),
             message: e.to_string().trim_end().into(),
         })?;
@@ -90,8 +90,8 @@ impl GatewayFile {
     }
 
     /// Check the file and resolve every plant.
-    pub fn resolve(&self, path: &Path) -> Result<ResolvedGateway, ConfigError> {
-        let invalid = |field: &'static str, reason: String| ConfigError::Invalid {
+    pub fn resolve(&self, path: &Path) -> Result<ResolvedGateway, AgentConfigError> {
+        let invalid = |field: &'static str, reason: String| AgentConfigError::Invalid {
             file: path.to_path_buf(),
             field,
             reason,

@@ -1,23 +1,45 @@
-//! Plant agent: bridges one plant (a rig's driver, or a simulator) to a model-free
-//! controller service over Zenoh, paces the loop, and keeps the plant safe when commands
-//! are late or lost.
+//! Plant agent: what runs next to a machine. It bridges one plant (a rig's driver, or a
+//! simulator), or a gateway's many, to a model-free controller service over Zenoh, paces
+//! the loop, and keeps the plant safe when commands are late or lost.
 //!
-//! * [`scenario`]: what a plant is to the project (channels, actuator ranges, references,
-//!   controller sets), read from TOML files; the AERO is one plant among others;
-//! * [`plant`]: the [`plant::Plant`] trait, the AERO simulator behind it and the driver
-//!   bridge for any other plant (`DRIVER.md`);
 //! * [`safety`]: the agent's rules (command acceptance, hold, fallback, safe stop, what was
 //!   really applied), pure: no I/O, no async, no clock;
+//! * [`wire`]: the rules on the wire (a decoded command as the rules judge it, a mode as a
+//!   sample's flags);
 //! * [`agent`]: the networked loop, thin wiring around [`safety`];
+//! * [`gateway`]: many plants in one process, one batch of samples per period;
 //! * [`pace`]: deadlines kept to a tenth of a millisecond, where tokio's timer keeps one
 //!   or two;
 //! * [`config`]: the agent's configuration file;
-//! * [`record`]: the recorder every run uses (CSV, summary, plots, metrics);
+//! * [`observe`]: its Prometheus metrics and MCAP recording, and the feed of the progress
+//!   board;
 //! * [`cli`]: the `plant-agent` command line.
 //!
-//! It depends on the core crates (`mfc`, `protocol`, `transport`) and the AERO simulator,
-//! never on the controller service: the process next to a machine carries nothing it
-//! does not run.
+//! The plant itself, its scenario and controller files, the run's recorder and the
+//! progress board are the `plant` crate's, shared with the bench: a networked run and its
+//! offline twin are the same plant, recorded the same way.
+//!
+//! # Public API
+//!
+//! The crate is a binary's library, but the research bench (`mfc-lab`) and the system
+//! tests run the agent in process, as the binary would, so these are its public entry
+//! points, kept stable for them:
+//!
+//! * running a loop: [`agent::open_plant`], [`agent::run_loop`], [`agent::LoopConfig`],
+//!   and what a run returns ([`agent::AgentRun`], [`agent::AgentReport`] with its
+//!   [`agent::End`] and [`agent::ControllerLink`]); a gateway: [`gateway::run_gateway`];
+//! * the rules, for a loop run elsewhere with exactly the agent's decisions (the bench's
+//!   lockstep network simulator): [`safety::Supervisor`] and the types of its calls
+//!   ([`safety::SafetyConfig`] with [`safety::MAX_AGE_LIMIT`], [`safety::FallbackPolicy`]
+//!   with [`safety::parse_fallback`], [`safety::IncomingCommand`], [`safety::Verdict`],
+//!   [`safety::PeriodBegin`], [`safety::SupervisorCounters`], [`safety::Mode`]), and their
+//!   mapping to the protocol in [`wire`];
+//! * what a loop feeds: [`observe::LoopObservers`], [`observe::AgentMetrics`].
+//!
+//! Everything else public here serves the binary and may change with it.
+//!
+//! It depends on the core crates (`mfc`, `protocol`, `transport`) and `plant`, never on
+//! the controller service: the process next to a machine carries nothing it does not run.
 
 pub mod agent;
 pub mod cli;
@@ -25,7 +47,5 @@ pub mod config;
 pub mod gateway;
 pub mod observe;
 pub mod pace;
-pub mod plant;
-pub mod record;
 pub mod safety;
-pub mod scenario;
+pub mod wire;

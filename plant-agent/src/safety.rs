@@ -121,37 +121,9 @@ impl FromStr for FallbackPolicy {
     }
 }
 
-/// Who drives the plant.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Mode {
-    /// Applying the remote controller's commands.
-    Remote,
-    /// A command is missing: the last one applied is held, or its horizon played.
-    Holding,
-    /// The fallback engaged: the local controller drives the plant.
-    Local,
-    /// The fallback engaged (or the local controller could not run): zero inputs.
-    SafeStop,
-}
-
-impl Mode {
-    /// Whether this is a fallback mode (the agent, not the remote controller, decides the
-    /// inputs).
-    pub fn is_fallback(self) -> bool {
-        matches!(self, Mode::Local | Mode::SafeStop)
-    }
-
-    /// The name used in records and logs (the same as its serde name).
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Mode::Remote => "remote",
-            Mode::Holding => "holding",
-            Mode::Local => "local",
-            Mode::SafeStop => "safe_stop",
-        }
-    }
-}
+/// Who drives the plant: defined with the run's record, which keeps it per period, and
+/// decided here, by the [`Supervisor`].
+pub use plant::Mode;
 
 /// The safety settings of the loop.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -347,7 +319,7 @@ pub enum Verdict {
 ///
 /// Deliberately not `Copy` (fifteen counters): copies are explicit `clone()`s.
 #[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
-pub struct Counters {
+pub struct SupervisorCounters {
     /// Periods ended.
     pub periods: u64,
     /// Commands applied.
@@ -390,7 +362,7 @@ pub struct Counters {
 
 /// What to do at the start of a period.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Begin {
+pub struct PeriodBegin {
     /// The mode to put in the sample's flags: the mode at sampling time, before this
     /// period's decisions.
     pub sample_mode: Mode,
@@ -404,7 +376,7 @@ pub struct Begin {
 
 /// What to do at the end of a period.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct End {
+pub struct PeriodEnd {
     /// The mode of the period (for the record; already counted).
     pub mode: Mode,
     /// Plant time (s) still to let pass in this period, with the inputs applied now.
@@ -437,7 +409,7 @@ pub struct Supervisor {
     local: MimoController,
     local_out: Vec<ChannelOutput>,
     mode: Mode,
-    counters: Counters,
+    counters: SupervisorCounters,
     missing_streak: u32,
     last_applied_seq: Option<u64>,
     /// What the plant applies now.
@@ -480,7 +452,7 @@ impl Supervisor {
             local,
             local_out: vec![ChannelOutput::default(); n],
             mode: Mode::Remote,
-            counters: Counters::default(),
+            counters: SupervisorCounters::default(),
             missing_streak: 0,
             last_applied_seq: None,
             mean: initial_applied.clone(),
@@ -514,7 +486,7 @@ impl Supervisor {
         t: f64,
         y: &[f64],
         refs: &[Reference],
-    ) -> Result<Begin, SafetyError> {
+    ) -> Result<PeriodBegin, SafetyError> {
         if let Some(p) = &self.period {
             return Err(SafetyError::PeriodOpen { open: p.k });
         }
@@ -576,7 +548,7 @@ impl Supervisor {
             None
         };
         self.period = Some(period);
-        Ok(Begin {
+        Ok(PeriodBegin {
             sample_mode,
             applied_mean: self.mean.clone(),
             write,
@@ -714,7 +686,7 @@ impl Supervisor {
     ///
     /// The period's mode is the fallback's if it wrote at the start and no command came,
     /// Holding if the period was missing while holding, Remote otherwise.
-    pub fn end_period(&mut self) -> Result<End, SafetyError> {
+    pub fn end_period(&mut self) -> Result<PeriodEnd, SafetyError> {
         let p = self.period.take().ok_or(SafetyError::NoOpenPeriod)?;
         let h = self.config.period;
         let missing = !p.got && !p.warming;
@@ -745,7 +717,7 @@ impl Supervisor {
         for ((m, s), a) in self.mean.iter_mut().zip(&self.segments).zip(&self.applied) {
             *m = (s + a * advance) / h;
         }
-        Ok(End {
+        Ok(PeriodEnd {
             mode,
             advance,
             missing,
@@ -758,7 +730,7 @@ impl Supervisor {
     }
 
     /// The counters so far.
-    pub fn counters(&self) -> &Counters {
+    pub fn counters(&self) -> &SupervisorCounters {
         &self.counters
     }
 
@@ -865,7 +837,7 @@ mod tests {
     }
 
     /// Begin period k with y = 0.1 k on every channel, applying any fallback write exactly.
-    fn begin(s: &mut Supervisor, k: u64) -> Begin {
+    fn begin(s: &mut Supervisor, k: u64) -> PeriodBegin {
         let n = s.channels();
         let b = s
             .begin_period(k, k as f64 * H, &vec![0.1 * k as f64; n], &refs(n))
@@ -886,7 +858,7 @@ mod tests {
     }
 
     /// A whole period with an optional on-time command at 0.2 s.
-    fn period(s: &mut Supervisor, k: u64, v: Option<f64>) -> (Begin, End) {
+    fn period(s: &mut Supervisor, k: u64, v: Option<f64>) -> (PeriodBegin, PeriodEnd) {
         let b = begin(s, k);
         if let Some(v) = v {
             let cmd = vec![v; s.channels()];
@@ -915,7 +887,7 @@ mod tests {
         }
     }
 
-    fn total(c: &Counters) -> u64 {
+    fn total(c: &SupervisorCounters) -> u64 {
         c.commands
             + c.too_old
             + c.superseded
@@ -1122,7 +1094,7 @@ mod tests {
         assert_eq!(s.applied_now(), &[1.0, -2.0]);
         assert_eq!(s.missing_streak(), 0);
         assert_eq!(s.last_applied_seq(), None);
-        assert_eq!(s.counters().clone(), Counters::default());
+        assert_eq!(s.counters().clone(), SupervisorCounters::default());
         assert_eq!(*s.config(), cfg);
     }
 
@@ -1208,7 +1180,7 @@ mod tests {
         let end = s.end_period().unwrap();
         assert_eq!(
             end,
-            End {
+            PeriodEnd {
                 mode: Mode::Remote,
                 advance: 0.3,
                 missing: false
@@ -1471,7 +1443,7 @@ mod tests {
         let (_, end) = period(&mut s, 1, None);
         assert_eq!(
             end,
-            End {
+            PeriodEnd {
                 mode: Mode::Holding,
                 advance: H,
                 missing: true
@@ -1670,7 +1642,7 @@ mod tests {
             let end = s.end_period().unwrap();
             assert_eq!(
                 end,
-                End {
+                PeriodEnd {
                     mode: Mode::Remote,
                     advance: H,
                     missing: false
@@ -1975,10 +1947,32 @@ mod tests {
         }
     }
 
-    #[test]
-    fn randomised_command_sequences_keep_the_invariants() {
-        let mut seen = Counters::default();
-        for seed in 0..40u64 {
+    /// One randomised run of a supervisor, with what the test tracks of it to check the
+    /// invariants after every call.
+    struct Trial {
+        s: Supervisor,
+        rng: Lcg,
+        n: usize,
+        max_age: u32,
+        /// Everything that may legitimately be applied: the initial value, fallback
+        /// outputs and accepted commands.
+        legit: Vec<Vec<f64>>,
+        delivered: u64,
+        remote_periods: u64,
+        fallbacks: u64,
+        missing: u64,
+    }
+
+    /// What one period's commands did: the plant time they let pass, whether the
+    /// period's own command (or a warm-up answer) came, and every value applied in it.
+    struct Commands {
+        advance: f64,
+        answered: bool,
+        values: Vec<Vec<f64>>,
+    }
+
+    impl Trial {
+        fn new(seed: u64) -> Self {
             let mut rng = Lcg(seed);
             let n = 1 + rng.below(2) as usize;
             let policy = if rng.below(2) == 0 {
@@ -1994,152 +1988,174 @@ mod tests {
                 hold_periods: hold,
                 fallback: policy,
             };
-            let mut s = Supervisor::new(cfg, &vec![channel(); n], vec![0.0; n]).unwrap();
-            // Everything that may legitimately be applied: the initial value, fallback
-            // outputs and accepted commands.
-            let mut legit: Vec<Vec<f64>> = vec![vec![0.0; n]];
-            let mut delivered = 0u64;
-            let mut remote_periods = 0u64;
-            let mut fallbacks = 0u64;
-            let mut missing = 0u64;
-            let mut k = 0u64;
-            for _ in 0..300 {
-                k += 1 + u64::from(rng.below(20) == 0);
-                let mut y = vec![rng.unit() - 0.5; n];
-                if rng.below(25) == 0 {
-                    y[0] = f64::NAN;
-                }
-                let mode_before = s.mode();
-                let b = s.begin_period(k, k as f64 * H, &y, &refs(n)).unwrap();
-                assert_eq!(b.sample_mode, mode_before);
-                assert!(b.applied_mean.iter().all(|m| m.is_finite()));
-                if mode_before.is_fallback() {
-                    assert!(b.write.is_some());
-                }
-                if b.write.is_some() {
-                    assert!(s.mode().is_fallback());
-                    if !mode_before.is_fallback() {
-                        fallbacks += 1;
-                    }
-                } else {
-                    assert_eq!(s.mode(), mode_before);
-                }
-                if let Some(v) = b.write {
-                    if s.mode() == Mode::SafeStop {
-                        assert!(v.iter().all(|x| *x == 0.0));
-                    }
-                    s.applied(&v);
-                    legit.push(v);
-                }
-                // A wiring bug in the middle must not corrupt anything.
-                if rng.below(10) == 0 {
-                    let before = format!("{s:?}");
-                    assert!(s.begin_period(k + 1, 0.0, &y, &refs(n)).is_err());
-                    assert!(s.begin_period(k + 1, 0.0, &y[1..], &refs(n)).is_err());
-                    assert_eq!(before, format!("{s:?}"));
-                }
-                let mut advance = 0.0;
-                let mut answered = false;
-                let mut values = vec![s.applied_now().to_vec()];
-                for _ in 0..rng.below(5) {
-                    let seq = match rng.below(12) {
-                        0 => u64::MAX,
-                        1 => s.last_applied_seq().unwrap_or(k),
-                        2 => k + 1,
-                        r => k.saturating_sub(r % 6),
-                    };
-                    let cmd_v: Vec<f64> = match rng.below(10) {
-                        0 => vec![f64::NAN; n],
-                        1 => vec![1.0; n + 1],
-                        _ => (0..n).map(|_| rng.unit() * 10.0 - 5.0).collect(),
-                    };
-                    let body = match rng.below(10) {
-                        0 => CommandBody::WarmingUp,
-                        1 => CommandBody::Rejected("x"),
-                        2 => CommandBody::Unknown,
-                        _ => CommandBody::Control(&cmd_v),
-                    };
-                    let at = match rng.below(8) {
-                        0 => f64::NAN,
-                        1 => -1.0,
-                        2 => 2.0 * H,
-                        _ => rng.unit() * H,
-                    };
-                    let before = s.counters().clone();
-                    let last = s.last_applied_seq();
-                    delivered += 1;
-                    let (verdict, done) = s.on_command(
-                        at,
-                        IncomingCommand {
-                            seq,
-                            body,
-                            horizon: &[],
-                        },
-                    );
-                    assert_eq!(total(s.counters()), total(&before) + 1);
-                    assert_eq!(done, seq == k && !matches!(verdict, Verdict::Ignored(_)));
-                    match verdict {
-                        Verdict::Apply {
-                            v,
-                            advance: a,
-                            late,
-                        } => {
-                            assert!(seq <= k && k - seq <= u64::from(max_age));
-                            assert!(last.is_none_or(|l| seq > l));
-                            assert_eq!(late, seq < k);
-                            assert!(a >= 0.0);
-                            advance += a;
-                            assert!(advance <= H + 1e-12);
-                            assert_eq!(s.mode(), Mode::Remote);
-                            s.applied(&v);
-                            values.push(v.clone());
-                            legit.push(v);
-                            answered = true;
-                        }
-                        Verdict::WarmingUp => answered = true,
-                        Verdict::Rejected | Verdict::Ignored(_) => {}
-                    }
-                }
-                let end = s.end_period().unwrap();
-                assert!(end.advance >= 0.0);
-                assert!(
-                    (advance + end.advance - H).abs() <= 1e-15,
-                    "{advance} + {}",
-                    end.advance
-                );
-                assert_eq!(end.missing, !answered);
-                missing += u64::from(end.missing);
-                if end.mode == Mode::Remote {
-                    remote_periods += 1;
-                }
-                if end.mode.is_fallback() || end.mode == Mode::Holding {
-                    assert_eq!(s.mode(), end.mode);
-                }
-                assert!(legit.iter().any(|l| l[..] == *s.applied_now()));
-                // The period's mean lies between what was applied in it.
-                let next = begin_mean(&mut s, k + 1, n);
-                for (i, m) in next.iter().enumerate() {
-                    let lo = values.iter().map(|v| v[i]).fold(f64::INFINITY, f64::min);
-                    let hi = values
-                        .iter()
-                        .map(|v| v[i])
-                        .fold(f64::NEG_INFINITY, f64::max);
-                    assert!(
-                        *m >= lo - 1e-9 && *m <= hi + 1e-9,
-                        "{m} not in [{lo}, {hi}]"
-                    );
-                }
-                let c = s.counters().clone();
-                assert_eq!(
-                    c.periods,
-                    c.holding_periods + c.local_periods + c.safe_stop_periods + remote_periods
-                );
-                assert_eq!(total(&c), delivered);
-                assert_eq!(c.fallbacks, fallbacks);
-                assert_eq!(c.missing, missing);
-                assert!(c.late <= c.commands);
+            Self {
+                s: Supervisor::new(cfg, &vec![channel(); n], vec![0.0; n]).unwrap(),
+                rng,
+                n,
+                max_age,
+                legit: vec![vec![0.0; n]],
+                delivered: 0,
+                remote_periods: 0,
+                fallbacks: 0,
+                missing: 0,
             }
-            let c = s.counters().clone();
+        }
+
+        /// Begin period `k` on random outputs (sometimes a NaN), checking the sample's
+        /// mode and mean and any fallback write; sometimes a wiring bug follows, which
+        /// must change nothing.
+        fn begin(&mut self, k: u64) {
+            let (s, n) = (&mut self.s, self.n);
+            let mut y = vec![self.rng.unit() - 0.5; n];
+            if self.rng.below(25) == 0 {
+                y[0] = f64::NAN;
+            }
+            let mode_before = s.mode();
+            let b = s.begin_period(k, k as f64 * H, &y, &refs(n)).unwrap();
+            assert_eq!(b.sample_mode, mode_before);
+            assert!(b.applied_mean.iter().all(|m| m.is_finite()));
+            if mode_before.is_fallback() {
+                assert!(b.write.is_some());
+            }
+            if b.write.is_some() {
+                assert!(s.mode().is_fallback());
+                if !mode_before.is_fallback() {
+                    self.fallbacks += 1;
+                }
+            } else {
+                assert_eq!(s.mode(), mode_before);
+            }
+            if let Some(v) = b.write {
+                if s.mode() == Mode::SafeStop {
+                    assert!(v.iter().all(|x| *x == 0.0));
+                }
+                s.applied(&v);
+                self.legit.push(v);
+            }
+            // A wiring bug in the middle must not corrupt anything.
+            if self.rng.below(10) == 0 {
+                let before = format!("{s:?}");
+                assert!(s.begin_period(k + 1, 0.0, &y, &refs(n)).is_err());
+                assert!(s.begin_period(k + 1, 0.0, &y[1..], &refs(n)).is_err());
+                assert_eq!(before, format!("{s:?}"));
+            }
+        }
+
+        /// Up to four random commands in period `k` (any seq, malformed inputs, odd
+        /// arrival times), each verdict checked against the rules.
+        fn commands(&mut self, k: u64) -> Commands {
+            let mut got = Commands {
+                advance: 0.0,
+                answered: false,
+                values: vec![self.s.applied_now().to_vec()],
+            };
+            for _ in 0..self.rng.below(5) {
+                let (rng, s, n) = (&mut self.rng, &mut self.s, self.n);
+                let seq = match rng.below(12) {
+                    0 => u64::MAX,
+                    1 => s.last_applied_seq().unwrap_or(k),
+                    2 => k + 1,
+                    r => k.saturating_sub(r % 6),
+                };
+                let cmd_v: Vec<f64> = match rng.below(10) {
+                    0 => vec![f64::NAN; n],
+                    1 => vec![1.0; n + 1],
+                    _ => (0..n).map(|_| rng.unit() * 10.0 - 5.0).collect(),
+                };
+                let body = match rng.below(10) {
+                    0 => CommandBody::WarmingUp,
+                    1 => CommandBody::Rejected("x"),
+                    2 => CommandBody::Unknown,
+                    _ => CommandBody::Control(&cmd_v),
+                };
+                let at = match rng.below(8) {
+                    0 => f64::NAN,
+                    1 => -1.0,
+                    2 => 2.0 * H,
+                    _ => rng.unit() * H,
+                };
+                let before = s.counters().clone();
+                let last = s.last_applied_seq();
+                self.delivered += 1;
+                let horizon = &[];
+                let (verdict, done) = s.on_command(at, IncomingCommand { seq, body, horizon });
+                assert_eq!(total(s.counters()), total(&before) + 1);
+                assert_eq!(done, seq == k && !matches!(verdict, Verdict::Ignored(_)));
+                match verdict {
+                    Verdict::Apply { v, advance, late } => {
+                        assert!(seq <= k && k - seq <= u64::from(self.max_age));
+                        assert!(last.is_none_or(|l| seq > l));
+                        assert_eq!(late, seq < k);
+                        assert!(advance >= 0.0);
+                        got.advance += advance;
+                        assert!(got.advance <= H + 1e-12);
+                        assert_eq!(s.mode(), Mode::Remote);
+                        s.applied(&v);
+                        got.values.push(v.clone());
+                        self.legit.push(v);
+                        got.answered = true;
+                    }
+                    Verdict::WarmingUp => got.answered = true,
+                    Verdict::Rejected | Verdict::Ignored(_) => {}
+                }
+            }
+            got
+        }
+
+        /// End period `k`: its time adds up, its mode and missing flag follow from the
+        /// commands, what is applied was legitimate, the mean lies within what was
+        /// applied, and the counters add up.
+        fn end(&mut self, k: u64, got: &Commands) {
+            let (s, n) = (&mut self.s, self.n);
+            let end = s.end_period().unwrap();
+            assert!(end.advance >= 0.0);
+            assert!(
+                (got.advance + end.advance - H).abs() <= 1e-15,
+                "{} + {}",
+                got.advance,
+                end.advance
+            );
+            assert_eq!(end.missing, !got.answered);
+            self.missing += u64::from(end.missing);
+            if end.mode == Mode::Remote {
+                self.remote_periods += 1;
+            }
+            if end.mode.is_fallback() || end.mode == Mode::Holding {
+                assert_eq!(s.mode(), end.mode);
+            }
+            assert!(self.legit.iter().any(|l| l[..] == *s.applied_now()));
+            // The period's mean lies between what was applied in it.
+            let next = begin_mean(s, k + 1, n);
+            for (i, m) in next.iter().enumerate() {
+                let lo = got
+                    .values
+                    .iter()
+                    .map(|v| v[i])
+                    .fold(f64::INFINITY, f64::min);
+                let hi = got
+                    .values
+                    .iter()
+                    .map(|v| v[i])
+                    .fold(f64::NEG_INFINITY, f64::max);
+                assert!(
+                    *m >= lo - 1e-9 && *m <= hi + 1e-9,
+                    "{m} not in [{lo}, {hi}]"
+                );
+            }
+            let c = s.counters();
+            assert_eq!(
+                c.periods,
+                c.holding_periods + c.local_periods + c.safe_stop_periods + self.remote_periods
+            );
+            assert_eq!(total(c), self.delivered);
+            assert_eq!(c.fallbacks, self.fallbacks);
+            assert_eq!(c.missing, self.missing);
+            assert!(c.late <= c.commands);
+        }
+
+        /// Add this run's counters to `seen`.
+        fn tally(&self, seen: &mut SupervisorCounters) {
+            let c = self.s.counters();
             for (sum, x) in [
                 (&mut seen.commands, c.commands),
                 (&mut seen.late, c.late),
@@ -2158,6 +2174,22 @@ mod tests {
             ] {
                 *sum += x;
             }
+        }
+    }
+
+    #[test]
+    fn randomised_command_sequences_keep_the_invariants() {
+        let mut seen = SupervisorCounters::default();
+        for seed in 0..40u64 {
+            let mut trial = Trial::new(seed);
+            let mut k = 0u64;
+            for _ in 0..300 {
+                k += 1 + u64::from(trial.rng.below(20) == 0);
+                trial.begin(k);
+                let got = trial.commands(k);
+                trial.end(k, &got);
+            }
+            trial.tally(&mut seen);
         }
         // The sequences did reach every outcome and every mode.
         let all = [

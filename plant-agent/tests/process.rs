@@ -15,8 +15,9 @@ fn scratch(name: &str) -> PathBuf {
 
 /// A one-channel scenario on the echo driver, logging the driver's requests to `log`.
 fn scenario(dir: &Path, log: &Path, extra: &[&str]) -> PathBuf {
+    // The `plant` crate's test driver, which its own driver tests use.
     let driver = format!(
-        "{}/tests/fixtures/echo_driver.py",
+        "{}/../plant/tests/fixtures/echo_driver.py",
         env!("CARGO_MANIFEST_DIR")
     );
     let mut argv = vec![

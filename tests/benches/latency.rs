@@ -12,8 +12,8 @@
 use std::time::Duration;
 
 use mfc_lab::harness::{run_plant, service_config, PlantSpec, ServiceHandle};
-use plant_agent::record::percentile;
-use plant_agent::scenario::{load_scenario, shipped_controller};
+use plant::record::percentile;
+use plant::scenario::{load_scenario, shipped_controller};
 use tokio::time::Instant;
 use transport::ZenohArgs;
 use zenoh::Wait;

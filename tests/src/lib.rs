@@ -67,8 +67,8 @@ pub fn max_held_fraction() -> f64 {
 /// is that the loop is served, and a stall of the machine longer than the default hold
 /// (50 ms) is not a lost controller.
 pub fn served_plant(
-    scenario: &plant_agent::scenario::Scenario,
-    controller: &plant_agent::scenario::ControllerSet,
+    scenario: &plant::scenario::Scenario,
+    controller: &plant::scenario::ControllerSet,
     id: &str,
 ) -> mfc_lab::harness::PlantSpec {
     let mut p = mfc_lab::harness::PlantSpec::new(scenario, controller, id);

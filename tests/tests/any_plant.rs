@@ -5,8 +5,8 @@ use std::path::{Path, PathBuf};
 
 use mfc_lab::harness::{run_fleet, service_config};
 use mfc_lab::offline::simulate;
+use plant::scenario::{load_scenario, Scenario};
 use plant_agent::agent::End;
-use plant_agent::scenario::{load_scenario, Scenario};
 use system_tests::{
     lags_ratio_bound, max_held_fraction, scratch_dir, served_plant, workspace_root, SERIAL,
 };
@@ -55,9 +55,9 @@ fn driver_plants_of_1_3_and_16_channels_run_offline() {
         assert_eq!(s.channels.len(), n);
         let r = simulate(&s, &s.controller, true).unwrap();
         assert!(r.summary.completed);
-        assert_eq!(r.recording.len(), s.steps());
-        assert_eq!(r.recording.traces.len(), n);
-        for (i, tr) in r.recording.traces.iter().enumerate() {
+        assert_eq!(r.record.len(), s.steps());
+        assert_eq!(r.record.traces.len(), n);
+        for (i, tr) in r.record.traces.iter().enumerate() {
             let last = tr.y.len() - 1;
             let err = (tr.y[last] - tr.y_ref[last]).abs();
             assert!(err < 0.05, "lags-{n} y{i}: final error {err}");
@@ -128,8 +128,8 @@ async fn driver_plants_of_1_3_and_16_channels_run_through_the_service() {
                 );
                 assert_eq!(k.fallbacks, 0, "{}: {k:?}", s.name);
                 // The record has every channel's columns.
-                assert_eq!(r.recording.traces.len(), s.channels.len());
-                assert_eq!(r.recording.modes.len(), r.recording.len());
+                assert_eq!(r.record.traces.len(), s.channels.len());
+                assert_eq!(r.record.modes.len(), r.record.len());
                 let held = k.holding_periods as f64 / k.periods.max(1) as f64;
                 if held > max_held_fraction() {
                     eprintln!(

@@ -18,7 +18,7 @@ use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 use mfc_lab::harness::{run_plant, service_config, ServiceHandle};
-use plant_agent::scenario::{load_scenario, shipped_controller};
+use plant::scenario::{load_scenario, shipped_controller};
 use protocol::pb;
 use system_tests::{scratch_dir, served_plant, workspace_root, SERIAL};
 use tokio::io::{AsyncBufReadExt, BufReader};

@@ -6,8 +6,8 @@ use std::time::Duration;
 use controller_service::config::ServiceConfig;
 use mfc_lab::harness::{run_plant, service_config, PlantSpec, ServiceHandle};
 use mfc_lab::offline::simulate;
+use plant::scenario::{load_scenario, shipped_controller, Scenario};
 use plant_agent::safety::Mode;
-use plant_agent::scenario::{load_scenario, shipped_controller, Scenario};
 use protocol::convert::channel_to_pb;
 use protocol::{decode, encode, keys, pb, PROTOCOL_VERSION};
 use system_tests::{query, rms_ratio_bound, served_plant, SERIAL};
@@ -212,7 +212,7 @@ async fn reconfiguration_at_run_time_is_bumpless() {
     assert_eq!(r.config, reply.config, "the refused change changed nothing");
 
     let done = task.await.unwrap().unwrap();
-    let (report, rec) = (done.report, done.recording);
+    let (report, rec) = (done.report, done.record);
     assert!(report.completed() && report.counters.fallbacks == 0);
     // The change landed between plant times `change_from` and `change_to` (the service's
     // own record of the device's clock before and after the request).
@@ -379,7 +379,7 @@ async fn no_controller_means_local_fallback() {
     )
     .await
     .unwrap();
-    let (report, rec) = (orphan.report, orphan.recording);
+    let (report, rec) = (orphan.report, orphan.record);
     assert_eq!(report.counters.commands, 0);
     assert_eq!(report.counters.fallbacks, 1);
     // Hold for hold_periods, then the local controller for good.
@@ -390,7 +390,7 @@ async fn no_controller_means_local_fallback() {
         &rec.modes[..8]
     );
     assert!(!report.controller_reached);
-    assert_eq!(report.link, plant_agent::agent::Link::Never);
+    assert_eq!(report.link, plant_agent::agent::ControllerLink::Never);
     assert_eq!(report.exit_code(), 3, "no controller ever answered");
     assert!(report.headline().contains("NO CONTROLLER EVER ANSWERED"));
     let offline = simulate(&s, &c, false).unwrap().summary;
@@ -437,7 +437,7 @@ async fn a_lost_controller_is_reported_as_lost() {
     assert!(report.controller_reached && report.counters.commands > 0);
     assert_eq!(
         report.link,
-        plant_agent::agent::Link::Lost,
+        plant_agent::agent::ControllerLink::Lost,
         "{}",
         report.headline()
     );

@@ -9,10 +9,10 @@ use faultlab::profile::{GilbertElliott, Impairment, Outage, Profile};
 use faultlab::relay::Link;
 use mfc_lab::campaign::{run_case, CaseOptions};
 use mfc_lab::harness::{run_plant, service_config, PlantSpec};
-use plant_agent::record::Recording;
+use plant::record::RunRecord;
+use plant::scenario::{load_scenario, shipped_controller, Scenario};
 use plant_agent::safety::Mode;
 use plant_agent::safety::SafetyConfig;
-use plant_agent::scenario::{load_scenario, shipped_controller, Scenario};
 use system_tests::{margin_periods, scratch_dir, SERIAL};
 
 /// The campaign's options with the hold widened by the test margin: these tests are about
@@ -26,7 +26,7 @@ fn options() -> CaseOptions {
 }
 
 /// Plant time of each period in `mode`.
-fn times_in(rec: &Recording, mode: Mode) -> impl Iterator<Item = f64> + '_ {
+fn times_in(rec: &RunRecord, mode: Mode) -> impl Iterator<Item = f64> + '_ {
     rec.t
         .iter()
         .zip(&rec.modes)
@@ -35,7 +35,7 @@ fn times_in(rec: &Recording, mode: Mode) -> impl Iterator<Item = f64> + '_ {
 }
 
 /// Largest |y - y*| of channel `ch` over periods with `from <= t < to`.
-fn worst(rec: &Recording, ch: usize, from: f64, to: f64) -> f64 {
+fn worst(rec: &RunRecord, ch: usize, from: f64, to: f64) -> f64 {
     let tr = &rec.traces[ch];
     (0..rec.len())
         .filter(|&k| rec.t[k] >= from && rec.t[k] < to)
@@ -204,7 +204,7 @@ async fn bursty_loss_30_stays_bounded() {
     for (i, m) in rep.channels.iter().enumerate() {
         let mut longest = 0;
         let mut run = 0;
-        for v in &r[0].recording.traces[i].v {
+        for v in &r[0].record.traces[i].v {
             if v.abs() >= 24.0 - 1e-9 {
                 run += 1;
                 longest = longest.max(run);
@@ -257,7 +257,7 @@ async fn one_second_outage_recovers_within_a_second() {
         let r = run_case(&s, &c, &profile("outage", imp.clone()), link, &opts)
             .await
             .unwrap();
-        let rec = &r[0].recording;
+        let rec = &r[0].record;
         let rep = &r[0].report;
         eprintln!("{link:?}: {rep:?}");
         assert!(
@@ -286,7 +286,7 @@ async fn one_second_outage_recovers_within_a_second() {
         // of the reference (the complex reference is harder in some stretches than in
         // others, so the time before the outage is no yardstick for the time after it).
         let after = worst(rec, 1, back + 1.0, 10.0);
-        let twin = worst(&offline.recording, 1, back + 1.0, 10.0);
+        let twin = worst(&offline.record, 1, back + 1.0, 10.0);
         eprintln!(
             "{link:?}: pitch worst after recovery {after:.4}, offline twin {twin:.4} (before the outage {:.4})",
             worst(rec, 1, 1.0, 3.9)
@@ -333,7 +333,7 @@ fn start_service(config: &std::path::Path, endpoint: &str) -> Child {
 }
 
 /// Index of the first period in `mode` at or after `from`.
-fn first_in(rec: &Recording, mode: Mode, from: usize) -> Option<usize> {
+fn first_in(rec: &RunRecord, mode: Mode, from: usize) -> Option<usize> {
     rec.modes
         .iter()
         .skip(from)
@@ -372,7 +372,7 @@ async fn controller_crash_and_restart() {
     tokio::time::sleep(Duration::from_secs(2)).await;
     let mut restarted = start_service(&cfg_file, &endpoint);
     let run = run.await.unwrap().unwrap();
-    let (report, rec) = (run.report, run.recording);
+    let (report, rec) = (run.report, run.record);
     // The restarted service counts every sample since the start: it resumed from the
     // snapshot (about 380 samples before the kill) rather than from zero.
     let client = transport::ZenohArgs::loopback(None, vec![endpoint.clone()])
@@ -503,7 +503,7 @@ async fn hot_standby_takes_over_before_the_fallback() {
     let run = run.await.unwrap().unwrap();
     let _ = b.kill();
     let _ = b.wait();
-    let (report, rec) = (run.report, run.recording);
+    let (report, rec) = (run.report, run.record);
     eprintln!("{report:?}");
     // The agent applies one command per sample whatever arrives (a second one lands in
     // `duplicates`). A standby cannot tell a stalled active member from a dead one, so a

@@ -289,8 +289,8 @@ const ATTEMPTS: usize = 3;
 /// One run of four simulated AERO rigs behind one gateway agent, on a fresh service: each
 /// rig's report, and the service's status at the end.
 async fn gateway_run(
-    sc: &plant_agent::scenario::Scenario,
-    c: &plant_agent::scenario::ControllerSet,
+    sc: &plant::scenario::Scenario,
+    c: &plant::scenario::ControllerSet,
     ids: &[String],
 ) -> (Vec<plant_agent::agent::AgentReport>, pb::ServiceStatus) {
     use mfc_lab::harness::{default_safety, service_config, ServiceHandle};
@@ -311,7 +311,7 @@ async fn gateway_run(
         &session,
         "cell-t",
         plants,
-        plant_agent::cli::run_id,
+        plant::run_id,
         std::future::pending(),
     )
     .await
@@ -332,7 +332,7 @@ async fn gateway_run(
 /// [`ATTEMPTS`] came in time: tracking must have been judged.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_gateway_agent_serves_its_plants_in_one_batch_per_period() {
-    use plant_agent::scenario::{load_scenario, shipped_controller};
+    use plant::scenario::{load_scenario, shipped_controller};
 
     let _s = SERIAL.lock().await;
     let mut sc = load_scenario("1").unwrap();
@@ -348,7 +348,7 @@ async fn a_gateway_agent_serves_its_plants_in_one_batch_per_period() {
         for r in &reports {
             eprintln!("attempt {attempt}: {}", r.headline());
             assert!(r.completed() && r.safe_stop_applied, "{r:?}");
-            assert_eq!(r.link, plant_agent::agent::Link::Kept, "{r:?}");
+            assert_eq!(r.link, plant_agent::agent::ControllerLink::Kept, "{r:?}");
             let k = &r.counters;
             assert_eq!(k.periods as usize, sc.steps());
             assert_eq!(

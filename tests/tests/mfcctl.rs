@@ -7,7 +7,7 @@ use std::time::Duration;
 use clap::Parser;
 use mfc_lab::harness::{run_plant, service_config, PlantSpec, ServiceHandle};
 use mfcctl::cli::{run, Cli};
-use plant_agent::scenario::{load_scenario, shipped_controller};
+use plant::scenario::{load_scenario, shipped_controller};
 use system_tests::SERIAL;
 
 async fn ctl(endpoint: &str, args: &[&str]) -> anyhow::Result<String> {
@@ -119,7 +119,7 @@ async fn the_operator_reads_and_changes_a_running_device() {
     assert!(done.report.completed());
     // The pitch followed the new reference of 0.05 rad: its mean over the last 2 s (the
     // AERO's pitch ripples by about 0.015 rad around its setpoint).
-    let pitch = &done.recording.traces[1].y;
+    let pitch = &done.record.traces[1].y;
     let tail = &pitch[pitch.len() - 200..];
     let mean = tail.iter().sum::<f64>() / tail.len() as f64;
     assert!(

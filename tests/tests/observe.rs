@@ -8,8 +8,8 @@ use std::collections::BTreeMap;
 use std::time::Duration;
 
 use mfc_lab::harness::{run_plant, service_config, PlantSpec, ServiceHandle};
+use plant::scenario::{load_scenario, shipped_controller};
 use plant_agent::observe::AgentMetrics;
-use plant_agent::scenario::{load_scenario, shipped_controller};
 use protocol::pb;
 use system_tests::{scratch_dir, SERIAL};
 use telemetry::{read_recording, RecordSpec, Recording, Topic};

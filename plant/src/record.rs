@@ -12,7 +12,7 @@
 //! no command came).
 
 pub mod metrics;
-pub mod plot;
+mod plot;
 
 use std::fs;
 use std::io::{BufWriter, Write};
@@ -20,13 +20,13 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
-use crate::safety::Mode;
+use crate::Mode;
 
 pub use metrics::{percentile, Accumulator, ChannelMetrics};
 
 /// Why a record could not be written.
 #[derive(Debug, thiserror::Error)]
-pub enum RecordError {
+pub enum RunRecordError {
     /// A file could not be written.
     #[error("writing {path}: {source}")]
     Io {
@@ -48,8 +48,8 @@ pub enum RecordError {
     },
 }
 
-fn io(path: &Path) -> impl FnOnce(std::io::Error) -> RecordError + '_ {
-    move |source| RecordError::Io {
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> RunRecordError + '_ {
+    move |source| RunRecordError::Io {
         path: path.to_path_buf(),
         source,
     }
@@ -70,9 +70,11 @@ pub struct Trace {
     pub f_est: Vec<f64>,
 }
 
-/// A run, period by period, column-oriented (plots take whole columns).
+/// The record of one run, period by period, column-oriented (plots take whole columns):
+/// what `run.csv` and the plots are written from. (Named apart from `telemetry`'s
+/// `Recording`, an MCAP file of messages.)
 #[derive(Debug, Clone, Default)]
-pub struct Recording {
+pub struct RunRecord {
     /// Channel names.
     pub names: Vec<String>,
     /// Channel units.
@@ -87,7 +89,7 @@ pub struct Recording {
     pub rtt_us: Vec<u32>,
 }
 
-/// One period, as handed to [`Recording::push`].
+/// One period, as handed to [`RunRecord::push`].
 #[derive(Debug, Clone, Copy)]
 pub struct Period<'a> {
     /// Plant time.
@@ -106,8 +108,8 @@ pub struct Period<'a> {
     pub net: Option<(Mode, u32)>,
 }
 
-impl Recording {
-    /// An empty recording of these channels, with room for `periods` rows.
+impl RunRecord {
+    /// An empty record of these channels, with room for `periods` rows.
     pub fn new(names: Vec<String>, units: Vec<String>, periods: usize) -> Self {
         let traces = names
             .iter()
@@ -163,7 +165,7 @@ impl Recording {
     }
 
     /// Write `run.csv` (see the module doc for the columns).
-    pub fn write_csv(&self, path: &Path) -> Result<(), RecordError> {
+    pub fn write_csv(&self, path: &Path) -> Result<(), RunRecordError> {
         let file = fs::File::create(path).map_err(io(path))?;
         let mut w = BufWriter::new(file);
         self.csv(&mut w).map_err(io(path))
@@ -214,28 +216,28 @@ impl Recording {
 pub fn write_run(
     dir: &Path,
     title: &str,
-    recording: &Recording,
+    record: &RunRecord,
     summary: &impl Serialize,
-) -> Result<(), RecordError> {
+) -> Result<(), RunRecordError> {
     fs::create_dir_all(dir).map_err(io(dir))?;
-    recording.write_csv(&dir.join("run.csv"))?;
+    record.write_csv(&dir.join("run.csv"))?;
     write_summary(dir, summary)?;
-    for (i, name) in recording.names.iter().enumerate() {
-        let unit = recording.units.get(i).map(String::as_str).unwrap_or("");
+    for (i, name) in record.names.iter().enumerate() {
+        let unit = record.units.get(i).map(String::as_str).unwrap_or("");
         plot::channel(
             dir,
             name,
             unit,
             &format!("{title} — {name}"),
-            &recording.t,
-            &recording.traces[i],
+            &record.t,
+            &record.traces[i],
         )?;
     }
     Ok(())
 }
 
 /// Write `summary.json` into `dir` (created if missing).
-pub fn write_summary(dir: &Path, summary: &impl Serialize) -> Result<(), RecordError> {
+pub fn write_summary(dir: &Path, summary: &impl Serialize) -> Result<(), RunRecordError> {
     fs::create_dir_all(dir).map_err(io(dir))?;
     let path = dir.join("summary.json");
     fs::write(&path, serde_json::to_string_pretty(summary)? + "\n").map_err(io(&path))

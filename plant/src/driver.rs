@@ -1,14 +1,6 @@
-//! The plant behind the agent: a [`Plant`] trait with two backends, and [`open`] to get
-//! the one a scenario names.
-//!
-//! * [`AeroPlant`]: the AERO simulator (`aero-sim`), in process;
-//! * [`DriverPlant`]: any plant behind a separate process that speaks a line protocol on
-//!   its stdin/stdout (`plant-agent/DRIVER.md`): a real rig's driver, a Python simulator,
-//!   ... Real hardware and user simulators plug in without recompiling.
-//!
-//! The trait is synchronous on purpose: plant I/O can block (a driver thinking, a serial
-//! line), so the networked loop runs it on a thread of its own ([`crate::agent`]) and the
-//! offline loop calls it directly, in lockstep, as fast as the plant answers.
+//! The driver bridge: any plant behind a separate process that speaks a line protocol on
+//! its stdin/stdout (`plant-agent/DRIVER.md`), as a [`Plant`]: a real rig's driver, a
+//! Python simulator, ... Real hardware and user simulators plug in without recompiling.
 //!
 //! # Driver protocol (one line each way, ASCII, numbers as decimal floats)
 //!
@@ -29,132 +21,8 @@ use std::process::{Child, ChildStdin, Command, Stdio};
 use std::sync::mpsc;
 use std::time::Duration;
 
-use aero_sim::{AeroParams, AeroSim, CHANNELS};
-
-use crate::scenario::{DriverCommand, PlantSource};
-
-/// Why the plant could not be driven.
-#[derive(Debug, thiserror::Error)]
-pub enum PlantError {
-    /// The driver process could not be started or talked to.
-    #[error("driver: {0}")]
-    Driver(String),
-    /// The driver did not answer in time.
-    #[error("driver did not answer `{request}` within {timeout:?}")]
-    Timeout {
-        /// The request.
-        request: String,
-        /// The timeout.
-        timeout: Duration,
-    },
-    /// The driver answered something that does not follow the protocol.
-    #[error("driver answered {answer:?} to `{request}`")]
-    Protocol {
-        /// The request.
-        request: String,
-        /// The answer.
-        answer: String,
-    },
-    /// Simulator parameters.
-    #[error(transparent)]
-    Params(#[from] aero_sim::ParamError),
-    /// The plant has another number of channels than its scenario.
-    #[error("the plant has {plant} channel(s), the scenario {scenario}")]
-    Channels {
-        /// What the plant said.
-        plant: usize,
-        /// What the scenario says.
-        scenario: usize,
-    },
-}
-
-/// Open the plant a scenario names: the AERO simulator with `seed`, or its driver process.
-/// The channel count is checked against `channels`.
-pub fn open(
-    source: &PlantSource,
-    seed: u64,
-    channels: usize,
-) -> Result<Box<dyn Plant>, PlantError> {
-    let plant: Box<dyn Plant> = match source {
-        PlantSource::Aero(params) => Box::new(AeroPlant::new(params.clone(), seed)?),
-        PlantSource::Driver(cmd) => Box::new(DriverPlant::start(cmd)?),
-    };
-    if plant.channels() != channels {
-        return Err(PlantError::Channels {
-            plant: plant.channels(),
-            scenario: channels,
-        });
-    }
-    Ok(plant)
-}
-
-/// A plant the agent can drive.
-pub trait Plant: Send {
-    /// Number of outputs (= number of inputs).
-    fn channels(&self) -> usize;
-    /// Measure the outputs now.
-    fn read(&mut self) -> Result<Vec<f64>, PlantError>;
-    /// Apply `v` from now on; returns what was really applied.
-    fn write(&mut self, v: &[f64]) -> Result<Vec<f64>, PlantError>;
-    /// Let `dt` seconds pass (simulators integrate; real plants ignore it: time passes).
-    fn advance(&mut self, dt: f64) -> Result<(), PlantError>;
-    /// Apply the safe stop (zero inputs) and release the plant.
-    fn stop(&mut self) -> Result<(), PlantError>;
-    /// Times the plant hit a mechanical limit (the AERO's pitch stop): a safety excursion
-    /// the tuner penalises. Plants that cannot tell report 0.
-    fn limit_hits(&self) -> usize {
-        0
-    }
-}
-
-/// The AERO simulator as a [`Plant`].
-pub struct AeroPlant {
-    sim: AeroSim,
-}
-
-impl AeroPlant {
-    /// A simulated AERO.
-    pub fn new(params: AeroParams, seed: u64) -> Result<Self, PlantError> {
-        Ok(Self {
-            sim: AeroSim::new(params, seed)?,
-        })
-    }
-
-    /// The simulator (for its true state).
-    pub fn sim(&self) -> &AeroSim {
-        &self.sim
-    }
-}
-
-fn pair(v: &[f64]) -> [f64; 2] {
-    [
-        v.first().copied().unwrap_or(0.0),
-        v.get(1).copied().unwrap_or(0.0),
-    ]
-}
-
-impl Plant for AeroPlant {
-    fn channels(&self) -> usize {
-        CHANNELS
-    }
-    fn read(&mut self) -> Result<Vec<f64>, PlantError> {
-        Ok(self.sim.measure().to_vec())
-    }
-    fn write(&mut self, v: &[f64]) -> Result<Vec<f64>, PlantError> {
-        Ok(self.sim.apply(pair(v)).to_vec())
-    }
-    fn advance(&mut self, dt: f64) -> Result<(), PlantError> {
-        self.sim.advance(dt);
-        Ok(())
-    }
-    fn stop(&mut self) -> Result<(), PlantError> {
-        self.sim.apply([0.0, 0.0]);
-        Ok(())
-    }
-    fn limit_hits(&self) -> usize {
-        self.sim.stop_hits()
-    }
-}
+use crate::scenario::DriverCommand;
+use crate::{Plant, PlantError};
 
 /// Longest wait for a driver's `hello`: interpreters and vendor SDKs start slowly.
 pub const HELLO_TIMEOUT: Duration = Duration::from_secs(10);

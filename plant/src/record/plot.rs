@@ -1,36 +1,22 @@
 //! Plots in the paper's style: the output (blue, solid) against the reference (red, dashed)
-//! above, the applied voltage below; one PNG and one SVG per channel.
+//! above, the applied voltage below; one PNG and one SVG per channel. The axes tick at
+//! round values with plain labels and carry their unit ([`crate::chart`]).
 
 use std::path::Path;
-use std::sync::Once;
 
 use plotters::coord::Shift;
 use plotters::prelude::*;
-use plotters::style::FontStyle;
 
-use super::{RecordError, Trace};
+use super::{RunRecordError, Trace};
+use crate::chart::{axis_title, ensure_font, Ticks};
 
-type Result<T> = std::result::Result<T, RecordError>;
+type Result<T> = std::result::Result<T, RunRecordError>;
 
-fn plot_error(path: &Path, e: impl std::fmt::Debug) -> RecordError {
-    RecordError::Plot {
+fn plot_error(path: &Path, e: impl std::fmt::Debug) -> RunRecordError {
+    RunRecordError::Plot {
         path: path.to_path_buf(),
         reason: format!("{e:?}"),
     }
-}
-
-static FONT: Once = Once::new();
-
-/// The bitmap backend draws text with an embedded font (no system fonts needed, so plots
-/// work on a bare server); call before drawing any PNG.
-pub fn ensure_font() {
-    FONT.call_once(|| {
-        let _ = plotters::style::register_font(
-            "sans-serif",
-            FontStyle::Normal,
-            dejavu::sans::regular(),
-        );
-    });
 }
 
 /// Draw one channel to `DIR/NAME.png` and `DIR/NAME.svg`.
@@ -73,6 +59,9 @@ fn range(series: &[&[f64]]) -> (f64, f64) {
     (lo - pad, hi + pad)
 }
 
+/// Ticks on the time axis: at most ten, `0, 5, 10, ...`.
+const TIME_TICKS: usize = 10;
+
 fn draw<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     name: &str,
@@ -89,41 +78,49 @@ where
     let root = root.titled(title, ("sans-serif", 22)).map_err(err)?;
     let (top, bottom) = root.split_vertically((62).percent());
     let t_end = t.last().copied().unwrap_or(1.0).max(1e-9);
+    let time = Ticks::linear(0.0, t_end, TIME_TICKS);
+    outputs(&top, (name, unit), (t, &time, t_end), trace).map_err(err)?;
+    inputs(&bottom, (t, &time, t_end), &trace.v).map_err(err)?;
+    Ok(())
+}
 
+/// The output (blue, solid) against the reference (red, dashed).
+fn outputs<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    (name, unit): (&str, &str),
+    (t, time, t_end): (&[f64], &Ticks, f64),
+    trace: &Trace,
+) -> std::result::Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
     let (lo, hi) = range(&[&trace.y, &trace.y_ref]);
-    let mut chart = ChartBuilder::on(&top)
+    let ticks = Ticks::linear(lo, hi, 8);
+    let mut chart = ChartBuilder::on(area)
         .margin(10)
+        .margin_right(30)
         .x_label_area_size(35)
         .y_label_area_size(80)
-        .build_cartesian_2d(0.0..t_end, lo..hi)
-        .map_err(err)?;
+        .build_cartesian_2d(time.axis(0.0..t_end), ticks.axis(lo..hi))?;
     chart
         .configure_mesh()
-        .x_desc("time (s)")
-        .y_desc(format!("{name} ({unit})"))
-        .y_label_formatter(&|v| format!("{v:.3e}"))
-        .light_line_style(WHITE.mix(0.0))
-        .draw()
-        .map_err(err)?;
+        .x_desc(axis_title("time", "s"))
+        .y_desc(axis_title(name, unit))
+        .x_label_formatter(&|v| time.label(*v))
+        .y_label_formatter(&|v| ticks.label(*v))
+        .draw()?;
     chart
         .draw_series(LineSeries::new(
             t.iter().copied().zip(trace.y.iter().copied()),
             BLUE.stroke_width(2),
-        ))
-        .map_err(err)?
+        ))?
         .label("output")
         .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLUE.stroke_width(2)));
+    chart.draw_series(DashedLineSeries::new(
+        t.iter().copied().zip(trace.y_ref.iter().copied()),
+        8,
+        6,
+        RED.stroke_width(2),
+    ))?;
     chart
-        .draw_series(DashedLineSeries::new(
-            t.iter().copied().zip(trace.y_ref.iter().copied()),
-            8,
-            6,
-            RED.stroke_width(2),
-        ))
-        .map_err(err)?;
-    chart
-        .draw_series(std::iter::empty::<PathElement<(f64, f64)>>())
-        .map_err(err)?
+        .draw_series(std::iter::empty::<PathElement<(f64, f64)>>())?
         .label("reference")
         .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], RED.stroke_width(2)));
     chart
@@ -132,27 +129,32 @@ where
         .border_style(BLACK)
         .position(SeriesLabelPosition::UpperRight)
         .draw()
-        .map_err(err)?;
+}
 
-    let (lo, hi) = range(&[&trace.v]);
-    let mut chart = ChartBuilder::on(&bottom)
+/// The applied input `v`, below.
+fn inputs<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    (t, time, t_end): (&[f64], &Ticks, f64),
+    v: &[f64],
+) -> std::result::Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
+    let (lo, hi) = range(&[v]);
+    let ticks = Ticks::linear(lo, hi, 6);
+    let mut chart = ChartBuilder::on(area)
         .margin(10)
+        .margin_right(30)
         .x_label_area_size(35)
         .y_label_area_size(80)
-        .build_cartesian_2d(0.0..t_end, lo..hi)
-        .map_err(err)?;
+        .build_cartesian_2d(time.axis(0.0..t_end), ticks.axis(lo..hi))?;
     chart
         .configure_mesh()
-        .x_desc("time (s)")
-        .y_desc("voltage (V)")
-        .light_line_style(WHITE.mix(0.0))
-        .draw()
-        .map_err(err)?;
-    chart
-        .draw_series(LineSeries::new(
-            t.iter().copied().zip(trace.v.iter().copied()),
-            BLACK.stroke_width(1),
-        ))
-        .map_err(err)?;
+        .x_desc(axis_title("time", "s"))
+        .y_desc(axis_title("applied input", "V"))
+        .x_label_formatter(&|v| time.label(*v))
+        .y_label_formatter(&|v| ticks.label(*v))
+        .draw()?;
+    chart.draw_series(LineSeries::new(
+        t.iter().copied().zip(v.iter().copied()),
+        BLACK.stroke_width(1),
+    ))?;
     Ok(())
 }

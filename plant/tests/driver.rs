@@ -3,7 +3,8 @@
 
 use std::time::{Duration, Instant};
 
-use plant_agent::plant::{DriverPlant, Plant, PlantError};
+use plant::driver::DriverPlant;
+use plant::{Plant, PlantError};
 
 fn fixture() -> String {
     format!(
