@@ -17,7 +17,7 @@ use transport::ZenohArgs;
     version,
     about = "Model-free control as a service over Zenoh"
 )]
-pub struct Cli {
+pub struct ServiceCli {
     /// Service configuration (TOML: controller_id, devices, templates).
     #[arg(long, short)]
     pub config: PathBuf,
@@ -53,7 +53,7 @@ where
         // Colour codes only for a terminal: not into files or the journal.
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .try_init();
-    let cli = match Cli::try_parse_from(args) {
+    let cli = match ServiceCli::try_parse_from(args) {
         Ok(c) => c,
         Err(e) => e.exit(),
     };
@@ -81,7 +81,7 @@ where
 }
 
 /// Run the service described by `cli` until SIGINT or SIGTERM.
-pub async fn run(cli: Cli) -> Result<()> {
+pub async fn run(cli: ServiceCli) -> Result<()> {
     // First: a SIGTERM while the session opens must end the service cleanly, not be lost.
     let mut shutdown = Box::pin(transport::shutdown_signal());
     let mut config = ServiceConfig::load(&cli.config)?;
@@ -243,6 +243,6 @@ mod tests {
     #[test]
     fn cli_is_consistent() {
         use clap::CommandFactory;
-        super::Cli::command().debug_assert();
+        super::ServiceCli::command().debug_assert();
     }
 }

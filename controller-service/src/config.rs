@@ -231,7 +231,7 @@ pub struct StandbySpec {
     /// Role at start. An `active` member that hears another active one at start becomes
     /// standby. Default: standby.
     #[serde(default)]
-    pub role: Role,
+    pub role: StandbyRole,
     /// Heartbeat period of the active member, also how often a standby checks for silence
     /// (ms, > 0). Default 10 (one control period).
     #[serde(default = "heartbeat_ms")]
@@ -252,7 +252,7 @@ fn takeover_ms() -> u64 {
 /// A member's role.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
-pub enum Role {
+pub enum StandbyRole {
     /// Answers samples and sends heartbeats.
     Active,
     /// Follows every sample (warm state) and publishes nothing.

@@ -22,18 +22,18 @@
 //!   once on a closed connection and after the lease on a silent one): each of its shards
 //!   goes to its standby, which answers at once with the state it already holds.
 //! * A member joins: for each shard it now owns, it asks the previous owner to release it
-//!   ([`Action::Acquire`]). The previous owner keeps answering until that request comes
-//!   (its [`Role::Releasing`]), then stops, and replies with the shard's state, which the
+//!   ([`ShardAction::Acquire`]). The previous owner keeps answering until that request comes
+//!   (its [`ShardRole::Releasing`]), then stops, and replies with the shard's state, which the
 //!   newcomer restores before it answers. So at every moment at most one member answers a
 //!   shard, and the gap is one request's round trip. If the request is never made (the
 //!   newcomer died at once), the release ends after [`FleetTiming::release_timeout`].
-//! * A new standby asks the owner for a copy of the shard's state ([`Action::Copy`]).
+//! * A new standby asks the owner for a copy of the shard's state ([`ShardAction::Copy`]).
 //! * A request that gets no answer (lost, refused because the other's view has not caught
 //!   up yet, or timed out) is asked again [`FleetTiming::retry`] later, for as long as it
 //!   is still wanted: the shard is still awaited from a member still in view.
 //! * Two members that each believed themselves alone (started together, or a partition
 //!   healed) both own some shards: the one outranked offers each such shard to the other
-//!   ([`Action::Offer`]), which answers that it owns it ([`Reply::Owned`]); the offerer
+//!   ([`ShardAction::Offer`]), which answers that it owns it ([`Reply::Owned`]); the offerer
 //!   then stops answering it at once. The offer is made again every [`FleetTiming::retry`]
 //!   to whoever owns the shard in the view of the time; without an answer, the release
 //!   ends after [`FleetTiming::release_timeout`].
@@ -48,7 +48,7 @@ use protocol::SHARDS;
 
 /// A member's part in one shard.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum Role {
+pub enum ShardRole {
     /// Nothing: not subscribed, no state.
     #[default]
     None,
@@ -66,7 +66,7 @@ pub enum Role {
 
 /// What the wiring must do after a change of view.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Action {
+pub enum ShardAction {
     /// Start receiving the shard's traffic.
     Subscribe(u32),
     /// Stop receiving it and drop its devices' state.
@@ -166,9 +166,9 @@ pub enum Got {
 pub enum Release {
     /// This member held the shard and no longer answers it: reply with its state, then
     /// carry out the actions.
-    Granted(Vec<Action>),
+    Granted(Vec<ShardAction>),
     /// This member did not hold it (a copy of what it has may be sent), then the actions.
-    NotHeld(Vec<Action>),
+    NotHeld(Vec<ShardAction>),
     /// Refused (why): reply with an error; the asker asks again.
     Refused(&'static str),
 }
@@ -232,9 +232,9 @@ enum Ask {
 /// One member's part in one shard, and its handover in progress.
 #[derive(Debug, Clone, Default)]
 struct Slot {
-    role: Role,
+    role: ShardRole,
     /// For a `Releasing` shard: the role it takes once released.
-    after: Role,
+    after: ShardRole,
     /// For an `Acquiring` shard, whom it waits for; for a new `Standby`, the owner it asks
     /// for a copy.
     from: Option<String>,
@@ -277,25 +277,25 @@ impl Fleet {
     }
 
     /// The role in `shard` (shards beyond [`SHARDS`] are nobody's).
-    pub fn role(&self, shard: u32) -> Role {
+    pub fn role(&self, shard: u32) -> ShardRole {
         self.slots
             .get(shard as usize)
-            .map_or(Role::None, |s| s.role)
+            .map_or(ShardRole::None, |s| s.role)
     }
 
     /// Whether this member answers the samples and queries of `shard`.
     pub fn answers(&self, shard: u32) -> bool {
-        matches!(self.role(shard), Role::Owner | Role::Releasing)
+        matches!(self.role(shard), ShardRole::Owner | ShardRole::Releasing)
     }
 
     /// Whether this member steps the samples of `shard` (answering or not).
     pub fn steps(&self, shard: u32) -> bool {
-        self.role(shard) != Role::None
+        self.role(shard) != ShardRole::None
     }
 
     /// Whether this member owns `shard` outright (not releasing it).
     pub fn owns(&self, shard: u32) -> bool {
-        self.role(shard) == Role::Owner
+        self.role(shard) == ShardRole::Owner
     }
 
     /// Shards this member answers, as a bit mask (bit `s` for shard `s`).
@@ -314,23 +314,23 @@ impl Fleet {
 
     /// Shards in `Releasing`.
     pub fn releasing(&self) -> impl Iterator<Item = u32> + '_ {
-        (0..SHARDS).filter(|&s| self.role(s) == Role::Releasing)
+        (0..SHARDS).filter(|&s| self.role(s) == ShardRole::Releasing)
     }
 
     /// The role this member should end up with in `shard` under `members`.
-    fn target(&self, shard: u32, members: &BTreeSet<String>) -> Role {
+    fn target(&self, shard: u32, members: &BTreeSet<String>) -> ShardRole {
         let r = ranked(shard, members);
         if r.first() == Some(&self.me.as_str()) {
-            Role::Owner
+            ShardRole::Owner
         } else if self.standby && r.get(1) == Some(&self.me.as_str()) {
-            Role::Standby
+            ShardRole::Standby
         } else {
-            Role::None
+            ShardRole::None
         }
     }
 
     /// Give `shard` the role `role`, forgetting whatever belonged to the one before.
-    fn set_role(&mut self, shard: u32, role: Role) {
+    fn set_role(&mut self, shard: u32, role: ShardRole) {
         let slot = &mut self.slots[shard as usize];
         if slot.role != role {
             slot.role = role;
@@ -348,15 +348,15 @@ impl Fleet {
     }
 
     /// Offer a shard this member releases to `to`, its owner now.
-    fn offer(&mut self, shard: u32, to: Option<String>, out: &mut Vec<Action>) {
+    fn offer(&mut self, shard: u32, to: Option<String>, out: &mut Vec<ShardAction>) {
         if let Some(to) = to.filter(|o| *o != self.me) {
             self.ask(shard, &to);
-            out.push(Action::Offer { shard, to });
+            out.push(ShardAction::Offer { shard, to });
         }
     }
 
     /// Start with the members already in the fleet (this one is added).
-    pub fn start(&mut self, others: impl IntoIterator<Item = String>) -> Vec<Action> {
+    pub fn start(&mut self, others: impl IntoIterator<Item = String>) -> Vec<ShardAction> {
         let mut next: BTreeSet<String> = others.into_iter().collect();
         next.insert(self.me.clone());
         // Before this member, the others owned everything among themselves.
@@ -365,7 +365,7 @@ impl Fleet {
     }
 
     /// `member` appeared.
-    pub fn join(&mut self, member: &str) -> Vec<Action> {
+    pub fn join(&mut self, member: &str) -> Vec<ShardAction> {
         if self.members.contains(member) {
             return Vec::new();
         }
@@ -375,7 +375,7 @@ impl Fleet {
     }
 
     /// `member` disappeared (stopped or died).
-    pub fn leave(&mut self, member: &str) -> Vec<Action> {
+    pub fn leave(&mut self, member: &str) -> Vec<ShardAction> {
         if member == self.me || !self.members.contains(member) {
             return Vec::new();
         }
@@ -384,7 +384,7 @@ impl Fleet {
         self.change(next)
     }
 
-    fn change(&mut self, next: BTreeSet<String>) -> Vec<Action> {
+    fn change(&mut self, next: BTreeSet<String>) -> Vec<ShardAction> {
         let mut out = Vec::new();
         for s in 0..SHARDS {
             let role = self.next_role(s, &next, &mut out);
@@ -395,75 +395,80 @@ impl Fleet {
     }
 
     /// The role of `shard` under the view `next`, with the actions that takes.
-    fn next_role(&mut self, s: u32, next: &BTreeSet<String>, out: &mut Vec<Action>) -> Role {
+    fn next_role(
+        &mut self,
+        s: u32,
+        next: &BTreeSet<String>,
+        out: &mut Vec<ShardAction>,
+    ) -> ShardRole {
         let target = self.target(s, next);
         let slot = &self.slots[s as usize];
         let cur = slot.role;
         match (cur, target) {
-            (Role::Owner, Role::Owner) | (Role::Standby, Role::Standby) => cur,
+            (ShardRole::Owner, ShardRole::Owner) | (ShardRole::Standby, ShardRole::Standby) => cur,
             // Still waiting, unless the one it waits for is gone.
-            (Role::Acquiring, Role::Owner) => match &slot.from {
+            (ShardRole::Acquiring, ShardRole::Owner) => match &slot.from {
                 Some(o) if next.contains(o) => cur,
-                _ => Role::Owner,
+                _ => ShardRole::Owner,
             },
-            (Role::Releasing, Role::Owner) => Role::Owner,
-            (Role::Releasing, t) => {
+            (ShardRole::Releasing, ShardRole::Owner) => ShardRole::Owner,
+            (ShardRole::Releasing, t) => {
                 // Offer it again if the view names another owner now.
                 self.slots[s as usize].after = t;
                 let to = owner(s, next).map(str::to_string);
                 if to != owner(s, &self.members).map(str::to_string) {
                     self.offer(s, to, out);
                 }
-                Role::Releasing
+                ShardRole::Releasing
             }
-            (Role::None | Role::Standby, Role::Owner) => {
-                if cur == Role::None {
-                    out.push(Action::Subscribe(s));
+            (ShardRole::None | ShardRole::Standby, ShardRole::Owner) => {
+                if cur == ShardRole::None {
+                    out.push(ShardAction::Subscribe(s));
                 }
                 let old = owner(s, &self.members).map(str::to_string);
                 match old {
                     Some(o) if o != self.me && next.contains(&o) => {
-                        self.set_role(s, Role::Acquiring);
+                        self.set_role(s, ShardRole::Acquiring);
                         self.ask(s, &o);
-                        out.push(Action::Acquire { shard: s, from: o });
-                        Role::Acquiring
+                        out.push(ShardAction::Acquire { shard: s, from: o });
+                        ShardRole::Acquiring
                     }
-                    _ => Role::Owner,
+                    _ => ShardRole::Owner,
                 }
             }
-            (Role::Owner, t) => {
+            (ShardRole::Owner, t) => {
                 // Outranked by a newcomer: it will ask; answer until then. Say so, in
                 // case it believes it owns the shard already.
-                self.set_role(s, Role::Releasing);
+                self.set_role(s, ShardRole::Releasing);
                 self.slots[s as usize].after = t;
                 let to = owner(s, next).map(str::to_string);
                 self.offer(s, to, out);
-                Role::Releasing
+                ShardRole::Releasing
             }
-            (Role::None | Role::Acquiring, Role::Standby) => {
-                if cur == Role::None {
-                    out.push(Action::Subscribe(s));
+            (ShardRole::None | ShardRole::Acquiring, ShardRole::Standby) => {
+                if cur == ShardRole::None {
+                    out.push(ShardAction::Subscribe(s));
                 }
                 if let Some(o) = owner(s, next).filter(|o| *o != self.me).map(str::to_string) {
-                    self.set_role(s, Role::Standby);
+                    self.set_role(s, ShardRole::Standby);
                     self.ask(s, &o);
-                    out.push(Action::Copy { shard: s, from: o });
+                    out.push(ShardAction::Copy { shard: s, from: o });
                 }
-                Role::Standby
+                ShardRole::Standby
             }
-            (Role::Standby | Role::Acquiring, Role::None) => {
-                out.push(Action::Unsubscribe(s));
-                Role::None
+            (ShardRole::Standby | ShardRole::Acquiring, ShardRole::None) => {
+                out.push(ShardAction::Unsubscribe(s));
+                ShardRole::None
             }
-            (Role::None, Role::None) => Role::None,
-            (_, Role::Acquiring | Role::Releasing) => {
+            (ShardRole::None, ShardRole::None) => ShardRole::None,
+            (_, ShardRole::Acquiring | ShardRole::Releasing) => {
                 unreachable!("target() never returns Acquiring or Releasing")
             }
         }
     }
 
     /// Another member's [`Request`] about `shard`: the reply to send, then the actions.
-    pub fn on_request(&mut self, shard: u32, request: Request<'_>) -> (Reply, Vec<Action>) {
+    pub fn on_request(&mut self, shard: u32, request: Request<'_>) -> (Reply, Vec<ShardAction>) {
         match request {
             Request::Release(by) => match self.release(shard, by) {
                 Release::Granted(a) | Release::NotHeld(a) => (Reply::State, a),
@@ -492,7 +497,7 @@ impl Fleet {
         }
         let known = self.members.contains(by) && by != self.me;
         match self.role(shard) {
-            Role::Owner | Role::Releasing => {
+            ShardRole::Owner | ShardRole::Releasing => {
                 if !known {
                     return Release::Refused("the asker is not a member in this view (yet)");
                 }
@@ -501,23 +506,23 @@ impl Fleet {
                 }
                 let t = self.target(shard, &self.members);
                 self.set_role(shard, t);
-                Release::Granted(if t == Role::None {
-                    vec![Action::Unsubscribe(shard)]
+                Release::Granted(if t == ShardRole::None {
+                    vec![ShardAction::Unsubscribe(shard)]
                 } else {
                     Vec::new()
                 })
             }
-            Role::Acquiring => {
+            ShardRole::Acquiring => {
                 // Two members starting together may each wait for the other: whoever does
                 // not rank first gives up its claim, so one owner remains.
                 if !known {
                     return Release::Refused("the asker is not a member in this view (yet)");
                 }
                 let t = self.target(shard, &self.members);
-                if t != Role::Owner {
+                if t != ShardRole::Owner {
                     self.set_role(shard, t);
-                    if t == Role::None {
-                        return Release::NotHeld(vec![Action::Unsubscribe(shard)]);
+                    if t == ShardRole::None {
+                        return Release::NotHeld(vec![ShardAction::Unsubscribe(shard)]);
                     }
                 }
                 Release::NotHeld(Vec::new())
@@ -540,19 +545,19 @@ impl Fleet {
         kind: RequestKind,
         got: Got,
         now: Instant,
-    ) -> Vec<Action> {
+    ) -> Vec<ShardAction> {
         let Some(slot) = self.slots.get_mut(shard as usize) else {
             return Vec::new();
         };
         match (kind, got, slot.role) {
-            (RequestKind::Release, Got::State, Role::Acquiring) => {
-                self.set_role(shard, Role::Owner);
+            (RequestKind::Release, Got::State, ShardRole::Acquiring) => {
+                self.set_role(shard, ShardRole::Owner);
             }
-            (RequestKind::Copy, Got::State, Role::Standby) => {
+            (RequestKind::Copy, Got::State, ShardRole::Standby) => {
                 slot.from = None;
                 slot.ask = Ask::Done;
             }
-            (RequestKind::Offer, Got::Owned, Role::Releasing) => {
+            (RequestKind::Offer, Got::Owned, ShardRole::Releasing) => {
                 return self.release_expired(shard);
             }
             _ if slot.ask == Ask::InFlight => slot.ask = Ask::RetryAt(now + self.timing.retry),
@@ -562,14 +567,14 @@ impl Fleet {
     }
 
     /// A release is over (asked for elsewhere, or waited too long): stop answering.
-    fn release_expired(&mut self, shard: u32) -> Vec<Action> {
-        if self.role(shard) != Role::Releasing {
+    fn release_expired(&mut self, shard: u32) -> Vec<ShardAction> {
+        if self.role(shard) != ShardRole::Releasing {
             return Vec::new();
         }
         let after = self.slots[shard as usize].after;
         self.set_role(shard, after);
-        if after == Role::None {
-            vec![Action::Unsubscribe(shard)]
+        if after == ShardRole::None {
+            vec![ShardAction::Unsubscribe(shard)]
         } else {
             Vec::new()
         }
@@ -578,11 +583,11 @@ impl Fleet {
     /// Time passed: at `now`, releases nobody asked for within
     /// [`FleetTiming::release_timeout`] end, and unanswered requests still wanted are
     /// made again. The service calls it every few tens of milliseconds.
-    pub fn tick(&mut self, now: Instant) -> Vec<Action> {
+    pub fn tick(&mut self, now: Instant) -> Vec<ShardAction> {
         let mut out = Vec::new();
         for s in 0..SHARDS {
             let slot = &mut self.slots[s as usize];
-            if slot.role == Role::Releasing {
+            if slot.role == ShardRole::Releasing {
                 let since = *slot.releasing_since.get_or_insert(now);
                 if now.saturating_duration_since(since) > self.timing.release_timeout {
                     out.extend(self.release_expired(s));
@@ -595,7 +600,7 @@ impl Fleet {
             slot.ask = Ask::Done;
             let to = match slot.role {
                 // An offer goes to whoever owns the shard in this view.
-                Role::Releasing => owner(s, &self.members).map(str::to_string),
+                ShardRole::Releasing => owner(s, &self.members).map(str::to_string),
                 _ => slot.from.clone().filter(|f| self.members.contains(f)),
             };
             let Some(to) = to.filter(|t| *t != self.me) else {
@@ -603,9 +608,9 @@ impl Fleet {
             };
             self.ask(s, &to);
             out.push(match self.slots[s as usize].role {
-                Role::Acquiring => Action::Acquire { shard: s, from: to },
-                Role::Releasing => Action::Offer { shard: s, to },
-                _ => Action::Copy { shard: s, from: to },
+                ShardRole::Acquiring => ShardAction::Acquire { shard: s, from: to },
+                ShardRole::Releasing => ShardAction::Offer { shard: s, to },
+                _ => ShardAction::Copy { shard: s, from: to },
             });
         }
         out
@@ -661,7 +666,7 @@ mod tests {
         let mut f = Fleet::new("a", true, FleetTiming::default());
         let acts = f.start([]);
         assert_eq!(acts.len(), SHARDS as usize);
-        assert!(acts.iter().all(|a| matches!(a, Action::Subscribe(_))));
+        assert!(acts.iter().all(|a| matches!(a, ShardAction::Subscribe(_))));
         assert_eq!(f.answer_mask(), u64::MAX);
     }
 
@@ -678,13 +683,13 @@ mod tests {
             .collect();
         assert!(!wanted.is_empty());
         for &s in &wanted {
-            assert!(acts.contains(&Action::Acquire {
+            assert!(acts.contains(&ShardAction::Acquire {
                 shard: s,
                 from: "a".into()
             }));
-            assert_eq!(b.role(s), Role::Acquiring);
-            assert_eq!(a.role(s), Role::Releasing);
-            assert!(offers.contains(&Action::Offer {
+            assert_eq!(b.role(s), ShardRole::Acquiring);
+            assert_eq!(a.role(s), ShardRole::Releasing);
+            assert!(offers.contains(&ShardAction::Offer {
                 shard: s,
                 to: "b".into()
             }));
@@ -698,7 +703,7 @@ mod tests {
         // A stray or forged request changes nothing.
         for &s in &wanted {
             assert!(matches!(a.release(s, "mallory"), Release::Refused(_)));
-            assert_eq!(a.role(s), Role::Releasing);
+            assert_eq!(a.role(s), ShardRole::Releasing);
         }
         let other = (0..SHARDS).find(|s| !wanted.contains(s)).unwrap();
         assert!(
@@ -718,7 +723,7 @@ mod tests {
         );
         // a is the standby of what it gave away (two members: the other is always second).
         for &s in &wanted {
-            assert_eq!(a.role(s), Role::Standby);
+            assert_eq!(a.role(s), ShardRole::Standby);
         }
     }
 
@@ -741,18 +746,21 @@ mod tests {
         // Settle the acquisitions the start asked for.
         for s in 0..SHARDS {
             for f in fleets.iter_mut() {
-                if f.role(s) == Role::Acquiring {
+                if f.role(s) == ShardRole::Acquiring {
                     f.on_answer(s, RequestKind::Release, Got::State, Instant::now());
                 }
-                if f.role(s) == Role::Releasing {
+                if f.role(s) == ShardRole::Releasing {
                     f.release_expired(s);
                 }
             }
         }
         let refs: Vec<&Fleet> = fleets.iter().collect();
         assert_eq!(owners(&refs), vec![1; SHARDS as usize]);
-        let standbys =
-            |fs: &[Fleet], s: u32| fs.iter().filter(|f| f.role(s) == Role::Standby).count();
+        let standbys = |fs: &[Fleet], s: u32| {
+            fs.iter()
+                .filter(|f| f.role(s) == ShardRole::Standby)
+                .count()
+        };
         assert!((0..SHARDS).all(|s| standbys(&fleets, s) == 1));
         // "b" dies.
         let b_had: Vec<u32> = (0..SHARDS).filter(|&s| fleets[1].answers(s)).collect();
@@ -768,7 +776,7 @@ mod tests {
             assert!(!acts
                 .iter()
                 .flatten()
-                .any(|x| matches!(x, Action::Acquire { shard, .. } if *shard == s)));
+                .any(|x| matches!(x, ShardAction::Acquire { shard, .. } if *shard == s)));
         }
         assert_eq!(owners(&[a, c]), vec![1; SHARDS as usize]);
     }
@@ -790,11 +798,11 @@ mod tests {
         let offers_b = b.join("a");
         // Each offers the other the shards the other outranks it in; the other owns them
         // already, so the offerer stops at once.
-        let shards = |offers: Vec<Action>| -> Vec<u32> {
+        let shards = |offers: Vec<ShardAction>| -> Vec<u32> {
             offers
                 .into_iter()
                 .filter_map(|a| match a {
-                    Action::Offer { shard, .. } => Some(shard),
+                    ShardAction::Offer { shard, .. } => Some(shard),
                     _ => None,
                 })
                 .collect()
@@ -817,7 +825,7 @@ mod tests {
         a.join("b");
         let s = a.releasing().next().expect("b outranks a somewhere");
         assert!(a.answers(s));
-        assert_eq!(a.release_expired(s), vec![Action::Unsubscribe(s)]);
+        assert_eq!(a.release_expired(s), vec![ShardAction::Unsubscribe(s)]);
         assert!(!a.answers(s) && !a.steps(s));
         // Without standbys, the other member's shards are not stepped here.
         assert_eq!(a.step_mask(), a.answer_mask());
@@ -830,7 +838,7 @@ mod tests {
         a.join("b");
         let s = a.releasing().next().unwrap();
         a.leave("b");
-        assert_eq!(a.role(s), Role::Owner);
+        assert_eq!(a.role(s), ShardRole::Owner);
         assert_eq!(a.answer_mask(), u64::MAX);
     }
 }

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 
 use protocol::pb;
 
-use crate::config::{Role, StandbySpec};
+use crate::config::{StandbyRole, StandbySpec};
 
 /// How long a member that starts as `standby` waits, on top of the takeover time, before
 /// it may take over: an active member starting at the same moment speaks first.
@@ -59,8 +59,8 @@ impl HotStandby {
                 heartbeat: Duration::from_millis(sb.heartbeat_ms),
                 takeover: Duration::from_millis(sb.takeover_ms),
                 last_heard: match sb.role {
-                    Role::Active => now,
-                    Role::Standby => now + STANDBY_GRACE,
+                    StandbyRole::Active => now,
+                    StandbyRole::Standby => now + STANDBY_GRACE,
                 },
                 peer_term: 0,
             },

@@ -10,9 +10,9 @@ use std::cmp::Reverse;
 use std::collections::{BTreeSet, BinaryHeap};
 use std::time::{Duration, Instant};
 
-use controller_service::config::{Role as StandbyRole, StandbySpec};
+use controller_service::config::{StandbyRole, StandbySpec};
 use controller_service::fleet::{
-    Action, Fleet, FleetTiming, Got, Reply, Request, RequestKind, Role,
+    Fleet, FleetTiming, Got, Reply, Request, RequestKind, ShardAction, ShardRole,
 };
 use controller_service::standby::{HotStandby, STANDBY_GRACE};
 use protocol::{pb, PROTOCOL_VERSION, SHARDS};
@@ -230,16 +230,18 @@ impl Sim {
     }
 
     /// What the service's `apply_fleet` does with the fleet's actions: send requests.
-    fn carry_out(&mut self, i: usize, actions: Vec<Action>) {
+    fn carry_out(&mut self, i: usize, actions: Vec<ShardAction>) {
         for a in actions {
             let me = self.names[i].clone();
             let (to, shard, request, asked) = match &a {
-                Action::Acquire { shard, from } => {
+                ShardAction::Acquire { shard, from } => {
                     (from, *shard, Request::Release(&me), Asked::Release)
                 }
-                Action::Copy { shard, from } => (from, *shard, Request::Copy(&me), Asked::Copy),
-                Action::Offer { shard, to } => (to, *shard, Request::Offer(&me), Asked::Offer),
-                Action::Subscribe(_) | Action::Unsubscribe(_) => continue,
+                ShardAction::Copy { shard, from } => {
+                    (from, *shard, Request::Copy(&me), Asked::Copy)
+                }
+                ShardAction::Offer { shard, to } => (to, *shard, Request::Offer(&me), Asked::Offer),
+                ShardAction::Subscribe(_) | ShardAction::Unsubscribe(_) => continue,
             };
             let to = self.names.iter().position(|n| n == to).expect("a member");
             let body = request.body();
@@ -455,7 +457,7 @@ fn a_joining_member_takes_its_shards_without_double_answers() {
         assert!(b.answer_mask() != 0 && a.answer_mask() != 0, "seed {seed}");
         for s in 0..SHARDS {
             let standby = if a.answers(s) { b } else { a };
-            assert_eq!(standby.role(s), Role::Standby, "seed {seed} shard {s}");
+            assert_eq!(standby.role(s), ShardRole::Standby, "seed {seed} shard {s}");
         }
     }
 }

@@ -19,7 +19,7 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
-use crate::gen::{self, Report, Spec};
+use crate::gen::{self, LoadReport, Spec};
 use crate::stats;
 
 /// Which process answers.
@@ -70,7 +70,7 @@ pub struct Trial {
     /// Which round at this size (0-based).
     pub round: usize,
     pub path: &'static str,
-    pub report: Report,
+    pub report: LoadReport,
     /// Target CPU time over the window per answered sample (us).
     pub cpu_us_per_sample: Option<f64>,
     /// Target CPU over the window, in cores (1.0 = one core busy).
@@ -94,7 +94,7 @@ pub struct Results {
     pub p99_at: usize,
     pub trials: Vec<Trial>,
     /// Per size, path and target, the medians of its rounds.
-    pub points: Vec<Point>,
+    pub points: Vec<BenchPoint>,
     /// Largest per-device fleet that held, per target.
     pub capacity_service: Option<usize>,
     pub capacity_echo: Option<usize>,
@@ -105,7 +105,7 @@ pub struct Results {
 
 /// The medians of one target's rounds at one size.
 #[derive(Debug, Clone, Serialize)]
-pub struct Point {
+pub struct BenchPoint {
     pub target: Target,
     pub path: &'static str,
     pub devices: usize,
@@ -132,7 +132,7 @@ pub fn median(mut v: Vec<f64>) -> Option<f64> {
     })
 }
 
-impl Point {
+impl BenchPoint {
     fn of(trials: &[&Trial], inside: f64) -> Self {
         let valid: Vec<&&Trial> = trials
             .iter()
@@ -258,7 +258,7 @@ async fn size_point(
     devices: usize,
     gateways: usize,
     trials: &mut Vec<Trial>,
-) -> anyhow::Result<Vec<Point>> {
+) -> anyhow::Result<Vec<BenchPoint>> {
     let mut mine: Vec<Trial> = Vec::new();
     for round in 0..spec.rounds.max(1) {
         let mut order = targets.to_vec();
@@ -275,7 +275,7 @@ async fn size_point(
         .iter()
         .map(|&target| {
             let of: Vec<&Trial> = mine.iter().filter(|t| t.target == target).collect();
-            let p = Point::of(&of, spec.inside);
+            let p = BenchPoint::of(&of, spec.inside);
             eprintln!(
                 "{:>7} {:>10} {:>6} devices: median of {} rounds: within {} %, p99 {} us -> {}",
                 format!("{target:?}").to_lowercase(),
@@ -382,7 +382,7 @@ async fn sweep(
     grid: &[usize],
     gateway_path: bool,
     trials: &mut Vec<Trial>,
-    points: &mut Vec<Point>,
+    points: &mut Vec<BenchPoint>,
 ) -> anyhow::Result<(Option<usize>, Option<usize>)> {
     let gws = |n: usize| {
         if gateway_path {
@@ -521,7 +521,7 @@ pub fn markdown(r: &Results) -> String {
         r.rate_hz, r.service_workers, r.rounds, 100.0 * r.inside, r.warmup_s, r.measure_s
     );
     s += "Medians over the rounds:\n\n| path | devices | target | valid rounds | within period | p99 us | CPU us/sample | holds |\n|---|---:|---|---:|---:|---:|---:|---|\n";
-    let mut points: Vec<&Point> = r.points.iter().collect();
+    let mut points: Vec<&BenchPoint> = r.points.iter().collect();
     points.sort_by_key(|p| (p.path, p.devices, name(p.target)));
     for p in points {
         s += &format!(
@@ -625,14 +625,14 @@ mod tests {
             target,
             round: 0,
             path: "per-device",
-            report: Report {
+            report: LoadReport {
                 devices: 100,
                 sent: 1000,
                 answered: 1000,
                 within,
                 p99_us: Some(p99),
                 generator_late: late,
-                ..Report::default()
+                ..LoadReport::default()
             },
             cpu_us_per_sample: None,
             cpu_cores: None,
@@ -658,7 +658,7 @@ mod tests {
             round(s, 980, 900.0, 0),
             round(s, 1000, 320.0, 0),
         ];
-        let p = Point::of(&t.iter().collect::<Vec<_>>(), 0.999);
+        let p = BenchPoint::of(&t.iter().collect::<Vec<_>>(), 0.999);
         assert!(p.holds);
         assert_eq!(p.p99_us, Some(320.0));
         assert_eq!(p.valid_rounds, 3);
@@ -668,15 +668,15 @@ mod tests {
             round(s, 980, 900.0, 0),
             round(s, 1000, 320.0, 0),
         ];
-        assert!(!Point::of(&t.iter().collect::<Vec<_>>(), 0.999).holds);
+        assert!(!BenchPoint::of(&t.iter().collect::<Vec<_>>(), 0.999).holds);
         // A round whose generator fell behind is left out, good or bad.
         let t = [round(s, 1000, 300.0, 3), round(s, 990, 900.0, 0)];
-        let p = Point::of(&t.iter().collect::<Vec<_>>(), 0.999);
+        let p = BenchPoint::of(&t.iter().collect::<Vec<_>>(), 0.999);
         assert_eq!(p.valid_rounds, 1);
         assert!(!p.holds);
         // No valid round: nothing holds.
         let t = [round(s, 1000, 300.0, 1)];
-        let p = Point::of(&t.iter().collect::<Vec<_>>(), 0.999);
+        let p = BenchPoint::of(&t.iter().collect::<Vec<_>>(), 0.999);
         assert!(!p.holds);
         assert_eq!(p.within, None);
     }

@@ -14,7 +14,7 @@ use transport::ZenohArgs;
     version,
     about = "Load generator and benchmark for the controller service"
 )]
-pub struct Cli {
+pub struct LoadgenCli {
     #[command(subcommand)]
     pub cmd: Cmd,
 }
@@ -114,7 +114,7 @@ where
         )
         .with_writer(std::io::stderr)
         .try_init();
-    let cli = match Cli::try_parse_from(args) {
+    let cli = match LoadgenCli::try_parse_from(args) {
         Ok(c) => c,
         Err(e) => e.exit(),
     };
@@ -144,7 +144,7 @@ fn secs(what: &str, s: f64) -> Result<Duration> {
         .with_context(|| format!("--{what} must be a duration in seconds"))
 }
 
-async fn run(cli: Cli) -> Result<()> {
+async fn run(cli: LoadgenCli) -> Result<()> {
     match cli.cmd {
         Cmd::Echo { zenoh } => {
             let stop = transport::shutdown_signal();

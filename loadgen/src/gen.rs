@@ -50,7 +50,7 @@ pub struct Spec {
 /// What came back. Times are round trips measured on this process's clock (sample sent to
 /// command received), in microseconds.
 #[derive(Debug, Clone, Default, Serialize)]
-pub struct Report {
+pub struct LoadReport {
     pub devices: usize,
     pub gateways: usize,
     pub rate_hz: f64,
@@ -77,7 +77,7 @@ pub struct Report {
     pub max_us: u64,
 }
 
-impl Report {
+impl LoadReport {
     /// Fraction of the window's samples answered at all.
     pub fn answered_fraction(&self) -> f64 {
         frac(self.answered, self.sent)
@@ -205,7 +205,7 @@ fn lock(m: &Mutex<Rx>) -> std::sync::MutexGuard<'_, Rx> {
 const TAU: f64 = 0.5;
 
 /// Run the generator on `session` (already connected to the target) and report.
-pub async fn run(session: &Session, spec: &Spec) -> Result<Report, GenError> {
+pub async fn run(session: &Session, spec: &Spec) -> Result<LoadReport, GenError> {
     check(spec)?;
     let wait = Duration::from_secs(20);
     if !transport::wait_for_token(session, &keys::alive_controller("*"), wait).await {
@@ -254,7 +254,7 @@ pub async fn run(session: &Session, spec: &Spec) -> Result<Report, GenError> {
     tokio::time::sleep(Duration::from_millis(300)).await;
     drop(sub);
     let sh = &shared;
-    Ok(Report {
+    Ok(LoadReport {
         devices: spec.devices,
         gateways: spec.gateways,
         rate_hz: spec.rate_hz,

@@ -24,7 +24,7 @@ use crate::ConsoleError;
 /// browser.
 #[derive(Debug, Parser)]
 #[command(name = "mfc-console", version)]
-pub struct Cli {
+pub struct ConsoleCli {
     #[command(flatten)]
     pub zenoh: transport::ZenohArgs,
     /// Address the page is served on (keep it on loopback unless a proxy authenticates).
@@ -42,7 +42,7 @@ where
     I: IntoIterator<Item = T>,
     T: Into<std::ffi::OsString> + Clone,
 {
-    let cli = match Cli::try_parse_from(args) {
+    let cli = match ConsoleCli::try_parse_from(args) {
         Ok(c) => c,
         Err(e) => {
             let _ = e.print();
@@ -78,7 +78,7 @@ where
 
 /// Run the console until `stop` completes.
 pub async fn run(
-    cli: Cli,
+    cli: ConsoleCli,
     stop: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ConsoleError> {
     let settings = match &cli.config {
@@ -130,8 +130,9 @@ mod tests {
     #[test]
     fn the_command_line_parses() {
         use clap::CommandFactory;
-        Cli::command().debug_assert();
-        let cli = Cli::try_parse_from(["mfc-console", "--connect", "tcp/127.0.0.1:7447"]).unwrap();
+        ConsoleCli::command().debug_assert();
+        let cli =
+            ConsoleCli::try_parse_from(["mfc-console", "--connect", "tcp/127.0.0.1:7447"]).unwrap();
         assert_eq!(cli.listen_http.to_string(), "127.0.0.1:8080");
         assert_eq!(cli.zenoh.connect, ["tcp/127.0.0.1:7447"]);
     }

@@ -10,7 +10,7 @@
 //! [`MAX_CHANNELS`] values per vector, finite numbers. What is refused is counted, once,
 //! in [`Counters`].
 //!
-//! Memory is bounded: at most `max_devices` devices ([`Limits`]; beyond it a device whose
+//! Memory is bounded: at most `max_devices` devices ([`ViewBounds`]; beyond it a device whose
 //! plant is gone is evicted, else the newcomer is refused, both counted), and per device a
 //! ring of at most `points` joined points plus [`PENDING`] samples waiting for their
 //! command.
@@ -44,7 +44,7 @@ pub const MAX_POINTS_PER_READ: usize = 4000;
 
 /// The bounds of the view.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Limits {
+pub struct ViewBounds {
     /// Most devices held.
     pub max_devices: usize,
     /// Points kept per device (the ring's size).
@@ -54,7 +54,7 @@ pub struct Limits {
     pub forget_after: f64,
 }
 
-impl Default for Limits {
+impl Default for ViewBounds {
     fn default() -> Self {
         Self {
             max_devices: 256,
@@ -278,7 +278,7 @@ pub fn mode_of(flags: u32) -> &'static str {
 
 /// One period of a loop, as plotted.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct Point {
+pub struct PlotPoint {
     /// Position in the device's history (consecutive, from 0).
     pub n: u64,
     /// The sample's sequence number.
@@ -317,11 +317,11 @@ pub struct Device {
     last_seq: Option<u64>,
     last_t: f64,
     next_n: u64,
-    pending: VecDeque<Point>,
+    pending: VecDeque<PlotPoint>,
     /// Commands that came before their sample (the console's copy of a sample can travel
     /// a slower path than the service's answer to it).
     early: VecDeque<CommandIn>,
-    points: VecDeque<Point>,
+    points: VecDeque<PlotPoint>,
     /// Flags of the last sample.
     pub last_flags: u32,
     /// When the last sample came (console time).
@@ -363,7 +363,7 @@ impl Device {
     }
 
     /// The latest committed point.
-    pub fn last_point(&self) -> Option<&Point> {
+    pub fn last_point(&self) -> Option<&PlotPoint> {
         self.points.back()
     }
 
@@ -373,7 +373,7 @@ impl Device {
     }
 }
 
-fn join(p: &mut Point, c: CommandIn) {
+fn join(p: &mut PlotPoint, c: CommandIn) {
     p.r = c.r;
     p.u = c.u;
     p.v = c.v;
@@ -410,21 +410,21 @@ pub struct Series {
     /// The position to ask from next time.
     pub next: u64,
     /// The points.
-    pub points: Vec<Point>,
+    pub points: Vec<PlotPoint>,
 }
 
 /// The console's view of the fleet: every device it holds, what it knows of each, and its
 /// counters. (The service's `Fleet` is another thing: the shards it owns.)
 #[derive(Debug, Clone, Default)]
 pub struct FleetView {
-    limits: Limits,
+    limits: ViewBounds,
     devices: BTreeMap<String, Device>,
     counters: Counters,
 }
 
 impl FleetView {
     /// An empty view with these bounds.
-    pub fn new(limits: Limits) -> Self {
+    pub fn new(limits: ViewBounds) -> Self {
         Self {
             limits,
             ..Default::default()
@@ -617,7 +617,7 @@ impl FleetView {
         d.last_flags = s.flags;
         d.last_sample_at = Some(now);
         d.channels = s.y.len();
-        let mut p = Point {
+        let mut p = PlotPoint {
             n: 0,
             seq: s.seq,
             t: s.t,
@@ -729,7 +729,7 @@ impl FleetView {
         let d = self.devices.get(id)?;
         let first = d.points.front().map_or(d.next_n, |p| p.n);
         let skip = since.saturating_sub(first).min(d.points.len() as u64) as usize;
-        let points: Vec<Point> = d
+        let points: Vec<PlotPoint> = d
             .points
             .iter()
             .skip(skip)
@@ -934,8 +934,8 @@ mod tests {
         }
     }
 
-    fn limits(max_devices: usize, points: usize) -> Limits {
-        Limits {
+    fn limits(max_devices: usize, points: usize) -> ViewBounds {
+        ViewBounds {
             max_devices,
             points,
             forget_after: 10.0,
@@ -1028,7 +1028,7 @@ mod tests {
                 .len(),
             2
         );
-        let mut f = FleetView::new(Limits::default());
+        let mut f = FleetView::new(ViewBounds::default());
         f.dropped(Drop::BadId);
         f.dropped(Drop::Oversized);
         assert_eq!((f.counters().bad_id, f.counters().oversized), (1, 1));

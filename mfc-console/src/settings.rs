@@ -16,7 +16,7 @@ use std::path::Path;
 
 use serde::Deserialize;
 
-use crate::fleet::Limits;
+use crate::fleet::ViewBounds;
 
 /// The settings.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -43,7 +43,7 @@ pub struct Settings {
 
 impl Default for Settings {
     fn default() -> Self {
-        let l = Limits::default();
+        let l = ViewBounds::default();
         Self {
             max_devices: l.max_devices,
             points: l.points,
@@ -127,8 +127,8 @@ impl Settings {
     }
 
     /// The fleet view's bounds.
-    pub fn limits(&self) -> Limits {
-        Limits {
+    pub fn limits(&self) -> ViewBounds {
+        ViewBounds {
             max_devices: self.max_devices,
             points: self.points,
             forget_after: self.forget_after_s,

@@ -5,8 +5,8 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::{Parser, Subcommand};
 
-use crate::generate::{generate, Action};
-use crate::inventory::{Inventory, Role, EXAMPLE};
+use crate::generate::{generate, CertAction};
+use crate::inventory::{IdentityKind, Inventory, EXAMPLE};
 
 /// Generate a fleet's certificates, zenoh configs and access control from its inventory.
 #[derive(Parser)]
@@ -68,16 +68,16 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 println!("{}", serde_json::to_string_pretty(&report)?);
                 return Ok(());
             }
-            let say = |a: &Action| match a {
-                Action::Issued => "issued".to_string(),
-                Action::Kept => "kept".to_string(),
-                Action::Reissued(why) => format!("reissued ({why})"),
+            let say = |a: &CertAction| match a {
+                CertAction::Issued => "issued".to_string(),
+                CertAction::Kept => "kept".to_string(),
+                CertAction::Reissued(why) => format!("reissued ({why})"),
             };
             println!("{:<10} {:<20} {}", "CA", "", say(&report.ca));
             for e in &report.entries {
                 let role = format!("{:?}", e.role).to_lowercase();
                 let mut what = say(&e.action);
-                if e.config_changed && e.action == Action::Kept {
+                if e.config_changed && e.action == CertAction::Kept {
                     what = "kept, config rewritten".into();
                 }
                 let copy = if e.to_copy() { "copy" } else { "-" };
@@ -98,7 +98,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             if report.router_restart() {
                 println!(
                     "The router's certificate or access control changed: copy {} to the router and restart zenohd (plants ride through on their fallback).",
-                    out.join(Role::Router.dir()).display()
+                    out.join(IdentityKind::Router.dir()).display()
                 );
             }
         }

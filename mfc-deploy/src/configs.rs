@@ -5,7 +5,7 @@
 
 use serde_json::{json, Value};
 
-use crate::inventory::{Inventory, Protocol, Role};
+use crate::inventory::{IdentityKind, Inventory, Protocol};
 
 /// Link lease (ms), on the router and every client: how long a silent link lives. A
 /// router killed outright sends nothing over QUIC (no TCP reset), so its clients notice
@@ -68,9 +68,9 @@ pub fn router(inv: &Inventory, access_control: Value) -> Value {
 /// Services and plants retry forever (`timeout_ms: -1`), so start order does not matter
 /// and a router restart is ridden through; operators give up after
 /// [`OPERATOR_CONNECT_TIMEOUT_MS`].
-pub fn client(inv: &Inventory, role: Role, name: &str) -> Value {
+pub fn client(inv: &Inventory, role: IdentityKind, name: &str) -> Value {
     let (timeout, exit) = match role {
-        Role::Operator => (OPERATOR_CONNECT_TIMEOUT_MS, true),
+        IdentityKind::Operator => (OPERATOR_CONNECT_TIMEOUT_MS, true),
         _ => (-1, false),
     };
     json!({
@@ -122,7 +122,7 @@ mod tests {
     #[test]
     fn clients_dial_the_router_over_mtls_and_never_listen() {
         let inv = inv();
-        let c = client(&inv, Role::Device, "aero-1");
+        let c = client(&inv, IdentityKind::Device, "aero-1");
         assert_eq!(c["mode"], "client");
         assert_eq!(
             c["connect"]["endpoints"][0],
@@ -135,7 +135,7 @@ mod tests {
         assert_eq!(tls["enable_mtls"], true);
         assert_eq!(tls["connect_certificate"], "/etc/mfc/aero-1.pem");
         assert_eq!(tls["connect_private_key"], "/etc/mfc/aero-1.key");
-        let o = client(&inv, Role::Operator, "alice");
+        let o = client(&inv, IdentityKind::Operator, "alice");
         assert_eq!(o["connect"]["timeout_ms"], OPERATOR_CONNECT_TIMEOUT_MS);
     }
 

@@ -20,14 +20,14 @@ use std::path::{Path, PathBuf};
 use serde::Serialize;
 use time::{Duration, OffsetDateTime};
 
-use crate::inventory::{Inventory, Role};
+use crate::inventory::{IdentityKind, Inventory};
 use crate::pki::{Ca, Usage};
 use crate::{acl, configs, DeployError};
 
 /// What happened to one certificate.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize)]
 #[serde(tag = "action", content = "reason", rename_all = "lowercase")]
-pub enum Action {
+pub enum CertAction {
     /// There was none: issued.
     Issued,
     /// Still right: kept as it is.
@@ -40,12 +40,12 @@ pub enum Action {
 #[derive(Debug, Clone, Serialize)]
 pub struct Entry {
     /// Its role.
-    pub role: Role,
+    pub role: IdentityKind,
     /// Its name (the certificate's CN).
     pub name: String,
     /// What was done.
     #[serde(flatten)]
-    pub action: Action,
+    pub action: CertAction,
     /// Whether its zenoh config changed (another router address, port or install_dir; for
     /// the router, the access control): the bundle must be copied again even if its
     /// certificate was kept.
@@ -57,15 +57,15 @@ pub struct Entry {
 impl Entry {
     /// Whether this bundle must be copied to its host again.
     pub fn to_copy(&self) -> bool {
-        self.action != Action::Kept || self.config_changed
+        self.action != CertAction::Kept || self.config_changed
     }
 }
 
 /// What a run did.
 #[derive(Debug, Clone, Serialize)]
-pub struct Report {
+pub struct DeployReport {
     /// The CA: issued or kept.
-    pub ca: Action,
+    pub ca: CertAction,
     /// Every identity, router first.
     pub entries: Vec<Entry>,
     /// Bundles moved to `retired/` because their names left the inventory.
@@ -74,16 +74,16 @@ pub struct Report {
     pub router_config: PathBuf,
 }
 
-impl Report {
+impl DeployReport {
     /// Whether the router must be given its new bundle and restarted: its certificate or
     /// its config (the access control: a name added or removed) changed, or the CA is new.
     /// A client's rotation alone does not need it (same CA, same name).
     pub fn router_restart(&self) -> bool {
-        self.ca != Action::Kept
+        self.ca != CertAction::Kept
             || self
                 .entries
                 .iter()
-                .any(|e| e.role == Role::Router && e.to_copy())
+                .any(|e| e.role == IdentityKind::Router && e.to_copy())
     }
 }
 
@@ -138,9 +138,9 @@ fn read(path: &Path) -> Result<Option<String>, DeployError> {
 }
 
 /// The bundle directory of an identity.
-pub fn bundle_dir(out: &Path, role: Role, name: &str) -> PathBuf {
+pub fn bundle_dir(out: &Path, role: IdentityKind, name: &str) -> PathBuf {
     match role {
-        Role::Router => out.join(role.dir()),
+        IdentityKind::Router => out.join(role.dir()),
         _ => out.join(role.dir()).join(name),
     }
 }
@@ -153,7 +153,7 @@ pub fn generate(
     out: &Path,
     rotate: &[String],
     now: OffsetDateTime,
-) -> Result<Report, DeployError> {
+) -> Result<DeployReport, DeployError> {
     let identities = inv.identities();
     if let Some(unknown) = rotate
         .iter()
@@ -183,7 +183,7 @@ pub fn generate(
         ),
         false,
     )?;
-    Ok(Report {
+    Ok(DeployReport {
         ca: ca_action,
         entries,
         retired: retire_departed(out, &identities)?,
@@ -197,15 +197,15 @@ fn load_or_create_ca(
     inv: &Inventory,
     out: &Path,
     now: OffsetDateTime,
-) -> Result<(Ca, Action), DeployError> {
+) -> Result<(Ca, CertAction), DeployError> {
     let (ca_cert, ca_key) = (out.join("ca/ca.pem"), out.join("ca/ca.key"));
     let (ca, ca_action) = match (read(&ca_cert)?, read(&ca_key)?) {
-        (Some(c), Some(k)) => (Ca::load(&c, &k)?, Action::Kept),
+        (Some(c), Some(k)) => (Ca::load(&c, &k)?, CertAction::Kept),
         (None, None) => {
             let ca = Ca::create("mfc fleet CA", inv.ca_days, now)?;
             write(&ca_key, &ca.key_pem, true)?;
             write(&ca_cert, &ca.cert_pem, false)?;
-            (ca, Action::Issued)
+            (ca, CertAction::Issued)
         }
         _ => {
             return Err(DeployError::Pki(format!(
@@ -231,7 +231,7 @@ fn bundle(
     inv: &Inventory,
     out: &Path,
     ca: &Ca,
-    (role, name): (Role, &str),
+    (role, name): (IdentityKind, &str),
     rotate: bool,
     now: OffsetDateTime,
 ) -> Result<Entry, DeployError> {
@@ -242,21 +242,21 @@ fn bundle(
         dir.join(format!("{name}.key")),
     );
     let usage = match role {
-        Role::Router => Usage::Server(&inv.router.hosts),
+        IdentityKind::Router => Usage::Server(&inv.router.hosts),
         _ => Usage::Client,
     };
     let action = if rotate {
-        Action::Reissued("rotated on request".into())
+        CertAction::Reissued("rotated on request".into())
     } else {
         match (read(&cert_path)?, read(&key_path)?) {
             (Some(c), Some(k)) => match ca.check(&c, &k, name, usage, renew, now) {
-                Ok(()) => Action::Kept,
-                Err(why) => Action::Reissued(why),
+                Ok(()) => CertAction::Kept,
+                Err(why) => CertAction::Reissued(why),
             },
-            _ => Action::Issued,
+            _ => CertAction::Issued,
         }
     };
-    if action != Action::Kept {
+    if action != CertAction::Kept {
         let leaf = ca.issue(name, usage, inv.leaf_days, now)?;
         write(&key_path, &leaf.key_pem, true)?;
         write(&cert_path, &leaf.cert_pem, false)?;
@@ -267,7 +267,7 @@ fn bundle(
         inv.install_dir
     );
     let (file, config) = match role {
-        Role::Router => (
+        IdentityKind::Router => (
             "zenohd.json5".to_string(),
             configs::router(inv, acl::access_control(inv)),
         ),
@@ -288,9 +288,16 @@ fn bundle(
 
 /// Names that left the inventory: their bundles move aside; the access control no longer
 /// names them, so after the router restarts their certificates open nothing.
-fn retire_departed(out: &Path, identities: &[(Role, String)]) -> Result<Vec<PathBuf>, DeployError> {
+fn retire_departed(
+    out: &Path,
+    identities: &[(IdentityKind, String)],
+) -> Result<Vec<PathBuf>, DeployError> {
     let mut retired = Vec::new();
-    for role in [Role::Service, Role::Device, Role::Operator] {
+    for role in [
+        IdentityKind::Service,
+        IdentityKind::Device,
+        IdentityKind::Operator,
+    ] {
         let dir = out.join(role.dir());
         let Ok(listing) = fs::read_dir(&dir) else {
             continue;
@@ -329,7 +336,7 @@ mod tests {
         .unwrap()
     }
 
-    fn actions(r: &Report) -> Vec<(String, Action)> {
+    fn actions(r: &DeployReport) -> Vec<(String, CertAction)> {
         r.entries
             .iter()
             .map(|e| (e.name.clone(), e.action.clone()))
@@ -340,17 +347,17 @@ mod tests {
     fn adding_a_device_issues_one_certificate_and_keeps_the_rest() {
         let out = tempfile::tempdir().unwrap();
         let first = generate(&inv(&["aero-1"]), out.path(), &[], now()).unwrap();
-        assert_eq!(first.ca, Action::Issued);
-        assert!(first.entries.iter().all(|e| e.action == Action::Issued));
+        assert_eq!(first.ca, CertAction::Issued);
+        assert!(first.entries.iter().all(|e| e.action == CertAction::Issued));
         let before = fs::read(out.path().join("devices/aero-1/aero-1.pem")).unwrap();
 
         let second = generate(&inv(&["aero-1", "aero-2"]), out.path(), &[], now()).unwrap();
-        assert_eq!(second.ca, Action::Kept);
+        assert_eq!(second.ca, CertAction::Kept);
         let issued: Vec<_> = actions(&second)
             .into_iter()
-            .filter(|(_, a)| *a != Action::Kept)
+            .filter(|(_, a)| *a != CertAction::Kept)
             .collect();
-        assert_eq!(issued, [("aero-2".to_string(), Action::Issued)]);
+        assert_eq!(issued, [("aero-2".to_string(), CertAction::Issued)]);
         assert_eq!(
             fs::read(out.path().join("devices/aero-1/aero-1.pem")).unwrap(),
             before
@@ -384,7 +391,7 @@ mod tests {
             now(),
         )
         .unwrap();
-        assert!(matches!(actions(&r)[2], (ref n, Action::Reissued(_)) if n == "aero-1"));
+        assert!(matches!(actions(&r)[2], (ref n, CertAction::Reissued(_)) if n == "aero-1"));
         assert_ne!(key("aero-1"), k1, "a rotation makes a new key");
         assert_eq!(key("aero-2"), k2);
         assert!(
@@ -397,7 +404,7 @@ mod tests {
         assert!(r
             .entries
             .iter()
-            .all(|e| matches!(&e.action, Action::Reissued(w) if w.contains("expires"))));
+            .all(|e| matches!(&e.action, CertAction::Reissued(w) if w.contains("expires"))));
         let e = generate(&inv(&["aero-1"]), out.path(), &["aero-9".into()], now()).unwrap_err();
         assert!(e.to_string().contains("not in the inventory"), "{e}");
     }
@@ -412,7 +419,7 @@ mod tests {
         assert!(r
             .entries
             .iter()
-            .all(|e| e.action == Action::Kept && e.config_changed));
+            .all(|e| e.action == CertAction::Kept && e.config_changed));
         assert!(r.router_restart());
     }
 
@@ -457,7 +464,7 @@ mod tests {
         let out = tempfile::tempdir().unwrap();
         let r = generate(&inv(&["aero-1"]), out.path(), &[], now()).unwrap();
         for e in &r.entries {
-            let conf = if e.role == Role::Router {
+            let conf = if e.role == IdentityKind::Router {
                 "zenohd.json5".into()
             } else {
                 format!("{}.json5", e.name)

@@ -119,7 +119,7 @@ impl Protocol {
 /// The role an identity plays; its access-control rules follow from it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
-pub enum Role {
+pub enum IdentityKind {
     /// zenohd.
     Router,
     /// A controller service.
@@ -130,14 +130,14 @@ pub enum Role {
     Operator,
 }
 
-impl Role {
+impl IdentityKind {
     /// The bundle directory of this role under the output directory.
     pub fn dir(self) -> &'static str {
         match self {
-            Role::Router => "router",
-            Role::Service => "services",
-            Role::Device => "devices",
-            Role::Operator => "operators",
+            IdentityKind::Router => "router",
+            IdentityKind::Service => "services",
+            IdentityKind::Device => "devices",
+            IdentityKind::Operator => "operators",
         }
     }
 }
@@ -167,11 +167,23 @@ impl Inventory {
 
     /// Every identity with its role, router first. Names are unique across roles (checked):
     /// the access control tells roles apart by certificate common name alone.
-    pub fn identities(&self) -> Vec<(Role, String)> {
-        let mut v = vec![(Role::Router, self.router.name.clone())];
-        v.extend(self.services.iter().map(|s| (Role::Service, s.clone())));
-        v.extend(self.devices.iter().map(|s| (Role::Device, s.clone())));
-        v.extend(self.operators.iter().map(|s| (Role::Operator, s.clone())));
+    pub fn identities(&self) -> Vec<(IdentityKind, String)> {
+        let mut v = vec![(IdentityKind::Router, self.router.name.clone())];
+        v.extend(
+            self.services
+                .iter()
+                .map(|s| (IdentityKind::Service, s.clone())),
+        );
+        v.extend(
+            self.devices
+                .iter()
+                .map(|s| (IdentityKind::Device, s.clone())),
+        );
+        v.extend(
+            self.operators
+                .iter()
+                .map(|s| (IdentityKind::Operator, s.clone())),
+        );
         v
     }
 

@@ -17,8 +17,8 @@ pub mod generate;
 pub mod inventory;
 pub mod pki;
 
-pub use generate::{generate, Action, Report};
-pub use inventory::{Inventory, Role};
+pub use generate::{generate, CertAction, DeployReport};
+pub use inventory::{IdentityKind, Inventory};
 
 /// Why generation failed.
 #[derive(Debug, thiserror::Error)]

@@ -27,7 +27,7 @@ use crate::{ops, render};
 /// Operate model-free control services: status, configuration, gains, references.
 #[derive(Debug, Parser)]
 #[command(name = "mfcctl", version)]
-pub struct Cli {
+pub struct MfcctlCli {
     #[command(flatten)]
     pub zenoh: transport::ZenohArgs,
     /// Print JSON (the protobuf messages, field names as in `mfc.proto`) instead of text.
@@ -124,7 +124,7 @@ where
     I: IntoIterator<Item = T>,
     T: Into<std::ffi::OsString> + Clone,
 {
-    let cli = match Cli::try_parse_from(args) {
+    let cli = match MfcctlCli::try_parse_from(args) {
         Ok(c) => c,
         Err(e) => {
             let _ = e.print();
@@ -225,7 +225,7 @@ fn params(markdown: bool, json: bool) -> Result<String> {
 }
 
 /// Run one command; the text (or JSON) to print.
-pub async fn run(cli: Cli) -> Result<String> {
+pub async fn run(cli: MfcctlCli) -> Result<String> {
     // The table is the core's: no session needed.
     if let Command::Params { markdown } = cli.command {
         return params(markdown, cli.json);
@@ -332,10 +332,16 @@ mod tests {
     #[test]
     fn the_command_line_parses() {
         use clap::CommandFactory;
-        Cli::command().debug_assert();
-        let cli =
-            Cli::try_parse_from(["mfcctl", "--json", "reference", "a", "--constant", "-1,0.5"])
-                .unwrap();
+        MfcctlCli::command().debug_assert();
+        let cli = MfcctlCli::try_parse_from([
+            "mfcctl",
+            "--json",
+            "reference",
+            "a",
+            "--constant",
+            "-1,0.5",
+        ])
+        .unwrap();
         assert!(cli.json);
         assert!(
             matches!(cli.command, Command::Reference { ref constant, .. } if constant == &[-1.0, 0.5])
@@ -344,15 +350,15 @@ mod tests {
         let rt = tokio::runtime::Builder::new_current_thread()
             .build()
             .unwrap();
-        let md = Cli::try_parse_from(["mfcctl", "params", "--markdown"]).unwrap();
+        let md = MfcctlCli::try_parse_from(["mfcctl", "params", "--markdown"]).unwrap();
         assert_eq!(rt.block_on(run(md)).unwrap(), render::params_markdown());
-        let json = Cli::try_parse_from(["mfcctl", "--json", "params"]).unwrap();
+        let json = MfcctlCli::try_parse_from(["mfcctl", "--json", "params"]).unwrap();
         let v: serde_json::Value = serde_json::from_str(&rt.block_on(run(json)).unwrap()).unwrap();
         assert_eq!(v[3]["name"], "alpha");
-        let both = Cli::try_parse_from(["mfcctl", "--json", "params", "--markdown"]).unwrap();
+        let both = MfcctlCli::try_parse_from(["mfcctl", "--json", "params", "--markdown"]).unwrap();
         assert!(rt.block_on(run(both)).is_err());
         // `set`'s help lists the table's names.
-        let help = Cli::command()
+        let help = MfcctlCli::command()
             .find_subcommand_mut("set")
             .unwrap()
             .render_long_help()

@@ -30,8 +30,8 @@ use zenoh::Session;
 
 use crate::observe::{DeviceMetrics, LoopObservers, PeriodFigures};
 use crate::safety::{
-    IncomingCommand, Mode, PeriodBegin, SafetyConfig, SafetyError, Supervisor, SupervisorCounters,
-    Verdict,
+    IncomingCommand, LoopMode, PeriodBegin, SafetyConfig, SafetyError, Supervisor,
+    SupervisorCounters, Verdict,
 };
 use crate::wire::sample_flags;
 use plant::progress::Progress;
@@ -127,15 +127,15 @@ pub enum ControllerLink {
 /// How the run stood with its controller, from the mode of every period and whether any
 /// controller answered: the link, and for [`ControllerLink::Lost`] the plant time at which the
 /// final stretch off remote control began.
-pub fn link_of(modes: &[Mode], times: &[f64], reached: bool) -> (ControllerLink, Option<f64>) {
+pub fn link_of(modes: &[LoopMode], times: &[f64], reached: bool) -> (ControllerLink, Option<f64>) {
     if !reached {
         return (ControllerLink::Never, None);
     }
     match modes.last() {
-        Some(Mode::Local | Mode::SafeStop) => {
+        Some(LoopMode::Local | LoopMode::SafeStop) => {
             let start = modes
                 .iter()
-                .rposition(|m| *m == Mode::Remote)
+                .rposition(|m| *m == LoopMode::Remote)
                 .map_or(0, |k| k + 1);
             (ControllerLink::Lost, times.get(start).copied())
         }
@@ -604,7 +604,7 @@ struct OpenPeriod {
     deadline: Instant,
     y: Vec<f64>,
     /// The mode before this period's decisions.
-    mode_before: Mode,
+    mode_before: LoopMode,
     /// The round trip of the command applied in this period (µs; 0: none).
     rtt_us: u32,
     /// The applied command's `u` and `F` estimates.
@@ -895,7 +895,7 @@ impl<'a, 'p> PeriodLoop<'a, 'p> {
                         .unwrap_or(u32::MAX);
                     self.rtts.push(p.rtt_us);
                 }
-                if matches!(was, Mode::Local | Mode::SafeStop) {
+                if matches!(was, LoopMode::Local | LoopMode::SafeStop) {
                     tracing::info!(
                         device = id,
                         seq = p.k,
@@ -973,7 +973,7 @@ impl<'a, 'p> PeriodLoop<'a, 'p> {
     }
 
     /// A plant's line on the progress board.
-    fn progress(&self, t: f64, rtt_us: u32, mode: Mode, done: bool) -> Progress {
+    fn progress(&self, t: f64, rtt_us: u32, mode: LoopMode, done: bool) -> Progress {
         let counters = self.sup.counters();
         Progress {
             device: self.config.device_id.clone(),
@@ -1054,7 +1054,7 @@ mod link_tests {
 
     #[test]
     fn never_lost_and_kept_are_told_apart() {
-        use Mode::*;
+        use LoopMode::*;
         let t: Vec<f64> = (0..8).map(|k| k as f64 * 0.01).collect();
         assert_eq!(
             link_of(&[Local; 8], &t, false),

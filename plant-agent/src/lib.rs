@@ -32,7 +32,7 @@
 //!   lockstep network simulator): [`safety::Supervisor`] and the types of its calls
 //!   ([`safety::SafetyConfig`] with [`safety::MAX_AGE_LIMIT`], [`safety::FallbackPolicy`]
 //!   with [`safety::parse_fallback`], [`safety::IncomingCommand`], [`safety::Verdict`],
-//!   [`safety::PeriodBegin`], [`safety::SupervisorCounters`], [`safety::Mode`]), and their
+//!   [`safety::PeriodBegin`], [`safety::SupervisorCounters`], [`safety::LoopMode`]), and their
 //!   mapping to the protocol in [`wire`];
 //! * what a loop feeds: [`observe::LoopObservers`], [`observe::AgentMetrics`].
 //!

@@ -12,7 +12,7 @@ use metrics::{Counter, Gauge, Histogram, Unit};
 use plant::progress::ProgressBoard;
 use telemetry::{Metrics, Recording};
 
-use crate::safety::{Mode, SupervisorCounters};
+use crate::safety::{LoopMode, SupervisorCounters};
 
 /// Everything a loop may feed; all optional (the default feeds nothing).
 #[derive(Clone, Default)]
@@ -204,7 +204,7 @@ pub struct PeriodFigures<'a> {
     /// The period's round trip (µs; 0: none).
     pub rtt_us: u32,
     /// The mode at the end of the period.
-    pub mode: Mode,
+    pub mode: LoopMode,
     /// The last F estimates received, if a command came.
     pub f_est: Option<&'a [f64]>,
     /// Commands still queued.
@@ -214,12 +214,12 @@ pub struct PeriodFigures<'a> {
 }
 
 /// The number of a mode in `mfc_agent_mode`.
-pub fn mode_number(m: Mode) -> f64 {
+pub fn mode_number(m: LoopMode) -> f64 {
     match m {
-        Mode::Remote => 0.0,
-        Mode::Holding => 1.0,
-        Mode::Local => 2.0,
-        Mode::SafeStop => 3.0,
+        LoopMode::Remote => 0.0,
+        LoopMode::Holding => 1.0,
+        LoopMode::Local => 2.0,
+        LoopMode::SafeStop => 3.0,
     }
 }
 
@@ -234,7 +234,7 @@ impl DeviceMetrics {
         }
         self.mode.set(mode_number(f.mode));
         self.remote
-            .set(if f.mode == Mode::Remote { 1.0 } else { 0.0 });
+            .set(if f.mode == LoopMode::Remote { 1.0 } else { 0.0 });
         self.queue.set(f.queue as f64);
         self.overruns.absolute(f.overruns);
         if let Some(fe) = f.f_est {
@@ -335,7 +335,7 @@ mod tests {
         d.period(&PeriodFigures {
             counters: &c,
             rtt_us: 2000,
-            mode: Mode::Holding,
+            mode: LoopMode::Holding,
             f_est: Some(&[1.0, -4.0]),
             queue: 0,
             overruns: 0,

@@ -123,7 +123,7 @@ impl FromStr for FallbackPolicy {
 
 /// Who drives the plant: defined with the run's record, which keeps it per period, and
 /// decided here, by the [`Supervisor`].
-pub use plant::Mode;
+pub use plant::LoopMode;
 
 /// The safety settings of the loop.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -365,7 +365,7 @@ pub struct SupervisorCounters {
 pub struct PeriodBegin {
     /// The mode to put in the sample's flags: the mode at sampling time, before this
     /// period's decisions.
-    pub sample_mode: Mode,
+    pub sample_mode: LoopMode,
     /// Time-weighted mean of what the plant applied over the last period (the initial
     /// applied value for the first period), for the sample.
     pub applied_mean: Vec<f64>,
@@ -378,7 +378,7 @@ pub struct PeriodBegin {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PeriodEnd {
     /// The mode of the period (for the record; already counted).
-    pub mode: Mode,
+    pub mode: LoopMode,
     /// Plant time (s) still to let pass in this period, with the inputs applied now.
     pub advance: f64,
     /// The period had neither a command nor a warming-up answer.
@@ -390,7 +390,7 @@ pub struct PeriodEnd {
 struct Period {
     k: u64,
     /// The fallback mode written at the start of the period, if any.
-    fallback: Option<Mode>,
+    fallback: Option<LoopMode>,
     /// A command was applied during the period.
     got: bool,
     /// A warming-up answer came during the period.
@@ -408,7 +408,7 @@ pub struct Supervisor {
     config: SafetyConfig,
     local: MimoController,
     local_out: Vec<ChannelOutput>,
-    mode: Mode,
+    mode: LoopMode,
     counters: SupervisorCounters,
     missing_streak: u32,
     last_applied_seq: Option<u64>,
@@ -451,7 +451,7 @@ impl Supervisor {
             config,
             local,
             local_out: vec![ChannelOutput::default(); n],
-            mode: Mode::Remote,
+            mode: LoopMode::Remote,
             counters: SupervisorCounters::default(),
             missing_streak: 0,
             last_applied_seq: None,
@@ -523,10 +523,11 @@ impl Supervisor {
         let due = self.missing_streak > 0 && self.missing_streak >= self.config.hold_periods;
         let write = if self.mode.is_fallback() || due {
             let (mode, v) = match (self.config.fallback, local_ok) {
-                (FallbackPolicy::LocalController, true) => {
-                    (Mode::Local, self.local_out.iter().map(|o| o.v).collect())
-                }
-                _ => (Mode::SafeStop, vec![0.0; n]),
+                (FallbackPolicy::LocalController, true) => (
+                    LoopMode::Local,
+                    self.local_out.iter().map(|o| o.v).collect(),
+                ),
+                _ => (LoopMode::SafeStop, vec![0.0; n]),
             };
             if !self.mode.is_fallback() {
                 bump(&mut self.counters.fallbacks);
@@ -651,7 +652,7 @@ impl Supervisor {
                 self.last_applied_seq = Some(seq);
                 self.plan.clear();
                 self.plan.extend_from_slice(cmd.horizon);
-                self.mode = Mode::Remote;
+                self.mode = LoopMode::Remote;
                 self.missing_streak = 0;
                 bump(&mut self.counters.commands);
                 if !own {
@@ -693,24 +694,26 @@ impl Supervisor {
         if missing {
             bump(&mut self.counters.missing);
             self.missing_streak = self.missing_streak.saturating_add(1);
-            if self.mode == Mode::Remote && self.missing_streak < self.config.hold_periods.max(1) {
-                self.mode = Mode::Holding;
+            if self.mode == LoopMode::Remote
+                && self.missing_streak < self.config.hold_periods.max(1)
+            {
+                self.mode = LoopMode::Holding;
             }
         }
         let mode = match p.fallback {
             Some(fallback) if !p.got => fallback,
-            _ if missing && self.mode == Mode::Holding => Mode::Holding,
-            _ => Mode::Remote,
+            _ if missing && self.mode == LoopMode::Holding => LoopMode::Holding,
+            _ => LoopMode::Remote,
         };
         let c = &mut self.counters;
-        if missing && p.planned && mode == Mode::Holding {
+        if missing && p.planned && mode == LoopMode::Holding {
             bump(&mut c.horizon_periods);
         }
         match mode {
-            Mode::Holding => bump(&mut c.holding_periods),
-            Mode::Local => bump(&mut c.local_periods),
-            Mode::SafeStop => bump(&mut c.safe_stop_periods),
-            Mode::Remote => {}
+            LoopMode::Holding => bump(&mut c.holding_periods),
+            LoopMode::Local => bump(&mut c.local_periods),
+            LoopMode::SafeStop => bump(&mut c.safe_stop_periods),
+            LoopMode::Remote => {}
         }
         bump(&mut c.periods);
         let advance = h - p.elapsed;
@@ -725,7 +728,7 @@ impl Supervisor {
     }
 
     /// Who drives the plant now.
-    pub fn mode(&self) -> Mode {
+    pub fn mode(&self) -> LoopMode {
         self.mode
     }
 
@@ -927,7 +930,7 @@ mod tests {
             assert_eq!(s.applied_now(), &want);
             let end = s.end_period().unwrap();
             assert!(end.missing);
-            assert_eq!(end.mode, Mode::Holding);
+            assert_eq!(end.mode, LoopMode::Holding);
         }
         // What each period applied is what the next sample reports: the estimator's input.
         let b = begin(&mut s, 7);
@@ -941,7 +944,7 @@ mod tests {
         assert_eq!(b.write, None);
         s.end_period().unwrap();
         let b = begin(&mut s, 9);
-        assert_eq!(s.mode(), Mode::Local, "{b:?}");
+        assert_eq!(s.mode(), LoopMode::Local, "{b:?}");
         assert_eq!(s.counters().fallbacks, 1);
     }
 
@@ -1009,7 +1012,7 @@ mod tests {
         assert_eq!(begin(&mut s, 1).write, Some(vec![2.0, 2.0]));
         s.end_period().unwrap();
         assert_eq!(begin(&mut s, 2).write, Some(vec![0.0, 0.0]));
-        assert_eq!(s.mode(), Mode::SafeStop);
+        assert_eq!(s.mode(), LoopMode::SafeStop);
         s.end_period().unwrap();
         // Never the horizon again under the fallback, although it would reach period 3.
         assert_eq!(begin(&mut s, 3).write, Some(vec![0.0, 0.0]));
@@ -1090,7 +1093,7 @@ mod tests {
         assert!(e.to_string().starts_with("local controller: "));
         let s = Supervisor::new(cfg, &[channel(), channel()], vec![1.0, -2.0]).unwrap();
         assert_eq!(s.channels(), 2);
-        assert_eq!(s.mode(), Mode::Remote);
+        assert_eq!(s.mode(), LoopMode::Remote);
         assert_eq!(s.applied_now(), &[1.0, -2.0]);
         assert_eq!(s.missing_streak(), 0);
         assert_eq!(s.last_applied_seq(), None);
@@ -1140,12 +1143,12 @@ mod tests {
         assert!(de::<FallbackPolicy>("local_controller").is_err());
         assert!(de::<FallbackPolicy>("LocalController").is_err());
         for (name, mode) in [
-            ("remote", Mode::Remote),
-            ("holding", Mode::Holding),
-            ("local", Mode::Local),
-            ("safe_stop", Mode::SafeStop),
+            ("remote", LoopMode::Remote),
+            ("holding", LoopMode::Holding),
+            ("local", LoopMode::Local),
+            ("safe_stop", LoopMode::SafeStop),
         ] {
-            assert_eq!(de::<Mode>(name), Ok(mode));
+            assert_eq!(de::<LoopMode>(name), Ok(mode));
         }
         for p in [FallbackPolicy::LocalController, FallbackPolicy::SafeStop] {
             assert_eq!(p.to_string().parse::<FallbackPolicy>(), Ok(p));
@@ -1172,7 +1175,7 @@ mod tests {
             }
         );
         assert!(done);
-        assert_eq!(s.mode(), Mode::Remote);
+        assert_eq!(s.mode(), LoopMode::Remote);
         assert_eq!(s.last_applied_seq(), Some(0));
         assert_eq!(s.applied_now(), &[4.0]);
         assert_eq!(s.counters().commands, 1);
@@ -1181,7 +1184,7 @@ mod tests {
         assert_eq!(
             end,
             PeriodEnd {
-                mode: Mode::Remote,
+                mode: LoopMode::Remote,
                 advance: 0.3,
                 missing: false
             }
@@ -1208,7 +1211,7 @@ mod tests {
         assert!(!done, "the period's own command may still come");
         assert_eq!(s.counters().late, 1);
         assert_eq!(s.counters().commands, 1);
-        assert_eq!(s.mode(), Mode::Remote);
+        assert_eq!(s.mode(), LoopMode::Remote);
         assert_eq!(s.missing_streak(), 0);
         // The period's own command still lands after it.
         let (verdict, done) = command(&mut s, 0.375, ctl(10, &[2.5]));
@@ -1444,19 +1447,19 @@ mod tests {
         assert_eq!(
             end,
             PeriodEnd {
-                mode: Mode::Holding,
+                mode: LoopMode::Holding,
                 advance: H,
                 missing: true
             }
         );
-        assert_eq!(s.mode(), Mode::Holding);
+        assert_eq!(s.mode(), LoopMode::Holding);
         assert_eq!(s.missing_streak(), 1);
         assert_eq!(s.applied_now(), &[2.0], "the last command is held");
         let (b, end) = period(&mut s, 2, Some(3.0));
-        assert_eq!(b.sample_mode, Mode::Holding);
+        assert_eq!(b.sample_mode, LoopMode::Holding);
         assert_eq!(b.write, None);
-        assert_eq!(end.mode, Mode::Remote);
-        assert_eq!(s.mode(), Mode::Remote);
+        assert_eq!(end.mode, LoopMode::Remote);
+        assert_eq!(s.mode(), LoopMode::Remote);
         assert_eq!(s.missing_streak(), 0);
         let c = s.counters().clone();
         assert_eq!((c.missing, c.holding_periods, c.fallbacks), (1, 1, 0));
@@ -1469,15 +1472,15 @@ mod tests {
         for k in 1..=3 {
             let (b, end) = period(&mut s, k, None);
             assert_eq!(b.write, None);
-            assert_eq!(end.mode, Mode::Holding, "period {k}");
+            assert_eq!(end.mode, LoopMode::Holding, "period {k}");
         }
         let (b, end) = period(&mut s, 4, None);
-        assert_eq!(b.sample_mode, Mode::Holding);
+        assert_eq!(b.sample_mode, LoopMode::Holding);
         let v = b.write.expect("the fallback engages");
         assert_eq!(v, vec![s.local_out[0].v]);
         assert_eq!(s.applied_now(), &v[..]);
-        assert_eq!(end.mode, Mode::Local);
-        assert_eq!(s.mode(), Mode::Local);
+        assert_eq!(end.mode, LoopMode::Local);
+        assert_eq!(s.mode(), LoopMode::Local);
         let c = s.counters().clone();
         assert_eq!(
             (c.holding_periods, c.local_periods, c.fallbacks, c.missing),
@@ -1495,13 +1498,13 @@ mod tests {
                 b.write, None,
                 "hold {hold}: period 1 cannot be known missing"
             );
-            assert_eq!(end.mode, Mode::Remote, "hold {hold}");
+            assert_eq!(end.mode, LoopMode::Remote, "hold {hold}");
             assert!(end.missing);
-            assert_eq!(s.mode(), Mode::Remote);
+            assert_eq!(s.mode(), LoopMode::Remote);
             let (b, end) = period(&mut s, 2, None);
-            assert_eq!(b.sample_mode, Mode::Remote);
+            assert_eq!(b.sample_mode, LoopMode::Remote);
             assert!(b.write.is_some(), "hold {hold}");
-            assert_eq!(end.mode, Mode::Local);
+            assert_eq!(end.mode, LoopMode::Local);
             assert_eq!(s.counters().holding_periods, 0);
             assert_eq!(s.counters().fallbacks, 1);
         }
@@ -1540,21 +1543,21 @@ mod tests {
         period(&mut s, 1, None);
         let (b, end) = period(&mut s, 2, None);
         assert!(b.write.is_some());
-        assert_eq!(end.mode, Mode::Local);
+        assert_eq!(end.mode, LoopMode::Local);
         // Commands are back: the fallback wrote at the start, the command replaces it.
         let b = begin(&mut s, 3);
-        assert_eq!(b.sample_mode, Mode::Local);
+        assert_eq!(b.sample_mode, LoopMode::Local);
         assert!(b.write.is_some(), "still Local at the start of the period");
         let (verdict, done) = command(&mut s, 0.25, ctl(3, &[7.0]));
         assert!(matches!(verdict, Verdict::Apply { late: false, .. }) && done);
-        assert_eq!(s.mode(), Mode::Remote);
+        assert_eq!(s.mode(), LoopMode::Remote);
         let end = s.end_period().unwrap();
-        assert_eq!(end.mode, Mode::Remote);
+        assert_eq!(end.mode, LoopMode::Remote);
         assert_eq!(s.missing_streak(), 0);
         let (b, end) = period(&mut s, 4, Some(7.5));
-        assert_eq!(b.sample_mode, Mode::Remote);
+        assert_eq!(b.sample_mode, LoopMode::Remote);
         assert_eq!(b.write, None);
-        assert_eq!(end.mode, Mode::Remote);
+        assert_eq!(end.mode, LoopMode::Remote);
         let c = s.counters().clone();
         assert_eq!((c.local_periods, c.fallbacks), (1, 1));
     }
@@ -1567,17 +1570,17 @@ mod tests {
         period(&mut s, 2, None);
         let (b, end) = period(&mut s, 3, None);
         assert_eq!(b.write, Some(vec![0.0, 0.0]));
-        assert_eq!(end.mode, Mode::SafeStop);
-        assert_eq!(s.mode(), Mode::SafeStop);
+        assert_eq!(end.mode, LoopMode::SafeStop);
+        assert_eq!(s.mode(), LoopMode::SafeStop);
         assert_eq!(s.applied_now(), &[0.0, 0.0]);
         let (b, end) = period(&mut s, 4, None);
         assert_eq!(b.write, Some(vec![0.0, 0.0]), "zeros every period");
-        assert_eq!(end.mode, Mode::SafeStop);
+        assert_eq!(end.mode, LoopMode::SafeStop);
         // SafeStop -> Remote.
         let (b, end) = period(&mut s, 5, Some(1.0));
-        assert_eq!(b.sample_mode, Mode::SafeStop);
-        assert_eq!(end.mode, Mode::Remote);
-        assert_eq!(s.mode(), Mode::Remote);
+        assert_eq!(b.sample_mode, LoopMode::SafeStop);
+        assert_eq!(end.mode, LoopMode::Remote);
+        assert_eq!(s.mode(), LoopMode::Remote);
         let c = s.counters().clone();
         assert_eq!((c.safe_stop_periods, c.fallbacks), (2, 1));
     }
@@ -1591,18 +1594,18 @@ mod tests {
         let b = s.begin_period(2, 2.0 * H, &[f64::NAN], &refs(1)).unwrap();
         assert_eq!(b.write, Some(vec![0.0]));
         s.applied(&[0.0]);
-        assert_eq!(s.mode(), Mode::SafeStop);
-        assert_eq!(s.end_period().unwrap().mode, Mode::SafeStop);
+        assert_eq!(s.mode(), LoopMode::SafeStop);
+        assert_eq!(s.end_period().unwrap().mode, LoopMode::SafeStop);
         // It recovers: Local, without a second fallback entry.
         let (b, end) = period(&mut s, 3, None);
-        assert_eq!(b.sample_mode, Mode::SafeStop);
+        assert_eq!(b.sample_mode, LoopMode::SafeStop);
         assert_eq!(b.write, Some(vec![s.local_out[0].v]));
-        assert_eq!(end.mode, Mode::Local);
+        assert_eq!(end.mode, LoopMode::Local);
         // And fails again while Local: SafeStop, still one entry.
         s.begin_period(4, 4.0 * H, &[f64::INFINITY], &refs(1))
             .unwrap();
-        assert_eq!(s.mode(), Mode::SafeStop);
-        assert_eq!(s.end_period().unwrap().mode, Mode::SafeStop);
+        assert_eq!(s.mode(), LoopMode::SafeStop);
+        assert_eq!(s.end_period().unwrap().mode, LoopMode::SafeStop);
         let c = s.counters().clone();
         assert_eq!(
             (c.fallbacks, c.safe_stop_periods, c.local_periods),
@@ -1625,9 +1628,9 @@ mod tests {
         period(&mut s, 0, Some(2.0));
         let b = s.begin_period(1, H, &[f64::NAN], &refs(1)).unwrap();
         assert_eq!(b.write, None);
-        assert_eq!(s.mode(), Mode::Remote);
+        assert_eq!(s.mode(), LoopMode::Remote);
         command(&mut s, 0.1, ctl(1, &[3.0]));
-        assert_eq!(s.end_period().unwrap().mode, Mode::Remote);
+        assert_eq!(s.end_period().unwrap().mode, LoopMode::Remote);
     }
 
     #[test]
@@ -1635,7 +1638,7 @@ mod tests {
         let mut s = sup(2, 2, FallbackPolicy::LocalController);
         for k in 0..10 {
             let b = begin(&mut s, k);
-            assert_eq!(b.sample_mode, Mode::Remote);
+            assert_eq!(b.sample_mode, LoopMode::Remote);
             assert_eq!(b.write, None);
             let (verdict, done) = command(&mut s, 0.1, warm(k));
             assert_eq!((verdict, done), (Verdict::WarmingUp, true));
@@ -1643,7 +1646,7 @@ mod tests {
             assert_eq!(
                 end,
                 PeriodEnd {
-                    mode: Mode::Remote,
+                    mode: LoopMode::Remote,
                     advance: H,
                     missing: false
                 }
@@ -1670,8 +1673,8 @@ mod tests {
         command(&mut s, 0.1, warm(3));
         let end = s.end_period().unwrap();
         assert!(!end.missing);
-        assert_eq!(end.mode, Mode::Remote);
-        assert_eq!(s.mode(), Mode::Holding, "mode unchanged");
+        assert_eq!(end.mode, LoopMode::Remote);
+        assert_eq!(s.mode(), LoopMode::Holding, "mode unchanged");
         assert_eq!(s.missing_streak(), 0);
         assert_eq!(s.applied_now(), &[2.0]);
         // The streak starts again from zero.
@@ -1687,16 +1690,16 @@ mod tests {
         period(&mut s, 0, Some(2.0));
         period(&mut s, 1, None);
         period(&mut s, 2, None);
-        assert_eq!(s.mode(), Mode::Local);
+        assert_eq!(s.mode(), LoopMode::Local);
         for k in 3..6 {
             let b = begin(&mut s, k);
-            assert_eq!(b.sample_mode, Mode::Local);
+            assert_eq!(b.sample_mode, LoopMode::Local);
             assert!(b.write.is_some(), "the local controller keeps running");
             assert_eq!(command(&mut s, 0.1, warm(k)), (Verdict::WarmingUp, true));
             let end = s.end_period().unwrap();
-            assert_eq!(end.mode, Mode::Local);
+            assert_eq!(end.mode, LoopMode::Local);
             assert!(!end.missing);
-            assert_eq!(s.mode(), Mode::Local);
+            assert_eq!(s.mode(), LoopMode::Local);
             assert_eq!(s.missing_streak(), 0);
         }
         let c = s.counters().clone();
@@ -1715,7 +1718,7 @@ mod tests {
         assert_eq!(s.applied_now(), &[2.0]);
         let end = s.end_period().unwrap();
         assert!(end.missing);
-        assert_eq!(end.mode, Mode::Holding);
+        assert_eq!(end.mode, LoopMode::Holding);
         assert_eq!(s.counters().rejected, 2);
         assert_eq!(s.last_applied_seq(), Some(0));
         assert!(period(&mut s, 3, None).0.write.is_some());
@@ -1799,7 +1802,7 @@ mod tests {
         assert!(done);
         let end = s.end_period().unwrap();
         assert_eq!(end.advance, 0.5 * H);
-        assert_eq!(end.mode, Mode::Remote);
+        assert_eq!(end.mode, LoopMode::Remote);
         let b = begin(&mut s, 3);
         assert_eq!(b.applied_mean, vec![0.5 * 0.0 + 0.5 * 6.0]);
     }
@@ -2026,7 +2029,7 @@ mod tests {
                 assert_eq!(s.mode(), mode_before);
             }
             if let Some(v) = b.write {
-                if s.mode() == Mode::SafeStop {
+                if s.mode() == LoopMode::SafeStop {
                     assert!(v.iter().all(|x| *x == 0.0));
                 }
                 s.applied(&v);
@@ -2089,7 +2092,7 @@ mod tests {
                         assert!(advance >= 0.0);
                         got.advance += advance;
                         assert!(got.advance <= H + 1e-12);
-                        assert_eq!(s.mode(), Mode::Remote);
+                        assert_eq!(s.mode(), LoopMode::Remote);
                         s.applied(&v);
                         got.values.push(v.clone());
                         self.legit.push(v);
@@ -2117,10 +2120,10 @@ mod tests {
             );
             assert_eq!(end.missing, !got.answered);
             self.missing += u64::from(end.missing);
-            if end.mode == Mode::Remote {
+            if end.mode == LoopMode::Remote {
                 self.remote_periods += 1;
             }
-            if end.mode.is_fallback() || end.mode == Mode::Holding {
+            if end.mode.is_fallback() || end.mode == LoopMode::Holding {
                 assert_eq!(s.mode(), end.mode);
             }
             assert!(self.legit.iter().any(|l| l[..] == *s.applied_now()));

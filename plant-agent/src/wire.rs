@@ -1,6 +1,6 @@
 //! The agent's rules on the wire: how a decoded [`pb::Command`] becomes the
 //! [`IncomingCommand`] the [`Supervisor`](crate::safety::Supervisor) judges, and how the
-//! supervisor's [`Mode`] is reported in a [`pb::Sample`]'s flags.
+//! supervisor's [`LoopMode`] is reported in a [`pb::Sample`]'s flags.
 //!
 //! The rules themselves ([`crate::safety`]) know nothing of the protocol; this mapping is
 //! the one place that does. It is public so that a loop run elsewhere, like the bench's
@@ -9,7 +9,7 @@
 
 use protocol::pb;
 
-use crate::safety::{CommandBody, IncomingCommand, Mode};
+use crate::safety::{CommandBody, IncomingCommand, LoopMode};
 
 impl<'a> IncomingCommand<'a> {
     /// A decoded command as the supervisor judges it: a control, a warming-up answer, a
@@ -31,12 +31,12 @@ impl<'a> IncomingCommand<'a> {
 }
 
 /// The sample flags that report `mode` (none while remote).
-pub fn sample_flags(mode: Mode) -> u32 {
+pub fn sample_flags(mode: LoopMode) -> u32 {
     match mode {
-        Mode::Remote => 0,
-        Mode::Holding => pb::SampleFlags::Holding as u32,
-        Mode::Local => pb::SampleFlags::Fallback as u32,
-        Mode::SafeStop => pb::SampleFlags::SafeStop as u32,
+        LoopMode::Remote => 0,
+        LoopMode::Holding => pb::SampleFlags::Holding as u32,
+        LoopMode::Local => pb::SampleFlags::Fallback as u32,
+        LoopMode::SafeStop => pb::SampleFlags::SafeStop as u32,
     }
 }
 
@@ -78,10 +78,15 @@ mod tests {
     /// other mode one flag of its own.
     #[test]
     fn each_mode_has_its_own_flag_and_remote_none() {
-        let flags: Vec<u32> = [Mode::Remote, Mode::Holding, Mode::Local, Mode::SafeStop]
-            .into_iter()
-            .map(sample_flags)
-            .collect();
+        let flags: Vec<u32> = [
+            LoopMode::Remote,
+            LoopMode::Holding,
+            LoopMode::Local,
+            LoopMode::SafeStop,
+        ]
+        .into_iter()
+        .map(sample_flags)
+        .collect();
         assert_eq!(flags[0], 0);
         for (i, f) in flags.iter().enumerate().skip(1) {
             assert_eq!(f.count_ones(), 1, "mode {i}: one flag, not {f:#b}");

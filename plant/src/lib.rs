@@ -13,7 +13,7 @@
 //!   with plain labels, axis titles with their unit);
 //! * [`progress`]: the terminal board of running plants (time, RMS so far, round trip,
 //!   mode);
-//! * [`Mode`]: who drives the plant in a period, as runs record and show it;
+//! * [`LoopMode`]: who drives the plant in a period, as runs record and show it;
 //! * [`run_id`]: the id that tells one run of a device from the next.
 //!
 //! Why a crate of its own: the bench runs plants offline, in lockstep, and records them
@@ -30,7 +30,7 @@ pub mod progress;
 pub mod record;
 pub mod scenario;
 
-pub use mode::Mode;
+pub use mode::LoopMode;
 
 use std::time::Duration;
 

@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 /// Who drives the plant.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
-pub enum Mode {
+pub enum LoopMode {
     /// Applying the remote controller's commands.
     Remote,
     /// A command is missing: the last one applied is held, or its horizon played.
@@ -18,20 +18,20 @@ pub enum Mode {
     SafeStop,
 }
 
-impl Mode {
+impl LoopMode {
     /// Whether this is a fallback mode (the agent, not the remote controller, decides the
     /// inputs).
     pub fn is_fallback(self) -> bool {
-        matches!(self, Mode::Local | Mode::SafeStop)
+        matches!(self, LoopMode::Local | LoopMode::SafeStop)
     }
 
     /// The name used in records and logs (the same as its serde name).
     pub fn as_str(self) -> &'static str {
         match self {
-            Mode::Remote => "remote",
-            Mode::Holding => "holding",
-            Mode::Local => "local",
-            Mode::SafeStop => "safe_stop",
+            LoopMode::Remote => "remote",
+            LoopMode::Holding => "holding",
+            LoopMode::Local => "local",
+            LoopMode::SafeStop => "safe_stop",
         }
     }
 }

@@ -10,7 +10,7 @@ use std::sync::Mutex;
 
 use serde::Serialize;
 
-use crate::Mode;
+use crate::LoopMode;
 
 /// One plant's progress.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -26,7 +26,7 @@ pub struct Progress {
     /// The last round trip (µs; 0 if the period's command did not come).
     pub rtt_us: u32,
     /// The mode at the end of the last period.
-    pub mode: Mode,
+    pub mode: LoopMode,
     /// Times the fallback engaged.
     pub fallbacks: u64,
     /// Periods without their command (held, fallback or stopped).
@@ -105,7 +105,7 @@ pub fn render(plants: &[Progress]) -> String {
     }
     if plants.len() > BOARD_LINES {
         let rest = &plants[BOARD_LINES..];
-        let remote = rest.iter().filter(|p| p.mode == Mode::Remote).count();
+        let remote = rest.iter().filter(|p| p.mode == LoopMode::Remote).count();
         let done = rest.iter().filter(|p| p.done).count();
         out.push_str(&format!(
             "… {} more: {} remote, {} on hold/fallback/stop, {} done\n",
@@ -122,7 +122,7 @@ pub fn render(plants: &[Progress]) -> String {
 mod tests {
     use super::*;
 
-    fn p(dev: &str, mode: Mode) -> Progress {
+    fn p(dev: &str, mode: LoopMode) -> Progress {
         Progress {
             device: dev.into(),
             t: 12.34,
@@ -139,8 +139,8 @@ mod tests {
     #[test]
     fn the_board_shows_time_rms_rtt_and_mode_per_plant() {
         let b = ProgressBoard::new();
-        b.update(p("aero-2", Mode::Local));
-        b.update(p("aero-1", Mode::Remote));
+        b.update(p("aero-2", LoopMode::Local));
+        b.update(p("aero-1", LoopMode::Remote));
         let t = b.render();
         let lines: Vec<&str> = t.lines().collect();
         assert_eq!(lines.len(), 2);
@@ -151,7 +151,7 @@ mod tests {
         assert!(lines[0].contains("remote"), "{t}");
         assert!(lines[1].contains("local"), "{t}");
         // A newer figure replaces the line.
-        let mut q = p("aero-1", Mode::Holding);
+        let mut q = p("aero-1", LoopMode::Holding);
         q.done = true;
         b.update(q);
         assert!(b.render().lines().next().unwrap().contains("holding"));
@@ -165,9 +165,9 @@ mod tests {
                 p(
                     &format!("p-{i:03}"),
                     if i % 2 == 0 {
-                        Mode::Remote
+                        LoopMode::Remote
                     } else {
-                        Mode::Local
+                        LoopMode::Local
                     },
                 )
             })

@@ -20,7 +20,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
-use crate::Mode;
+use crate::LoopMode;
 
 pub use metrics::{percentile, Accumulator, ChannelMetrics};
 
@@ -84,7 +84,7 @@ pub struct RunRecord {
     /// Per channel.
     pub traces: Vec<Trace>,
     /// Networked runs: the agent's mode in each period (empty offline).
-    pub modes: Vec<Mode>,
+    pub modes: Vec<LoopMode>,
     /// Networked runs: round trip of each period's sample, µs (0: no command).
     pub rtt_us: Vec<u32>,
 }
@@ -105,7 +105,7 @@ pub struct Period<'a> {
     /// Estimates of `F`, if known.
     pub f_est: Option<&'a [f64]>,
     /// Networked runs: the mode and the round trip (µs).
-    pub net: Option<(Mode, u32)>,
+    pub net: Option<(LoopMode, u32)>,
 }
 
 impl RunRecord {
@@ -160,7 +160,7 @@ impl RunRecord {
     }
 
     /// The mode of period `k`, for networked runs.
-    pub fn mode(&self, k: usize) -> Option<Mode> {
+    pub fn mode(&self, k: usize) -> Option<LoopMode> {
         self.modes.get(k).copied()
     }
 

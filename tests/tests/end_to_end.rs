@@ -7,7 +7,7 @@ use controller_service::config::ServiceConfig;
 use mfc_lab::harness::{run_plant, service_config, PlantSpec, ServiceHandle};
 use mfc_lab::offline::simulate;
 use plant::scenario::{load_scenario, shipped_controller, Scenario};
-use plant_agent::safety::Mode;
+use plant_agent::safety::LoopMode;
 use protocol::convert::channel_to_pb;
 use protocol::{decode, encode, keys, pb, PROTOCOL_VERSION};
 use system_tests::{query, rms_ratio_bound, served_plant, SERIAL};
@@ -385,7 +385,7 @@ async fn no_controller_means_local_fallback() {
     // Hold for hold_periods, then the local controller for good.
     assert_eq!(report.counters.holding_periods, 5);
     assert!(
-        rec.modes.iter().skip(5).all(|m| *m == Mode::Local),
+        rec.modes.iter().skip(5).all(|m| *m == LoopMode::Local),
         "{:?}",
         &rec.modes[..8]
     );

@@ -11,7 +11,7 @@ use mfc_lab::campaign::{run_case, CaseOptions};
 use mfc_lab::harness::{run_plant, service_config, PlantSpec};
 use plant::record::RunRecord;
 use plant::scenario::{load_scenario, shipped_controller, Scenario};
-use plant_agent::safety::Mode;
+use plant_agent::safety::LoopMode;
 use plant_agent::safety::SafetyConfig;
 use system_tests::{margin_periods, scratch_dir, SERIAL};
 
@@ -26,7 +26,7 @@ fn options() -> CaseOptions {
 }
 
 /// Plant time of each period in `mode`.
-fn times_in(rec: &RunRecord, mode: Mode) -> impl Iterator<Item = f64> + '_ {
+fn times_in(rec: &RunRecord, mode: LoopMode) -> impl Iterator<Item = f64> + '_ {
     rec.t
         .iter()
         .zip(&rec.modes)
@@ -265,8 +265,8 @@ async fn one_second_outage_recovers_within_a_second() {
             "{link:?}: the outage made it fall back"
         );
         // The relay's clock starts a little before the plant's: find the outage in the record.
-        let first_fallback = times_in(rec, Mode::Local).next().unwrap();
-        let back = times_in(rec, Mode::Remote)
+        let first_fallback = times_in(rec, LoopMode::Local).next().unwrap();
+        let back = times_in(rec, LoopMode::Remote)
             .find(|t| *t > first_fallback)
             .unwrap();
         let outage_end = first_fallback - hold - s.period + 1.0;
@@ -278,7 +278,7 @@ async fn one_second_outage_recovers_within_a_second() {
         );
         // Once back, it stays back: no fallback after the recovery.
         assert_eq!(
-            times_in(rec, Mode::Local).filter(|t| *t > back).count(),
+            times_in(rec, LoopMode::Local).filter(|t| *t > back).count(),
             0,
             "{link:?}: fell back again after the link returned"
         );
@@ -333,7 +333,7 @@ fn start_service(config: &std::path::Path, endpoint: &str) -> Child {
 }
 
 /// Index of the first period in `mode` at or after `from`.
-fn first_in(rec: &RunRecord, mode: Mode, from: usize) -> Option<usize> {
+fn first_in(rec: &RunRecord, mode: LoopMode, from: usize) -> Option<usize> {
     rec.modes
         .iter()
         .skip(from)
@@ -409,10 +409,10 @@ async fn controller_crash_and_restart() {
     assert!(report.counters.fallbacks >= 1);
     // In order: remote, then (after the kill) the fallback within the hold plus the
     // margin, then remote again after the restart, in bounds throughout.
-    let first_fb = first_in(&rec, Mode::Local, 0).expect("never fell back");
+    let first_fb = first_in(&rec, LoopMode::Local, 0).expect("never fell back");
     let last_remote = rec.modes[..first_fb]
         .iter()
-        .rposition(|m| *m == Mode::Remote)
+        .rposition(|m| *m == LoopMode::Remote)
         .expect("never had remote control");
     let limit = hold + 1 + margin_periods() as usize;
     assert!(
@@ -420,7 +420,7 @@ async fn controller_crash_and_restart() {
         "fallback after {} periods (limit {limit})",
         first_fb - last_remote
     );
-    let back = first_in(&rec, Mode::Remote, first_fb).expect("remote control never resumed");
+    let back = first_in(&rec, LoopMode::Remote, first_fb).expect("remote control never resumed");
     eprintln!(
         "killed ~4.0 s, fallback at {:.2} s, restart ~6.0 s, remote again at {:.2} s",
         rec.t[first_fb], rec.t[back]
@@ -526,7 +526,7 @@ async fn hot_standby_takes_over_before_the_fallback() {
         if *t <= 1.0 {
             continue;
         }
-        if *m == Mode::Remote {
+        if *m == LoopMode::Remote {
             run_len = 0;
         } else {
             run_len += 1;

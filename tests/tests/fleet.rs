@@ -18,7 +18,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use loadgen::gen::{self, Report, Spec};
+use loadgen::gen::{self, LoadReport, Spec};
 use protocol::{keys, pb};
 use system_tests::{margin_periods, query, scratch_dir, SERIAL};
 use zenoh::Session;
@@ -132,7 +132,7 @@ fn spec(measure_s: f64) -> Spec {
 
 /// What every phase must show: no double answer, no warm-up again (state was kept), most
 /// samples answered, and no plant left unanswered longer than the takeover bound.
-fn check(phase: &str, r: &Report) {
+fn check(phase: &str, r: &LoadReport) {
     eprintln!("{phase}: {r:?}");
     assert_eq!(r.duplicates, 0, "{phase}: a sample was answered twice");
     assert_eq!(

@@ -6,7 +6,7 @@ use std::time::Duration;
 
 use clap::Parser;
 use mfc_lab::harness::{run_plant, service_config, PlantSpec, ServiceHandle};
-use mfcctl::cli::{run, Cli};
+use mfcctl::cli::{run, MfcctlCli};
 use plant::scenario::{load_scenario, shipped_controller};
 use system_tests::SERIAL;
 
@@ -20,7 +20,7 @@ async fn ctl(endpoint: &str, args: &[&str]) -> anyhow::Result<String> {
         "peer",
     ];
     argv.extend_from_slice(args);
-    run(Cli::try_parse_from(argv)?).await
+    run(MfcctlCli::try_parse_from(argv)?).await
 }
 
 #[tokio::test(flavor = "multi_thread")]

@@ -16,7 +16,7 @@ use super::intake::Msg;
 use super::lock;
 use super::log::throttled;
 use super::worker::Worker;
-use crate::fleet::{Action, Got, Reply, Request, RequestKind};
+use crate::fleet::{Got, Reply, Request, RequestKind, ShardAction};
 use crate::snapshot::{decode_shard, encode_shard};
 
 impl Worker {
@@ -39,7 +39,7 @@ impl Worker {
 
     /// Carry out a fleet change: start the requests it asks for, drop the state of shards
     /// no longer held, then make the masks and the shard routes match the roles.
-    pub(super) async fn apply_fleet(&mut self, actions: Vec<Action>) {
+    pub(super) async fn apply_fleet(&mut self, actions: Vec<ShardAction>) {
         for a in actions {
             self.carry_out(a);
         }
@@ -51,7 +51,7 @@ impl Worker {
         }
     }
 
-    fn carry_out(&mut self, action: Action) {
+    fn carry_out(&mut self, action: ShardAction) {
         let Some(m) = &self.member else { return };
         let name = m.spec.name.as_str();
         let timeout = Duration::from_millis(m.spec.handover_timeout_ms);
@@ -64,10 +64,10 @@ impl Worker {
             );
         };
         match &action {
-            Action::Acquire { shard, from } => ask(from, *shard, Request::Release(&self.id)),
-            Action::Copy { shard, from } => ask(from, *shard, Request::Copy(&self.id)),
-            Action::Offer { shard, to } => ask(to, *shard, Request::Offer(&self.id)),
-            Action::Unsubscribe(shard) => {
+            ShardAction::Acquire { shard, from } => ask(from, *shard, Request::Release(&self.id)),
+            ShardAction::Copy { shard, from } => ask(from, *shard, Request::Copy(&self.id)),
+            ShardAction::Offer { shard, to } => ask(to, *shard, Request::Offer(&self.id)),
+            ShardAction::Unsubscribe(shard) => {
                 let mut c = lock(&self.shared.core);
                 let gone = c.registry.forget_shard(*shard);
                 let mut ib = lock(&self.shared.inbox);
@@ -76,7 +76,7 @@ impl Worker {
                     c.forget(d);
                 }
             }
-            Action::Subscribe(_) => {}
+            ShardAction::Subscribe(_) => {}
         }
     }
 

@@ -22,7 +22,7 @@ use super::{
     BATCH, FLEET_TICK, GATEWAYS_PENDING, GATEWAY_TURN, HEARTBEATS, LOG_INTERVAL, OTHERS, QUEUE,
 };
 use crate::config::{FleetSpec, SnapshotSpec};
-use crate::fleet::{Action, Fleet, FleetTiming};
+use crate::fleet::{Fleet, FleetTiming, ShardAction};
 use crate::inbox::Inbox;
 use crate::observe::{Observers, ScrapeRequest, Scraped};
 use crate::standby::HotStandby;
@@ -435,7 +435,7 @@ async fn join_fleet(
     intake: &Arc<Intake>,
     id: &str,
     spec: &FleetSpec,
-) -> Result<(FleetRoutes, Member, Vec<Action>), ServiceError> {
+) -> Result<(FleetRoutes, Member, Vec<ShardAction>), ServiceError> {
     let listening = FleetRoutes::declare(session, intake, (&spec.name, id)).await?;
     let wait = Duration::from_millis(spec.discover_ms);
     let others = super::routes::fleet_members(session, &spec.name, id, wait).await;
