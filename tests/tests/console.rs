@@ -69,49 +69,15 @@ fn law_kp(c: &pb::ChannelConfig) -> Option<f64> {
     }
 }
 
-#[tokio::test(flavor = "multi_thread")]
-async fn the_console_shows_live_devices_and_changes_one_gain() {
-    let _s = SERIAL.lock().await;
-    let started = Instant::now();
-    let tools = browser_tools();
-    let (node, prefix, chromium) = (&tools["node"], &tools["prefix"], &tools["chromium"]);
-
-    let scratch = scratch_dir("console");
-    let shots = match std::env::var("MFC_CONSOLE_SCREENSHOTS") {
-        Ok(d) if !d.is_empty() => workspace_root().join(d),
-        _ => scratch.join("screenshots"),
-    };
-    std::fs::create_dir_all(&shots).unwrap();
-    for f in ["console-gain.png", "console-fleet.png"] {
-        let _ = std::fs::remove_file(shots.join(f));
-    }
-
-    // A service for two AEROs; aero-1 runs throughout (the test stops it), aero-2 starts
-    // once the page is open and ends after 15 s of plant time.
-    let mut s = load_scenario("1").unwrap();
-    s.duration = 180.0;
-    let c = shipped_controller("ipd").unwrap();
-    let ids = ["aero-1".to_string(), "aero-2".to_string()];
-    let service = ServiceHandle::start(service_config(&s, &c, &ids), None)
-        .await
-        .unwrap();
-    let ep = service.endpoint.clone();
-    let plant = tokio::spawn(run_plant(
-        vec![ep.clone()],
-        served_plant(&s, &c, "aero-1"),
-        true,
-    ));
-    let mut late = s.clone();
-    late.duration = 15.0;
-    let late = served_plant(&late, &c, "aero-2");
-
-    // The console, as a process, with the operator's flags.
+/// The console, as a process, with the operator's flags, connected to `ep`; its HTTP
+/// port once it listens.
+async fn start_console(ep: &str, scratch: &std::path::Path) -> (tokio::process::Child, u16) {
     let port = transport::free_local_port().unwrap();
     let log = std::fs::File::create(scratch.join("console.log")).unwrap();
     let mut console = tokio::process::Command::new(env!("CARGO_BIN_EXE_console-under-test"))
         .args([
             "--connect",
-            &ep,
+            ep,
             "--mode",
             "peer",
             "--no-multicast-scouting",
@@ -129,27 +95,43 @@ async fn the_console_shows_live_devices_and_changes_one_gain() {
         console.try_wait(),
         std::fs::read_to_string(scratch.join("console.log")).unwrap_or_default()
     );
+    (console, port)
+}
 
-    // What the service holds before the page changes anything.
-    let operator = service.client().await.unwrap();
-    let timeout = Duration::from_secs(2);
+/// Wait until the service has served `dev` for a while.
+async fn served_for_a_while(operator: &zenoh::Session, dev: &str) {
     let end = Instant::now() + Duration::from_secs(60);
     loop {
-        let st = ops::device_status(&operator, "aero-1", timeout).await;
+        let st = ops::device_status(operator, dev, Duration::from_secs(2)).await;
         if st.as_ref().is_ok_and(|st| st.samples > 100) {
             break;
         }
-        assert!(Instant::now() < end, "aero-1 is not served: {st:?}");
+        assert!(Instant::now() < end, "{dev} is not served: {st:?}");
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
-    let before = ops::config(&operator, "aero-1", timeout).await.unwrap();
-    let refused_before = ops::services(&operator, timeout).await.unwrap()[0].requests_refused;
-    assert_eq!(law_kp(&before.channels[1]), Some(9.0), "{before:?}");
+}
 
-    // The browser.
+/// What the browser script reported: its stages, each with its data; and the second plant
+/// it had started once the page loaded.
+struct BrowserRun {
+    stages: Vec<(String, serde_json::Value)>,
+    late_plant: Option<tokio::task::JoinHandle<anyhow::Result<plant_agent::agent::AgentRun>>>,
+    secs: f64,
+}
+
+/// Drive the page with `tests/browser/console.mjs` in Chromium, starting `late` once the
+/// page has loaded; fail unless the script ends well within [`SCRIPT_DEADLINE`].
+async fn run_browser(
+    port: u16,
+    (scratch, shots): (&std::path::Path, &std::path::Path),
+    ep: &str,
+    late: &mfc_lab::harness::PlantSpec,
+) -> BrowserRun {
+    let tools = browser_tools();
+    let (node, prefix, chromium) = (&tools["node"], &tools["prefix"], &tools["chromium"]);
     let profile = scratch.join("chromium-profile");
     std::fs::create_dir_all(&profile).unwrap();
-    let browser_started = Instant::now();
+    let started = Instant::now();
     let mut script = tokio::process::Command::new(node)
         .arg(workspace_root().join("tests/browser/console.mjs"))
         .env("MFC_CONSOLE_URL", format!("http://127.0.0.1:{port}/"))
@@ -157,7 +139,7 @@ async fn the_console_shows_live_devices_and_changes_one_gain() {
         .env("MFC_CHROMIUM", chromium)
         .env("MFC_CONSOLE_DEVICE", "aero-1")
         .env("MFC_CONSOLE_LATE_DEVICE", "aero-2")
-        .env("MFC_CONSOLE_SCREENSHOTS", &shots)
+        .env("MFC_CONSOLE_SCREENSHOTS", shots)
         .env("MFC_CONSOLE_PROFILE", &profile)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
@@ -186,7 +168,7 @@ async fn the_console_shows_live_devices_and_changes_one_gain() {
             let (name, data) = rest.split_once(' ').unwrap_or((rest, "{}"));
             if name == "loaded" && late_plant.is_none() {
                 late_plant = Some(tokio::spawn(run_plant(
-                    vec![ep.clone()],
+                    vec![ep.to_string()],
                     late.clone(),
                     true,
                 )));
@@ -199,7 +181,6 @@ async fn the_console_shows_live_devices_and_changes_one_gain() {
     })
     .await;
     let status = tokio::time::timeout(Duration::from_secs(30), script.wait()).await;
-    let browser_secs = browser_started.elapsed().as_secs_f64();
     let stderr = errors.await.unwrap_or_default();
     let names: Vec<&str> = stages.iter().map(|(n, _)| n.as_str()).collect();
     assert!(
@@ -228,17 +209,23 @@ async fn the_console_shows_live_devices_and_changes_one_gain() {
         ],
         "{stderr}"
     );
+    BrowserRun {
+        stages,
+        late_plant,
+        secs: started.elapsed().as_secs_f64(),
+    }
+}
 
-    // The page's plots advanced in plant time with more points.
+/// What the page saw: plots advancing in plant time with more points, none of the loops'
+/// messages refused, most samples joined to their command.
+fn judge_page(stages: &[(String, serde_json::Value)]) {
     let plots = &stages[1].1;
     let (t1, t2) = (
         plots["first"]["y0"]["last"].as_f64().unwrap(),
         plots["second"]["y0"]["last"].as_f64().unwrap(),
     );
     assert!(t2 >= t1 + 1.0, "{plots}");
-
-    // The console refused none of the loops' messages, and joined most samples to their
-    // command (a few periods of warm-up and losses aside).
+    // A few periods of warm-up and losses aside.
     let counters = &stages[7].1["counters"];
     for k in [
         "bad_id",
@@ -254,11 +241,12 @@ async fn the_console_shows_live_devices_and_changes_one_gain() {
         counters["commands"].as_u64().unwrap(),
     );
     assert!(samples > 500 && commands * 10 > samples * 8, "{counters}");
+}
 
-    // The service's configuration: kp of channel 1 is 12, and nothing else changed but the
-    // reference the page set (the refused max never reached the service: the console
-    // refused it, so the service counted no refusal).
-    let after = ops::config(&operator, "aero-1", timeout).await.unwrap();
+/// The service's configuration after the page: kp of channel 1 is 12, and nothing else
+/// changed but the reference the page set (the refused max never reached the service:
+/// the console refused it, so the service counted no refusal).
+fn judge_change(before: &pb::DeviceConfig, after: &pb::DeviceConfig) {
     assert_eq!(law_kp(&after.channels[1]), Some(12.0), "{after:?}");
     assert_eq!(after.channels[0], before.channels[0], "channel 0 untouched");
     assert_eq!(
@@ -279,18 +267,66 @@ async fn the_console_shows_live_devices_and_changes_one_gain() {
         _ => None,
     };
     assert_eq!(constant(1), Some(0.05), "{r:?}");
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn the_console_shows_live_devices_and_changes_one_gain() {
+    let _s = SERIAL.lock().await;
+    let started = Instant::now();
+    let scratch = scratch_dir("console");
+    let shots = match std::env::var("MFC_CONSOLE_SCREENSHOTS") {
+        Ok(d) if !d.is_empty() => workspace_root().join(d),
+        _ => scratch.join("screenshots"),
+    };
+    std::fs::create_dir_all(&shots).unwrap();
+    for f in ["console-gain.png", "console-fleet.png"] {
+        let _ = std::fs::remove_file(shots.join(f));
+    }
+
+    // A service for two AEROs; aero-1 runs throughout (the test stops it), aero-2 starts
+    // once the page is open and ends after 15 s of plant time.
+    let mut s = load_scenario("1").unwrap();
+    s.duration = 180.0;
+    let c = shipped_controller("ipd").unwrap();
+    let ids = ["aero-1".to_string(), "aero-2".to_string()];
+    let service = ServiceHandle::start(service_config(&s, &c, &ids), None)
+        .await
+        .unwrap();
+    let ep = service.endpoint.clone();
+    let plant = tokio::spawn(run_plant(
+        vec![ep.clone()],
+        served_plant(&s, &c, "aero-1"),
+        true,
+    ));
+    let mut late = s.clone();
+    late.duration = 15.0;
+    let late = served_plant(&late, &c, "aero-2");
+    let (mut console, port) = start_console(&ep, &scratch).await;
+
+    // What the service holds before the page changes anything.
+    let operator = service.client().await.unwrap();
+    let timeout = Duration::from_secs(2);
+    served_for_a_while(&operator, "aero-1").await;
+    let before = ops::config(&operator, "aero-1", timeout).await.unwrap();
+    let refused_before = ops::services(&operator, timeout).await.unwrap()[0].requests_refused;
+    assert_eq!(law_kp(&before.channels[1]), Some(9.0), "{before:?}");
+
+    let browser = run_browser(port, (&scratch, &shots), &ep, &late).await;
+    judge_page(&browser.stages);
+    let after = ops::config(&operator, "aero-1", timeout).await.unwrap();
+    judge_change(&before, &after);
     let refused_after = ops::services(&operator, timeout).await.unwrap()[0].requests_refused;
     assert_eq!(
         refused_after, refused_before,
         "the service saw no refused request"
     );
-
     for f in ["console-gain.png", "console-fleet.png"] {
         let len = std::fs::metadata(shots.join(f)).map_or(0, |m| m.len());
         assert!(len > 10_000, "screenshot {f}: {len} bytes");
     }
     eprintln!(
-        "console test: browser part {browser_secs:.1} s, whole test {:.1} s, screenshots in {}",
+        "console test: browser part {:.1} s, whole test {:.1} s, screenshots in {}",
+        browser.secs,
         started.elapsed().as_secs_f64(),
         shots.display()
     );
@@ -298,7 +334,7 @@ async fn the_console_shows_live_devices_and_changes_one_gain() {
     // Stop everything this test started.
     let _ = console.kill().await;
     plant.abort();
-    if let Some(p) = late_plant {
+    if let Some(p) = browser.late_plant {
         let _ = p.await;
     }
     let _ = operator.close().await;

@@ -84,6 +84,186 @@ async fn exchange(
     decode::<pb::CommandBatch>(&r.payload().to_bytes()).unwrap()
 }
 
+/// A gateway's client on the test's session: it sends batches and collects every command
+/// value it gets back (all must lie inside the envelope).
+struct Gateway {
+    s: Session,
+    replies: zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+    every_v: Vec<f64>,
+}
+
+impl Gateway {
+    /// Send `samples` as one batch of gw-1 and wait for the answer.
+    async fn exchange(&mut self, samples: Vec<pb::Sample>) -> pb::CommandBatch {
+        let b = exchange(&self.s, &self.replies, batch("gw-1", samples)).await;
+        self.every_v
+            .extend(b.commands.iter().flat_map(|c| c.v.clone()));
+        b
+    }
+
+    /// 30 ordinary periods: four plants through the gateway, one on its own key.
+    async fn ordinary_periods(
+        &mut self,
+        cells: &[String],
+        solo: &zenoh::pubsub::Subscriber<
+            zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>,
+        >,
+    ) {
+        for k in 1..=30u64 {
+            self.s
+                .put(keys::sample("solo-1"), encode(&sample("solo-1", k, 0.0)))
+                .await
+                .unwrap();
+            let b = self
+                .exchange(cells.iter().map(|c| sample(c, k, 0.0)).collect())
+                .await;
+            assert_eq!(b.controller_id, "c-gw");
+            let got: Vec<(&str, u64, pb::Mode)> = b
+                .commands
+                .iter()
+                .map(|c| (c.device_id.as_str(), c.seq, mode(c)))
+                .collect();
+            let want: Vec<(&str, u64, pb::Mode)> = cells
+                .iter()
+                .map(|c| (c.as_str(), k, pb::Mode::Control))
+                .collect();
+            assert_eq!(got, want, "period {k}");
+            let c = tokio::time::timeout(Duration::from_secs(10), solo.recv_async())
+                .await
+                .unwrap()
+                .unwrap();
+            let c = decode::<pb::Command>(&c.payload().to_bytes()).unwrap();
+            assert_eq!(
+                (c.seq, mode(&c)),
+                (k, pb::Mode::Control),
+                "the single-rig plant, period {k}"
+            );
+            self.every_v.extend(c.v);
+        }
+    }
+
+    /// One batch with every kind of sample a gateway may carry.
+    async fn every_kind_of_sample(&mut self) {
+        let mut nan = sample("cell-1", 31, 0.0);
+        nan.outputs = vec![f64::NAN];
+        let b = self
+            .exchange(vec![
+                sample("cell-0", 31, 0.0),
+                sample("cell-0", 31, 0.0), // the same sample again: answered again, the same
+                nan,                       // refused, changing nothing
+                sample("cell-2", 29, 0.0), // older than one answered: stale
+                sample("cell-3", 31, 0.0),
+                sample("bad id!", 31, 0.0), // no device to answer
+                sample("other-1", 31, 0.0), // no template: not served
+            ])
+            .await;
+        let got: Vec<(&str, u64, pb::Mode)> = b
+            .commands
+            .iter()
+            .map(|c| (c.device_id.as_str(), c.seq, mode(c)))
+            .collect();
+        assert_eq!(
+            got,
+            vec![
+                ("cell-0", 31, pb::Mode::Control),
+                ("cell-0", 31, pb::Mode::Control),
+                ("cell-1", 31, pb::Mode::Rejected),
+                ("cell-2", 29, pb::Mode::Stale),
+                ("cell-3", 31, pb::Mode::Control),
+            ]
+        );
+        assert_eq!(
+            b.commands[0].v, b.commands[1].v,
+            "a duplicate gets the same command"
+        );
+        assert!(
+            b.commands[2].error.contains("non-finite"),
+            "{}",
+            b.commands[2].error
+        );
+    }
+
+    /// The device table holds 8: solo-1 and cell-0..3 are in, so three of six new ones fit.
+    async fn a_full_table(&mut self, cells: &[String]) {
+        let news: Vec<pb::Sample> = (4..10)
+            .map(|i| sample(&format!("cell-{i}"), 32, 0.0))
+            .collect();
+        let mut all: Vec<pb::Sample> = cells.iter().map(|c| sample(c, 32, 0.0)).collect();
+        all.extend(news);
+        let b = self.exchange(all).await;
+        let ids: Vec<&str> = b.commands.iter().map(|c| c.device_id.as_str()).collect();
+        assert_eq!(
+            ids,
+            ["cell-0", "cell-1", "cell-2", "cell-3", "cell-4", "cell-5", "cell-6"]
+        );
+        assert!(b
+            .commands
+            .iter()
+            .all(|c| mode(c) == pb::Mode::Control && c.seq == 32));
+    }
+
+    /// Batches refused whole, with no answer: another gateway's id on gw-1's key, too many
+    /// samples, garbage.
+    async fn refused_batches(&mut self) {
+        let s = &self.s;
+        s.put(
+            keys::gateway_samples("gw-1"),
+            batch("gw-2", vec![sample("cell-0", 33, 0.0)]),
+        )
+        .await
+        .unwrap();
+        let huge: Vec<pb::Sample> = (0..=protocol::MAX_BATCH_SAMPLES as u64)
+            .map(|i| sample("cell-0", 40 + i, 0.0))
+            .collect();
+        s.put(keys::gateway_samples("gw-1"), batch("gw-1", huge))
+            .await
+            .unwrap();
+        s.put(keys::gateway_samples("gw-1"), vec![0xff, 0x01, 0x02])
+            .await
+            .unwrap();
+        // A good batch after them: its answer comes after they were sorted (one link, in
+        // order).
+        let b = self.exchange(vec![sample("cell-0", 33, 0.0)]).await;
+        assert_eq!(
+            (b.commands.len(), b.commands[0].seq),
+            (1, 33),
+            "nothing of the refused batches reached cell-0"
+        );
+    }
+}
+
+/// Each refusal in its counter, each device's counts as its samples made them.
+fn judge_counters(st: &pb::ServiceStatus) {
+    assert_eq!(
+        (
+            st.bad_key,
+            st.oversized,
+            st.undecodable,
+            st.bad_device_ids,
+            st.unknown_samples,
+            st.device_table_full,
+            st.rejected
+        ),
+        (1, 1, 1, 1, 1, 3, 1),
+        "each refusal in its counter: {st:?}"
+    );
+    let dev = |id: &str| {
+        st.devices
+            .iter()
+            .find(|d| d.device_id == id)
+            .unwrap_or_else(|| panic!("{id} in the status"))
+            .clone()
+    };
+    let c0 = dev("cell-0");
+    assert_eq!((c0.samples, c0.duplicates, c0.last_seq), (34, 1, 33));
+    let c1 = dev("cell-1");
+    assert_eq!((c1.samples, c1.rejected, c1.last_seq), (32, 1, 32));
+    let c2 = dev("cell-2");
+    assert_eq!((c2.stale, c2.last_seq), (1, 32));
+    assert_eq!(dev("solo-1").commands, 30);
+    assert_eq!(st.devices.len(), 8, "the table never grew past max_devices");
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn every_rule_holds_per_device_inside_a_batch() {
     let _s = SERIAL.lock().await;
@@ -116,168 +296,22 @@ async fn every_rule_holds_per_device_inside_a_batch() {
     let solo = s.declare_subscriber(keys::command("solo-1")).await.unwrap();
     // Declarations travel in order on the one link: a query after them finds them in place.
     let _: pb::ServiceStatus = query(&s, keys::service_status("c-gw"), None).await.unwrap();
-
-    let mut every_v = Vec::new();
+    let mut gw = Gateway {
+        s: s.clone(),
+        replies,
+        every_v: Vec::new(),
+    };
     let cells: Vec<String> = (0..4).map(|i| format!("cell-{i}")).collect();
-    // 30 ordinary periods: four plants through the gateway, one on its own key.
-    for k in 1..=30u64 {
-        s.put(keys::sample("solo-1"), encode(&sample("solo-1", k, 0.0)))
-            .await
-            .unwrap();
-        let b = exchange(
-            &s,
-            &replies,
-            batch("gw-1", cells.iter().map(|c| sample(c, k, 0.0)).collect()),
-        )
-        .await;
-        assert_eq!(b.controller_id, "c-gw");
-        let got: Vec<(&str, u64, pb::Mode)> = b
-            .commands
-            .iter()
-            .map(|c| (c.device_id.as_str(), c.seq, mode(c)))
-            .collect();
-        let want: Vec<(&str, u64, pb::Mode)> = cells
-            .iter()
-            .map(|c| (c.as_str(), k, pb::Mode::Control))
-            .collect();
-        assert_eq!(got, want, "period {k}");
-        every_v.extend(b.commands.iter().flat_map(|c| c.v.clone()));
-        let c = tokio::time::timeout(Duration::from_secs(10), solo.recv_async())
-            .await
-            .unwrap()
-            .unwrap();
-        let c = decode::<pb::Command>(&c.payload().to_bytes()).unwrap();
-        assert_eq!(
-            (c.seq, mode(&c)),
-            (k, pb::Mode::Control),
-            "the single-rig plant, period {k}"
-        );
-        every_v.extend(c.v);
-    }
-
-    // One batch with every kind of sample a gateway may carry.
-    let mut nan = sample("cell-1", 31, 0.0);
-    nan.outputs = vec![f64::NAN];
-    let b = exchange(
-        &s,
-        &replies,
-        batch(
-            "gw-1",
-            vec![
-                sample("cell-0", 31, 0.0),
-                sample("cell-0", 31, 0.0), // the same sample again: answered again, the same
-                nan,                       // refused, changing nothing
-                sample("cell-2", 29, 0.0), // older than one answered: stale
-                sample("cell-3", 31, 0.0),
-                sample("bad id!", 31, 0.0), // no device to answer
-                sample("other-1", 31, 0.0), // no template: not served
-            ],
-        ),
-    )
-    .await;
-    let got: Vec<(&str, u64, pb::Mode)> = b
-        .commands
-        .iter()
-        .map(|c| (c.device_id.as_str(), c.seq, mode(c)))
-        .collect();
-    assert_eq!(
-        got,
-        vec![
-            ("cell-0", 31, pb::Mode::Control),
-            ("cell-0", 31, pb::Mode::Control),
-            ("cell-1", 31, pb::Mode::Rejected),
-            ("cell-2", 29, pb::Mode::Stale),
-            ("cell-3", 31, pb::Mode::Control),
-        ]
-    );
-    assert_eq!(
-        b.commands[0].v, b.commands[1].v,
-        "a duplicate gets the same command"
-    );
+    gw.ordinary_periods(&cells, &solo).await;
+    gw.every_kind_of_sample().await;
+    gw.a_full_table(&cells).await;
+    gw.refused_batches().await;
     assert!(
-        b.commands[2].error.contains("non-finite"),
-        "{}",
-        b.commands[2].error
-    );
-    every_v.extend(b.commands.iter().flat_map(|c| c.v.clone()));
-
-    // The device table holds 8: solo-1 and cell-0..3 are in, so three of six new ones fit.
-    let news: Vec<pb::Sample> = (4..10)
-        .map(|i| sample(&format!("cell-{i}"), 32, 0.0))
-        .collect();
-    let mut all: Vec<pb::Sample> = cells.iter().map(|c| sample(c, 32, 0.0)).collect();
-    all.extend(news);
-    let b = exchange(&s, &replies, batch("gw-1", all)).await;
-    let ids: Vec<&str> = b.commands.iter().map(|c| c.device_id.as_str()).collect();
-    assert_eq!(
-        ids,
-        ["cell-0", "cell-1", "cell-2", "cell-3", "cell-4", "cell-5", "cell-6"]
-    );
-    assert!(b
-        .commands
-        .iter()
-        .all(|c| mode(c) == pb::Mode::Control && c.seq == 32));
-    every_v.extend(b.commands.iter().flat_map(|c| c.v.clone()));
-
-    // Batches refused whole, with no answer: another gateway's id on gw-1's key, too many
-    // samples, garbage.
-    s.put(
-        keys::gateway_samples("gw-1"),
-        batch("gw-2", vec![sample("cell-0", 33, 0.0)]),
-    )
-    .await
-    .unwrap();
-    let huge: Vec<pb::Sample> = (0..=protocol::MAX_BATCH_SAMPLES as u64)
-        .map(|i| sample("cell-0", 40 + i, 0.0))
-        .collect();
-    s.put(keys::gateway_samples("gw-1"), batch("gw-1", huge))
-        .await
-        .unwrap();
-    s.put(keys::gateway_samples("gw-1"), vec![0xff, 0x01, 0x02])
-        .await
-        .unwrap();
-    // A good batch after them: its answer comes after they were sorted (one link, in order).
-    let b = exchange(&s, &replies, batch("gw-1", vec![sample("cell-0", 33, 0.0)])).await;
-    assert_eq!(
-        (b.commands.len(), b.commands[0].seq),
-        (1, 33),
-        "nothing of the refused batches reached cell-0"
-    );
-
-    assert!(
-        every_v.iter().all(|v| (-LIMIT..=LIMIT).contains(v)),
+        gw.every_v.iter().all(|v| (-LIMIT..=LIMIT).contains(v)),
         "every command inside the envelope"
     );
-
     let st: pb::ServiceStatus = query(&s, keys::service_status("c-gw"), None).await.unwrap();
-    assert_eq!(
-        (
-            st.bad_key,
-            st.oversized,
-            st.undecodable,
-            st.bad_device_ids,
-            st.unknown_samples,
-            st.device_table_full,
-            st.rejected
-        ),
-        (1, 1, 1, 1, 1, 3, 1),
-        "each refusal in its counter: {st:?}"
-    );
-    let dev = |id: &str| {
-        st.devices
-            .iter()
-            .find(|d| d.device_id == id)
-            .unwrap_or_else(|| panic!("{id} in the status"))
-            .clone()
-    };
-    let c0 = dev("cell-0");
-    assert_eq!((c0.samples, c0.duplicates, c0.last_seq), (34, 1, 33));
-    let c1 = dev("cell-1");
-    assert_eq!((c1.samples, c1.rejected, c1.last_seq), (32, 1, 32));
-    let c2 = dev("cell-2");
-    assert_eq!((c2.stale, c2.last_seq), (1, 32));
-    assert_eq!(dev("solo-1").commands, 30);
-    assert_eq!(st.devices.len(), 8, "the table never grew past max_devices");
+    judge_counters(&st);
     let _ = s.close().await;
 }
 

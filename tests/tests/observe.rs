@@ -42,51 +42,10 @@ fn samples(text: &str) -> BTreeMap<String, f64> {
         .collect()
 }
 
-#[tokio::test(flavor = "multi_thread")]
-async fn metrics_match_the_status_and_a_recording_decodes_and_replays() {
-    let _s = SERIAL.lock().await;
-    let dir = scratch_dir("observe");
-    let mut s = load_scenario("1").unwrap();
-    s.duration = 6.0;
-    let c = shipped_controller("ipd").unwrap();
-    let mut config = service_config(&s, &c, &["aero-1".into()]);
-    config.metrics = Some(telemetry::MetricsSpec {
-        listen: "127.0.0.1:0".into(),
-        per_device: true,
-    });
-    config.record = Some(RecordSpec::at(dir.join("service.mcap")));
-    let service = ServiceHandle::start(config, None).await.unwrap();
-    let addr = service.metrics.expect("a metrics endpoint");
-    let ep = service.endpoint.clone();
-    // The agent's side: its metrics and its own recording.
-    let agent_metrics = std::sync::Arc::new(AgentMetrics::new(telemetry::Metrics::new()));
-    let agent_rec =
-        Recording::create(&RecordSpec::at(dir.join("plant.mcap")), "plant-agent").unwrap();
-    let mut spec = PlantSpec::new(&s, &c, "aero-1");
-    spec.loop_config.observers.metrics = Some(agent_metrics.clone());
-    spec.loop_config.observers.recording = Some(agent_rec.clone());
-    let plant = tokio::spawn(run_plant(vec![ep.clone()], spec, true));
-    // A partial gain change and a reference change while it runs: the replay must apply
-    // them where they happened.
-    let client = service.client().await.unwrap();
-    tokio::time::sleep(Duration::from_secs(2)).await;
-    let upd = transport::ops::parse_update(1, &["kp=12".to_string()]).unwrap();
-    let now = transport::ops::update(&client, "aero-1", upd, Duration::from_secs(2))
-        .await
-        .expect("a partial gain change, accepted");
-    assert_eq!(now.channels.len(), 2);
-    let mid = scrape(addr).await;
-    assert!(
-        samples(&mid)
-            .get("mfc_device_samples_total{controller=\"controller-1\",device=\"aero-1\"}")
-            .is_some_and(|&n| n > 0.0),
-        "{mid}"
-    );
-    let run = plant.await.unwrap().unwrap();
-    assert!(run.report.controller_reached);
-    agent_rec.finish().unwrap();
-    let agent_text = agent_metrics.metrics().render();
-    let am = samples(&agent_text);
+/// The agent's side of the run: its metrics count what its report counts, and its own
+/// recording holds one sample per period and the commands it received.
+fn judge_agent(run: &plant_agent::agent::AgentRun, agent_text: &str, plant_mcap: &std::path::Path) {
+    let am = samples(agent_text);
     let counters = &run.report.counters;
     assert_eq!(
         am["mfc_agent_periods_total{device=\"aero-1\"}"],
@@ -100,8 +59,7 @@ async fn metrics_match_the_status_and_a_recording_decodes_and_replays() {
         am["mfc_agent_missing_total{device=\"aero-1\"}"],
         counters.missing as f64
     );
-    // The agent's recording: one sample per period, and the commands it received.
-    let pc = read_recording(&std::fs::read(dir.join("plant.mcap")).unwrap()).unwrap();
+    let pc = read_recording(&std::fs::read(plant_mcap).unwrap()).unwrap();
     let sent = pc
         .messages
         .iter()
@@ -113,10 +71,15 @@ async fn metrics_match_the_status_and_a_recording_decodes_and_replays() {
     );
     assert!(pc.messages.iter().any(|m| m.topic == Topic::Command));
     assert_eq!(pc.metadata["dropped"], "0");
+}
 
-    // The plant has stopped: nothing moves any more, so a status and a scrape taken one
-    // after the other must agree exactly.
-    let status = transport::ops::services(&client, Duration::from_secs(2))
+/// With the plant stopped nothing moves any more, so a status and a scrape taken one after
+/// the other agree exactly. Returns the device's status and the scrape's text.
+async fn status_and_scrape_agree(
+    client: &zenoh::Session,
+    addr: std::net::SocketAddr,
+) -> (pb::DeviceStatus, String) {
+    let status = transport::ops::services(client, Duration::from_secs(2))
         .await
         .unwrap();
     let text = scrape(addr).await;
@@ -175,9 +138,11 @@ async fn metrics_match_the_status_and_a_recording_decodes_and_replays() {
     assert!(text.contains(&format!(
         "mfc_device_loop_rtt_seconds_bucket{{{dl},le=\"0.01\"}}"
     )));
-    service.stop().await.unwrap();
+    (d.clone(), text)
+}
 
-    // Every metric the shipped Grafana dashboard plots exists in a real scrape.
+/// Every metric the shipped Grafana dashboard plots exists in a real scrape.
+fn dashboard_plots_what_is_exported(exposed: &str) {
     let dash: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(
             system_tests::workspace_root().join("deploy/grafana/mfc-dashboard.json"),
@@ -185,7 +150,6 @@ async fn metrics_match_the_status_and_a_recording_decodes_and_replays() {
         .unwrap(),
     )
     .unwrap();
-    let exposed = format!("{text}\n{agent_text}");
     let mut plotted = 0;
     for p in dash["panels"].as_array().unwrap() {
         for t in p["targets"].as_array().unwrap() {
@@ -202,15 +166,16 @@ async fn metrics_match_the_status_and_a_recording_decodes_and_replays() {
         }
     }
     assert!(plotted >= 10);
+}
 
-    // The recording: read with the mcap crate's own reader, every channel's schema is a
-    // protobuf descriptor set that decodes its messages by name, with no generated code.
-    let bytes = std::fs::read(dir.join("service.mcap")).unwrap();
-    let summary = mcap::Summary::read(&bytes)
+/// The recording, read with the mcap crate's own reader: every channel's schema is a
+/// protobuf descriptor set that decodes its messages by name, with no generated code.
+fn recording_decodes_without_generated_code(bytes: &[u8], d: &pb::DeviceStatus) {
+    let summary = mcap::Summary::read(bytes)
         .unwrap()
         .expect("a finished file");
     let mut decoded: BTreeMap<String, usize> = BTreeMap::new();
-    for msg in mcap::MessageStream::new(&bytes).unwrap() {
+    for msg in mcap::MessageStream::new(bytes).unwrap() {
         let msg = msg.unwrap();
         let schema = msg.channel.schema.as_ref().expect("a schema");
         assert_eq!(schema.encoding, "protobuf");
@@ -246,17 +211,19 @@ async fn metrics_match_the_status_and_a_recording_decodes_and_replays() {
         decoded["/mfc/aero-1/config"] >= 2,
         "at the start and after the change"
     );
+}
 
-    // A replay through the same controller gives the same commands.
-    let r = controller_service::replay::replay(&bytes, 1e-9).unwrap();
+/// A replay through the same controller gives the same commands; a recording cut short
+/// replays up to the cut and says so; one with a sample altered by 1 mrad does not match.
+fn replays(bytes: &[u8], d: &pb::DeviceStatus, dir: &std::path::Path) {
+    let r = controller_service::replay::replay(bytes, 1e-9).unwrap();
     assert!(r.matched, "{}", controller_service::replay::render(&r));
     let dr = &r.devices[0];
     assert_eq!(dr.compared, d.commands, "every command compared");
     assert_eq!((dr.changes, dr.changes_refused), (1, 0));
     println!("{}", controller_service::replay::render(&r));
 
-    // A recording whose writer was killed (cut at 60 %: no summary, no footer) still
-    // replays, up to the cut, and says so.
+    // A recording whose writer was killed (cut at 60 %: no summary, no footer).
     let cut = controller_service::replay::replay(&bytes[..bytes.len() * 6 / 10], 1e-9).unwrap();
     assert!(cut.matched, "{}", controller_service::replay::render(&cut));
     assert!(
@@ -271,9 +238,9 @@ async fn metrics_match_the_status_and_a_recording_decodes_and_replays() {
         d.commands
     );
 
-    // The same recording with one output moved by 1 mrad, a third of the way in: the
-    // replay must see the controller answer differently from there on.
-    let c = read_recording(&bytes).unwrap();
+    // One output moved by 1 mrad, a third of the way in: the replay must see the
+    // controller answer differently from there on.
+    let c = read_recording(bytes).unwrap();
     let altered = dir.join("altered.mcap");
     let w = Recording::create(&RecordSpec::at(&altered), "test").unwrap();
     for (name, data) in &c.attachments {
@@ -301,6 +268,59 @@ async fn metrics_match_the_status_and_a_recording_decodes_and_replays() {
     let r = controller_service::replay::replay(&std::fs::read(&altered).unwrap(), 1e-9).unwrap();
     assert!(!r.matched, "{}", controller_service::replay::render(&r));
     assert!(r.devices[0].mismatches > 0);
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn metrics_match_the_status_and_a_recording_decodes_and_replays() {
+    let _s = SERIAL.lock().await;
+    let dir = scratch_dir("observe");
+    let mut s = load_scenario("1").unwrap();
+    s.duration = 6.0;
+    let c = shipped_controller("ipd").unwrap();
+    let mut config = service_config(&s, &c, &["aero-1".into()]);
+    config.metrics = Some(telemetry::MetricsSpec {
+        listen: "127.0.0.1:0".into(),
+        per_device: true,
+    });
+    config.record = Some(RecordSpec::at(dir.join("service.mcap")));
+    let service = ServiceHandle::start(config, None).await.unwrap();
+    let addr = service.metrics.expect("a metrics endpoint");
+    let ep = service.endpoint.clone();
+    // The agent's side: its metrics and its own recording.
+    let agent_metrics = std::sync::Arc::new(AgentMetrics::new(telemetry::Metrics::new()));
+    let agent_rec =
+        Recording::create(&RecordSpec::at(dir.join("plant.mcap")), "plant-agent").unwrap();
+    let mut spec = PlantSpec::new(&s, &c, "aero-1");
+    spec.loop_config.observers.metrics = Some(agent_metrics.clone());
+    spec.loop_config.observers.recording = Some(agent_rec.clone());
+    let plant = tokio::spawn(run_plant(vec![ep.clone()], spec, true));
+    // A partial gain change and a reference change while it runs: the replay must apply
+    // them where they happened.
+    let client = service.client().await.unwrap();
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let upd = transport::ops::parse_update(1, &["kp=12".to_string()]).unwrap();
+    let now = transport::ops::update(&client, "aero-1", upd, Duration::from_secs(2))
+        .await
+        .expect("a partial gain change, accepted");
+    assert_eq!(now.channels.len(), 2);
+    let mid = scrape(addr).await;
+    assert!(
+        samples(&mid)
+            .get("mfc_device_samples_total{controller=\"controller-1\",device=\"aero-1\"}")
+            .is_some_and(|&n| n > 0.0),
+        "{mid}"
+    );
+    let run = plant.await.unwrap().unwrap();
+    assert!(run.report.controller_reached);
+    agent_rec.finish().unwrap();
+    let agent_text = agent_metrics.metrics().render();
+    judge_agent(&run, &agent_text, &dir.join("plant.mcap"));
+    let (d, text) = status_and_scrape_agree(&client, addr).await;
+    service.stop().await.unwrap();
+    dashboard_plots_what_is_exported(&format!("{text}\n{agent_text}"));
+    let bytes = std::fs::read(dir.join("service.mcap")).unwrap();
+    recording_decodes_without_generated_code(&bytes, &d);
+    replays(&bytes, &d, &dir);
 }
 
 /// The service's own binary (`service-under-test` runs the same `cli::main_with_args`):
