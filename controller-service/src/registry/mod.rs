@@ -117,6 +117,15 @@ impl Served {
     }
 }
 
+/// What [`Registry::handle_sample`] tells of a sample [`step::answer`] answered or not.
+fn served(answered: bool, provisioned: bool) -> Served {
+    if answered {
+        Served::Answered { provisioned }
+    } else {
+        Served::AlreadyAnswered
+    }
+}
+
 /// How a sample reached the registry: the device id of the key it came on (the key
 /// decides the device), and the shard of the path it came by, which is where the
 /// device's state is handed over from in a fleet: its own key's shard, or its gateway's
@@ -370,35 +379,30 @@ impl Registry {
         now_unix_ns: u64,
         out: &mut pb::Command,
     ) -> Served {
-        let mut provisioned = false;
-        if !self.devices.contains_key(via.key_id) {
-            // Not served yet (the rare path): a template may provision it, and then it is
-            // served as any other.
-            if let Err(why) = self.provision(via.key_id) {
-                self.count_unserved(via.key_id, why);
-                return why;
-            }
-            provisioned = true;
+        // One lookup for a device already served: the common case.
+        if let Some(d) = self.devices.get_mut(via.key_id) {
+            let cx = step::Context {
+                controller_id: &self.controller_id,
+                rejected: &mut self.rejected,
+                now_unix_ns,
+            };
+            return served(step::answer(cx, d, via, s, out), false);
+        }
+        // Not served yet (the rare path): a template may provision it, and then it is
+        // served as any other.
+        if let Err(why) = self.provision(via.key_id) {
+            self.count_unserved(via.key_id, why);
+            return why;
         }
         let Some(d) = self.devices.get_mut(via.key_id) else {
             return Served::Unknown;
         };
-        let answered = step::answer(
-            step::Context {
-                controller_id: &self.controller_id,
-                rejected: &mut self.rejected,
-                now_unix_ns,
-            },
-            d,
-            via,
-            s,
-            out,
-        );
-        if answered {
-            Served::Answered { provisioned }
-        } else {
-            Served::AlreadyAnswered
-        }
+        let cx = step::Context {
+            controller_id: &self.controller_id,
+            rejected: &mut self.rejected,
+            now_unix_ns,
+        };
+        served(step::answer(cx, d, via, s, out), true)
     }
 
     /// Count a sample whose device cannot be served (rule 1).
