@@ -29,7 +29,7 @@ use crate::inventory::Inventory;
 const P: &str = protocol::keys::PREFIX;
 
 /// The `device/*/…` keys a service serves as queryables and an operator queries.
-const QUERIED: [&str; 4] = ["config", "status", "envelope", "reference"];
+const QUERIED: [&str; 4] = protocol::keys::QUERIED_LEAVES;
 
 fn dev(id: &str, leaf: &str) -> String {
     format!("{P}/device/{id}/{leaf}")

@@ -204,6 +204,12 @@ pub fn gateway_key(key: &str) -> Option<(&str, Option<u32>)> {
     }
 }
 
+/// The leaves of a device's key that a service answers queries on. A service declares one
+/// queryable per leaf, not one on `device/*/*`: a deployment's access control (mfc-deploy)
+/// lets a service declare exactly these, so a wider declaration would be refused by the
+/// router and the service would answer nothing.
+pub const QUERIED_LEAVES: [&str; 4] = ["config", "status", "envelope", "reference"];
+
 /// Every device's `leaf` key (`sample`, `config`, ...): `mfc/v1/device/*/{leaf}`.
 pub fn all_devices(leaf: &str) -> String {
     format!("{PREFIX}/device/*/{leaf}")

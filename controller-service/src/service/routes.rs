@@ -24,7 +24,7 @@ pub(super) struct Routes {
     _samples: Subscriber<()>,
     _references: Subscriber<()>,
     _gateways: Subscriber<()>,
-    _device_queries: Queryable<()>,
+    _device_queries: Vec<Queryable<()>>,
     _service_status: Queryable<()>,
     _all_shards: Option<(Subscriber<()>, Subscriber<()>, Queryable<()>)>,
 }
@@ -84,7 +84,16 @@ impl Routes {
                 Kind::Gateway,
             )
             .await?,
-            _device_queries: device_queries(session, intake, keys::all_devices("*")).await?,
+            _device_queries: {
+                // One per leaf, as the deployment's access control allows (see
+                // `keys::QUERIED_LEAVES`).
+                let mut queryables = Vec::with_capacity(keys::QUERIED_LEAVES.len());
+                for leaf in keys::QUERIED_LEAVES {
+                    queryables
+                        .push(device_queries(session, intake, keys::all_devices(leaf)).await?);
+                }
+                queryables
+            },
             _service_status: service_status,
             _all_shards: all_shards,
         })
