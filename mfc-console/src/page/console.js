@@ -41,6 +41,15 @@ function fmt(v) {
   return String(Number(v.toPrecision(5)));
 }
 
+// An axis tick: the round value niceTicks chose, in its shortest form ("4e-4", not
+// "4.000e-4"; "0.25", not "0.25000000000000006").
+function tickFmt(v) {
+  if (v === 0) return '0';
+  const r = Number(v.toPrecision(4));
+  const a = Math.abs(r);
+  return a >= 1e5 || a < 1e-3 ? r.toExponential() : String(r);
+}
+
 async function api(path, options) {
   const r = await fetch(path, Object.assign({ cache: 'no-store' }, options || {}));
   let body = {};
@@ -215,17 +224,17 @@ function draw(canvas, t, series) {
     for (const v of niceTicks(yl[0], yl[1], 4)) {
       const y = Y(yl)(v);
       ctx.beginPath(); ctx.moveTo(pad.l, y); ctx.lineTo(pad.l + pw, y); ctx.stroke();
-      ctx.fillText(fmt(v), pad.l - 4, y + 4);
+      ctx.fillText(tickFmt(v), pad.l - 4, y + 4);
     }
     if (yr) {
       ctx.textAlign = 'left';
-      for (const v of niceTicks(yr[0], yr[1], 4)) ctx.fillText(fmt(v), pad.l + pw + 4, Y(yr)(v) + 4);
+      for (const v of niceTicks(yr[0], yr[1], 4)) ctx.fillText(tickFmt(v), pad.l + pw + 4, Y(yr)(v) + 4);
     }
     ctx.textAlign = 'center';
     for (const v of niceTicks(x0, x1, 6)) {
       const x = X(v);
       ctx.beginPath(); ctx.moveTo(x, pad.t); ctx.lineTo(x, pad.t + ph); ctx.stroke();
-      ctx.fillText(fmt(v) + ' s', x, h - 5);
+      ctx.fillText(tickFmt(v) + ' s', x, h - 5);
     }
     for (const s of series) {
       const r = s.right ? yr : yl;
