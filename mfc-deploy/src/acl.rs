@@ -57,78 +57,134 @@ fn rule(id: String, flows: &[&str], messages: &[&str], keys: Vec<String>) -> Val
 
 /// The `access_control` section of the router's config.
 pub fn access_control(inv: &Inventory) -> Value {
-    let mut rules = Vec::new();
-    let mut subjects = Vec::new();
-    let mut policies = Vec::new();
-    let mut policy = |name: String, cns: Vec<String>, rule_ids: Vec<String>| {
-        subjects.push(json!({ "id": name.clone(), "cert_common_names": cns }));
-        policies.push(json!({ "id": name.clone(), "rules": rule_ids, "subjects": [name] }));
-    };
-
-    // Devices: their own keys only.
+    let mut acl = Acl::default();
     for d in &inv.devices {
-        let r = |n: &str| format!("device-{d}-{n}");
-        rules.push(rule(
+        acl.policy(format!("device-{d}"), vec![d.clone()], device_rules(d));
+    }
+    let keys = SharedKeys::new();
+    let service_ids = acl.add(service_rules(&keys));
+    for s in &inv.services {
+        let mut ids = service_ids.clone();
+        ids.extend(acl.add(service_own_rules(s)));
+        acl.policy_of(format!("service-{s}"), vec![s.clone()], ids);
+    }
+    if !inv.operators.is_empty() {
+        acl.policy(
+            "operators".into(),
+            inv.operators.clone(),
+            operator_rules(&keys),
+        );
+    }
+    json!({
+        "enabled": true,
+        "default_permission": "deny",
+        "rules": acl.rules,
+        "subjects": acl.subjects,
+        "policies": acl.policies,
+    })
+}
+
+/// The three lists of zenoh's access control, filled role by role.
+#[derive(Default)]
+struct Acl {
+    rules: Vec<Value>,
+    subjects: Vec<Value>,
+    policies: Vec<Value>,
+}
+
+impl Acl {
+    /// Add `rules`; their ids, for a policy.
+    fn add(&mut self, rules: Vec<Value>) -> Vec<String> {
+        let ids = rules
+            .iter()
+            .map(|r| r["id"].as_str().unwrap_or_default().to_string())
+            .collect();
+        self.rules.extend(rules);
+        ids
+    }
+
+    /// Add `rules` and a subject `name` (these certificates' common names) bound to them.
+    fn policy(&mut self, name: String, cns: Vec<String>, rules: Vec<Value>) {
+        let ids = self.add(rules);
+        self.policy_of(name, cns, ids);
+    }
+
+    /// A subject `name` bound to rules already added.
+    fn policy_of(&mut self, name: String, cns: Vec<String>, rule_ids: Vec<String>) {
+        self.subjects
+            .push(json!({ "id": name.clone(), "cert_common_names": cns }));
+        self.policies
+            .push(json!({ "id": name.clone(), "rules": rule_ids, "subjects": [name] }));
+    }
+}
+
+/// Key sets that several roles' rules name.
+struct SharedKeys {
+    /// What services serve as queryables (and answer): every device's queried leaves, with
+    /// and without the shard, and every shard's leaves (a service without a fleet serves
+    /// every shard with one queryable).
+    served: Vec<String>,
+    /// `served` and the services' status keys: what may be queried.
+    queried: Vec<String>,
+}
+
+impl SharedKeys {
+    fn new() -> Self {
+        let mut served: Vec<String> = QUERIED.iter().map(|l| dev("*", l)).collect();
+        served.extend(QUERIED.iter().map(|l| sdev("*", l)));
+        served.push(sdev("*", "*"));
+        let mut queried = served.clone();
+        queried.push(format!("{P}/service/*/status"));
+        Self { served, queried }
+    }
+}
+
+/// A device's own keys only.
+fn device_rules(d: &str) -> Vec<Value> {
+    let r = |n: &str| format!("device-{d}-{n}");
+    vec![
+        rule(
             r("put-sample"),
             &["ingress"],
             &["put"],
             vec![dev(d, "sample"), sdev(d, "sample")],
-        ));
-        rules.push(rule(
+        ),
+        rule(
             r("sub-command"),
             &["ingress"],
             &["declare_subscriber"],
             vec![dev(d, "command")],
-        ));
-        rules.push(rule(
+        ),
+        rule(
             r("token"),
             &["ingress"],
             &["liveliness_token"],
             vec![format!("{P}/alive/plant/{d}")],
-        ));
-        rules.push(rule(
+        ),
+        rule(
             r("get-command"),
             &["egress"],
             &["put"],
             vec![dev(d, "command")],
-        ));
+        ),
         // The services' wildcard subscription, declared towards the agent: without it the
         // agent's samples have nowhere to go.
-        rules.push(rule(
+        rule(
             r("see-subscription"),
             &["egress"],
             &["declare_subscriber"],
             vec![dev("*", "sample"), sdev("*", "sample")],
-        ));
-        policy(
-            format!("device-{d}"),
-            vec![d.clone()],
-            [
-                "put-sample",
-                "sub-command",
-                "token",
-                "get-command",
-                "see-subscription",
-            ]
-            .iter()
-            .map(|n| r(n))
-            .collect(),
-        );
-    }
+        ),
+    ]
+}
 
-    // Services: every device (several services share a fleet, issue 11); their own
-    // liveliness token and status queryable.
-    let mut served: Vec<String> = QUERIED.iter().map(|l| dev("*", l)).collect();
-    served.extend(QUERIED.iter().map(|l| sdev("*", l)));
-    // A service without a fleet serves every shard with one queryable.
-    served.push(sdev("*", "*"));
-    let mut served_and_status = served.clone();
-    served_and_status.push(format!("{P}/service/*/status"));
+/// What every service may do: every device (several services share a fleet, issue 11).
+fn service_rules(keys: &SharedKeys) -> Vec<Value> {
     let group = format!("{P}/group/**");
     let fleet = format!("{P}/fleet/**");
     let gw_samples = format!("{P}/gateway/*/samples");
     let shard_gw_samples = format!("{P}/shard/*/gateway/*/samples");
-    let svc_rules = vec![
+    vec![
         rule(
             "service-send".into(),
             &["ingress"],
@@ -168,7 +224,7 @@ pub fn access_control(inv: &Inventory) -> Value {
                 "declare_subscriber",
                 "declare_liveliness_subscriber",
             ],
-            vec![fleet.clone()],
+            vec![fleet],
         ),
         // The agents' command subscriptions, declared towards the service.
         rule(
@@ -181,7 +237,7 @@ pub fn access_control(inv: &Inventory) -> Value {
             "service-serve".into(),
             &["ingress"],
             &["declare_queryable", "reply"],
-            served.clone(),
+            keys.served.clone(),
         ),
         rule(
             "service-receive".into(),
@@ -200,99 +256,78 @@ pub fn access_control(inv: &Inventory) -> Value {
             "service-queried".into(),
             &["egress"],
             &["query"],
-            served_and_status.clone(),
+            keys.queried.clone(),
         ),
-    ];
-    let mut svc_rule_ids: Vec<String> = svc_rules
-        .iter()
-        .map(|r| r["id"].as_str().unwrap_or_default().to_string())
-        .collect();
-    rules.extend(svc_rules);
-    for s in &inv.services {
-        let own = format!("service-{s}-own");
-        rules.push(rule(
-            own.clone(),
+    ]
+}
+
+/// A service's own liveliness token and status queryable.
+fn service_own_rules(s: &str) -> Vec<Value> {
+    vec![
+        rule(
+            format!("service-{s}-own"),
             &["ingress"],
             &["declare_queryable", "reply"],
             vec![format!("{P}/service/{s}/status")],
-        ));
-        let token = format!("service-{s}-token");
-        rules.push(rule(
-            token.clone(),
+        ),
+        rule(
+            format!("service-{s}-token"),
             &["ingress"],
             &["liveliness_token"],
             vec![format!("{P}/alive/controller/{s}")],
-        ));
-        let mut ids = svc_rule_ids.clone();
-        ids.extend([own, token]);
-        policy(format!("service-{s}"), vec![s.clone()], ids);
-    }
-    svc_rule_ids.clear();
+        ),
+    ]
+}
 
-    // Operators: read everything, steer and tune through the services.
-    if !inv.operators.is_empty() {
-        let alive = format!("{P}/alive/**");
-        let watched = vec![dev("*", "sample"), sdev("*", "sample"), dev("*", "command")];
-        let op_rules = vec![
-            rule(
-                "operator-query".into(),
-                &["ingress"],
-                &["query"],
-                served_and_status.clone(),
-            ),
-            rule(
-                "operator-steer".into(),
-                &["ingress"],
-                &["put"],
-                vec![dev("*", "reference")],
-            ),
-            rule(
-                "operator-watch".into(),
-                &["ingress"],
-                &["declare_subscriber"],
-                watched.clone(),
-            ),
-            rule(
-                "operator-liveliness".into(),
-                &["ingress"],
-                &["liveliness_query", "declare_liveliness_subscriber"],
-                vec![alive.clone()],
-            ),
-            rule(
-                "operator-replies".into(),
-                &["egress"],
-                &["reply", "declare_queryable"],
-                served_and_status,
-            ),
-            rule("operator-see".into(), &["egress"], &["put"], watched),
-            rule(
-                "operator-tokens".into(),
-                &["egress"],
-                &["liveliness_token", "reply"],
-                vec![alive],
-            ),
-            rule(
-                "operator-see-subscription".into(),
-                &["egress"],
-                &["declare_subscriber"],
-                vec![dev("*", "reference")],
-            ),
-        ];
-        let ids: Vec<String> = op_rules
-            .iter()
-            .map(|r| r["id"].as_str().unwrap_or_default().to_string())
-            .collect();
-        rules.extend(op_rules);
-        policy("operators".into(), inv.operators.clone(), ids);
-    }
-
-    json!({
-        "enabled": true,
-        "default_permission": "deny",
-        "rules": rules,
-        "subjects": subjects,
-        "policies": policies,
-    })
+/// Operators: read everything, steer and tune through the services.
+fn operator_rules(keys: &SharedKeys) -> Vec<Value> {
+    let alive = format!("{P}/alive/**");
+    let watched = vec![dev("*", "sample"), sdev("*", "sample"), dev("*", "command")];
+    vec![
+        rule(
+            "operator-query".into(),
+            &["ingress"],
+            &["query"],
+            keys.queried.clone(),
+        ),
+        rule(
+            "operator-steer".into(),
+            &["ingress"],
+            &["put"],
+            vec![dev("*", "reference")],
+        ),
+        rule(
+            "operator-watch".into(),
+            &["ingress"],
+            &["declare_subscriber"],
+            watched.clone(),
+        ),
+        rule(
+            "operator-liveliness".into(),
+            &["ingress"],
+            &["liveliness_query", "declare_liveliness_subscriber"],
+            vec![alive.clone()],
+        ),
+        rule(
+            "operator-replies".into(),
+            &["egress"],
+            &["reply", "declare_queryable"],
+            keys.queried.clone(),
+        ),
+        rule("operator-see".into(), &["egress"], &["put"], watched),
+        rule(
+            "operator-tokens".into(),
+            &["egress"],
+            &["liveliness_token", "reply"],
+            vec![alive],
+        ),
+        rule(
+            "operator-see-subscription".into(),
+            &["egress"],
+            &["declare_subscriber"],
+            vec![dev("*", "reference")],
+        ),
+    ]
 }
 
 #[cfg(test)]
