@@ -1,6 +1,8 @@
 //! The rules for samples, configuration and status, without a network.
 
-use controller_service::registry::{Served, Via};
+mod common;
+use common::{answered, Answer};
+use controller_service::registry::Served;
 use controller_service::snapshot;
 use controller_service::{Registry, ServiceConfig};
 use protocol::convert::channel_to_pb;
@@ -38,34 +40,11 @@ fn sample(id: &str, seq: u64, t: f64, y: &[f64]) -> pb::Sample {
     }
 }
 
-fn command(o: Result<pb::Command, Served>) -> pb::Command {
-    match o {
-        Ok(c) => c,
-        Err(other) => panic!("no reply: {other:?}"),
-    }
-}
-
-/// The registry's one entry point for a sample on `id`'s own key, as the service calls it
-/// (a fixed time: nothing here depends on it): the command to publish, or why none.
-trait Answer {
-    fn answer(&mut self, id: &str, s: &pb::Sample) -> Result<pb::Command, Served>;
-}
-
-impl Answer for Registry {
-    fn answer(&mut self, id: &str, s: &pb::Sample) -> Result<pb::Command, Served> {
-        let mut c = pb::Command::default();
-        match self.handle_sample(Via::key(id), s, 1, &mut c) {
-            Served::Answered { .. } => Ok(c),
-            other => Err(other),
-        }
-    }
-}
-
 #[test]
 fn answers_every_sample_with_its_sequence() {
     let mut r = registry();
     for k in 0..10u64 {
-        let c = command(r.answer("aero-1", &sample("aero-1", k, k as f64 * 0.01, &[0.0, 0.5])));
+        let c = answered(r.answer("aero-1", &sample("aero-1", k, k as f64 * 0.01, &[0.0, 0.5])));
         assert_eq!(c.seq, k);
         // The iP channel's window is 3 intervals: it warms up on the first 3 samples.
         let expected = if k < 3 {
@@ -84,9 +63,9 @@ fn answers_every_sample_with_its_sequence() {
 #[test]
 fn duplicates_stale_and_lost() {
     let mut r = registry();
-    let first = command(r.answer("aero-1", &sample("aero-1", 5, 0.05, &[0.0, 0.0])));
+    let first = answered(r.answer("aero-1", &sample("aero-1", 5, 0.05, &[0.0, 0.0])));
     // Duplicate: the same command again.
-    let again = command(r.answer("aero-1", &sample("aero-1", 5, 0.05, &[0.0, 0.0])));
+    let again = answered(r.answer("aero-1", &sample("aero-1", 5, 0.05, &[0.0, 0.0])));
     assert_eq!(
         protocol::encode(&first),
         protocol::encode(&again),
@@ -94,7 +73,7 @@ fn duplicates_stale_and_lost() {
     );
     // Older: stale, nothing moves.
     let before = r.device_status("aero-1").unwrap();
-    let stale = command(r.answer("aero-1", &sample("aero-1", 3, 0.03, &[9.0, 9.0])));
+    let stale = answered(r.answer("aero-1", &sample("aero-1", 3, 0.03, &[9.0, 9.0])));
     assert_eq!(stale.mode, pb::Mode::Stale as i32);
     assert!(stale.v.is_empty());
     let after = r.device_status("aero-1").unwrap();
@@ -103,7 +82,7 @@ fn duplicates_stale_and_lost() {
         (before.last_seq, before.plant_time)
     );
     // A jump: 6..=8 lost.
-    command(r.answer("aero-1", &sample("aero-1", 9, 0.09, &[0.0, 0.0])));
+    answered(r.answer("aero-1", &sample("aero-1", 9, 0.09, &[0.0, 0.0])));
     let s = r.device_status("aero-1").unwrap();
     assert_eq!((s.duplicates, s.stale, s.lost), (1, 1, 3));
 }
@@ -111,7 +90,7 @@ fn duplicates_stale_and_lost() {
 #[test]
 fn bad_samples_are_rejected_with_a_reason_and_change_nothing() {
     let mut r = registry();
-    command(r.answer("aero-1", &sample("aero-1", 1, 0.01, &[0.0, 0.0])));
+    answered(r.answer("aero-1", &sample("aero-1", 1, 0.01, &[0.0, 0.0])));
     let cases = [
         (sample("aero-1", 2, 0.02, &[f64::NAN, 0.0]), "non-finite"),
         (sample("aero-1", 2, 0.02, &[0.0]), "expected 2 outputs"),
@@ -119,14 +98,14 @@ fn bad_samples_are_rejected_with_a_reason_and_change_nothing() {
         (sample("other", 2, 0.02, &[0.0, 0.0]), "device id"),
     ];
     for (s, needle) in cases {
-        let c = command(r.answer("aero-1", &s));
+        let c = answered(r.answer("aero-1", &s));
         assert_eq!(c.mode, pb::Mode::Rejected as i32, "{needle}");
         assert!(c.error.contains(needle), "{}: {needle}", c.error);
     }
     let s = r.device_status("aero-1").unwrap();
     assert_eq!((s.rejected, s.last_seq, s.commands), (4, 1, 1));
     // And the device still works (still warming up its 3-interval window).
-    let c = command(r.answer("aero-1", &sample("aero-1", 2, 0.02, &[0.0, 0.0])));
+    let c = answered(r.answer("aero-1", &sample("aero-1", 2, 0.02, &[0.0, 0.0])));
     assert_eq!(c.mode, pb::Mode::WarmingUp as i32);
     assert_eq!(c.seq, 2);
 }
@@ -138,7 +117,7 @@ fn unknown_devices_are_refused_templates_provision() {
         r.answer("ghost", &sample("ghost", 0, 0.0, &[0.0])),
         Err(Served::Unknown)
     );
-    let c = command(r.answer("sim-7", &sample("sim-7", 0, 0.0, &[0.3])));
+    let c = answered(r.answer("sim-7", &sample("sim-7", 0, 0.0, &[0.3])));
     assert_eq!(c.v.len(), 1);
     let st = r.service_status(1.0);
     assert_eq!(st.unknown_samples, 1);
@@ -150,14 +129,14 @@ fn unknown_devices_are_refused_templates_provision() {
 fn a_restarted_plant_resets_its_state() {
     let mut r = registry();
     for k in 0..5u64 {
-        command(r.answer(
+        answered(r.answer(
             "aero-1",
             &sample("aero-1", 100 + k, 10.0 + k as f64 * 0.01, &[0.0, 0.0]),
         ));
     }
     let mut s = sample("aero-1", 0, 0.0, &[0.0, 0.0]);
     s.run_id = 43;
-    let c = command(r.answer("aero-1", &s));
+    let c = answered(r.answer("aero-1", &s));
     // Answered, and warming up again: the state was reset for the new run.
     assert_eq!((c.seq, c.mode), (0, pb::Mode::WarmingUp as i32));
 }
@@ -219,7 +198,7 @@ fn bad_config_files_are_refused() {
 fn the_reference_can_be_steered_live() {
     use mfc::trajectory::Piece;
     let mut r = registry();
-    command(r.answer("aero-1", &sample("aero-1", 0, 0.0, &[0.0, 0.0])));
+    answered(r.answer("aero-1", &sample("aero-1", 0, 0.0, &[0.0, 0.0])));
     let pieces = vec![
         vec![Piece::Constant { value: 3.0 }],
         vec![Piece::Constant { value: -1.0 }],
@@ -258,7 +237,7 @@ fn loaded(r: &mut Registry, dir: &std::path::Path) -> (usize, usize) {
 fn snapshots_restore_state_and_reference_phase() {
     let mut a = registry();
     for k in 0..50u64 {
-        command(a.answer(
+        answered(a.answer(
             "aero-1",
             &sample("aero-1", k, k as f64 * 0.01, &[0.1 * k as f64, 0.2]),
         ));
@@ -271,8 +250,8 @@ fn snapshots_restore_state_and_reference_phase() {
     for k in 50..80u64 {
         let s = sample("aero-1", k, k as f64 * 0.01, &[0.1 * k as f64, 0.2]);
         let (ca, cb) = (
-            command(a.answer("aero-1", &s)),
-            command(b.answer("aero-1", &s)),
+            answered(a.answer("aero-1", &s)),
+            answered(b.answer("aero-1", &s)),
         );
         assert_eq!((ca.u, ca.v), (cb.u, cb.v), "seq {k}");
     }
@@ -294,9 +273,9 @@ fn snapshots_restore_state_and_reference_phase() {
         (before.duplicates + 1, 49, before.commands)
     );
     let next = sample("aero-1", 50, 0.50, &[5.0, 0.2]);
-    assert_eq!(command(c.answer("aero-1", &next)).seq, 50);
+    assert_eq!(answered(c.answer("aero-1", &next)).seq, 50);
     // Once this service has answered a sample, a duplicate of it gets that answer again.
-    assert_eq!(command(c.answer("aero-1", &next)).seq, 50);
+    assert_eq!(answered(c.answer("aero-1", &next)).seq, 50);
     // Corrupt files and a changed configuration are refused, with the device left as is.
     std::fs::write(dir.join("junk.snap"), b"not a snapshot").unwrap();
     let changed = CONFIG.replace("kp = 2.0", "kp = 3.0");
@@ -336,7 +315,7 @@ fn a_horizon_is_whole_periods_of_outputs_inside_the_envelope() {
     for k in 0..40u64 {
         let t = k as f64 * h;
         let y = [0.1 * (6.0 * t).sin(), 0.2];
-        let c = command(r.answer("rig-1", &sample("rig-1", k, t, &y)));
+        let c = answered(r.answer("rig-1", &sample("rig-1", k, t, &y)));
         if c.mode != pb::Mode::Control as i32 {
             assert!(c.horizon.is_empty(), "no horizon while warming up");
             continue;
@@ -373,7 +352,7 @@ fn delay_compensation_lengthens_the_horizon_to_the_round_trip() {
         let mut s = sample("rig-1", k, t, &[0.0, 0.2]);
         // The plant reports 56 ms round trips: commands land 5 or 6 periods late.
         s.last_rtt_us = 56_000;
-        last = Some(command(r.answer("rig-1", &s)));
+        last = Some(answered(r.answer("rig-1", &s)));
     }
     let c = last.unwrap();
     assert_eq!(c.mode, pb::Mode::Control as i32);
@@ -384,7 +363,7 @@ fn delay_compensation_lengthens_the_horizon_to_the_round_trip() {
     let mut last = None;
     for k in 0..60u64 {
         let t = k as f64 * h;
-        last = Some(command(
+        last = Some(answered(
             r.answer("rig-1", &sample("rig-1", k, t, &[0.0, 0.2])),
         ));
     }
@@ -441,7 +420,7 @@ fn the_trend_changes_the_horizon_not_the_command() {
         (0..40u64)
             .map(|k| {
                 let t = k as f64 * 0.01;
-                command(r.answer(
+                answered(r.answer(
                     "rig-1",
                     // Near the reference (0.2 sin 2πt), so that the outputs stay unsaturated.
                     &sample("rig-1", k, t, &[0.19 * (6.0 * t).sin(), 0.2]),
@@ -478,18 +457,18 @@ fn a_lost_sample_is_recovered_from_the_copy_the_next_one_carries() {
     };
     for k in 0..20 {
         for r in [&mut seen, &mut gap, &mut bad] {
-            command(r.answer("aero-1", &with_applied(k)));
+            answered(r.answer("aero-1", &with_applied(k)));
         }
     }
     // Sample 20 reaches only `seen`; sample 21 carries it again.
-    command(seen.answer("aero-1", &with_applied(20)));
+    answered(seen.answer("aero-1", &with_applied(20)));
     let mut next = with_applied(21);
     let lost = with_applied(20);
     next.previous_plant_time = vec![lost.plant_time, 0.19];
     next.previous_outputs = [lost.outputs.clone(), y(19).to_vec()].concat();
     next.previous_applied = [lost.applied.clone(), vec![1.9, -0.2]].concat();
-    let a = command(seen.answer("aero-1", &with_applied(21)));
-    let b = command(gap.answer("aero-1", &next));
+    let a = answered(seen.answer("aero-1", &with_applied(21)));
+    let b = answered(gap.answer("aero-1", &next));
     assert_eq!(a.u, b.u, "the command as if sample 20 had arrived");
     // The iP's estimate (the PID channel has none: NaN).
     assert_eq!(a.f_est[0], b.f_est[0]);
@@ -498,7 +477,7 @@ fn a_lost_sample_is_recovered_from_the_copy_the_next_one_carries() {
     // A copy with a non-finite value is not used: the gap stays.
     let mut broken = next.clone();
     broken.previous_outputs[0] = f64::NAN;
-    let c = command(bad.answer("aero-1", &broken));
+    let c = answered(bad.answer("aero-1", &broken));
     assert_eq!(c.mode, pb::Mode::Control as i32);
     assert_ne!(c.f_est[0], a.f_est[0]);
     let st = bad.device_status("aero-1").unwrap();
@@ -514,7 +493,7 @@ fn a_handed_shard_provisions_its_template_devices() {
     let mut a = registry();
     let id = "sim-7";
     for k in 0..30u64 {
-        command(a.answer(id, &sample(id, k, k as f64 * 0.01, &[0.1 * k as f64])));
+        answered(a.answer(id, &sample(id, k, k as f64 * 0.01, &[0.1 * k as f64])));
     }
     let shard = protocol::shard_of(id);
     let state = a.shard_state(shard);
@@ -525,7 +504,7 @@ fn a_handed_shard_provisions_its_template_devices() {
     assert!(restored.refused.is_empty(), "{:?}", restored.refused);
     assert!(b.serves(id) && b.device_status(id).unwrap().from_template);
     let next = sample(id, 30, 0.30, &[3.0]);
-    let (ca, cb) = (command(a.answer(id, &next)), command(b.answer(id, &next)));
+    let (ca, cb) = (answered(a.answer(id, &next)), answered(b.answer(id, &next)));
     assert_eq!(
         cb.mode,
         pb::Mode::Control as i32,

@@ -1,7 +1,9 @@
 //! Untrusted input against the registry, without a network: the envelope holds whatever a
 //! client asks, state stays bounded, and nothing changes before a message is validated.
 
-use controller_service::registry::{Served, Via, MAX_SEQ_JUMP};
+mod common;
+use common::{answered, Answer};
+use controller_service::registry::{Served, MAX_SEQ_JUMP};
 use controller_service::{Registry, ServiceConfig};
 use proptest::prelude::*;
 use protocol::{pb, PROTOCOL_VERSION};
@@ -56,29 +58,6 @@ fn sample(id: &str, run: u64, seq: u64, t: f64, y: &[f64]) -> pb::Sample {
     }
 }
 
-fn reply(o: Result<pb::Command, Served>) -> pb::Command {
-    match o {
-        Ok(c) => c,
-        Err(other) => panic!("no reply: {other:?}"),
-    }
-}
-
-/// The registry's one entry point for a sample on `id`'s own key, as the service calls it
-/// (a fixed time: nothing here depends on it): the command to publish, or why none.
-trait Answer {
-    fn answer(&mut self, id: &str, s: &pb::Sample) -> Result<pb::Command, Served>;
-}
-
-impl Answer for Registry {
-    fn answer(&mut self, id: &str, s: &pb::Sample) -> Result<pb::Command, Served> {
-        let mut c = pb::Command::default();
-        match self.handle_sample(Via::key(id), s, 1, &mut c) {
-            Served::Answered { .. } => Ok(c),
-            other => Err(other),
-        }
-    }
-}
-
 fn mode(c: &pb::Command) -> pb::Mode {
     pb::Mode::try_from(c.mode).unwrap()
 }
@@ -87,7 +66,7 @@ fn mode(c: &pb::Command) -> pb::Mode {
 fn run(r: &mut Registry, seq0: u64, n: u64) -> pb::Command {
     let mut last = None;
     for k in seq0..seq0 + n {
-        last = Some(reply(r.answer(
+        last = Some(answered(r.answer(
             "aero-1",
             &sample("aero-1", 7, k, k as f64 * 0.01, &[0.0, 0.0]),
         )));
@@ -127,7 +106,7 @@ fn a_law_only_change_keeps_the_limits() {
     assert_eq!(cfg.channels[0].output.unwrap().dead_zone, 10.0);
     // A huge gain on a big error: the command saturates at the envelope, never beyond.
     for k in 0..20u64 {
-        let c = reply(r.answer(
+        let c = answered(r.answer(
             "aero-1",
             &sample("aero-1", 7, k, k as f64 * 0.01, &[-100.0, 100.0]),
         ));
@@ -364,7 +343,7 @@ fn a_one_sided_rate_limited_envelope_holds_through_any_gain() {
     for k in 0..200u64 {
         // The temperature swings wildly around the 40 degree setpoint.
         let y = if k % 7 < 3 { 100.0 } else { -50.0 };
-        let c = reply(r.answer("heater", &sample("heater", 1, k, k as f64 * 0.01, &[y])));
+        let c = answered(r.answer("heater", &sample("heater", 1, k, k as f64 * 0.01, &[y])));
         let v = c.v[0];
         assert!((0.0..=24.0).contains(&v), "seq {k}: {v}");
         if let Some(p) = prev {
@@ -379,9 +358,15 @@ fn a_bad_sample_with_a_new_run_id_does_not_restart_the_device() {
     let mut r = registry();
     assert_eq!(mode(&run(&mut r, 0, 10)), pb::Mode::Control);
     let mut nan = sample("aero-1", 99, 10, 0.1, &[f64::NAN, 0.0]);
-    assert_eq!(mode(&reply(r.answer("aero-1", &nan))), pb::Mode::Rejected);
+    assert_eq!(
+        mode(&answered(r.answer("aero-1", &nan))),
+        pb::Mode::Rejected
+    );
     nan.device_id = "someone-else".into();
-    assert_eq!(mode(&reply(r.answer("aero-1", &nan))), pb::Mode::Rejected);
+    assert_eq!(
+        mode(&answered(r.answer("aero-1", &nan))),
+        pb::Mode::Rejected
+    );
     // The real plant carries on in control: no warm-up.
     assert_eq!(mode(&run(&mut r, 10, 1)), pb::Mode::Control);
     assert_eq!(r.device_status("aero-1").unwrap().restarts, 1);
@@ -392,20 +377,20 @@ fn no_sequence_number_can_lock_a_device() {
     let mut r = registry();
     run(&mut r, 0, 10);
     let wild = sample("aero-1", 7, u64::MAX, 0.2, &[0.0, 0.0]);
-    let c = reply(r.answer("aero-1", &wild));
+    let c = answered(r.answer("aero-1", &wild));
     assert_eq!(mode(&c), pb::Mode::Rejected);
     assert!(c.error.contains("jumps"), "{}", c.error);
     assert_eq!(mode(&run(&mut r, 10, 1)), pb::Mode::Control);
     // A jump within the bound is an outage: counted as lost, answered.
     let far = 10 + MAX_SEQ_JUMP;
-    let c = reply(r.answer("aero-1", &sample("aero-1", 7, far, 100.0, &[0.0, 0.0])));
+    let c = answered(r.answer("aero-1", &sample("aero-1", 7, far, 100.0, &[0.0, 0.0])));
     assert_eq!(mode(&c), pb::Mode::Control);
     assert_eq!(r.device_status("aero-1").unwrap().lost, MAX_SEQ_JUMP - 1);
     // A new run may start anywhere, u64::MAX included, and the arithmetic does not wrap:
     // the next run starts again from 1.
-    let top = reply(r.answer("aero-1", &sample("aero-1", 8, u64::MAX, 0.0, &[0.0, 0.0])));
+    let top = answered(r.answer("aero-1", &sample("aero-1", 8, u64::MAX, 0.0, &[0.0, 0.0])));
     assert_eq!(mode(&top), pb::Mode::WarmingUp);
-    let again = reply(r.answer("aero-1", &sample("aero-1", 9, 1, 0.0, &[0.0, 0.0])));
+    let again = answered(r.answer("aero-1", &sample("aero-1", 9, 1, 0.0, &[0.0, 0.0])));
     assert_eq!(mode(&again), pb::Mode::WarmingUp);
     assert_eq!(r.device_status("aero-1").unwrap().lost, MAX_SEQ_JUMP - 1);
 }
@@ -417,10 +402,10 @@ fn a_stray_run_cannot_lock_the_real_plant_out() {
     // One valid sample of another run restarts the device (it cannot be told from a
     // restart). The real plant's run is then retired: its samples are late ones at first,
     // and after the reorder window the real plant is taken back.
-    reply(r.answer("aero-1", &sample("aero-1", 666, 5, 0.0, &[0.0, 0.0])));
+    answered(r.answer("aero-1", &sample("aero-1", 666, 5, 0.0, &[0.0, 0.0])));
     let mut modes = Vec::new();
     for k in 100..300u64 {
-        let c = reply(r.answer(
+        let c = answered(r.answer(
             "aero-1",
             &sample("aero-1", 7, k, k as f64 * 0.01, &[0.0, 0.0]),
         ));
@@ -447,7 +432,7 @@ fn heater(run: u64, seq: u64, t: f64, y: f64, held: f64) -> pb::Sample {
 fn drive_heater(r: &mut Registry, run: u64, seqs: std::ops::Range<u64>, held: f64) -> f64 {
     let mut held = held;
     for k in seqs {
-        let c = reply(r.answer("heater", &heater(run, k, k as f64 * 0.01, 20.0, held)));
+        let c = answered(r.answer("heater", &heater(run, k, k as f64 * 0.01, 20.0, held)));
         assert_eq!(mode(&c), pb::Mode::Control, "seq {k}: {}", c.error);
         assert!(
             (c.v[0] - held).abs() <= 1.0 + 2e-9,
@@ -465,7 +450,7 @@ fn a_leap_of_plant_time_neither_opens_the_rate_limit_nor_locks_the_device() {
     let mut r = registry();
     let held = drive_heater(&mut r, 1, 1..50, 0.0);
     // The next sample in sequence, but with the plant's clock a day ahead.
-    let c = reply(r.answer("heater", &heater(1, 50, 86_400.0, 20.0, held)));
+    let c = answered(r.answer("heater", &heater(1, 50, 86_400.0, 20.0, held)));
     assert_eq!(mode(&c), pb::Mode::Control);
     assert!(
         (c.v[0] - held).abs() <= 100.0 * 2.0 * 0.01 * (1.0 + 2e-9),
@@ -478,7 +463,7 @@ fn a_leap_of_plant_time_neither_opens_the_rate_limit_nor_locks_the_device() {
     let mut refused = 0;
     let mut k = 51;
     let first = loop {
-        let c = reply(r.answer("heater", &heater(1, k, k as f64 * 0.01, 20.0, held)));
+        let c = answered(r.answer("heater", &heater(1, k, k as f64 * 0.01, 20.0, held)));
         if mode(&c) == pb::Mode::Control {
             break c;
         }
@@ -509,7 +494,7 @@ fn leaps_in_a_row_do_not_open_the_rate_limit() {
     let mut t = 0.29;
     for k in 30..34u64 {
         t += 1000.0;
-        let c = reply(r.answer("heater", &heater(1, k, t, 20.0, held)));
+        let c = answered(r.answer("heater", &heater(1, k, t, 20.0, held)));
         assert_eq!(mode(&c), pb::Mode::Control, "{}", c.error);
         assert!(
             (c.v[0] - held).abs() <= 100.0 * 2.0 * 0.01 * (1.0 + 2e-9),
@@ -540,14 +525,14 @@ fn a_sequence_jump_inside_the_bound_locks_out_for_at_most_resync_after() {
     use controller_service::registry::RESYNC_AFTER;
     let mut r = registry();
     run(&mut r, 0, 20);
-    let c = reply(r.answer(
+    let c = answered(r.answer(
         "aero-1",
         &sample("aero-1", 7, MAX_SEQ_JUMP / 2, 0.21, &[0.0, 0.0]),
     ));
     assert_eq!(mode(&c), pb::Mode::Control);
     let mut stale = 0;
     for k in 21..21 + u64::from(RESYNC_AFTER) {
-        let c = reply(r.answer(
+        let c = answered(r.answer(
             "aero-1",
             &sample("aero-1", 7, k, 0.21 + k as f64 * 0.01, &[0.0, 0.0]),
         ));
@@ -557,7 +542,7 @@ fn a_sequence_jump_inside_the_bound_locks_out_for_at_most_resync_after() {
     }
     assert_eq!(stale, RESYNC_AFTER - 1);
     // Followed again (a fresh run: the estimators warm up).
-    let c = reply(r.answer(
+    let c = answered(r.answer(
         "aero-1",
         &sample("aero-1", 7, 21 + u64::from(RESYNC_AFTER), 2.0, &[0.0, 0.0]),
     ));
@@ -572,7 +557,7 @@ fn scattered_refusals_never_resync_a_device() {
     // Old samples replayed out of order (no stream of their own): stale, every one.
     for k in 0..500u64 {
         let seq = (k * 7919) % 19;
-        let c = reply(r.answer(
+        let c = answered(r.answer(
             "aero-1",
             &sample("aero-1", 7, seq, seq as f64 * 0.01, &[0.0, 0.0]),
         ));
@@ -587,11 +572,11 @@ fn the_first_command_of_a_run_moves_from_what_the_plant_applies() {
     let mut r = registry();
     // The plant starts while its own controller holds 12 V: the service's first command
     // stays there (no period known yet), the next ones move at most 100 V/s * 10 ms.
-    let c = reply(r.answer("heater", &heater(1, 1, 0.01, 20.0, 12.0)));
+    let c = answered(r.answer("heater", &heater(1, 1, 0.01, 20.0, 12.0)));
     assert_eq!(c.v, vec![12.0]);
     let held = drive_heater(&mut r, 1, 2..30, 12.0);
     // The plant restarts (a new run) and reports 3 V: one period's step from there.
-    let c = reply(r.answer("heater", &heater(2, 1, 0.01, 20.0, 3.0)));
+    let c = answered(r.answer("heater", &heater(2, 1, 0.01, 20.0, 3.0)));
     assert!(
         (c.v[0] - 3.0).abs() <= 1.0 + 2e-9,
         "{held} / 3 -> {}",
@@ -599,7 +584,7 @@ fn the_first_command_of_a_run_moves_from_what_the_plant_applies() {
     );
     // Without a report, from the last command sent to the device.
     let last = c.v[0];
-    let c = reply(r.answer("heater", &sample("heater", 3, 1, 0.01, &[20.0])));
+    let c = answered(r.answer("heater", &sample("heater", 3, 1, 0.01, &[20.0])));
     assert!((c.v[0] - last).abs() <= 1.0 + 2e-9, "{last} -> {}", c.v[0]);
 }
 
@@ -613,7 +598,7 @@ fn after_a_restore_the_first_command_moves_from_what_the_plant_applies() {
         fresh.restore(s).unwrap();
     }
     // The plant ran on its fallback meanwhile and holds 2 V now.
-    let c = reply(fresh.answer("heater", &heater(1, 130, 1.3, 20.0, 2.0)));
+    let c = answered(fresh.answer("heater", &heater(1, 130, 1.3, 20.0, 2.0)));
     assert!(
         (c.v[0] - 2.0).abs() <= 1.0 + 2e-9,
         "before the restore {held}, now 2 V -> {}",
@@ -625,19 +610,19 @@ fn after_a_restore_the_first_command_moves_from_what_the_plant_applies() {
 fn a_plant_without_a_run_id_recovers_from_its_restart() {
     let mut r = registry();
     for k in 1..=300u64 {
-        reply(r.answer(
+        answered(r.answer(
             "aero-1",
             &sample("aero-1", 0, k, k as f64 * 0.01, &[0.0, 0.0]),
         ));
     }
     // A late sample is still stale...
-    let late = reply(r.answer("aero-1", &sample("aero-1", 0, 290, 2.9, &[0.0, 0.0])));
+    let late = answered(r.answer("aero-1", &sample("aero-1", 0, 290, 2.9, &[0.0, 0.0])));
     assert_eq!(mode(&late), pb::Mode::Stale);
     // ...but the plant starting again at seq 1, time 0.01, is a new run.
-    let c = reply(r.answer("aero-1", &sample("aero-1", 0, 1, 0.01, &[0.0, 0.0])));
+    let c = answered(r.answer("aero-1", &sample("aero-1", 0, 1, 0.01, &[0.0, 0.0])));
     assert_eq!(mode(&c), pb::Mode::WarmingUp);
     for k in 2..20u64 {
-        let c = reply(r.answer(
+        let c = answered(r.answer(
             "aero-1",
             &sample("aero-1", 0, k, k as f64 * 0.01, &[0.0, 0.0]),
         ));
@@ -645,7 +630,7 @@ fn a_plant_without_a_run_id_recovers_from_its_restart() {
         assert_ne!(mode(&c), pb::Mode::Rejected, "{}", c.error);
     }
     // Even if its first samples after the restart were lost.
-    let c = reply(r.answer("aero-1", &sample("aero-1", 0, 1, 0.01, &[0.0, 0.0])));
+    let c = answered(r.answer("aero-1", &sample("aero-1", 0, 1, 0.01, &[0.0, 0.0])));
     assert_eq!(mode(&c), pb::Mode::WarmingUp);
 }
 
@@ -653,7 +638,7 @@ fn a_plant_without_a_run_id_recovers_from_its_restart() {
 fn echoed_strings_are_capped_and_unknown_ids_bounded() {
     let mut r = registry();
     let huge = "x".repeat(1 << 20);
-    let c = reply(r.answer("aero-1", &sample(&huge, 7, 0, 0.0, &[0.0, 0.0])));
+    let c = answered(r.answer("aero-1", &sample(&huge, 7, 0, 0.0, &[0.0, 0.0])));
     assert!(c.error.len() < 200, "{} bytes", c.error.len());
     assert!(r.device_status("aero-1").unwrap().last_error.len() < 200);
     for k in 0..10_000 {

@@ -307,6 +307,32 @@ impl Schedule {
 }
 
 impl Device {
+    /// The counters a snapshot keeps, in its order (`DeviceSnapshot::counters`).
+    pub(super) fn counters(&self) -> [u64; 7] {
+        [
+            self.samples,
+            self.commands,
+            self.lost,
+            self.duplicates,
+            self.stale,
+            self.rejected,
+            self.samples_off_remote,
+        ]
+    }
+
+    /// Restore what [`Device::counters`] gave.
+    pub(super) fn set_counters(&mut self, c: [u64; 7]) {
+        [
+            self.samples,
+            self.commands,
+            self.lost,
+            self.duplicates,
+            self.stale,
+            self.rejected,
+            self.samples_off_remote,
+        ] = c;
+    }
+
     pub(super) fn new(
         channels: &[DeviceChannel],
         prediction: Prediction,

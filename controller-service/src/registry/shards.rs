@@ -184,15 +184,7 @@ impl Registry {
             run_id: d.run_id,
             last_seq: d.last_seq,
             last_time: d.last_time,
-            counters: [
-                d.samples,
-                d.commands,
-                d.lost,
-                d.duplicates,
-                d.stale,
-                d.rejected,
-                d.samples_off_remote,
-            ],
+            counters: d.counters(),
             from_template: d.from_template,
         })
     }
@@ -288,15 +280,7 @@ impl Registry {
         d.run_id = snap.run_id;
         d.last_seq = snap.last_seq;
         d.last_time = snap.last_time;
-        [
-            d.samples,
-            d.commands,
-            d.lost,
-            d.duplicates,
-            d.stale,
-            d.rejected,
-            d.samples_off_remote,
-        ] = snap.counters;
+        d.set_counters(snap.counters);
         d.last_command = None;
         d.retired.clear();
         d.restored = true;

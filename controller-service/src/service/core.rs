@@ -192,9 +192,9 @@ impl Core {
         let batch = taken.item;
         let mut commands = std::mem::take(&mut self.pool);
         let mut n = 0;
-        let log_ns = protocol::unix_ns();
         // One clock read for the batch: its time is shared by its samples (reading the
         // clock per sample would cost as much as a step).
+        let log_ns = protocol::unix_ns();
         let cpu0 = self.watch.timing().then(thread_cpu);
         let mut answered: Vec<(usize, usize, bool)> = Vec::new();
         for (k, sample) in batch.samples.iter().enumerate() {

@@ -100,6 +100,11 @@ impl Drops {
         true
     }
 
+    /// Whether a query's payload (none: empty) may be read at all.
+    fn query_fits(&self, q: &Query) -> bool {
+        self.fits(q.payload().map_or(0, |p| p.len()))
+    }
+
     /// The counters a report tells, in its order: oversized, bad key, queue full (the
     /// inboxes' `full` added by the caller), undecodable, unknown.
     pub(super) fn counts(&self) -> [u64; 5] {
@@ -265,7 +270,7 @@ impl Intake {
     /// from a lost message).
     pub(super) fn on_device_query(&self, q: Query) {
         let drops = &self.shared.drops;
-        if !drops.fits(q.payload().map_or(0, |p| p.len())) {
+        if !drops.query_fits(&q) {
             return;
         }
         let msg = match q.key_expr().as_str().rsplit('/').next() {
@@ -283,7 +288,7 @@ impl Intake {
 
     /// A query on this service's own status key.
     pub(super) fn on_service_query(&self, q: Query) {
-        if self.shared.drops.fits(q.payload().map_or(0, |p| p.len())) {
+        if self.shared.drops.query_fits(&q) {
             self.queue(Msg::ServiceStatus(q));
         }
     }
@@ -298,7 +303,7 @@ impl Intake {
 
     /// Another member's request about one of this member's shards.
     pub(super) fn on_handover(&self, q: Query) {
-        if self.shared.drops.fits(q.payload().map_or(0, |p| p.len())) {
+        if self.shared.drops.query_fits(&q) {
             self.queue(Msg::Handover(q));
         }
     }
