@@ -40,6 +40,13 @@ if [ ! -x "$venv/bin/python" ] || ! "$venv/bin/python" -c 'import sys' 2>/dev/nu
             fail "$venv exists and is not a venv (set MFC_PY_VENV elsewhere)"
         fi
     fi
+    # Debian ships venv's ensurepip apart (python3-venv): install it as root, else say so.
+    if ! "$base" -c 'import ensurepip, venv' 2>/dev/null; then
+        [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 \
+            || fail "$base has no venv/ensurepip module: apt-get install python3-venv (as root)"
+        { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq python3-venv; } \
+            >/dev/null 2>&1 || fail "apt-get install python3-venv failed"
+    fi
     mkdir -p "$(dirname "$venv")"
     "$base" -m venv "$venv" || fail "could not create the venv at $venv"
 fi
