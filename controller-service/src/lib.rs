@@ -5,7 +5,9 @@
 //! * [`registry`]: the per-device state and the rules for samples, configuration and status;
 //! * [`envelope`]: a device's safety envelope, the limits no command leaves;
 //! * [`fleet`]: several instances sharing the devices: who owns, who stands by, handover;
-//! * [`standby`]: a hot-standby group: who is active, takeover after silence.
+//! * [`standby`]: a hot-standby group: who is active, takeover after silence;
+//! * [`lease`]: the plant's command lease seen from a member: answer, claim, yield, or
+//!   stay silent because another holds it (the plant decides who commands it).
 //!
 //! Around them:
 //! * [`config`]: the TOML file (declared devices, templates, envelopes, fleet, standby);
@@ -20,6 +22,7 @@ pub mod config;
 pub mod envelope;
 pub mod fleet;
 pub mod inbox;
+pub mod lease;
 pub mod observe;
 pub mod registry;
 pub mod replay;

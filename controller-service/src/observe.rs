@@ -68,7 +68,7 @@ const DEVICE_COUNTERS: &[(&str, &str, Field<pb::DeviceStatus>)] = &[
     }),
     (
         "mfc_device_commands_total",
-        "Commands sent (CONTROL and WARMING_UP).",
+        "Commands computed (CONTROL and WARMING_UP); those held back because another controller held the plant's lease are in mfc_device_lease_fenced_total too.",
         |d| d.commands,
     ),
     (
@@ -123,6 +123,26 @@ const DEVICE_COUNTERS: &[(&str, &str, Field<pb::DeviceStatus>)] = &[
         "mfc_device_envelope_changes_total",
         "Envelope changes since the service started.",
         |d| d.envelope_changes,
+    ),
+    (
+        "mfc_device_lease_fenced_total",
+        "Answers held back because another controller held the plant's lease.",
+        |d| d.lease_fenced,
+    ),
+    (
+        "mfc_device_lease_claims_total",
+        "Claims of the plant's vacant lease sent.",
+        |d| d.lease_claims,
+    ),
+    (
+        "mfc_device_lease_yields_total",
+        "Leases given up to the member the fleet prefers.",
+        |d| d.lease_yields,
+    ),
+    (
+        "mfc_device_lease_refused_total",
+        "Commands the plant refused in its run (not the holder's, a stale epoch, another run), as it reports them.",
+        |d| d.lease_refused,
     ),
 ];
 

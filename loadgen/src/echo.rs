@@ -54,6 +54,8 @@ fn command_for(s: &pb::Sample) -> pb::Command {
         error: String::new(),
         horizon: Vec::new(),
         reference: Vec::new(),
+        run_id: s.run_id,
+        ..Default::default()
     }
 }
 

@@ -421,6 +421,8 @@ fn send_loop(
                     previous_plant_time: (1..=resend).map(|j| (k as f64 - j as f64) * dt).collect(),
                     previous_outputs: vec![y[i]; resend],
                     previous_applied: vec![applied[i]; resend],
+                    // A load without leases: the service answers as the fleet's owner.
+                    ..Default::default()
                 }
             };
             let payload = if spec.gateways == 0 {

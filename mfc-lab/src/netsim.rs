@@ -227,6 +227,8 @@ fn sample(
         previous_plant_time: previous.iter().map(|p| p.0).collect(),
         previous_outputs: previous.iter().flat_map(|p| p.1.iter().copied()).collect(),
         previous_applied: previous.iter().flat_map(|p| p.2.iter().copied()).collect(),
+        // One controller in lockstep: no lease to grant (`Supervisor::grant_leases`).
+        ..Default::default()
     }
 }
 

@@ -144,6 +144,16 @@ pub fn status(d: &pb::DeviceStatus) -> String {
         "  round trip p50 {:.0} us  p99 {:.0} us  max {:.0} us  ({} samples)",
         rtt.p50_us, rtt.p99_us, rtt.max_us, rtt.count
     );
+    let holder = match d.lease_holder.as_str() {
+        "" if d.lease_epoch == 0 => "none (or a plant without leases)".to_string(),
+        "" => format!("vacant after epoch {}", d.lease_epoch),
+        h => format!("{h} (epoch {})", d.lease_epoch),
+    };
+    let _ = writeln!(
+        out,
+        "  lease holder {holder}  refused by the plant {}  fenced here {}  claims {}  yields {}",
+        d.lease_refused, d.lease_fenced, d.lease_claims, d.lease_yields
+    );
     let f: Vec<String> = d.f_est.iter().map(|f| format!("{f:.4e}")).collect();
     let _ = writeln!(out, "  F estimates [{}]", f.join(", "));
     if let Some(e) = &d.envelope {

@@ -28,6 +28,7 @@ use tokio::sync::{mpsc, oneshot};
 use tokio::time::Instant;
 use zenoh::Session;
 
+use crate::lease::{Lease, LeaseReport};
 use crate::observe::{DeviceMetrics, LoopObservers, PeriodFigures};
 use crate::safety::{
     IncomingCommand, LoopMode, PeriodBegin, SafetyConfig, SafetyError, Supervisor,
@@ -178,6 +179,10 @@ pub struct AgentReport {
     pub overruns: u64,
     /// Plant limit hits (the AERO's pitch stop).
     pub limit_hits: usize,
+    /// The plant's command lease: grants, lapses, refusals by reason, and which holder
+    /// under which epoch commanded which periods.
+    #[serde(default)]
+    pub lease: LeaseReport,
 }
 
 impl AgentReport {
@@ -409,6 +414,7 @@ pub fn never_started(config: &LoopConfig, stopped: Result<(), PlantError>) -> Ag
         rtt_p99_us: 0.0,
         overruns: 0,
         limit_hits: 0,
+        lease: LeaseReport::default(),
     };
     AgentRun {
         report,
@@ -465,7 +471,8 @@ async fn declare_and_run(
     let publisher = transport::control_publisher(session, keys::shard_sample(id)).await?;
     let _token = declare_alive(session, id).await?;
     let initial = plant.write(vec![0.0; n]).await?;
-    let supervisor = Supervisor::new(config.safety, &config.local, initial)?;
+    let mut supervisor = Supervisor::new(config.safety, &config.local, initial)?;
+    supervisor.grant_leases(run_id);
     let out = SampleOut::Own(&publisher);
     Ok(periods(plant, config, supervisor, rx, &out, run_id, stop).await)
 }
@@ -538,7 +545,8 @@ pub async fn run_hosted(
         // Each hosted plant announces itself as a single rig would.
         let token = declare_alive(session, &config.device_id).await?;
         let initial = plant.write(vec![0.0; n]).await?;
-        let supervisor = Supervisor::new(config.safety, &config.local, initial)?;
+        let mut supervisor = Supervisor::new(config.safety, &config.local, initial)?;
+        supervisor.grant_leases(run_id);
         Ok((token, supervisor))
     }
     .await;
@@ -793,6 +801,17 @@ impl<'a, 'p> PeriodLoop<'a, 'p> {
     /// Sample `k` out, with the earlier ones it carries again, and into the recording.
     async fn publish(&mut self, k: usize, t: f64, y: &[f64], begin: &PeriodBegin) {
         let config = self.config;
+        let (lease_flag, lease_holder, lease_instance, lease_epoch, lease_refused) =
+            match self.sup.lease() {
+                Some(l) => (
+                    pb::SampleFlags::Lease as u32,
+                    l.holder().unwrap_or_default().to_string(),
+                    l.instance(),
+                    l.epoch(),
+                    l.counters().refused(),
+                ),
+                None => (0, String::new(), 0, 0, 0),
+            };
         let sample = pb::Sample {
             version: PROTOCOL_VERSION,
             device_id: config.device_id.clone(),
@@ -800,7 +819,11 @@ impl<'a, 'p> PeriodLoop<'a, 'p> {
             plant_time: t,
             outputs: y.to_vec(),
             applied: begin.applied_mean.clone(),
-            flags: sample_flags(begin.sample_mode),
+            flags: sample_flags(begin.sample_mode) | lease_flag,
+            lease_holder,
+            lease_instance,
+            lease_epoch,
+            lease_refused,
             sent_unix_ns: protocol::unix_ns(),
             last_rtt_us: self.last_rtt_us,
             run_id: self.run_id,
@@ -1040,6 +1063,7 @@ impl<'a, 'p> PeriodLoop<'a, 'p> {
             rtt_p99_us: percentile(&self.rtts, 0.99),
             overruns: self.overruns,
             limit_hits: self.plant.limit_hits(),
+            lease: self.sup.lease().map(Lease::report).unwrap_or_default(),
         };
         AgentRun {
             report,

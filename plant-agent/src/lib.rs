@@ -4,6 +4,7 @@
 //!
 //! * [`safety`]: the agent's rules (command acceptance, hold, fallback, safe stop, what was
 //!   really applied), pure: no I/O, no async, no clock;
+//! * [`lease`]: the plant's command lease, pure: who may command it, under which epoch;
 //! * [`wire`]: the rules on the wire (a decoded command as the rules judge it, a mode as a
 //!   sample's flags);
 //! * [`agent`]: the networked loop, thin wiring around [`safety`];
@@ -45,6 +46,7 @@ pub mod agent;
 pub mod cli;
 pub mod config;
 pub mod gateway;
+pub mod lease;
 pub mod observe;
 pub mod pace;
 pub mod safety;

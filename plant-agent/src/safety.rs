@@ -49,6 +49,8 @@ use std::fmt;
 use std::str::FromStr;
 
 use mfc::{ChannelConfig, ChannelOutput, MfcError, MimoController, Reference};
+
+use crate::lease::{Credentials, Fence, Lease};
 use protocol::MAX_HORIZON;
 use serde::{Deserialize, Serialize};
 
@@ -274,6 +276,9 @@ pub struct IncomingCommand<'a> {
     /// For a control: the inputs predicted for the samples after `seq`, period-major
     /// (`[j * n + i]`: input `i` for sample `seq + 1 + j`); empty for none.
     pub horizon: &'a [f64],
+    /// Who sent it and under which lease (judged only by a supervisor that grants
+    /// leases, see [`Supervisor::grant_leases`]).
+    pub lease: Credentials<'a>,
 }
 
 /// Why a command was dropped.
@@ -290,6 +295,9 @@ pub enum Ignored {
     /// Wrong number of inputs, a NaN or infinite input, a horizon that is not whole
     /// periods of finite inputs or is longer than [`MAX_HORIZON`], or an unknown mode.
     Malformed,
+    /// Refused by the plant's command lease: not from its holder, under another epoch, or
+    /// for another run (see [`crate::lease`]).
+    Fenced(Fence),
 }
 
 /// What the wiring must do with a command.
@@ -315,7 +323,7 @@ pub enum Verdict {
 
 /// The counters of a run. Every command handed to [`Supervisor::on_command`] is counted in
 /// exactly one of `commands`, `too_old`, `superseded`, `duplicates`, `warming_up`,
-/// `rejected`, `malformed` and `future` (`late` is a subset of `commands`).
+/// `rejected`, `malformed`, `fenced` and `future` (`late` is a subset of `commands`).
 ///
 /// Deliberately not `Copy` (fifteen counters): copies are explicit `clone()`s.
 #[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -358,6 +366,10 @@ pub struct SupervisorCounters {
     /// in (a subset of `late`).
     #[serde(default)]
     pub horizon_late: u64,
+    /// Commands refused by the plant's command lease (from another controller than its
+    /// holder, under another epoch, or for another run); the lease counts them by reason.
+    #[serde(default)]
+    pub fenced: u64,
 }
 
 /// What to do at the start of a period.
@@ -423,6 +435,8 @@ pub struct Supervisor {
     /// The horizon of the last command applied (`[j * n + i]` for sample
     /// `last_applied_seq + 1 + j`); emptied when the fallback engages.
     plan: Vec<f64>,
+    /// The plant's command lease, once [`Supervisor::grant_leases`] turned it on.
+    lease: Option<Lease>,
 }
 
 impl Supervisor {
@@ -461,7 +475,27 @@ impl Supervisor {
             period: None,
             last_k: None,
             plan: Vec::new(),
+            lease: None,
         })
+    }
+
+    /// Judge every later command by the plant's command lease of run `run_id` too (see
+    /// [`crate::lease`]): the agent always does; without it, as before leases, any
+    /// controller's command that passes the other rules is applied (the bench's lockstep
+    /// simulator, which has one controller, and the unit tests of the other rules).
+    pub fn grant_leases(&mut self, run_id: u64) {
+        self.lease = Some(Lease::new(run_id));
+    }
+
+    /// Periods without a command after which the lease lapses: half the hold, rounded
+    /// up, at least one (so never after the fallback).
+    pub fn lease_lapse(&self) -> u32 {
+        self.config.hold_periods.div_ceil(2).max(1)
+    }
+
+    /// The command lease, if this supervisor grants one.
+    pub fn lease(&self) -> Option<&Lease> {
+        self.lease.as_ref()
     }
 
     /// The last command's horizon element for period `k`, if it reaches that far.
@@ -521,6 +555,13 @@ impl Supervisor {
             elapsed: 0.0,
         };
         let due = self.missing_streak > 0 && self.missing_streak >= self.config.hold_periods;
+        // The holder has been silent for half the hold: the lease lapses, so that another
+        // controller can claim it (a new epoch) while the plant still holds, before the
+        // fallback engages.
+        let lapsed = self.missing_streak >= self.lease_lapse();
+        if let (Some(lease), true) = (&mut self.lease, lapsed) {
+            lease.lapse();
+        }
         let write = if self.mode.is_fallback() || due {
             let (mode, v) = match (self.config.fallback, local_ok) {
                 (FallbackPolicy::LocalController, true) => (
@@ -532,6 +573,7 @@ impl Supervisor {
             if !self.mode.is_fallback() {
                 bump(&mut self.counters.fallbacks);
             }
+
             self.mode = mode;
             period.fallback = Some(mode);
             // A horizon is the remote controller's: it never plays under the fallback.
@@ -582,47 +624,25 @@ impl Supervisor {
     pub fn on_command(&mut self, at: f64, cmd: IncomingCommand<'_>) -> (Verdict, bool) {
         let n = self.applied.len();
         let h = self.config.period;
+        let Some(k) = self.period.map(|p| p.k) else {
+            return self.ignore(Ignored::Future);
+        };
+        let seq = cmd.seq;
+        // The lease first: a command from anyone but the holder is refused as such,
+        // whatever else is wrong with it.
+        let pass = match self.lease.as_mut().filter(|_| seq <= k) {
+            Some(lease) => match lease.check(&cmd.lease) {
+                Ok(pass) => Some(pass),
+                Err(fence) => return self.ignore(Ignored::Fenced(fence)),
+            },
+            None => None,
+        };
+        if let Some(why) = self.rule_out(k, &cmd) {
+            return self.ignore(why);
+        }
         let Some(p) = self.period.as_mut() else {
-            bump(&mut self.counters.future);
             return (Verdict::Ignored(Ignored::Future), false);
         };
-        let k = p.k;
-        let seq = cmd.seq;
-        let why = if seq > k {
-            Some(Ignored::Future)
-        } else if self.last_applied_seq == Some(seq) {
-            Some(Ignored::Duplicate)
-        } else if self.last_applied_seq.is_some_and(|last| seq < last) {
-            Some(Ignored::Superseded)
-        } else if k - seq > u64::from(self.config.max_age) {
-            Some(Ignored::TooOld)
-        } else {
-            match cmd.body {
-                CommandBody::Control(v) if v.len() != n || !v.iter().all(|x| x.is_finite()) => {
-                    Some(Ignored::Malformed)
-                }
-                CommandBody::Control(_)
-                    if cmd.horizon.len() % n.max(1) != 0
-                        || cmd.horizon.len() > MAX_HORIZON as usize * n
-                        || !cmd.horizon.iter().all(|x| x.is_finite()) =>
-                {
-                    Some(Ignored::Malformed)
-                }
-                CommandBody::Unknown => Some(Ignored::Malformed),
-                _ => None,
-            }
-        };
-        if let Some(why) = why {
-            let c = &mut self.counters;
-            bump(match why {
-                Ignored::Future => &mut c.future,
-                Ignored::Duplicate => &mut c.duplicates,
-                Ignored::Superseded => &mut c.superseded,
-                Ignored::TooOld => &mut c.too_old,
-                Ignored::Malformed => &mut c.malformed,
-            });
-            return (Verdict::Ignored(why), false);
-        }
         let own = seq == k;
         let verdict = match cmd.body {
             CommandBody::Control(v) => {
@@ -666,7 +686,9 @@ impl Supervisor {
             }
             CommandBody::WarmingUp => {
                 p.warming = true;
-                self.missing_streak = 0;
+                if self.last_applied_seq.is_none() {
+                    self.missing_streak = 0;
+                }
                 bump(&mut self.counters.warming_up);
                 Verdict::WarmingUp
             }
@@ -677,7 +699,58 @@ impl Supervisor {
             // Refused above as malformed.
             CommandBody::Unknown => return (Verdict::Ignored(Ignored::Malformed), false),
         };
+        // A refusal is no answer that keeps the plant safe: it neither claims nor releases.
+        if let (Some(lease), Some(pass)) = (&mut self.lease, pass) {
+            if verdict != Verdict::Rejected {
+                let applied = matches!(verdict, Verdict::Apply { .. }).then_some(k);
+                lease.accepted(pass, &cmd.lease, applied);
+            }
+        }
         (verdict, own)
+    }
+
+    /// Why the rules of [`Supervisor::on_command`] drop a command for period `k`, if they
+    /// do (the lease aside).
+    fn rule_out(&self, k: u64, cmd: &IncomingCommand<'_>) -> Option<Ignored> {
+        let (n, seq) = (self.applied.len(), cmd.seq);
+        if seq > k {
+            Some(Ignored::Future)
+        } else if self.last_applied_seq == Some(seq) {
+            Some(Ignored::Duplicate)
+        } else if self.last_applied_seq.is_some_and(|last| seq < last) {
+            Some(Ignored::Superseded)
+        } else if k - seq > u64::from(self.config.max_age) {
+            Some(Ignored::TooOld)
+        } else {
+            match cmd.body {
+                CommandBody::Control(v) if v.len() != n || !v.iter().all(|x| x.is_finite()) => {
+                    Some(Ignored::Malformed)
+                }
+                CommandBody::Control(_)
+                    if cmd.horizon.len() % n.max(1) != 0
+                        || cmd.horizon.len() > MAX_HORIZON as usize * n
+                        || !cmd.horizon.iter().all(|x| x.is_finite()) =>
+                {
+                    Some(Ignored::Malformed)
+                }
+                CommandBody::Unknown => Some(Ignored::Malformed),
+                _ => None,
+            }
+        }
+    }
+
+    /// Count a dropped command under its reason.
+    fn ignore(&mut self, why: Ignored) -> (Verdict, bool) {
+        let c = &mut self.counters;
+        bump(match why {
+            Ignored::Future => &mut c.future,
+            Ignored::Duplicate => &mut c.duplicates,
+            Ignored::Superseded => &mut c.superseded,
+            Ignored::TooOld => &mut c.too_old,
+            Ignored::Malformed => &mut c.malformed,
+            Ignored::Fenced(_) => &mut c.fenced,
+        });
+        (Verdict::Ignored(why), false)
     }
 
     /// Close the period: count it as missing if neither a command nor a warming-up answer
@@ -691,8 +764,13 @@ impl Supervisor {
         let p = self.period.take().ok_or(SafetyError::NoOpenPeriod)?;
         let h = self.config.period;
         let missing = !p.got && !p.warming;
+        // Once a command was applied in this run, a warming-up answer does not stop the
+        // watchdog: a controller that lost its state cannot vouch for the command held.
+        let silent = !p.got && (!p.warming || self.last_applied_seq.is_some());
         if missing {
             bump(&mut self.counters.missing);
+        }
+        if silent {
             self.missing_streak = self.missing_streak.saturating_add(1);
             if self.mode == LoopMode::Remote
                 && self.missing_streak < self.config.hold_periods.max(1)
@@ -702,11 +780,11 @@ impl Supervisor {
         }
         let mode = match p.fallback {
             Some(fallback) if !p.got => fallback,
-            _ if missing && self.mode == LoopMode::Holding => LoopMode::Holding,
+            _ if silent && self.mode == LoopMode::Holding => LoopMode::Holding,
             _ => LoopMode::Remote,
         };
         let c = &mut self.counters;
-        if missing && p.planned && mode == LoopMode::Holding {
+        if silent && p.planned && mode == LoopMode::Holding {
             bump(&mut c.horizon_periods);
         }
         match mode {
@@ -820,6 +898,7 @@ mod tests {
             seq,
             body: CommandBody::Control(v),
             horizon: &[],
+            lease: Credentials::default(),
         }
     }
 
@@ -828,6 +907,7 @@ mod tests {
             seq,
             body: CommandBody::WarmingUp,
             horizon: &[],
+            lease: Credentials::default(),
         }
     }
 
@@ -836,6 +916,7 @@ mod tests {
             seq,
             body: CommandBody::Rejected("no"),
             horizon: &[],
+            lease: Credentials::default(),
         }
     }
 
@@ -898,6 +979,7 @@ mod tests {
             + c.warming_up
             + c.rejected
             + c.malformed
+            + c.fenced
             + c.future
     }
 
@@ -906,6 +988,7 @@ mod tests {
             seq,
             body: CommandBody::Control(v),
             horizon,
+            lease: Credentials::default(),
         }
     }
 
@@ -1322,6 +1405,7 @@ mod tests {
             seq: 0,
             body: CommandBody::Unknown,
             horizon: &[],
+            lease: Credentials::default(),
         };
         assert_eq!(ignored(&mut s, unknown), Ignored::Malformed);
         assert_eq!(s.counters().malformed, 7);
@@ -1662,8 +1746,11 @@ mod tests {
         assert!(!s.end_period().unwrap().missing);
     }
 
+    /// After a command was applied, a controller that answers "warming up" (it restarted,
+    /// or took the lease with a cold state) does not hold the plant on a stale command
+    /// past the watchdog: the periods count towards the fallback (not as missing).
     #[test]
-    fn warming_up_resets_the_streak_while_holding() {
+    fn warming_up_after_commands_does_not_stop_the_watchdog() {
         let mut s = sup(2, 3, FallbackPolicy::LocalController);
         period(&mut s, 0, Some(2.0));
         period(&mut s, 1, None);
@@ -1673,15 +1760,124 @@ mod tests {
         command(&mut s, 0.1, warm(3));
         let end = s.end_period().unwrap();
         assert!(!end.missing);
-        assert_eq!(end.mode, LoopMode::Remote);
-        assert_eq!(s.mode(), LoopMode::Holding, "mode unchanged");
-        assert_eq!(s.missing_streak(), 0);
+        assert_eq!(end.mode, LoopMode::Holding);
+        assert_eq!(s.missing_streak(), 3);
+        assert_eq!(s.counters().missing, 2);
         assert_eq!(s.applied_now(), &[2.0]);
-        // The streak starts again from zero.
-        for k in 4..7 {
-            assert_eq!(period(&mut s, k, None).0.write, None);
+        // The fallback engages at the next period, warming-up answers or not.
+        assert!(period(&mut s, 4, None).0.write.is_some());
+        assert_eq!(s.mode(), LoopMode::Local);
+    }
+
+    fn leased<'a>(
+        seq: u64,
+        v: &'a [f64],
+        from: &'a str,
+        epoch: u64,
+        claim: bool,
+    ) -> IncomingCommand<'a> {
+        IncomingCommand {
+            lease: Credentials {
+                from,
+                instance: 0,
+                epoch,
+                claim,
+                release: false,
+                run_id: 9,
+            },
+            ..ctl(seq, v)
         }
-        assert!(period(&mut s, 7, None).0.write.is_some());
+    }
+
+    /// With leases, only the holder's commands pass; a refused one changes nothing but
+    /// the count; a claim that the other rules drop grants nothing; the lease lapses
+    /// after half the hold, and the next claim gets a new epoch.
+    #[test]
+    fn the_lease_decides_who_commands_and_lapses_with_the_fallback() {
+        let mut s = sup(3, 2, FallbackPolicy::LocalController);
+        s.grant_leases(9);
+        begin(&mut s, 0);
+        // A claim of a future sample is dropped and grants nothing.
+        assert_eq!(
+            ignored(&mut s, leased(1, &[1.0], "b", 1, true)),
+            Ignored::Future
+        );
+        assert_eq!(s.lease().unwrap().holder(), None);
+        let (v, _) = command(&mut s, 0.1, leased(0, &[1.0], "a", 1, true));
+        assert!(matches!(v, Verdict::Apply { .. }));
+        assert_eq!(s.lease().unwrap().holder(), Some("a"));
+        // The loser's claim and a forged holder's epoch are fenced, counted once each.
+        let fenced = |f| Ignored::Fenced(f);
+        assert_eq!(
+            ignored(&mut s, leased(0, &[9.0], "b", 1, true)),
+            fenced(Fence::BadClaim)
+        );
+        assert_eq!(
+            ignored(&mut s, leased(0, &[9.0], "a", 2, false)),
+            fenced(Fence::StaleEpoch)
+        );
+        s.end_period().unwrap();
+        begin(&mut s, 1);
+        let (v, _) = command(&mut s, 0.1, leased(1, &[2.0], "a", 1, false));
+        assert!(matches!(v, Verdict::Apply { .. }));
+        s.end_period().unwrap();
+        // Silence: the lease lapses after half the hold (one period), while the plant
+        // still holds; the fallback engages after the whole hold.
+        period(&mut s, 2, None);
+        assert_eq!(s.lease().unwrap().holder(), Some("a"));
+        assert_eq!(begin(&mut s, 3).write, None);
+        assert_eq!(s.lease().unwrap().holder(), None);
+        s.end_period().unwrap();
+        assert!(begin(&mut s, 4).write.is_some());
+        // The old holder's command is refused now; its claim of the next epoch passes.
+        assert_eq!(
+            ignored(&mut s, leased(4, &[3.0], "a", 1, false)),
+            fenced(Fence::Vacant)
+        );
+        let (v, _) = command(&mut s, 0.1, leased(4, &[3.0], "b", 2, true));
+        assert!(matches!(v, Verdict::Apply { .. }));
+        assert_eq!(s.mode(), LoopMode::Remote);
+        let l = s.lease().unwrap();
+        assert_eq!(
+            (l.holder(), l.epoch(), l.counters().lapses),
+            (Some("b"), 2, 1)
+        );
+        let c = s.counters();
+        assert_eq!((c.fenced, c.commands, c.future), (3, 3, 1));
+        assert_eq!(total(c), 7);
+        let spans: Vec<_> = l
+            .report()
+            .spans
+            .iter()
+            .map(|x| (x.holder.clone(), x.epoch, x.first, x.last))
+            .collect();
+        assert_eq!(
+            spans,
+            [("a".to_string(), 1, 0, 1), ("b".to_string(), 2, 4, 4)]
+        );
+    }
+
+    /// A refusal from a claimant is no answer that keeps the plant safe: it claims nothing.
+    #[test]
+    fn a_rejected_claim_grants_nothing() {
+        let mut s = sup(3, 2, FallbackPolicy::LocalController);
+        s.grant_leases(9);
+        begin(&mut s, 0);
+        let mut r = rejected(0);
+        r.lease = Credentials {
+            from: "a",
+            instance: 0,
+            epoch: 1,
+            claim: true,
+            release: false,
+            run_id: 9,
+        };
+        assert_eq!(s.on_command(0.1, r).0, Verdict::Rejected);
+        assert_eq!(s.lease().unwrap().holder(), None);
+        let mut w = warm(0);
+        w.lease = r.lease;
+        assert_eq!(s.on_command(0.1, w).0, Verdict::WarmingUp);
+        assert_eq!(s.lease().unwrap().holder(), Some("a"));
     }
 
     #[test]
@@ -1700,7 +1896,8 @@ mod tests {
             assert_eq!(end.mode, LoopMode::Local);
             assert!(!end.missing);
             assert_eq!(s.mode(), LoopMode::Local);
-            assert_eq!(s.missing_streak(), 0);
+            // Not missing, but no command either: the watchdog's count goes on.
+            assert_eq!(s.missing_streak(), k as u32);
         }
         let c = s.counters().clone();
         assert_eq!((c.local_periods, c.fallbacks, c.missing), (4, 1, 2));
@@ -2081,7 +2278,15 @@ mod tests {
                 let last = s.last_applied_seq();
                 self.delivered += 1;
                 let horizon = &[];
-                let (verdict, done) = s.on_command(at, IncomingCommand { seq, body, horizon });
+                let (verdict, done) = s.on_command(
+                    at,
+                    IncomingCommand {
+                        seq,
+                        body,
+                        horizon,
+                        lease: Credentials::default(),
+                    },
+                );
                 assert_eq!(total(s.counters()), total(&before) + 1);
                 assert_eq!(done, seq == k && !matches!(verdict, Verdict::Ignored(_)));
                 match verdict {

@@ -9,6 +9,7 @@
 
 use protocol::pb;
 
+use crate::lease::Credentials;
 use crate::safety::{CommandBody, IncomingCommand, LoopMode};
 
 impl<'a> IncomingCommand<'a> {
@@ -26,6 +27,14 @@ impl<'a> IncomingCommand<'a> {
             seq: cmd.seq,
             body,
             horizon: &cmd.horizon,
+            lease: Credentials {
+                from: &cmd.controller_id,
+                instance: cmd.lease_instance,
+                epoch: cmd.lease_epoch,
+                claim: cmd.claim,
+                release: cmd.release,
+                run_id: cmd.run_id,
+            },
         }
     }
 }

@@ -13,6 +13,7 @@ use plant::record::RunRecord;
 use plant::scenario::{load_scenario, shipped_controller, Scenario};
 use plant_agent::safety::LoopMode;
 use plant_agent::safety::SafetyConfig;
+use protocol::{keys, pb};
 use system_tests::{margin_periods, scratch_dir, SERIAL};
 
 /// The campaign's options with the hold widened by the test margin: these tests are about
@@ -540,4 +541,113 @@ async fn hot_standby_takes_over_before_the_fallback() {
     );
     let k = &report.counters;
     assert!((k.commands + k.warming_up) as f64 > 0.97 * k.periods as f64);
+}
+
+/// Send `signal` (STOP, CONT) to a child process.
+fn signal(child: &Child, signal: &str) {
+    let ok = Command::new("kill")
+        .args([&format!("-{signal}"), &child.id().to_string()])
+        .status()
+        .unwrap()
+        .success();
+    assert!(ok, "kill -{signal} failed");
+}
+
+/// Two services that both believe they command the plant (two processes with the same
+/// file but their own ids, as a partition or a second copy started by mistake would
+/// make them), and the owner stopped with SIGSTOP for 3 s, longer than the plant's hold:
+/// the plant's lease decides. From the plant's own record: never two holders in one
+/// period, each new holder under a higher epoch, the takeover before the fallback would
+/// engage, and the stopped owner, resumed, never gets a command applied again while the
+/// other holds; from the services' status, each kept quiet while the other held it.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_paused_owner_is_fenced_by_the_plant_lease() {
+    let _s = SERIAL.lock().await;
+    let s = scenario(9.0);
+    let c = shipped_controller("ipd").unwrap();
+    let dir = scratch_dir("paused-owner");
+    let (pa, pb) = (
+        transport::free_local_port().unwrap(),
+        transport::free_local_port().unwrap(),
+    );
+    let (ea, eb) = (format!("tcp/127.0.0.1:{pa}"), format!("tcp/127.0.0.1:{pb}"));
+    let write = |name: &str, id: &str| {
+        let mut cfg = service_config(&s, &c, &["aero-1".into()]);
+        cfg.controller_id = id.into();
+        let path = dir.join(name);
+        std::fs::write(&path, toml::to_string(&cfg).unwrap()).unwrap();
+        path
+    };
+    let (fa, fb) = (write("a.toml", "ctl-a"), write("b.toml", "ctl-b"));
+    let mut a = start_service(&fa, &ea);
+    wait_for_controller(&ea, "ctl-a").await;
+    let mut plant = PlantSpec::new(&s, &c, "aero-1");
+    plant.loop_config.safety.hold_periods = SafetyConfig::DEFAULT_HOLD_PERIODS + margin_periods();
+    let hold = plant.loop_config.safety.hold_periods;
+    let run = tokio::spawn(run_plant(vec![ea.clone(), eb.clone()], plant, true));
+    // The second one comes up while the first holds the lease.
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let mut b = start_service(&fb, &eb);
+    wait_for_controller(&eb, "ctl-b").await;
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    signal(&a, "STOP");
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    signal(&a, "CONT");
+    let run = run.await.unwrap().unwrap();
+    // What each service says of the device: who held it, and how often it kept quiet.
+    let client = transport::ZenohArgs::loopback(None, vec![ea.clone(), eb.clone()])
+        .open()
+        .await
+        .unwrap();
+    let mut fenced = Vec::new();
+    for id in ["ctl-a", "ctl-b"] {
+        let st: pb::ServiceStatus = system_tests::query(&client, keys::service_status(id), None)
+            .await
+            .unwrap();
+        let d = st.devices.iter().find(|d| d.device_id == "aero-1").unwrap();
+        eprintln!(
+            "{id}: holder {} epoch {} fenced {} claims {} commands {}",
+            d.lease_holder, d.lease_epoch, d.lease_fenced, d.lease_claims, d.commands
+        );
+        fenced.push(d.lease_fenced);
+    }
+    let _ = client.close().await;
+    for p in [&mut a, &mut b] {
+        let _ = p.kill();
+        let _ = p.wait();
+    }
+    let (report, rec) = (run.report, run.record);
+    let spans = &report.lease.spans;
+    eprintln!("lease: {:?}", report.lease);
+    eprintln!("counters: {:?}", report.counters);
+    assert!(spans.len() >= 2, "no takeover: {spans:?}");
+    assert_eq!(spans[0].holder, "ctl-a", "the first service holds first");
+    for w in spans.windows(2) {
+        assert!(w[0].last < w[1].first, "two holders in one period: {w:?}");
+        assert!(w[0].epoch < w[1].epoch, "an epoch went back: {w:?}");
+    }
+    // Both followed every sample; each kept quiet while the other held the lease (ctl-b
+    // for the two seconds before the pause, ctl-a from its resumption on), and the plant
+    // refused whatever came from the one that did not hold it.
+    assert!(
+        fenced.iter().all(|f| *f > 50),
+        "answers held back: {fenced:?}"
+    );
+    // ctl-a's span ends at the pause; the next holder is ctl-b, and ctl-a never again.
+    let taken = spans
+        .iter()
+        .position(|x| x.holder == "ctl-b")
+        .expect("ctl-b never held the lease");
+    assert!(
+        spans[taken..].iter().all(|x| x.holder == "ctl-b"),
+        "the resumed owner commanded again: {spans:?}"
+    );
+    let gap = spans[taken].first - spans[taken - 1].last;
+    eprintln!("takeover: {gap} periods from ctl-a's last command to ctl-b's first");
+    assert!(
+        gap <= u64::from(hold),
+        "takeover after {gap} periods, hold {hold}"
+    );
+    assert_eq!(report.counters.fallbacks, 0, "the plant fell back");
+    assert!(rec.traces[1].y.iter().all(|y| y.abs() < 1.0), "pitch stop");
 }

@@ -32,8 +32,11 @@ fn config() -> String {
     )
 }
 
-/// Plants in the test.
-const DEVICES: usize = 60;
+/// Plants in the test: enough for every member to own several, few enough that three
+/// debug-built services and the generator leave the 2-core machine room (60 saturated it:
+/// 175 % CPU, round trips of 50 to 90 ms at the median, and a newcomer's handed-over
+/// estimators then restarted their window, which the test rightly calls a failure).
+const DEVICES: usize = 30;
 /// A dead owner's devices must be answered again within this many periods (100 ms at
 /// 100 Hz), before the margin.
 const TAKEOVER_PERIODS: u64 = 10;

@@ -14,6 +14,7 @@ use protocol::{pb, PROTOCOL_VERSION};
 use super::{latency, REORDER_WINDOW, RESYNC_AFTER};
 use crate::config::{DeviceChannel, Prediction};
 use crate::envelope::Limits;
+use crate::lease::Claimer;
 use protocol::MAX_HORIZON;
 
 /// Most recent round trips kept per device for the status percentiles; older ones drop out.
@@ -168,6 +169,13 @@ pub(super) struct Device {
     /// The shard the device lives in ([`crate::fleet`]): its id's, or its gateway's if its
     /// samples come in a gateway's batches.
     pub(super) home: u32,
+    /// This member's side of the plant's command lease ([`crate::lease`]).
+    pub(super) claimer: Claimer,
+    /// The lease as the last sample reported it: holder (at most an id's length), epoch,
+    /// and the plant's count of refused commands.
+    pub(super) lease_holder: String,
+    pub(super) lease_epoch: u64,
+    pub(super) lease_refused: u64,
     /// Restored from a snapshot and not yet resumed: the first sample decides whether the
     /// data history still holds (no gap) or must be forgotten.
     pub(super) restored: bool,
@@ -359,6 +367,10 @@ impl Device {
         let n = configs.len();
         Ok(Self {
             home: 0,
+            claimer: Claimer::default(),
+            lease_holder: String::new(),
+            lease_epoch: 0,
+            lease_refused: 0,
             restored: false,
             from_template,
             envelope,
@@ -561,6 +573,12 @@ impl Device {
             restarts: self.restarts,
             recovered: self.recovered,
             last_flags: self.last_flags,
+            lease_holder: self.lease_holder.clone(),
+            lease_epoch: self.lease_epoch,
+            lease_refused: self.lease_refused,
+            lease_fenced: self.claimer.fenced,
+            lease_claims: self.claimer.claims,
+            lease_yields: self.claimer.yields,
         }
     }
 

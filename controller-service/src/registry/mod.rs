@@ -50,6 +50,7 @@ use std::collections::{BTreeSet, HashMap, VecDeque};
 use protocol::{pb, printable, PROTOCOL_VERSION};
 
 use crate::config::ServiceConfig;
+use crate::lease::LeasePolicy;
 use device::{reply, Device, DeviceKey};
 pub use shards::Restored;
 
@@ -96,6 +97,10 @@ pub enum Served {
     Answered {
         /// Whether this sample provisioned its device from a template.
         provisioned: bool,
+        /// Whether this member is to publish it: the plant's lease and the member's
+        /// place in the fleet decide ([`crate::lease`]); the command is written either way
+        /// (the answer is cached and observed as if sent).
+        send: bool,
     },
     /// Not a device this service serves, and no template provisions it: nothing to publish
     /// (counted in `unknown_samples`).
@@ -118,11 +123,10 @@ impl Served {
 }
 
 /// What [`Registry::handle_sample`] tells of a sample [`step::answer`] answered or not.
-fn served(answered: bool, provisioned: bool) -> Served {
-    if answered {
-        Served::Answered { provisioned }
-    } else {
-        Served::AlreadyAnswered
+fn served(answered: Option<bool>, provisioned: bool) -> Served {
+    match answered {
+        Some(send) => Served::Answered { provisioned, send },
+        None => Served::AlreadyAnswered,
     }
 }
 
@@ -136,20 +140,33 @@ pub struct Via<'a> {
     pub key_id: &'a str,
     /// The shard of the path.
     pub home: u32,
+    /// Whether this member is the one the fleet (or the hot standby) wants to command the
+    /// path's shard: it claims a vacant lease at once ([`crate::lease`]).
+    pub preferred: bool,
 }
 
 impl<'a> Via<'a> {
-    /// A sample on the device's own key.
+    /// A sample on the device's own key, to a preferred member.
     pub fn key(key_id: &'a str) -> Self {
         Self {
             key_id,
             home: protocol::shard_of(key_id),
+            preferred: true,
         }
     }
 
-    /// A sample in the batch of a gateway whose shard is `home`.
+    /// A sample in the batch of a gateway whose shard is `home`, to a preferred member.
     pub fn gateway(key_id: &'a str, home: u32) -> Self {
-        Self { key_id, home }
+        Self {
+            key_id,
+            home,
+            preferred: true,
+        }
+    }
+
+    /// The same path, to a member that is preferred or not.
+    pub fn preferred(self, preferred: bool) -> Self {
+        Self { preferred, ..self }
     }
 }
 
@@ -208,6 +225,11 @@ pub enum RegistryError {
 #[derive(Debug)]
 pub struct Registry {
     controller_id: String,
+    /// When this member claims and yields plants' leases.
+    lease_policy: LeasePolicy,
+    /// This process among those that may carry the same controller id: the plant's lease
+    /// names it ([`Registry::set_instance`]).
+    instance: u64,
     config: ServiceConfig,
     /// A hash map: a gateway's batch looks up thousands of devices a period. Whatever
     /// lists them sorts them first, so listings stay in id order.
@@ -247,6 +269,8 @@ impl Registry {
         }
         Ok(Self {
             controller_id: config.controller_id.clone(),
+            lease_policy: LeasePolicy::default(),
+            instance: 0,
             config,
             devices,
             unknown_samples: 0,
@@ -367,6 +391,13 @@ impl Registry {
         Ok(())
     }
 
+    /// Name this process for the plants' leases: random per start, so that a second
+    /// process with the same controller id (a restart, a copy started by mistake) is not
+    /// taken for the holder. 0 (the default) until the service sets it.
+    pub fn set_instance(&mut self, instance: u64) {
+        self.instance = instance;
+    }
+
     /// Answer a sample by the rules of the module doc, writing the command into `out`
     /// (reusing its buffers: a gateway's batch keeps one command per sample from batch to
     /// batch, so answering allocates nothing). `now_unix_ns` is the time the answer
@@ -385,6 +416,8 @@ impl Registry {
                 controller_id: &self.controller_id,
                 rejected: &mut self.rejected,
                 now_unix_ns,
+                lease: &self.lease_policy,
+                instance: self.instance,
             };
             return served(step::answer(cx, d, via, s, out), false);
         }
@@ -401,6 +434,8 @@ impl Registry {
             controller_id: &self.controller_id,
             rejected: &mut self.rejected,
             now_unix_ns,
+            lease: &self.lease_policy,
+            instance: self.instance,
         };
         served(step::answer(cx, d, via, s, out), true)
     }

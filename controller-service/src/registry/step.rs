@@ -9,6 +9,7 @@ use protocol::pb;
 
 use super::device::{reply, Answer, Answered, Device, PerChannel, Run};
 use super::{capped, precheck, Via, MAX_SEQ_JUMP};
+use crate::lease::{LeasePolicy, Seen};
 use protocol::MAX_HORIZON;
 
 /// A gap longer than this (s) between a snapshot and the next sample makes the restored
@@ -30,11 +31,39 @@ pub(super) struct Context<'a> {
     pub(super) controller_id: &'a str,
     pub(super) rejected: &'a mut u64,
     pub(super) now_unix_ns: u64,
+    pub(super) lease: &'a LeasePolicy,
+    pub(super) instance: u64,
 }
 
-/// Step device `d` with a sample that came `via`, and write the command into `out`;
-/// false if the sample is not to be answered ([`super::Served::AlreadyAnswered`]).
+/// Step device `d` with a sample that came `via`, and write the command into `out`,
+/// stamped with the plant's lease; whether this member sends it (the lease's
+/// [`Decision`]), or `None` if the sample is not to be answered at all
+/// ([`super::Served::AlreadyAnswered`]). Every member steps every sample it gets, whoever
+/// holds the lease: the state of one that does not command stays warm.
 pub(super) fn answer(
+    cx: Context<'_>,
+    d: &mut Device,
+    via: Via<'_>,
+    s: &pb::Sample,
+    out: &mut pb::Command,
+) -> Option<bool> {
+    let (me, policy) = ((cx.controller_id, cx.instance), cx.lease);
+    if !write_answer(cx, d, via, s, out) {
+        return None;
+    }
+    let seen = Seen::of(s);
+    if d.lease_holder != seen.holder {
+        d.lease_holder.clear();
+        d.lease_holder.push_str(&protocol::printable(seen.holder));
+    }
+    (d.lease_epoch, d.lease_refused) = (seen.epoch, s.lease_refused);
+    let decision = d.claimer.decide(policy, me, via.preferred, seen);
+    decision.stamp(s.run_id, me.1, out);
+    Some(decision.sends())
+}
+
+/// [`answer`] before the lease: the command, or false if none.
+fn write_answer(
     mut cx: Context<'_>,
     d: &mut Device,
     via: Via<'_>,

@@ -89,6 +89,8 @@ pub(super) struct Core {
     gw_publishers: HashMap<String, Arc<Publisher<'static>>>,
     /// The commands of the last batch, kept with their buffers for the next one.
     pool: Vec<pb::Command>,
+    /// Whether each answer of a batch is sent, kept for the next batch.
+    sends: Vec<bool>,
 }
 
 impl Core {
@@ -100,6 +102,7 @@ impl Core {
             publishers: HashMap::new(),
             gw_publishers: HashMap::new(),
             pool: Vec::new(),
+            sends: Vec::new(),
         }
     }
 
@@ -117,9 +120,8 @@ impl Core {
         // Every member follows every sample (a standby stays warm); only the active one
         // answers.
         let mut cmd = pb::Command::default();
-        let served = self
-            .registry
-            .handle_sample(Via::key(dev), &sample, log_ns, &mut cmd);
+        let via = Via::key(dev).preferred(answers);
+        let served = self.registry.handle_sample(via, &sample, log_ns, &mut cmd);
         let cpu = cpu0.map(|c| thread_cpu() - c);
         if taken.superseded > 0 {
             self.registry.note_superseded(dev, taken.superseded);
@@ -133,7 +135,7 @@ impl Core {
         }
         self.watch
             .served(&self.registry, dev, &sample, &cmd, cpu, provisioned, log_ns);
-        answers.then_some(cmd)
+        matches!(served, Served::Answered { send: true, .. }).then_some(cmd)
     }
 
     /// Log what the registry did with a sample of `dev` (from gateway `gw`, if any), as a
@@ -147,7 +149,7 @@ impl Core {
     ) -> bool {
         let warn = &mut self.warn;
         match (served, gw) {
-            (Served::Answered { provisioned }, _) => {
+            (Served::Answered { provisioned, .. }, _) => {
                 match (provisioned, gw) {
                     (true, Some(gw)) => {
                         tracing::info!(device = %dev, gateway = %gw, "provisioned from a template");
@@ -191,6 +193,7 @@ impl Core {
         let home = protocol::shard_of(&gw);
         let batch = taken.item;
         let mut commands = std::mem::take(&mut self.pool);
+        let mut sends = std::mem::take(&mut self.sends);
         let mut n = 0;
         // One clock read for the batch: its time is shared by its samples (reading the
         // clock per sample would cost as much as a step).
@@ -209,7 +212,7 @@ impl Core {
             if commands.len() == n {
                 commands.push(pb::Command::default());
             }
-            let via = Via::gateway(dev, home);
+            let via = Via::gateway(dev, home).preferred(answers);
             let served = self
                 .registry
                 .handle_sample(via, sample, log_ns, &mut commands[n]);
@@ -217,10 +220,11 @@ impl Core {
             if provisioned {
                 lock(inbox).serve(dev);
             }
-            if served.answered() {
+            if let Served::Answered { send, .. } = served {
                 if self.watch.timing() || self.watch.recording.is_some() {
                     answered.push((k, n, provisioned));
                 }
+                sends.push(send);
                 n += 1;
             }
         }
@@ -233,16 +237,25 @@ impl Core {
                     .served(&self.registry, dev, sample, cmd, cpu, provisioned, log_ns);
             }
         }
-        // Only the answered ones go out; the spare ones keep their buffers for the next
-        // batch.
-        let spare = commands.split_off(n);
+        // Only the answers this member sends go out, in the batch's order (the plant's
+        // lease decides, per device); the others keep their buffers for the next batch.
+        let mut sent = 0;
+        for (i, &send) in sends.iter().enumerate().take(n) {
+            if send {
+                commands.swap(sent, i);
+                sent += 1;
+            }
+        }
+        sends.clear();
+        self.sends = sends;
+        let spare = commands.split_off(sent);
         let out = pb::CommandBatch {
             version: protocol::PROTOCOL_VERSION,
             gateway_id: gw.clone(),
             commands,
             controller_id: self.registry.controller_id().to_string(),
         };
-        let payload = (answers && n > 0).then(|| encode(&out));
+        let payload = (sent > 0).then(|| encode(&out));
         self.pool = out.commands;
         self.pool.extend(spare);
         payload.map(|p| (gw, p))

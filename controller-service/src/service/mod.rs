@@ -93,9 +93,20 @@ pub async fn serve(
     observers: Observers,
     shutdown: impl std::future::Future<Output = ()>,
 ) -> Result<(), ServiceError> {
+    let mut registry = registry;
+    registry.set_instance(random_instance());
     let (worker, inputs) = worker::Worker::start(session, registry, observers).await?;
     worker.run(inputs, shutdown).await;
     Ok(())
+}
+
+/// A random nonzero number naming this process in the plants' leases: the standard
+/// library's hasher keys come from the operating system's entropy.
+fn random_instance() -> u64 {
+    use std::hash::BuildHasher;
+    std::collections::hash_map::RandomState::new()
+        .hash_one(std::process::id())
+        .max(1)
 }
 
 /// One of the service's locks: a panic elsewhere while it was held leaves plain data

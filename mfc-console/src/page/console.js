@@ -320,6 +320,10 @@ async function refreshDetail() {
       ['off remote control', s.samples_off_remote], ['clamped', s.clamped],
       ['references refused', s.references_refused], ['envelope changes', s.envelope_changes],
       ['runs', s.restarts],
+      ['lease holder', s.lease_holder ? `${s.lease_holder} (epoch ${s.lease_epoch})`
+        : (s.lease_epoch ? `vacant after epoch ${s.lease_epoch}` : 'none (a plant without leases)')],
+      ['lease: refused by the plant / fenced here / claims / yields',
+        `${s.lease_refused || 0} / ${s.lease_fenced || 0} / ${s.lease_claims || 0} / ${s.lease_yields || 0}`],
       ['round trip p50 / p99 / max', `${fmt(rtt.p50_us)} / ${fmt(rtt.p99_us)} / ${fmt(rtt.max_us)} µs`],
       ['mode (last flags)', d.status_mode || '–'],
       ['plant time', `${fmt(s.plant_time)} s (seq ${s.last_seq})`],

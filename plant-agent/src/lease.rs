@@ -1,0 +1,414 @@
+//! The plant's command lease: the plant, not the controllers, decides who commands it.
+//!
+//! Several controllers may answer one plant at once: the owner and the standby of a fleet
+//! that a partition split, a paused process that woke up after its successor took over, a
+//! second service started by mistake. Whatever they believe, the plant applies the
+//! commands of one of them only, the *holder* of its lease, and only under the holder's
+//! *epoch*. That is the fencing token of Chubby's sequencers and of PROFINET's system
+//! redundancy: the resource refuses a token that is not the newest it has granted, so a
+//! stale holder is stopped where it matters, at the actuator, whatever the network did.
+//!
+//! The rules, all on numbers the agent passes in:
+//! * Every sample publishes the lease: the holder (empty while vacant) and the epoch.
+//! * A command from the holder under the current epoch and for this run passes; any other
+//!   is refused ([`Fence`]) and counted, and the next sample tells its sender who holds the
+//!   lease, so a stale controller stops at once.
+//! * A vacant lease is granted to the first command that claims it, names the epoch one
+//!   above the vacant one, and passes every other rule of the supervisor (a command the
+//!   supervisor would drop grants nothing). The new epoch is never granted again in the
+//!   run, and a run never reuses another's because commands carry the run's random id.
+//! * The lease lapses when its holder has been silent for half the agent's
+//!   `hold_periods` (timed on the agent's own pacing, never on a wall clock): another
+//!   controller can then claim it while the plant still holds the last command, before
+//!   the fallback engages; and it lapses when the holder gives it up (`release`, once its
+//!   command is applied). Nobody claims: the fallback engages after the whole hold, as
+//!   without leases.
+//!
+//! No I/O, no clock: the [`crate::safety::Supervisor`] owns one and calls it.
+
+use serde::{Deserialize, Serialize};
+
+/// Longest holder name granted a lease: the protocol's id limit (so a lease's holder is
+/// always a name a controller can have, and the state it keeps is bounded).
+const MAX_HOLDER: usize = 64;
+
+/// Why the lease refused a command.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Fence {
+    /// It answers another run of the plant (a replay of an earlier run, or a controller
+    /// that has not seen the restart yet).
+    OtherRun,
+    /// The lease is held by another controller.
+    NotHolder,
+    /// From the holder, but under another epoch: a paused or partitioned process that
+    /// lost the lease and got it back would otherwise resume with an old state.
+    StaleEpoch,
+    /// A claim of a lease that is not vacant, or of an epoch other than the next one.
+    BadClaim,
+    /// Not a claim while the lease is vacant: a former holder still commanding.
+    Vacant,
+}
+
+/// What the lease says of a command that passed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Pass {
+    /// From the holder, under its epoch.
+    Holder,
+    /// A valid claim of the vacant lease: granted if the supervisor applies the command.
+    Claim,
+}
+
+/// The lease's counters over a run.
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct LeaseCounters {
+    /// Leases granted (also the last epoch).
+    pub grants: u64,
+    /// Leases that lapsed with the fallback.
+    pub lapses: u64,
+    /// Leases given up by their holder.
+    pub releases: u64,
+    /// Commands refused, by reason.
+    pub other_run: u64,
+    pub not_holder: u64,
+    pub stale_epoch: u64,
+    pub bad_claim: u64,
+    pub vacant: u64,
+}
+
+impl LeaseCounters {
+    /// All commands the lease refused.
+    pub fn refused(&self) -> u64 {
+        self.other_run + self.not_holder + self.stale_epoch + self.bad_claim + self.vacant
+    }
+}
+
+/// Most holder spans a run keeps (the later ones are only counted): a fleet that changes
+/// holder a thousand times in one run has a problem the first ones show.
+pub const MAX_SPANS: usize = 1024;
+
+/// A stretch of periods whose commands all came from one holder under one epoch: the
+/// plant's own record of who commanded it, from which the tests count what matters
+/// (two holders in one period, a stale epoch, the time a takeover took).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Span {
+    pub holder: String,
+    pub epoch: u64,
+    /// The first and last period in which a command of this holder was applied.
+    pub first: u64,
+    pub last: u64,
+    /// Commands applied.
+    pub commands: u64,
+}
+
+/// The lease's part of a run's report (`summary.json`).
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct LeaseReport {
+    pub counters: LeaseCounters,
+    /// Who commanded, in order (at most [`MAX_SPANS`]).
+    pub spans: Vec<Span>,
+    /// Spans past [`MAX_SPANS`], counted only.
+    pub spans_dropped: u64,
+}
+
+/// The command lease of one plant run (see the module documentation).
+#[derive(Debug, Clone)]
+pub struct Lease {
+    run_id: u64,
+    holder: Option<String>,
+    instance: u64,
+    epoch: u64,
+    counters: LeaseCounters,
+    spans: Vec<Span>,
+    spans_dropped: u64,
+    /// The grant counted last past [`MAX_SPANS`].
+    spans_counted: u64,
+}
+
+/// Who sent a command and under which lease, as the wire says.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Credentials<'a> {
+    /// The sender's controller id.
+    pub from: &'a str,
+    /// The sender's process (random per start): one id may be carried by two processes.
+    pub instance: u64,
+    /// The epoch it commands under, or claims.
+    pub epoch: u64,
+    /// It claims a vacant lease.
+    pub claim: bool,
+    /// It gives the lease up once this command is applied.
+    pub release: bool,
+    /// The run it answers.
+    pub run_id: u64,
+}
+
+impl Lease {
+    /// A vacant lease at epoch 0, for the run `run_id`.
+    pub fn new(run_id: u64) -> Self {
+        Self {
+            run_id,
+            holder: None,
+            instance: 0,
+            epoch: 0,
+            counters: LeaseCounters::default(),
+            spans: Vec::new(),
+            spans_dropped: 0,
+            spans_counted: 0,
+        }
+    }
+
+    /// What the run's report keeps of the lease.
+    pub fn report(&self) -> LeaseReport {
+        LeaseReport {
+            counters: self.counters.clone(),
+            spans: self.spans.clone(),
+            spans_dropped: self.spans_dropped,
+        }
+    }
+
+    /// The holder, if any.
+    pub fn holder(&self) -> Option<&str> {
+        self.holder.as_deref()
+    }
+
+    /// The holder's process (meaningful while held).
+    pub fn instance(&self) -> u64 {
+        self.instance
+    }
+
+    /// The epoch granted last (0: never granted).
+    pub fn epoch(&self) -> u64 {
+        self.epoch
+    }
+
+    /// The counters so far.
+    pub fn counters(&self) -> &LeaseCounters {
+        &self.counters
+    }
+
+    /// Whether a command with these credentials may be applied; counts a refusal.
+    pub fn check(&mut self, c: &Credentials<'_>) -> Result<Pass, Fence> {
+        let verdict = self.judge(c);
+        if let Err(why) = verdict {
+            let n = &mut self.counters;
+            let counter = match why {
+                Fence::OtherRun => &mut n.other_run,
+                Fence::NotHolder => &mut n.not_holder,
+                Fence::StaleEpoch => &mut n.stale_epoch,
+                Fence::BadClaim => &mut n.bad_claim,
+                Fence::Vacant => &mut n.vacant,
+            };
+            *counter = counter.saturating_add(1);
+        }
+        verdict
+    }
+
+    fn judge(&self, c: &Credentials<'_>) -> Result<Pass, Fence> {
+        if c.run_id != self.run_id {
+            return Err(Fence::OtherRun);
+        }
+        let same = |h: &String| h == c.from && c.instance == self.instance;
+        match &self.holder {
+            Some(h) if same(h) && c.epoch == self.epoch => Ok(Pass::Holder),
+            Some(h) if same(h) => Err(Fence::StaleEpoch),
+            Some(_) if c.claim => Err(Fence::BadClaim),
+            Some(_) => Err(Fence::NotHolder),
+            None if c.claim
+                && Some(c.epoch) == self.epoch.checked_add(1)
+                && !c.from.is_empty()
+                && c.from.len() <= MAX_HOLDER =>
+            {
+                Ok(Pass::Claim)
+            }
+            None if c.claim => Err(Fence::BadClaim),
+            None => Err(Fence::Vacant),
+        }
+    }
+
+    /// The supervisor accepted a command that passed [`Lease::check`] (and applied it in
+    /// period `applied_in`, if it was a control): a claim is granted now, the command goes
+    /// into the holder's span, and a release gives the lease up after it.
+    pub fn accepted(&mut self, pass: Pass, c: &Credentials<'_>, applied_in: Option<u64>) {
+        if pass == Pass::Claim {
+            self.epoch = c.epoch;
+            self.holder = Some(c.from.to_owned());
+            self.instance = c.instance;
+            self.counters.grants = self.counters.grants.saturating_add(1);
+        }
+        if let Some(k) = applied_in {
+            self.record(c.from, k);
+        }
+        if c.release {
+            self.holder = None;
+            self.counters.releases = self.counters.releases.saturating_add(1);
+        }
+    }
+
+    fn record(&mut self, holder: &str, k: u64) {
+        let epoch = self.epoch;
+        let full = self.spans.len() >= MAX_SPANS;
+        match self.spans.last_mut() {
+            Some(s) if s.holder == holder && s.epoch == epoch => {
+                s.last = k;
+                s.commands = s.commands.saturating_add(1);
+            }
+            _ if full => {
+                // Past the cap, the spans are counted: a new one starts at each grant.
+                if self.counters.grants > self.spans_counted {
+                    self.spans_counted = self.counters.grants;
+                    self.spans_dropped = self.spans_dropped.saturating_add(1);
+                }
+            }
+            _ => self.spans.push(Span {
+                holder: holder.to_owned(),
+                epoch,
+                first: k,
+                last: k,
+                commands: 1,
+            }),
+        }
+    }
+
+    /// The holder was silent too long: the lease lapses (if it was held).
+    pub fn lapse(&mut self) {
+        if self.holder.take().is_some() {
+            self.counters.lapses = self.counters.lapses.saturating_add(1);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cred(from: &str, epoch: u64, claim: bool) -> Credentials<'_> {
+        Credentials {
+            from,
+            instance: 3,
+            epoch,
+            claim,
+            release: false,
+            run_id: 7,
+        }
+    }
+
+    fn grant(l: &mut Lease, from: &str) -> u64 {
+        let c = cred(from, l.epoch() + 1, true);
+        assert_eq!(l.check(&c), Ok(Pass::Claim));
+        l.accepted(Pass::Claim, &c, None);
+        l.epoch()
+    }
+
+    #[test]
+    fn a_vacant_lease_goes_to_the_first_valid_claim_only() {
+        let mut l = Lease::new(7);
+        assert_eq!(l.check(&cred("a", 0, false)), Err(Fence::Vacant));
+        assert_eq!(l.check(&cred("a", 0, true)), Err(Fence::BadClaim));
+        assert_eq!(l.check(&cred("a", 2, true)), Err(Fence::BadClaim));
+        assert_eq!(grant(&mut l, "a"), 1);
+        assert_eq!(l.holder(), Some("a"));
+        // The loser of the race is refused, claim or not.
+        assert_eq!(l.check(&cred("b", 1, true)), Err(Fence::BadClaim));
+        assert_eq!(l.check(&cred("b", 1, false)), Err(Fence::NotHolder));
+        assert_eq!(l.check(&cred("a", 1, false)), Ok(Pass::Holder));
+        // A holder's later claims of the same epoch (answers to samples sent before the
+        // grant) pass as the holder's.
+        assert_eq!(l.check(&cred("a", 1, true)), Ok(Pass::Holder));
+        assert_eq!(l.counters().refused(), 5);
+    }
+
+    #[test]
+    fn epochs_only_go_up_and_a_stale_holder_is_fenced() {
+        let mut l = Lease::new(7);
+        grant(&mut l, "a");
+        l.lapse();
+        assert_eq!(l.holder(), None);
+        // The former holder wakes up: its old epoch is refused, it must claim again.
+        assert_eq!(l.check(&cred("a", 1, false)), Err(Fence::Vacant));
+        assert_eq!(grant(&mut l, "b"), 2);
+        assert_eq!(l.check(&cred("a", 1, false)), Err(Fence::NotHolder));
+        l.lapse();
+        assert_eq!(grant(&mut l, "a"), 3);
+        assert_eq!(l.check(&cred("a", 1, false)), Err(Fence::StaleEpoch));
+        assert_eq!(l.counters().lapses, 2);
+        assert_eq!(l.counters().grants, 3);
+    }
+
+    #[test]
+    fn a_second_process_with_the_holders_id_is_fenced() {
+        let mut l = Lease::new(7);
+        grant(&mut l, "a");
+        let mut c = cred("a", 1, false);
+        c.instance = 4;
+        assert_eq!(l.check(&c), Err(Fence::NotHolder));
+        assert_eq!(l.instance(), 3);
+    }
+
+    #[test]
+    fn another_run_is_refused_whatever_it_says() {
+        let mut l = Lease::new(7);
+        grant(&mut l, "a");
+        let mut c = cred("a", 1, false);
+        c.run_id = 8;
+        assert_eq!(l.check(&c), Err(Fence::OtherRun));
+        c.claim = true;
+        c.epoch = 2;
+        assert_eq!(l.check(&c), Err(Fence::OtherRun));
+        assert_eq!(l.counters().other_run, 2);
+    }
+
+    #[test]
+    fn release_vacates_after_the_command() {
+        let mut l = Lease::new(7);
+        grant(&mut l, "a");
+        let mut c = cred("a", 1, false);
+        c.release = true;
+        assert_eq!(l.check(&c), Ok(Pass::Holder));
+        l.accepted(Pass::Holder, &c, Some(3));
+        assert_eq!((l.holder(), l.epoch()), (None, 1));
+        assert_eq!(l.counters().releases, 1);
+        assert_eq!(
+            l.report().spans,
+            [Span {
+                holder: "a".into(),
+                epoch: 1,
+                first: 3,
+                last: 3,
+                commands: 1
+            }]
+        );
+        // Lapsing a vacant lease counts nothing.
+        l.lapse();
+        assert_eq!(l.counters().lapses, 0);
+    }
+
+    #[test]
+    fn spans_past_the_cap_are_counted_once_per_grant() {
+        let mut l = Lease::new(7);
+        for k in 0..(MAX_SPANS as u64 + 10) {
+            let who = if k % 2 == 0 { "a" } else { "b" };
+            let c = cred(who, l.epoch() + 1, true);
+            let pass = l.check(&c).unwrap();
+            l.accepted(pass, &c, Some(2 * k));
+            // A second command of the same holder in the next period.
+            let c = cred(who, l.epoch(), false);
+            l.accepted(l.clone().check(&c).unwrap(), &c, Some(2 * k + 1));
+            l.lapse();
+        }
+        let r = l.report();
+        assert_eq!(r.spans.len(), MAX_SPANS);
+        assert_eq!(r.spans_dropped, 10);
+        assert_eq!(
+            (r.spans[5].first, r.spans[5].last, r.spans[5].commands),
+            (10, 11, 2)
+        );
+    }
+
+    #[test]
+    fn only_a_name_a_controller_can_have_is_granted() {
+        let mut l = Lease::new(7);
+        let long = "x".repeat(MAX_HOLDER + 1);
+        assert_eq!(l.check(&cred(&long, 1, true)), Err(Fence::BadClaim));
+        assert_eq!(l.check(&cred("", 1, true)), Err(Fence::BadClaim));
+        assert_eq!(grant(&mut l, &long[..MAX_HOLDER]), 1);
+    }
+}
