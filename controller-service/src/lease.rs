@@ -16,7 +16,9 @@
 //! * vacant: the preferred member claims at once; any other that steps the device claims
 //!   once the lease has been vacant for [`LeasePolicy::standby_delay`] samples in a row,
 //!   so the preferred member wins whenever it is there, and a dead, paused or cut-off one
-//!   is replaced within a few periods of the plant's fallback;
+//!   is replaced before the plant falls back; a member whose state still warms up waits
+//!   [`LeasePolicy::cold_delay`] samples (except at the run's start, when all are cold),
+//!   so a warm one wins the race when there is one;
 //! * a plant that grants no lease (no `SAMPLE_FLAGS_LEASE`: a test client, an older agent)
 //!   is answered by the preferred member alone, as before leases.
 //!
@@ -36,6 +38,10 @@ pub struct LeasePolicy {
     pub yield_after: u32,
     /// The longest wait between two yields (the wait doubles each time nobody took it).
     pub max_yield_after: u32,
+    /// Consecutive vacant samples after which a member whose state is still warming up
+    /// claims: a warm member, preferred or not, wins the race for the lease whenever
+    /// there is one, and a cold one takes it only when nobody warm did.
+    pub cold_delay: u32,
 }
 
 impl Default for LeasePolicy {
@@ -44,6 +50,7 @@ impl Default for LeasePolicy {
             standby_delay: 1,
             yield_after: 100,
             max_yield_after: 12_800,
+            cold_delay: 4,
         }
     }
 }
@@ -132,12 +139,12 @@ pub struct Claimer {
 impl Claimer {
     /// What member `me` (its id and process) does with its answer to a sample that
     /// reports `seen`; `preferred`: the fleet or the hot standby wants `me` to command the
-    /// device.
+    /// device; `warm`: the answer is a command (not a warm-up answer).
     pub fn decide(
         &mut self,
         policy: &LeasePolicy,
         me: (&str, u64),
-        preferred: bool,
+        (preferred, warm): (bool, bool),
         seen: Seen<'_>,
     ) -> Decision {
         if !seen.granted {
@@ -150,7 +157,13 @@ impl Claimer {
         if seen.holder.is_empty() {
             self.vacant = self.vacant.saturating_add(1);
             self.held_unpreferred = 0;
-            if !preferred && self.vacant <= policy.standby_delay {
+            // Before the first grant of a run every member is cold: no point waiting.
+            let delay = match (warm || seen.epoch == 0, preferred) {
+                (false, _) => policy.cold_delay,
+                (true, true) => 0,
+                (true, false) => policy.standby_delay,
+            };
+            if self.vacant <= delay {
                 return Decision::Quiet;
             }
             self.claims += 1;
@@ -220,34 +233,63 @@ mod tests {
             instance: 0,
             epoch: 0,
         };
-        assert_eq!(c.decide(&p, ("a", 0), true, plain), Decision::Plain);
-        assert_eq!(c.decide(&p, ("a", 0), false, plain), Decision::Quiet);
+        assert_eq!(c.decide(&p, ("a", 0), (true, true), plain), Decision::Plain);
+        assert_eq!(
+            c.decide(&p, ("a", 0), (false, true), plain),
+            Decision::Quiet
+        );
     }
 
     #[test]
     fn the_preferred_member_claims_at_once_another_after_the_delay() {
         let p = LeasePolicy::default();
         let (mut a, mut b) = (Claimer::default(), Claimer::default());
-        assert_eq!(a.decide(&p, ("a", 0), true, seen("", 1)), CLAIM2);
+        assert_eq!(a.decide(&p, ("a", 0), (true, true), seen("", 1)), CLAIM2);
         for _ in 0..p.standby_delay {
-            assert_eq!(b.decide(&p, ("b", 0), false, seen("", 1)), Decision::Quiet);
+            assert_eq!(
+                b.decide(&p, ("b", 0), (false, true), seen("", 1)),
+                Decision::Quiet
+            );
         }
-        assert_eq!(b.decide(&p, ("b", 0), false, seen("", 1)), CLAIM2);
+        assert_eq!(b.decide(&p, ("b", 0), (false, true), seen("", 1)), CLAIM2);
         // A sample that shows a holder resets the count.
         assert_eq!(
-            b.decide(&p, ("b", 0), false, seen("a", 2)),
+            b.decide(&p, ("b", 0), (false, true), seen("a", 2)),
             Decision::Fenced
         );
-        assert_eq!(b.decide(&p, ("b", 0), false, seen("", 2)), Decision::Quiet);
+        assert_eq!(
+            b.decide(&p, ("b", 0), (false, true), seen("", 2)),
+            Decision::Quiet
+        );
         assert_eq!((a.claims, b.claims, b.fenced), (1, 1, 1));
+    }
+
+    #[test]
+    fn a_cold_member_claims_last() {
+        let p = LeasePolicy::default();
+        let mut c = Claimer::default();
+        for _ in 0..p.cold_delay {
+            assert_eq!(
+                c.decide(&p, ("c", 0), (true, false), seen("", 1)),
+                Decision::Quiet
+            );
+        }
+        assert_eq!(c.decide(&p, ("c", 0), (true, false), seen("", 1)), CLAIM2);
+        assert!(p.cold_delay > p.standby_delay);
+        // At the run's start (nothing granted yet) everybody is cold: no wait.
+        let mut c = Claimer::default();
+        assert!(c.decide(&p, ("c", 0), (true, false), seen("", 0)).sends());
     }
 
     #[test]
     fn a_member_that_is_not_the_holder_is_fenced_even_if_preferred() {
         let p = LeasePolicy::default();
         let mut a = Claimer::default();
-        assert_eq!(a.decide(&p, ("a", 0), true, seen("b", 4)), Decision::Fenced);
-        let held = a.decide(&p, ("a", 0), true, seen("a", 4));
+        assert_eq!(
+            a.decide(&p, ("a", 0), (true, true), seen("b", 4)),
+            Decision::Fenced
+        );
+        let held = a.decide(&p, ("a", 0), (true, true), seen("a", 4));
         assert_eq!(
             held,
             Decision::Send {
@@ -267,7 +309,10 @@ mod tests {
             instance: 8,
             ..seen("a", 4)
         };
-        assert_eq!(a.decide(&p, ("a", 7), true, other), Decision::Fenced);
+        assert_eq!(
+            a.decide(&p, ("a", 7), (true, true), other),
+            Decision::Fenced
+        );
     }
 
     #[test]
@@ -276,12 +321,13 @@ mod tests {
             standby_delay: 1,
             yield_after: 3,
             max_yield_after: 10,
+            cold_delay: 4,
         };
         let mut b = Claimer::default();
         let mut yields_at = Vec::new();
         for k in 0..40 {
             if let Decision::Send { release: true, .. } =
-                b.decide(&p, ("b", 0), false, seen("b", 1))
+                b.decide(&p, ("b", 0), (false, true), seen("b", 1))
             {
                 yields_at.push(k);
             }
@@ -290,7 +336,7 @@ mod tests {
         assert_eq!(yields_at, [2, 8, 18, 28, 38]);
         // Preferred again: it holds for good, and the next yield waits the first time again.
         assert_eq!(
-            b.decide(&p, ("b", 0), true, seen("b", 1)),
+            b.decide(&p, ("b", 0), (true, true), seen("b", 1)),
             Decision::Send {
                 epoch: 1,
                 claim: false,

@@ -523,3 +523,73 @@ fn a_handed_shard_provisions_its_template_devices() {
     );
     assert!(!c.serves(id));
 }
+
+/// A leasing plant (`SAMPLE_FLAGS_LEASE`): the registry stamps every answer with the
+/// lease and says whether this member sends it: a claim on a vacant lease, the holder's
+/// epoch once it holds it, nothing while another holds it (the state still steps), and a
+/// precheck refusal follows the same rule.
+#[test]
+fn a_leasing_plant_is_answered_by_its_holder_only() {
+    use controller_service::registry::Via;
+    let mut r = registry();
+    r.set_instance(7);
+    let leased = |seq: u64, holder: &str, instance: u64, epoch: u64| pb::Sample {
+        flags: pb::SampleFlags::Lease as u32,
+        lease_holder: holder.into(),
+        lease_instance: instance,
+        lease_epoch: epoch,
+        ..sample("aero-1", seq, seq as f64 * 0.01, &[0.0, 0.5])
+    };
+    let mut out = pb::Command::default();
+    let step = |r: &mut Registry, s: &pb::Sample, out: &mut pb::Command| match r.handle_sample(
+        Via::key("aero-1"),
+        s,
+        1,
+        out,
+    ) {
+        Served::Answered { send, .. } => send,
+        other => panic!("not answered: {other:?}"),
+    };
+    // Vacant at the run's start: everyone is cold, the preferred member claims at once.
+    assert!(step(&mut r, &leased(0, "", 0, 0), &mut out));
+    assert_eq!(out.mode, pb::Mode::WarmingUp as i32);
+    assert_eq!(
+        (out.claim, out.lease_epoch, out.lease_instance, out.run_id),
+        (true, 1, 7, 42)
+    );
+    // Vacant again later, still warming up: a cold member lets a warm one claim first.
+    for k in 1..3 {
+        assert!(!step(&mut r, &leased(k, "", 0, 1), &mut out), "seq {k}");
+    }
+    // Warm: it claims epoch 2 at once; granted, it answers under it.
+    assert!(step(&mut r, &leased(3, "", 0, 1), &mut out));
+    assert_eq!((out.claim, out.lease_epoch), (true, 2));
+    assert!(step(&mut r, &leased(4, "c1", 7, 2), &mut out));
+    assert_eq!((out.claim, out.lease_epoch), (false, 2));
+    // Another process with the same id holds it: quiet, though still stepped.
+    assert!(!step(&mut r, &leased(5, "c1", 8, 3), &mut out));
+    assert!(!step(&mut r, &leased(6, "c2", 0, 4), &mut out));
+    let s = r.device_status("aero-1").unwrap();
+    assert_eq!((s.samples, s.lease_fenced, s.lease_claims), (7, 2, 2));
+    assert_eq!((s.lease_holder.as_str(), s.lease_epoch), ("c2", 4));
+    // A refusal is sent by the holder only.
+    let (cmd, send) = r
+        .refuse_sample("aero-1", &leased(7, "c2", 0, 4), "bad".into(), 1, true)
+        .unwrap();
+    assert!(!send && cmd.mode == pb::Mode::Rejected as i32);
+    let (cmd, send) = r
+        .refuse_sample("aero-1", &leased(8, "c1", 7, 5), "bad".into(), 1, true)
+        .unwrap();
+    assert!(send);
+    assert_eq!((cmd.lease_epoch, cmd.run_id), (5, 42));
+    // A plant without leases is answered by the preferred member only, unstamped.
+    let plain = sample("aero-1", 9, 0.09, &[0.0, 0.5]);
+    assert!(step(&mut r, &plain, &mut out));
+    assert_eq!((out.claim, out.lease_epoch), (false, 0));
+    let via = Via::key("aero-1").preferred(false);
+    let plain = sample("aero-1", 10, 0.10, &[0.0, 0.5]);
+    assert!(matches!(
+        r.handle_sample(via, &plain, 1, &mut out),
+        Served::Answered { send: false, .. }
+    ));
+}

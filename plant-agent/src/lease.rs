@@ -17,8 +17,10 @@
 //!   above the vacant one, and passes every other rule of the supervisor (a command the
 //!   supervisor would drop grants nothing). The new epoch is never granted again in the
 //!   run, and a run never reuses another's because commands carry the run's random id.
-//! * The lease lapses when its holder has been silent for half the agent's
-//!   `hold_periods` (timed on the agent's own pacing, never on a wall clock): another
+//! * The lease lapses when its holder has been silent (neither a command nor a warm-up
+//!   answer of its own) for half the agent's `hold_periods` (timed on the agent's own
+//!   pacing, never on a wall clock): a holder that warms up keeps it while the fallback
+//!   runs, and otherwise another
 //!   controller can then claim it while the plant still holds the last command, before
 //!   the fallback engages; and it lapses when the holder gives it up (`release`, once its
 //!   command is applied). Nobody claims: the fallback engages after the whole hold, as
@@ -63,7 +65,7 @@ pub enum Pass {
 pub struct LeaseCounters {
     /// Leases granted (also the last epoch).
     pub grants: u64,
-    /// Leases that lapsed with the fallback.
+    /// Leases that lapsed (their holder silent for half the hold).
     pub lapses: u64,
     /// Leases given up by their holder.
     pub releases: u64,
@@ -116,6 +118,10 @@ pub struct Lease {
     run_id: u64,
     holder: Option<String>,
     instance: u64,
+    /// Periods ended since the holder's last accepted answer (a command or a warm-up).
+    idle: u32,
+    /// An answer of the holder was accepted in the open period.
+    renewed: bool,
     epoch: u64,
     counters: LeaseCounters,
     spans: Vec<Span>,
@@ -148,6 +154,8 @@ impl Lease {
             run_id,
             holder: None,
             instance: 0,
+            idle: 0,
+            renewed: false,
             epoch: 0,
             counters: LeaseCounters::default(),
             spans: Vec::new(),
@@ -234,6 +242,7 @@ impl Lease {
             self.instance = c.instance;
             self.counters.grants = self.counters.grants.saturating_add(1);
         }
+        self.renewed = true;
         if let Some(k) = applied_in {
             self.record(c.from, k);
         }
@@ -266,6 +275,22 @@ impl Lease {
                 commands: 1,
             }),
         }
+    }
+
+    /// A period ended: the holder's silence grows unless it answered in it.
+    pub fn end_period(&mut self) {
+        self.idle = if self.renewed {
+            0
+        } else {
+            self.idle.saturating_add(1)
+        };
+        self.renewed = false;
+    }
+
+    /// Periods ended since the holder last answered (a command or a warm-up answer that
+    /// passed): what the lapse is timed on.
+    pub fn idle(&self) -> u32 {
+        self.idle
     }
 
     /// The holder was silent too long: the lease lapses (if it was held).

@@ -487,8 +487,8 @@ impl Supervisor {
         self.lease = Some(Lease::new(run_id));
     }
 
-    /// Periods without a command after which the lease lapses: half the hold, rounded
-    /// up, at least one (so never after the fallback).
+    /// Periods without an answer of the holder after which the lease lapses: half the
+    /// hold, rounded up, at least one (so never after the fallback would engage).
     pub fn lease_lapse(&self) -> u32 {
         self.config.hold_periods.div_ceil(2).max(1)
     }
@@ -557,9 +557,10 @@ impl Supervisor {
         let due = self.missing_streak > 0 && self.missing_streak >= self.config.hold_periods;
         // The holder has been silent for half the hold: the lease lapses, so that another
         // controller can claim it (a new epoch) while the plant still holds, before the
-        // fallback engages.
-        let lapsed = self.missing_streak >= self.lease_lapse();
-        if let (Some(lease), true) = (&mut self.lease, lapsed) {
+        // fallback engages. A holder that answers "warming up" is not silent: it keeps the
+        // lease while the fallback runs (the watchdog counts those periods, the lease not).
+        let lapse = self.lease_lapse();
+        if let Some(lease) = self.lease.as_mut().filter(|l| l.idle() >= lapse) {
             lease.lapse();
         }
         let write = if self.mode.is_fallback() || due {
@@ -762,6 +763,9 @@ impl Supervisor {
     /// Holding if the period was missing while holding, Remote otherwise.
     pub fn end_period(&mut self) -> Result<PeriodEnd, SafetyError> {
         let p = self.period.take().ok_or(SafetyError::NoOpenPeriod)?;
+        if let Some(lease) = &mut self.lease {
+            lease.end_period();
+        }
         let h = self.config.period;
         let missing = !p.got && !p.warming;
         // Once a command was applied in this run, a warming-up answer does not stop the
@@ -1855,6 +1859,46 @@ mod tests {
             spans,
             [("a".to_string(), 1, 0, 1), ("b".to_string(), 2, 4, 4)]
         );
+    }
+
+    /// A holder that answers "warming up" (it took the lease cold) keeps it while the
+    /// fallback runs: no lapse and new epoch every period until it is warm.
+    #[test]
+    fn a_warming_holder_keeps_the_lease_through_the_fallback() {
+        let mut s = sup(3, 2, FallbackPolicy::LocalController);
+        s.grant_leases(9);
+        period(&mut s, 0, None);
+        period(&mut s, 1, None);
+        assert!(begin(&mut s, 2).write.is_some(), "the fallback runs");
+        let holder = Credentials {
+            from: "a",
+            instance: 0,
+            epoch: 1,
+            claim: true,
+            release: false,
+            run_id: 9,
+        };
+        for k in 2..8 {
+            if k > 2 {
+                begin(&mut s, k);
+            }
+            let w = IncomingCommand {
+                lease: holder,
+                ..warm(k)
+            };
+            assert_eq!(s.on_command(0.1, w).0, Verdict::WarmingUp);
+            s.end_period().unwrap();
+            assert_eq!(s.mode(), LoopMode::Local);
+        }
+        let l = s.lease().unwrap();
+        assert_eq!(
+            (l.holder(), l.epoch(), l.counters().lapses),
+            (Some("a"), 1, 0)
+        );
+        // Silent now: it lapses after half the hold (one period).
+        period(&mut s, 8, None);
+        begin(&mut s, 9);
+        assert_eq!(s.lease().unwrap().holder(), None);
     }
 
     /// A refusal from a claimant is no answer that keeps the plant safe: it claims nothing.

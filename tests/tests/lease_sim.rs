@@ -151,6 +151,10 @@ struct Tally {
     fenced: u64,
     grants: u64,
     takeovers: Vec<u64>,
+    /// Periods from the holder's silencing (crash, pause, cut) to another member's first
+    /// applied command, counted only when another member was free of faults, followed
+    /// the device warm, and the links lost nothing: the takeover the issue bounds.
+    clean: Vec<u64>,
 }
 
 struct Sim {
@@ -183,6 +187,9 @@ struct Sim {
     rogue: bool,
     /// The members' last commands, as an eavesdropper keeps them for a replay.
     captured: std::collections::VecDeque<CommandMsg>,
+    /// A silenced holder (its name) and the period it went silent, while a takeover is
+    /// awaited.
+    watch: Option<(String, u64)>,
 }
 
 fn channel() -> ChannelConfig {
@@ -236,6 +243,7 @@ impl Sim {
         Self {
             rogue,
             captured: std::collections::VecDeque::new(),
+            watch: None,
             seed,
             loss: rng.pick(&[0.0, 0.01, 0.05, 0.2]),
             dup: rng.pick(&[0.0, 0.01, 0.05]),
@@ -405,7 +413,10 @@ impl Sim {
             epoch: s.epoch,
         };
         let mine = (me.as_str(), member.instance);
-        let decision = member.claimer.decide(&self.policy, mine, rank == 0, seen);
+        let warm = member.stepped > WARMUP;
+        let decision = member
+            .claimer
+            .decide(&self.policy, mine, (rank == 0, warm), seen);
         let Decision::Send {
             epoch,
             claim,
@@ -503,6 +514,15 @@ impl Sim {
                 self.holder_of_period.insert(k, c.from.clone());
             }
         }
+        if let Some((_, since)) = self.watch.take_if(|(h, _)| *h != c.from) {
+            self.tally.clean.push(self.k - since);
+            if self.trace && self.k - since > 10 {
+                eprintln!(
+                    "slow takeover: seed {}, period {}, faults {:?}",
+                    self.seed, self.k, self.windows
+                );
+            }
+        }
         if let Some(since) = self.silent_since.take() {
             if self.last_holder.as_deref() != Some(&c.from) {
                 self.tally.takeovers.push(self.k - since);
@@ -568,6 +588,7 @@ impl Sim {
             self.holder_of_period.clear();
             self.silent_since = None;
             self.last_holder = None;
+            self.watch = None;
         } else if self.t > 0 {
             self.k += 1;
         }
@@ -583,7 +604,56 @@ impl Sim {
         if self.sup.lease().map_or(0, |l| l.epoch()) < epoch {
             self.fail("the lease's epoch went back".into());
         }
+        self.watch_takeover();
         self.publish_sample();
+    }
+
+    /// Whether member `m` can no longer command the plant: dead, stopped, or cut off
+    /// from it.
+    fn silenced(&self, m: usize) -> bool {
+        self.crashed(m)
+            || self.paused(m)
+            || self.active(Fault::Isolate(m))
+            || self.active(Fault::CutFromMember(m))
+    }
+
+    /// Whether member `m` is free of every fault.
+    fn healthy(&self, m: usize) -> bool {
+        !self.silenced(m) && !self.active(Fault::CutToMember(m)) && !self.active(Fault::Split(m))
+    }
+
+    /// Start (or drop) the wait for a takeover of a silenced holder.
+    fn watch_takeover(&mut self) {
+        let index = |name: &str| (0..MEMBERS).find(|&m| self.members[m].name == name);
+        if let Some((h, _)) = &self.watch {
+            if index(h).is_some_and(|m| !self.silenced(m)) {
+                // It came back before anyone took over: nothing to time.
+                self.watch = None;
+            }
+            return;
+        }
+        let holder = self
+            .sup
+            .lease()
+            .and_then(|l| l.holder().map(str::to_string));
+        let Some((h, m)) = holder.and_then(|h| index(&h).map(|m| (h, m))) else {
+            return;
+        };
+        let calm = !self.active(Fault::Lossy) && self.loss == 0.0;
+        // Another member free of faults that follows the device (owner or standby in its
+        // own view of the fleet) and is warm: it has stepped this run past the warm-up.
+        let ready = |o: usize| {
+            let view = self.view(o);
+            let follows = ranked(0, &view)
+                .iter()
+                .position(|n| *n == self.members[o].name)
+                .is_some_and(|r| r <= 1);
+            let warm = self.members[o].run == self.run_id && self.members[o].stepped > WARMUP;
+            o != m && self.healthy(o) && follows && warm
+        };
+        if calm && self.silenced(m) && (0..MEMBERS).any(ready) {
+            self.watch = Some((h, self.k));
+        }
     }
 
     /// Members that just resumed serve what waited; crashed ones lose everything.
@@ -726,6 +796,7 @@ fn one_holder_per_period_under_random_faults() {
         total.fenced += t.fenced;
         total.grants += t.grants;
         total.takeovers.extend(t.takeovers);
+        total.clean.extend(t.clean);
     }
     // Something was judged: commands were applied, and some were fenced off.
     assert!(total.applied > runs * (FAULTY + CALM) / 2);
@@ -736,10 +807,18 @@ fn one_holder_per_period_under_random_faults() {
         percentile(&mut total.takeovers, 0.99),
         total.takeovers.iter().max().copied().unwrap_or(0),
     );
+    let m = total.clean.len();
+    let (c50, c99, cmax) = (
+        percentile(&mut total.clean, 0.5),
+        percentile(&mut total.clean, 0.99),
+        total.clean.iter().max().copied().unwrap_or(0),
+    );
     eprintln!(
         "{runs} fault schedules in {:.1} s: {} commands applied, {} fenced, {} leases granted; \
          {n} changes of holder after silence, periods from the first silent one to the new \
-         holder's first command: p50 {p50}, p99 {p99}, max {max}",
+         holder's first command: p50 {p50}, p99 {p99}, max {max}; {m} takeovers of a \
+         silenced holder with a healthy member and no loss, periods from the silencing to \
+         the new holder's first command: p50 {c50}, p99 {c99}, max {cmax}",
         started.elapsed().as_secs_f64(),
         total.applied,
         total.fenced,

@@ -50,7 +50,7 @@ use std::collections::{BTreeSet, HashMap, VecDeque};
 use protocol::{pb, printable, PROTOCOL_VERSION};
 
 use crate::config::ServiceConfig;
-use crate::lease::LeasePolicy;
+use crate::lease::{LeasePolicy, Seen};
 use device::{reply, Device, DeviceKey};
 pub use shards::Restored;
 
@@ -454,14 +454,16 @@ impl Registry {
 
     /// Answer a sample that [`precheck`] refused before it reached the inbox: REJECTED with
     /// `reason` if the key's device is served (`None`: counted as unknown; a malformed
-    /// sample never provisions a device).
+    /// sample never provisions a device), and whether this member sends it (the plant's
+    /// lease decides, as for any answer; `preferred` as in [`Via::preferred`]).
     pub fn refuse_sample(
         &mut self,
         key_id: &str,
-        (seq, sent_unix_ns): (u64, u64),
+        s: &pb::Sample,
         reason: String,
         now_unix_ns: u64,
-    ) -> Option<pb::Command> {
+        preferred: bool,
+    ) -> Option<(pb::Command, bool)> {
         let Some(d) = self.devices.get_mut(key_id) else {
             self.count_unserved(key_id, Served::Unknown);
             return None;
@@ -471,12 +473,18 @@ impl Registry {
         d.rejected += 1;
         self.rejected += 1;
         d.last_error.clone_from(&reason);
-        Some(reply(
+        let mut cmd = reply(
             (&self.controller_id, key_id),
-            (seq, sent_unix_ns, now_unix_ns),
+            (s.seq, s.sent_unix_ns, now_unix_ns),
             pb::Mode::Rejected,
             reason,
-        ))
+        );
+        let me = (self.controller_id.as_str(), self.instance);
+        let decision = d
+            .claimer
+            .decide(&self.lease_policy, me, (preferred, true), Seen::of(s));
+        decision.stamp(s.run_id, self.instance, &mut cmd);
+        Some((cmd, decision.sends()))
     }
 
     /// Status of one device.

@@ -57,7 +57,8 @@ pub(super) fn answer(
         d.lease_holder.push_str(&protocol::printable(seen.holder));
     }
     (d.lease_epoch, d.lease_refused) = (seen.epoch, s.lease_refused);
-    let decision = d.claimer.decide(policy, me, via.preferred, seen);
+    let warm = out.mode == pb::Mode::Control as i32;
+    let decision = d.claimer.decide(policy, me, (via.preferred, warm), seen);
     decision.stamp(s.run_id, me.1, out);
     Some(decision.sends())
 }

@@ -27,9 +27,9 @@ pub(super) enum Msg {
     Refused {
         /// The device id from the key.
         dev: String,
-        /// The sample's `seq` and `sent_unix_ns`, echoed in the answer.
-        seq: u64,
-        sent_unix_ns: u64,
+        /// The sample (its `seq` and `sent_unix_ns` are echoed in the answer, its lease
+        /// decides whether this member sends it).
+        sample: Box<pb::Sample>,
         /// Why, already cut to printable length.
         reason: String,
     },
@@ -167,8 +167,7 @@ impl Intake {
         if let Err(reason) = precheck(dev, &sample) {
             self.queue(Msg::Refused {
                 dev: dev.to_string(),
-                seq: sample.seq,
-                sent_unix_ns: sample.sent_unix_ns,
+                sample: Box::new(sample),
                 reason,
             });
             return;

@@ -217,10 +217,9 @@ impl Worker {
         match msg {
             Msg::Refused {
                 dev,
-                seq,
-                sent_unix_ns,
+                sample,
                 reason,
-            } => self.handle_refused(&dev, (seq, sent_unix_ns), reason).await,
+            } => self.handle_refused(&dev, &sample, reason).await,
             Msg::Reference(dev, bytes) => self.handle_reference_put(&dev, &bytes),
             Msg::Config(q) => self.handle_config(q).await,
             Msg::Envelope(q) => self.handle_envelope(q).await,
@@ -284,20 +283,21 @@ impl Worker {
 
     /// A sample the callback's precheck refused: answered REJECTED, if the device is
     /// served here.
-    async fn handle_refused(&mut self, dev: &str, seq_sent: (u64, u64), reason: String) {
-        let cmd = {
+    async fn handle_refused(&mut self, dev: &str, sample: &pb::Sample, reason: String) {
+        let preferred = self.shared.masks.answers(protocol::shard_of(dev));
+        let out = {
             let mut c = lock(&self.shared.core);
-            let cmd = c
+            let out = c
                 .registry
-                .refuse_sample(dev, seq_sent, reason, protocol::unix_ns());
-            if let Some(cmd) = &cmd {
+                .refuse_sample(dev, sample, reason, protocol::unix_ns(), preferred);
+            if let Some((cmd, _)) = &out {
                 c.watch.refused(dev, cmd);
             }
-            cmd
+            out
         };
-        let Some(cmd) = cmd else { return };
-        throttled!(self.warn.rejected, warn, device = %dev, seq = seq_sent.0, "sample refused: {}", cmd.error);
-        if self.shared.masks.answers(protocol::shard_of(dev)) {
+        let Some((cmd, send)) = out else { return };
+        throttled!(self.warn.rejected, warn, device = %dev, seq = sample.seq, "sample refused: {}", cmd.error);
+        if send {
             publish(&self.session, &self.shared.core, dev, &cmd).await;
         }
     }
