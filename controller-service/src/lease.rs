@@ -69,8 +69,9 @@ pub enum Decision {
     },
     /// Another member holds the lease: send nothing.
     Fenced,
-    /// Send nothing: not preferred and no reason to speak (the lease is not vacant for
-    /// long enough, or the plant grants no lease).
+    /// Send nothing: the lease has not been vacant long enough for this member to claim
+    /// it (see the delays of [`LeasePolicy`]), or the plant grants no lease and this
+    /// member is not the preferred one.
     Quiet,
 }
 
@@ -166,7 +167,7 @@ impl Claimer {
             if self.vacant <= delay {
                 return Decision::Quiet;
             }
-            self.claims += 1;
+            self.claims = self.claims.saturating_add(1);
             return Decision::Send {
                 epoch: seen.epoch.saturating_add(1),
                 claim: true,
@@ -176,7 +177,7 @@ impl Claimer {
         self.vacant = 0;
         if (seen.holder, seen.instance) != me {
             self.held_unpreferred = 0;
-            self.fenced += 1;
+            self.fenced = self.fenced.saturating_add(1);
             return Decision::Fenced;
         }
         let mut release = false;
@@ -193,7 +194,7 @@ impl Claimer {
                 release = true;
                 self.held_unpreferred = 0;
                 self.yield_after = wait.saturating_mul(2).min(policy.max_yield_after);
-                self.yields += 1;
+                self.yields = self.yields.saturating_add(1);
             }
         }
         Decision::Send {

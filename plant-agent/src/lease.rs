@@ -30,10 +30,6 @@
 
 use serde::{Deserialize, Serialize};
 
-/// Longest holder name granted a lease: the protocol's id limit (so a lease's holder is
-/// always a name a controller can have, and the state it keeps is bounded).
-const MAX_HOLDER: usize = 64;
-
 /// Why the lease refused a command.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum Fence {
@@ -220,10 +216,11 @@ impl Lease {
             Some(h) if same(h) => Err(Fence::StaleEpoch),
             Some(_) if c.claim => Err(Fence::BadClaim),
             Some(_) => Err(Fence::NotHolder),
+            // Only a name a controller can have is granted (the protocol's id rules):
+            // the holder is printable in every sample, and the state it keeps bounded.
             None if c.claim
                 && Some(c.epoch) == self.epoch.checked_add(1)
-                && !c.from.is_empty()
-                && c.from.len() <= MAX_HOLDER =>
+                && protocol::keys::check_id(c.from).is_ok() =>
             {
                 Ok(Pass::Claim)
             }
@@ -431,9 +428,14 @@ mod tests {
     #[test]
     fn only_a_name_a_controller_can_have_is_granted() {
         let mut l = Lease::new(7);
-        let long = "x".repeat(MAX_HOLDER + 1);
-        assert_eq!(l.check(&cred(&long, 1, true)), Err(Fence::BadClaim));
-        assert_eq!(l.check(&cred("", 1, true)), Err(Fence::BadClaim));
-        assert_eq!(grant(&mut l, &long[..MAX_HOLDER]), 1);
+        let long = "x".repeat(65);
+        for bad in [long.as_str(), "", "a/b", "a*", "ctl\n"] {
+            assert_eq!(
+                l.check(&cred(bad, 1, true)),
+                Err(Fence::BadClaim),
+                "{bad:?}"
+            );
+        }
+        assert_eq!(grant(&mut l, &long[..64]), 1);
     }
 }

@@ -1773,6 +1773,18 @@ mod tests {
         assert_eq!(s.mode(), LoopMode::Local);
     }
 
+    /// Credentials of controller `from` (process 0) for run 9.
+    fn creds(from: &str, epoch: u64, claim: bool) -> Credentials<'_> {
+        Credentials {
+            from,
+            instance: 0,
+            epoch,
+            claim,
+            release: false,
+            run_id: 9,
+        }
+    }
+
     fn leased<'a>(
         seq: u64,
         v: &'a [f64],
@@ -1781,14 +1793,7 @@ mod tests {
         claim: bool,
     ) -> IncomingCommand<'a> {
         IncomingCommand {
-            lease: Credentials {
-                from,
-                instance: 0,
-                epoch,
-                claim,
-                release: false,
-                run_id: 9,
-            },
+            lease: creds(from, epoch, claim),
             ..ctl(seq, v)
         }
     }
@@ -1870,14 +1875,7 @@ mod tests {
         period(&mut s, 0, None);
         period(&mut s, 1, None);
         assert!(begin(&mut s, 2).write.is_some(), "the fallback runs");
-        let holder = Credentials {
-            from: "a",
-            instance: 0,
-            epoch: 1,
-            claim: true,
-            release: false,
-            run_id: 9,
-        };
+        let holder = creds("a", 1, true);
         for k in 2..8 {
             if k > 2 {
                 begin(&mut s, k);
@@ -1908,14 +1906,7 @@ mod tests {
         s.grant_leases(9);
         begin(&mut s, 0);
         let mut r = rejected(0);
-        r.lease = Credentials {
-            from: "a",
-            instance: 0,
-            epoch: 1,
-            claim: true,
-            release: false,
-            run_id: 9,
-        };
+        r.lease = creds("a", 1, true);
         assert_eq!(s.on_command(0.1, r).0, Verdict::Rejected);
         assert_eq!(s.lease().unwrap().holder(), None);
         let mut w = warm(0);

@@ -37,7 +37,7 @@ pub(super) struct Context<'a> {
 
 /// Step device `d` with a sample that came `via`, and write the command into `out`,
 /// stamped with the plant's lease; whether this member sends it (the lease's
-/// [`Decision`]), or `None` if the sample is not to be answered at all
+/// [`crate::lease::Decision`]), or `None` if the sample is not to be answered at all
 /// ([`super::Served::AlreadyAnswered`]). Every member steps every sample it gets, whoever
 /// holds the lease: the state of one that does not command stays warm.
 pub(super) fn answer(
