@@ -4,6 +4,7 @@
 
 use controller_service::registry::Via;
 use controller_service::{Registry, ServiceConfig};
+use protocol::auth::Kind;
 use protocol::{pb, PROTOCOL_VERSION};
 
 const CONFIG: &str = r#"
@@ -72,16 +73,29 @@ fn every_device_once(b: divan::Bencher, devices: usize) {
 }
 
 /// Decoding a thousand-sample batch and encoding its thousand commands: the protobuf part
-/// of a batch, for comparison.
-#[divan::bench]
-fn thousand_decode_encode(b: divan::Bencher) {
+/// of a batch, for comparison; with `true`, the batch's MAC checked and the commands'
+/// batch sealed too (`protocol::auth`: one MAC each way per batch).
+#[divan::bench(args = [false, true])]
+fn thousand_decode_encode(b: divan::Bencher, authenticated: bool) {
+    let key = protocol::auth::Secret::random().unwrap().gateway("gw");
     let bytes = protocol::encode(&pb::SampleBatch {
         version: PROTOCOL_VERSION,
         gateway_id: "gw".into(),
         samples: samples(1000, 1),
+        ..Default::default()
     });
+    let bytes = if authenticated {
+        key.seal(Kind::SampleBatch, bytes)
+    } else {
+        bytes
+    };
     b.bench_local(|| {
-        let batch: pb::SampleBatch = protocol::decode(&bytes).unwrap();
+        let body = if authenticated {
+            key.open(Kind::SampleBatch, &bytes).unwrap()
+        } else {
+            &bytes[..]
+        };
+        let batch: pb::SampleBatch = protocol::decode(body).unwrap();
         let out = pb::CommandBatch {
             version: PROTOCOL_VERSION,
             gateway_id: batch.gateway_id.clone(),
@@ -98,7 +112,57 @@ fn thousand_decode_encode(b: divan::Bencher) {
                 })
                 .collect(),
             controller_id: String::new(),
+            ..Default::default()
         };
-        divan::black_box(protocol::encode(&out));
+        let bytes = protocol::encode(&out);
+        divan::black_box(if authenticated {
+            key.seal(Kind::CommandBatch, bytes)
+        } else {
+            bytes
+        });
+    });
+}
+
+/// One lone sample (a device on its own key) decoded and its command encoded; with
+/// `true`, the sample's MAC checked and the command sealed under the device's key: what
+/// the proof of origin adds per sample where there is no batch to share it.
+#[divan::bench(args = [false, true])]
+fn lone_decode_encode(b: divan::Bencher, authenticated: bool) {
+    let key = protocol::auth::Secret::random().unwrap().device("load-0");
+    let mut s = samples(1, 1).remove(0);
+    s.previous_outputs = vec![0.5; 3];
+    s.previous_applied = vec![1.0; 3];
+    s.previous_plant_time = vec![0.0; 3];
+    let bytes = protocol::encode(&s);
+    let bytes = if authenticated {
+        key.seal(Kind::Sample, bytes)
+    } else {
+        bytes
+    };
+    b.bench_local(|| {
+        let body = if authenticated {
+            key.open(Kind::Sample, &bytes).unwrap()
+        } else {
+            &bytes[..]
+        };
+        let s: pb::Sample = protocol::decode(body).unwrap();
+        let cmd = pb::Command {
+            version: PROTOCOL_VERSION,
+            device_id: s.device_id,
+            seq: s.seq,
+            u: vec![0.0],
+            v: vec![0.0],
+            f_est: vec![0.0],
+            controller_id: "bench".into(),
+            lease_epoch: 1,
+            run_id: s.run_id,
+            ..Default::default()
+        };
+        let bytes = protocol::encode(&cmd);
+        divan::black_box(if authenticated {
+            key.seal(Kind::Command, bytes)
+        } else {
+            bytes
+        });
     });
 }

@@ -1,7 +1,7 @@
 //! The command line of the service. It lives in the library so that the binary is one
 //! line and the system tests can start the very same service in a process of their own.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use crate::observe::{Observers, ServiceMetrics};
 use crate::{service, Registry, ServiceConfig};
@@ -103,10 +103,19 @@ pub async fn run(cli: ServiceCli) -> Result<()> {
         config.record = Some(telemetry::RecordSpec::at(path));
     }
     let observers = observers(&config)?;
+    let secret = match &config.secret_file {
+        Some(f) => {
+            let path = cli.config.parent().unwrap_or(Path::new(".")).join(f);
+            Some(protocol::auth::Secret::from_file(&path).context("secret_file")?)
+        }
+        None => None,
+    };
     let configs = config.worker_configs();
     let mut registries = Vec::with_capacity(configs.len());
     for c in configs {
-        registries.push(Registry::new(c).context("building the devices")?);
+        let mut r = Registry::new(c).context("building the devices")?;
+        r.set_secret(secret.clone());
+        registries.push(r);
     }
     // A client of a router retries until the router answers (start order must not matter):
     // a stop meanwhile ends the service at once instead of waiting for the router.

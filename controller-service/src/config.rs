@@ -386,6 +386,13 @@ pub struct ServiceConfig {
     /// no recording). `record = { path = "service.mcap" }`; see `telemetry::RecordSpec`.
     #[serde(default)]
     pub record: Option<telemetry::RecordSpec>,
+    /// The fleet's secret file (64 hexadecimal digits; `mfc-deploy` writes
+    /// `keys/fleet.secret`), relative to this file. With it, every sample and gateway batch
+    /// must carry its device's or gateway's MAC (`protocol::auth`; others are counted as
+    /// `forged` and change nothing), and commands and replies to operators are sealed.
+    /// Absent: the service runs open, and the log says so.
+    #[serde(default)]
+    pub secret_file: Option<std::path::PathBuf>,
 }
 
 fn max_devices() -> usize {
@@ -410,6 +417,7 @@ impl Default for ServiceConfig {
             allow_remote_widening: false,
             metrics: None,
             record: None,
+            secret_file: None,
         }
     }
 }

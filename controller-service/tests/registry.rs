@@ -593,3 +593,50 @@ fn a_leasing_plant_is_answered_by_its_holder_only() {
         Served::Answered { send: false, .. }
     ));
 }
+
+/// With keys, a run id is the plant's own and runs are ordered (`plant::run_id`): a sample
+/// of an older run is a captured run played back, answered STALE and changing nothing,
+/// while a newer run restarts the device at once. Only a stream of the older run with
+/// nothing of the run in force between (a plant whose clock went back) is followed, after
+/// 64 samples; without keys, an older run id restarts the device as any other.
+#[test]
+fn with_keys_an_older_run_is_a_replay_and_a_newer_one_a_restart() {
+    let with_run = |seq: u64, run: u64| pb::Sample {
+        run_id: run,
+        ..sample("aero-1", seq, seq as f64 * 0.01, &[0.0, 0.5])
+    };
+    let mut r = registry();
+    r.set_secret(Some(protocol::auth::Secret::random().unwrap()));
+    for k in 1..=10 {
+        answered(r.answer("aero-1", &with_run(k, 1000)));
+    }
+    let starts = r.device_status("aero-1").unwrap().restarts;
+    // A replay of run 900 between the plant's own samples: never followed.
+    for k in 1..=100u64 {
+        let c = answered(r.answer("aero-1", &with_run(k, 900)));
+        assert_eq!(c.mode, pb::Mode::Stale as i32, "replayed sample {k}");
+        if k % 10 == 0 {
+            let own = answered(r.answer("aero-1", &with_run(10 + k / 10, 1000)));
+            assert_ne!(own.mode, pb::Mode::Stale as i32);
+        }
+    }
+    assert_eq!(r.device_status("aero-1").unwrap().restarts, starts);
+    // A newer run: a restart, at once.
+    let c = answered(r.answer("aero-1", &with_run(1, 2000)));
+    assert_ne!(c.mode, pb::Mode::Stale as i32);
+    assert_eq!(r.device_status("aero-1").unwrap().restarts, starts + 1);
+    // An older run alone, 64 samples in a row: the plant is there, followed.
+    let modes: Vec<i32> = (1..=64u64)
+        .map(|k| answered(r.answer("aero-1", &with_run(k, 1500))).mode)
+        .collect();
+    assert!(modes[..63].iter().all(|&m| m == pb::Mode::Stale as i32));
+    assert_ne!(modes[63], pb::Mode::Stale as i32);
+    assert_eq!(r.device_status("aero-1").unwrap().restarts, starts + 2);
+    // Without keys, an older run id is a restart like any other.
+    let mut open = registry();
+    answered(open.answer("aero-1", &with_run(1, 1000)));
+    let starts = open.device_status("aero-1").unwrap().restarts;
+    let c = answered(open.answer("aero-1", &with_run(1, 900)));
+    assert_ne!(c.mode, pb::Mode::Stale as i32);
+    assert_eq!(open.device_status("aero-1").unwrap().restarts, starts + 1);
+}

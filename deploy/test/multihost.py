@@ -254,7 +254,7 @@ class Env:
 # ---------------------------------------------------------------- helpers
 
 def mfcctl(env, *args):
-    r = env.run("operator", "mfcctl --zenoh-config /etc/mfc/alice.json5 --json " +
+    r = env.run("operator", "mfcctl --zenoh-config /etc/mfc/alice.json5 --key-file /etc/mfc/alice.auth --json " +
                 " ".join(args), timeout=30)
     if r.returncode != 0:
         return None, r.stderr.strip()
@@ -454,6 +454,9 @@ def run_test(env, args):
     check(ok, "the operator, through the router, lists both plants up", str(last))
     status, err = mfcctl(env, "status", "aero-1")
     check(status is not None, "the operator reads aero-1's status", err or "")
+    services, err = mfcctl(env, "services")
+    check(services is not None and all(x.get("authenticated") for x in services),
+          "the service checks proofs of origin (it has the fleet's secret)", str(services or err))
 
 
     # A run whose own 10 ms loop was starved (the agents count periods started more than
@@ -485,6 +488,10 @@ def run_test(env, args):
           f"attempt {attempt} of at most {ATTEMPTS}, overruns {over}" +
           ("" if max(over.values()) <= MAX_OVERRUNS else ": this machine cannot judge tracking now"))
     for d in ["aero-1", "aero-2"]:
+        auth = summaries[d].get("auth", {})
+        check(auth.get("authenticated") is True and auth.get("forged") == 0,
+              f"phase 1: {d}'s samples were sealed and every command it got proved its origin",
+              str(auth))
         check(codes[d] == 0, f"phase 1: {d} exits 0 (a controller answered)", f"exit {codes[d]}")
         for ch, q in results[f"phase1_attempt{attempt}_{d}_rms_ratio"].items():
             check(q <= RMS_RATIO, f"phase 1: {d} {ch} tracks within {RMS_RATIO}x of offline",
@@ -541,7 +548,7 @@ def run_test(env, args):
         alpha = find_alpha(cfg, 0)
     if check(alpha is not None, "aero-2 channel 0 has an alpha", json.dumps(cfg)[:300]):
         new = alpha * GAIN_FACTOR
-        r = env.run("operator", f"mfcctl --zenoh-config /etc/mfc/alice.json5 set aero-2 --channel 0 alpha={new}")
+        r = env.run("operator", f"mfcctl --zenoh-config /etc/mfc/alice.json5 --key-file /etc/mfc/alice.auth set aero-2 --channel 0 alpha={new}")
         check(r.returncode == 0, "the operator changes aero-2's alpha", r.stderr.strip()[-300:])
         cfg2, err = mfcctl(env, "config", "aero-2")
         got = find_alpha(cfg2, 0) if cfg2 else None

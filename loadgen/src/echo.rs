@@ -96,6 +96,7 @@ pub async fn serve(
                 gateway_id: gw.to_string(),
                 commands: batch.samples.iter().map(command_for).collect(),
                 controller_id: "echo".into(),
+                mac: Vec::new(),
             };
             answer(&session2, &pubs, keys::gateway_commands(gw), encode(&out));
         }

@@ -432,6 +432,7 @@ fn send_loop(
                     version: PROTOCOL_VERSION,
                     gateway_id: format!("{}-gw-{j}", spec.prefix),
                     samples: range.map(|i| sample(i, &mut y)).collect(),
+                    mac: Vec::new(),
                 };
                 encode(&batch)
             };

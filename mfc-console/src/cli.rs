@@ -33,6 +33,10 @@ pub struct ConsoleCli {
     /// Settings (TOML; see `mfc_console::settings` for every field and its default).
     #[arg(long)]
     pub config: Option<PathBuf>,
+    /// The operators' key file (`mfc-deploy` writes `keys/operator.key`): only replies
+    /// sealed with it are shown. Without it, replies are taken unchecked (the log says so).
+    #[arg(long)]
+    pub key_file: Option<PathBuf>,
 }
 
 /// Parse `args` and run until a signal; the process's exit code: 0 stopped by a signal, 1
@@ -107,7 +111,16 @@ pub async fn run(
         .open_bounded(protocol::MAX_TRANSPORT_MESSAGE)
         .await
         .map_err(|e| ConsoleError::Zenoh(e.to_string()))?;
-    let console = Arc::new(Console::new(session.clone(), settings.clone()));
+    let key = match &cli.key_file {
+        Some(p) => Some(protocol::auth::Key::from_file(p)?),
+        None => {
+            tracing::warn!(
+                "no --key-file: replies are shown without checking where they came from"
+            );
+            None
+        }
+    };
+    let console = Arc::new(Console::new(session.clone(), settings.clone(), key));
     let wiring = wire(console.clone()).await?;
     let guard = Guard::new(addr, &settings.allowed_hosts);
     tracing::info!(

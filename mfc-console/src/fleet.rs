@@ -1009,6 +1009,7 @@ mod tests {
             version: PROTOCOL_VERSION,
             gateway_id: "gw".into(),
             samples: vec![sample("a", 1, 0.0, &[1.0]), sample("", 1, 0.0, &[1.0])],
+            ..Default::default()
         };
         assert_eq!(
             parse_sample_batch(&keys::gateway_samples("gw"), &encode(&batch)),

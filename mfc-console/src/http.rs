@@ -329,7 +329,7 @@ async fn gains(
         Err(e) => return op_failed(e),
     };
     // The configuration in force now (not the page's copy): the envelope to check against.
-    let config = match ops::config(&c.session, &id, c.timeout()).await {
+    let config = match ops::config(&c.operator, &id, c.timeout()).await {
         Ok(x) => x,
         Err(e) => return op_failed(e),
     };
@@ -343,7 +343,7 @@ async fn gains(
         change.channel,
         assignments.join(" ")
     );
-    match ops::update(&c.session, &id, update, c.timeout()).await {
+    match ops::update(&c.operator, &id, update, c.timeout()).await {
         Ok(config) => {
             let views = fleet::channel_views(&config);
             c.fleet().apply_config(&id, config, c.now());
@@ -376,7 +376,7 @@ async fn reference(
     if let Err(e) = keys::check_id(&id) {
         return refused(StatusCode::BAD_REQUEST, "console", e.to_string());
     }
-    let config = match ops::config(&c.session, &id, c.timeout()).await {
+    let config = match ops::config(&c.operator, &id, c.timeout()).await {
         Ok(x) => x,
         Err(e) => return op_failed(e),
     };
@@ -390,7 +390,7 @@ async fn reference(
         .collect();
     tracing::info!("reference of {id}: constant {:?}", change.values);
     let r = protocol::convert::reference_to_pb(&pieces, 0.0);
-    match ops::set_reference(&c.session, &id, r, c.timeout()).await {
+    match ops::set_reference(&c.operator, &id, r, c.timeout()).await {
         Ok(config) => {
             c.fleet().apply_config(&id, config, c.now());
             Json(json!({ "accepted": true, "values": change.values })).into_response()

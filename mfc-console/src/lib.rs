@@ -34,6 +34,9 @@ pub enum ConsoleError {
     /// The Zenoh session or a declaration.
     #[error("zenoh: {0}")]
     Zenoh(String),
+    /// The operators' key file.
+    #[error("--key-file: {0}")]
+    Key(#[from] protocol::auth::KeyError),
     /// The HTTP listener.
     #[error("HTTP on {addr}: {source}")]
     Http {

@@ -37,6 +37,9 @@ pub const WATCH_WINDOW: f64 = 10.0;
 pub struct Console {
     /// The operator's session: every query goes out with its identity.
     pub session: Session,
+    /// The same session with the operators' key: queries go out through it, and only
+    /// replies sealed with that key are shown (`transport::ops::Asker`).
+    pub operator: transport::ops::Operator,
     /// The settings.
     pub settings: Settings,
     fleet: Mutex<FleetView>,
@@ -46,10 +49,15 @@ pub struct Console {
 }
 
 impl Console {
-    /// A console on `session` with `settings`.
-    pub fn new(session: Session, settings: Settings) -> Self {
+    /// A console on `session` with `settings`, checking replies with `key` (`None`: the
+    /// deployment runs open and replies are taken unchecked).
+    pub fn new(session: Session, settings: Settings, key: Option<protocol::auth::Key>) -> Self {
         Self {
             fleet: Mutex::new(FleetView::new(settings.limits())),
+            operator: transport::ops::Operator {
+                session: session.clone(),
+                key,
+            },
             session,
             settings,
             start: Instant::now(),
@@ -197,7 +205,7 @@ async fn poll_services(c: Arc<Console>) {
     let mut failing = false;
     loop {
         tick.tick().await;
-        match ops::services(&c.session, c.timeout()).await {
+        match ops::services(&c.operator, c.timeout()).await {
             Ok(list) => {
                 failing = false;
                 let now = c.now();
@@ -227,7 +235,7 @@ async fn poll_configs(c: Arc<Console>) {
         }
         let ids = c.fleet().watched(c.now(), WATCH_WINDOW);
         for id in ids {
-            match ops::config(&c.session, &id, c.timeout()).await {
+            match ops::config(&c.operator, &id, c.timeout()).await {
                 Ok(cfg) => {
                     let now = c.now();
                     c.fleet().apply_config(&id, cfg, now);

@@ -2,10 +2,11 @@
 //! host needs, and nothing another host's compromise would reveal.
 //!
 //! ```text
-//! OUT/ca/ca.pem ca.key                 the CA (keep ca.key on this machine only)
+//! OUT/ca/ca.pem ca.key fleet.secret    the CA and the fleet's secret (keep both here only)
 //! OUT/router/zenohd.json5 router.pem router.key ca.pem
-//! OUT/services/ID/ID.json5 ID.pem ID.key ca.pem
-//! OUT/devices/ID/…   OUT/operators/ID/…
+//! OUT/services/ID/ID.json5 ID.pem ID.key ca.pem fleet.secret
+//! OUT/devices/ID/…   ID.auth            the device's message key
+//! OUT/operators/ID/… ID.auth            the operators' reply key
 //! OUT/acl.json5                        the access control, for review (also in zenohd.json5)
 //! OUT/retired/…                        bundles of names no longer in the inventory
 //! ```
@@ -164,6 +165,7 @@ pub fn generate(
         )));
     }
     let (ca, ca_action) = load_or_create_ca(inv, out, now)?;
+    let secret = load_or_create_secret(out)?;
     let mut entries = Vec::new();
     for (role, name) in &identities {
         entries.push(bundle(
@@ -174,6 +176,7 @@ pub fn generate(
             rotate.contains(name),
             now,
         )?);
+        write_message_key(&secret, out, *role, name)?;
     }
     write(
         &out.join("acl.json5"),
@@ -223,6 +226,44 @@ fn load_or_create_ca(
         )));
     }
     Ok((ca, ca_action))
+}
+
+/// The fleet's secret (`protocol::auth`): every message key derives from it. Made once,
+/// next to the CA, and never replaced: a new one would leave every plant with a key the
+/// services no longer accept.
+fn load_or_create_secret(out: &Path) -> Result<protocol::auth::Secret, DeployError> {
+    let path = out.join("ca/fleet.secret");
+    match read(&path)? {
+        Some(text) => protocol::auth::Secret::from_hex(&text)
+            .map_err(|e| DeployError::Pki(format!("{}: {e}", path.display()))),
+        None => {
+            let s =
+                protocol::auth::Secret::random().map_err(|e| DeployError::Pki(e.to_string()))?;
+            write(&path, &format!("{}\n", s.to_hex()), true)?;
+            Ok(s)
+        }
+    }
+}
+
+/// The message key an identity's bundle gets, private: a service the fleet's secret
+/// (`fleet.secret`: it checks every device's messages and seals its commands), a device
+/// its own key (`ID.auth`: it speaks for itself only), an operator the operators' key
+/// (`ID.auth`: it can check replies, not forge commands); the router none (it forwards,
+/// and cannot forge what it forwards).
+fn write_message_key(
+    secret: &protocol::auth::Secret,
+    out: &Path,
+    role: IdentityKind,
+    name: &str,
+) -> Result<(), DeployError> {
+    let dir = bundle_dir(out, role, name);
+    let (file, hex) = match role {
+        IdentityKind::Router => return Ok(()),
+        IdentityKind::Service => ("fleet.secret".to_string(), secret.to_hex()),
+        IdentityKind::Device => (format!("{name}.auth"), secret.device(name).to_hex()),
+        IdentityKind::Operator => (format!("{name}.auth"), secret.operator().to_hex()),
+    };
+    write(&dir.join(file), &format!("{hex}\n"), true)
 }
 
 /// One identity's bundle: its key and certificate (kept if still right, else issued
@@ -480,5 +521,61 @@ mod tests {
             // No bundle carries the CA's key.
             assert!(!e.bundle.join("ca.key").exists());
         }
+    }
+
+    #[test]
+    fn each_bundle_gets_only_its_own_message_key_and_the_secret_stays() {
+        use protocol::auth::{Key, Secret};
+        let out = tempfile::tempdir().unwrap();
+        let o = out.path();
+        generate(&inv(&["aero-1", "aero-2"]), o, &[], now()).unwrap();
+        let secret = Secret::from_file(&o.join("ca/fleet.secret")).unwrap();
+        let hex = |p: &str| Key::from_file(&o.join(p)).unwrap().to_hex();
+        assert_eq!(hex("services/ctl/fleet.secret"), secret.to_hex());
+        assert_eq!(
+            hex("devices/aero-1/aero-1.auth"),
+            secret.device("aero-1").to_hex()
+        );
+        assert_eq!(
+            hex("devices/aero-2/aero-2.auth"),
+            secret.device("aero-2").to_hex()
+        );
+        assert_eq!(
+            hex("operators/alice/alice.auth"),
+            secret.operator().to_hex()
+        );
+        // Nobody but the services holds the secret; the router holds no message key.
+        for dir in ["devices/aero-1", "operators/alice", "router"] {
+            for f in fs::read_dir(o.join(dir)).unwrap() {
+                let f = f.unwrap().path();
+                let text = fs::read_to_string(&f).unwrap_or_default();
+                assert!(!text.contains(&secret.to_hex()), "{}", f.display());
+            }
+        }
+        assert!(!o.join("router/router.auth").exists());
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            for p in [
+                "ca/fleet.secret",
+                "services/ctl/fleet.secret",
+                "devices/aero-1/aero-1.auth",
+            ] {
+                let mode = fs::metadata(o.join(p)).unwrap().permissions().mode();
+                assert_eq!(mode & 0o777, 0o600, "{p}");
+            }
+        }
+        // Generating again (a rotation included) keeps the secret: plants keep their keys.
+        generate(&inv(&["aero-1", "aero-2"]), o, &["aero-1".into()], now()).unwrap();
+        assert_eq!(
+            Secret::from_file(&o.join("ca/fleet.secret"))
+                .unwrap()
+                .to_hex(),
+            secret.to_hex()
+        );
+        assert_eq!(
+            hex("devices/aero-1/aero-1.auth"),
+            secret.device("aero-1").to_hex()
+        );
     }
 }

@@ -173,8 +173,13 @@ pub async fn run_case(
         }
         config.devices.extend(devices);
     }
-    let svc = ServiceHandle::start_with(config, Some(format!("{}/{target}", link.scheme())), false)
-        .await?;
+    let svc = ServiceHandle::start_with(
+        config,
+        Some(format!("{}/{target}", link.scheme())),
+        false,
+        None,
+    )
+    .await?;
     // Sessions establish through a transparent relay; it starts impairing once the loops
     // run (zenoh does not retransmit handshakes or declarations lost on a UDP link).
     let relay = Relay::start(link, "127.0.0.1:0".parse()?, target, profile, false).await?;

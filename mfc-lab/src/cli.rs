@@ -250,6 +250,11 @@ struct ServiceConfigArgs {
     /// Controller file or shipped name (default: the scenario's).
     #[arg(long)]
     controller: Option<String>,
+    /// The fleet's secret file, relative to where the configuration will be
+    /// (`fleet.secret` in a bundle `mfc-deploy` wrote): the service then checks every
+    /// message's proof of origin. Absent: it runs open.
+    #[arg(long)]
+    secret_file: Option<std::path::PathBuf>,
 }
 
 /// Parse the process's arguments and run.
@@ -497,7 +502,8 @@ fn tune_command(args: &TuneArgs) -> Result<()> {
 /// `service-config`: the service's configuration for these devices, as TOML.
 fn print_service_config(args: &ServiceConfigArgs) -> Result<()> {
     let (scenario, set) = scenario_and_controller(&args.scenario, args.controller.as_deref())?;
-    let config = service_config(&scenario, &set, &args.devices);
+    let mut config = service_config(&scenario, &set, &args.devices);
+    config.secret_file.clone_from(&args.secret_file);
     config.check("(generated)")?;
     println!(
         "# controller-service configuration: {} on {} for {}\n{}",

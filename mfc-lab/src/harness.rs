@@ -89,6 +89,8 @@ pub struct ServiceHandle {
     pub endpoint: String,
     /// Address of its metrics endpoint, if its configuration asks for one.
     pub metrics: Option<std::net::SocketAddr>,
+    /// The fleet's secret, if it was started with keys ([`ServiceHandle::start_keyed`]).
+    pub secret: Option<protocol::auth::Secret>,
     stop: Option<tokio::sync::oneshot::Sender<()>>,
     task: tokio::task::JoinHandle<Result<(), service::ServiceError>>,
     observers: controller_service::observe::Observers,
@@ -100,16 +102,30 @@ pub struct ServiceHandle {
 
 impl ServiceHandle {
     /// Start a service for `config` listening on `endpoint` (`None`: a free TCP port on
-    /// loopback).
+    /// loopback). It runs open (no keys): what tests that put hand-made messages want.
     pub async fn start(config: ServiceConfig, endpoint: Option<String>) -> anyhow::Result<Self> {
-        Self::start_with(config, endpoint, true).await
+        Self::start_with(config, endpoint, true, None).await
     }
 
-    /// As [`ServiceHandle::start`], choosing whether the service's session gossips.
+    /// As [`ServiceHandle::start`], with keys made now ([`ServiceHandle::secret`]): plants
+    /// and gateways then need their key (`secret.device(id)`, `secret.gateway(id)`), as in
+    /// a deployment `mfc-deploy` generated.
+    pub async fn start_keyed(
+        config: ServiceConfig,
+        endpoint: Option<String>,
+    ) -> anyhow::Result<Self> {
+        let secret = protocol::auth::Secret::random()?;
+        tracing::info!("auth: keys made at start (no deployment: they live as long as this run)");
+        Self::start_with(config, endpoint, true, Some(secret)).await
+    }
+
+    /// As [`ServiceHandle::start`], choosing whether the service's session gossips and
+    /// giving it the fleet's secret (`None`: open).
     pub async fn start_with(
         config: ServiceConfig,
         endpoint: Option<String>,
         gossip: bool,
+        secret: Option<protocol::auth::Secret>,
     ) -> anyhow::Result<Self> {
         let endpoint = match endpoint {
             Some(e) => e,
@@ -129,7 +145,8 @@ impl ServiceHandle {
             metrics = Some(addr);
             metrics_stop = Some((tx, task));
         }
-        let registry = Registry::new(config)?;
+        let mut registry = Registry::new(config)?;
+        registry.set_secret(secret.clone());
         // As the service's own binary: no message larger than it would count is reassembled.
         let mut zc = loopback_config(Some(endpoint.clone()), vec![], gossip)?;
         transport::bound_messages(&mut zc, protocol::MAX_TRANSPORT_MESSAGE)?;
@@ -148,6 +165,7 @@ impl ServiceHandle {
         });
         Ok(Self {
             endpoint,
+            secret,
             metrics,
             stop: Some(tx),
             task,
@@ -222,19 +240,24 @@ pub async fn run_plant(
     Ok(out?)
 }
 
-/// A run id that differs between runs and between plants of one run.
+/// A run id that differs between runs and between plants of one run, and grows from one
+/// run to the next as [`plant::run_id`] does (the salt changes its low 16 bits only).
 pub fn run_id(salt: u64) -> u64 {
-    (plant::run_id() ^ salt.wrapping_mul(0x9E37_79B9_7F4A_7C15)).max(1)
+    (plant::run_id() ^ (salt.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 48)).max(1)
 }
 
 /// Start a service for `plants` and run them all concurrently; returns their runs in order.
+/// Keys are made at start: every sample and command carries its proof of origin, as in a
+/// deployment.
 pub async fn run_fleet(
     plants: Vec<PlantSpec>,
     config: ServiceConfig,
 ) -> anyhow::Result<Vec<AgentRun>> {
-    let service = ServiceHandle::start(config, None).await?;
+    let service = ServiceHandle::start_keyed(config, None).await?;
+    let secret = service.secret.clone();
     let mut tasks = Vec::new();
-    for p in plants {
+    for mut p in plants {
+        p.loop_config.auth = secret.as_ref().map(|s| s.device(&p.loop_config.device_id));
         tasks.push(tokio::spawn(run_plant(
             vec![service.endpoint.clone()],
             p,

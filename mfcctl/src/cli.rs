@@ -36,6 +36,11 @@ pub struct MfcctlCli {
     /// How long to wait for answers (ms).
     #[arg(long, default_value_t = 2000, global = true)]
     pub timeout_ms: u64,
+    /// The operators' key file (`mfc-deploy` writes `keys/operator.key`): only replies
+    /// sealed with it are shown, so a process that may reply on a controller's keys cannot
+    /// answer for it. Without it, replies are taken unchecked.
+    #[arg(long, global = true)]
+    pub key_file: Option<PathBuf>,
     #[command(subcommand)]
     pub command: Command,
 }
@@ -179,7 +184,7 @@ struct ReferenceFile {
 /// The pieces of `reference` and their start (plant time): one constant per channel, or a
 /// file's pieces, whose times count from the plant's time now unless `absolute`.
 async fn reference(
-    session: &zenoh::Session,
+    operator: &ops::Operator,
     device: &str,
     constant: &[f64],
     file: Option<&std::path::Path>,
@@ -195,7 +200,7 @@ async fn reference(
             let start = if absolute {
                 0.0
             } else {
-                ops::device_status(session, device, timeout)
+                ops::device_status(operator, device, timeout)
                     .await?
                     .plant_time
             };
@@ -231,21 +236,30 @@ pub async fn run(cli: MfcctlCli) -> Result<String> {
         return params(markdown, cli.json);
     }
     let timeout = Duration::from_millis(cli.timeout_ms);
+    let key = match &cli.key_file {
+        Some(p) => Some(protocol::auth::Key::from_file(p).context("--key-file")?),
+        None => None,
+    };
     let session = cli.zenoh.open().await?;
-    let result = command(&session, &cli.command, cli.json, timeout).await;
+    let operator = ops::Operator {
+        session: session.clone(),
+        key,
+    };
+    let result = command(&operator, &cli.command, cli.json, timeout).await;
     let _ = session.close().await;
     result
 }
 
 async fn command(
-    session: &zenoh::Session,
+    operator: &ops::Operator,
     command: &Command,
     json: bool,
     timeout: Duration,
 ) -> Result<String> {
+    let session = &operator.session;
     Ok(match command {
         Command::Services => {
-            let list = ops::services(session, timeout).await?;
+            let list = ops::services(operator, timeout).await?;
             let alive = ops::alive(session, "controller").await?;
             if list.is_empty() && alive.is_empty() {
                 bail!("no controller answered within {} ms", timeout.as_millis());
@@ -253,7 +267,7 @@ async fn command(
             out(json, &list, |l| render::services(l, &alive))?
         }
         Command::Devices => {
-            let list = ops::services(session, timeout).await?;
+            let list = ops::services(operator, timeout).await?;
             let plants = ops::alive(session, "plant").await?;
             // JSON: the services' statuses as `services`, and the plants whose agents are
             // up (liveliness) as `plants_up`, served or not.
@@ -264,11 +278,11 @@ async fn command(
             out(json, &both, |b| render::devices(&b.services, &b.plants_up))?
         }
         Command::Status { device } => {
-            let s = ops::device_status(session, device, timeout).await?;
+            let s = ops::device_status(operator, device, timeout).await?;
             out(json, &s, render::status)?
         }
         Command::Config { device } => {
-            let c = ops::config(session, device, timeout).await?;
+            let c = ops::config(operator, device, timeout).await?;
             out(json, &c, render::config)?
         }
         Command::Set {
@@ -277,7 +291,7 @@ async fn command(
             fields,
         } => {
             let u = ops::parse_update(*channel, fields)?;
-            let c = ops::update(session, device, u, timeout).await?;
+            let c = ops::update(operator, device, u, timeout).await?;
             out(json, &c, render::config)?
         }
         Command::Params { markdown } => params(*markdown, json)?,
@@ -288,7 +302,7 @@ async fn command(
             absolute,
         } => {
             let (pieces, start) = reference(
-                session,
+                operator,
                 device,
                 constant,
                 file.as_deref(),
@@ -297,7 +311,7 @@ async fn command(
             )
             .await?;
             let r = protocol::convert::reference_to_pb(&pieces, start);
-            let c = ops::set_reference(session, device, r, timeout).await?;
+            let c = ops::set_reference(operator, device, r, timeout).await?;
             out(json, &c, render::config)?
         }
         Command::Envelope {
@@ -308,7 +322,7 @@ async fn command(
             rate,
             reason,
         } => {
-            let now = ops::config(session, device, timeout).await?;
+            let now = ops::config(operator, device, timeout).await?;
             let mut env = now.envelope.unwrap_or_default();
             let n = env.channels.len();
             let Some(slot) = env.channels.get_mut(*channel) else {
@@ -319,7 +333,7 @@ async fn command(
                 max: Some(*max),
                 rate_limit: *rate,
             };
-            let c = ops::change_envelope(session, device, env, reason, timeout).await?;
+            let c = ops::change_envelope(operator, device, env, reason, timeout).await?;
             out(json, &c, render::config)?
         }
     })

@@ -73,6 +73,11 @@ pub struct LoopConfig {
     /// blocking pool for its last 1.5 ms, so a process that hosts hundreds of loops (the
     /// gateway) turns it off rather than keep a hundred threads sleeping.
     pub precise_wake: bool,
+    /// The device's key (`protocol::auth`): samples go out sealed with it and a command
+    /// is judged only if it opens with it. `None` runs open: no proof either way, and
+    /// the log says so at start. A gateway's plants have none of their own: the gateway
+    /// seals and opens their batches with its key.
+    pub auth: Option<protocol::auth::Key>,
 }
 
 impl LoopConfig {
@@ -95,6 +100,7 @@ impl LoopConfig {
             resend: protocol::RESENT_SAMPLES,
             observers: LoopObservers::default(),
             precise_wake: true,
+            auth: None,
         }
     }
 }
@@ -183,6 +189,19 @@ pub struct AgentReport {
     /// under which epoch commanded which periods.
     #[serde(default)]
     pub lease: LeaseReport,
+    /// Whether the run's messages were authenticated, and the commands refused because
+    /// they were not (no MAC, or one under another key: forged, altered, misdirected).
+    #[serde(default)]
+    pub auth: AuthReport,
+}
+
+/// Proof of origin in a run (`summary.json`'s `auth`).
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct AuthReport {
+    /// Samples sealed and commands checked with the device's key (else: open).
+    pub authenticated: bool,
+    /// Commands refused unread: no MAC, or not this device's.
+    pub forged: u64,
 }
 
 impl AgentReport {
@@ -415,6 +434,7 @@ pub fn never_started(config: &LoopConfig, stopped: Result<(), PlantError>) -> Ag
         overruns: 0,
         limit_hits: 0,
         lease: LeaseReport::default(),
+        auth: AuthReport::default(),
     };
     AgentRun {
         report,
@@ -454,6 +474,15 @@ async fn declare_and_run(
     let n = plant.channels();
     check_loop(config, n)?;
     let id = config.device_id.as_str();
+    if config.auth.is_some() {
+        tracing::info!(device = id, "auth: keys (samples sealed, commands checked)");
+    } else {
+        tracing::warn!(
+            device = id,
+            "auth: open (no key_file): any peer that may put on this device's command key \
+             can command it"
+        );
+    }
 
     let (tx, rx) = mpsc::channel::<(Instant, Vec<u8>)>(256);
     let _commands = session
@@ -517,9 +546,21 @@ pub enum SampleOut<'a> {
 }
 
 impl SampleOut<'_> {
-    async fn send(&self, sample: pb::Sample) -> Result<(), String> {
+    /// Send `sample`, sealed with `key` on its own key (a gateway seals the batch).
+    async fn send(
+        &self,
+        sample: pb::Sample,
+        key: Option<&protocol::auth::Key>,
+    ) -> Result<(), String> {
         match self {
-            SampleOut::Own(p) => p.put(encode(&sample)).await.map_err(|e| e.to_string()),
+            SampleOut::Own(p) => {
+                let bytes = encode(&sample);
+                let bytes = match key {
+                    Some(k) => k.seal(protocol::auth::Kind::Sample, bytes),
+                    None => bytes,
+                };
+                p.put(bytes).await.map_err(|e| e.to_string())
+            }
             // Never wait on the batcher: a full queue is a lost sample, as on the network.
             SampleOut::Gateway(tx) => tx.try_send(sample).map_err(|e| e.to_string()),
         }
@@ -644,6 +685,8 @@ struct PeriodLoop<'a, 'p> {
     overruns: u64,
     bad_commands: LogBudget,
     refusals: LogBudget,
+    /// Commands refused for their MAC ([`AuthReport::forged`]).
+    forged: u64,
     metrics: Option<DeviceMetrics>,
     /// The last F estimates received, for the metrics.
     last_f: Option<Vec<f64>>,
@@ -682,6 +725,7 @@ impl<'a, 'p> PeriodLoop<'a, 'p> {
             overruns: 0,
             bad_commands: LogBudget::default(),
             refusals: LogBudget::default(),
+            forged: 0,
             metrics: config
                 .observers
                 .metrics
@@ -838,6 +882,8 @@ impl<'a, 'p> PeriodLoop<'a, 'p> {
                 .iter()
                 .flat_map(|p| p.2.iter().copied())
                 .collect(),
+            // Appended by the seal, over the bytes before it.
+            mac: Vec::new(),
         };
         self.previous
             .push_front((t, y.to_vec(), begin.applied_mean.clone()));
@@ -851,7 +897,7 @@ impl<'a, 'p> PeriodLoop<'a, 'p> {
             let at = sample.sent_unix_ns;
             r.record(self.id(), Topic::Sample, at, at, encode(&sample));
         }
-        if let Err(e) = self.out.send(sample).await {
+        if let Err(e) = self.out.send(sample, config.auth.as_ref()).await {
             tracing::warn!(device = self.id(), "publishing sample {k}: {e}");
         }
     }
@@ -883,7 +929,20 @@ impl<'a, 'p> PeriodLoop<'a, 'p> {
         bytes: Vec<u8>,
     ) -> Result<bool, Ended> {
         let id = self.id();
-        let cmd = match decode::<pb::Command>(&bytes) {
+        let body = match &self.config.auth {
+            Some(key) => match key.open(protocol::auth::Kind::Command, &bytes) {
+                Ok(body) => body,
+                Err(e) => {
+                    self.forged += 1;
+                    if self.bad_commands.hit() {
+                        tracing::warn!(device = id, "command refused unread: {e}");
+                    }
+                    return Ok(false);
+                }
+            },
+            None => &bytes,
+        };
+        let cmd = match decode::<pb::Command>(body) {
             Ok(c) if c.device_id == id => c,
             Ok(_) => return Ok(false),
             Err(e) => {
@@ -1064,6 +1123,10 @@ impl<'a, 'p> PeriodLoop<'a, 'p> {
             overruns: self.overruns,
             limit_hits: self.plant.limit_hits(),
             lease: self.sup.lease().map(Lease::report).unwrap_or_default(),
+            auth: AuthReport {
+                authenticated: self.config.auth.is_some(),
+                forged: self.forged,
+            },
         };
         AgentRun {
             report,

@@ -241,8 +241,15 @@ fn gateway(args: GatewayArgs) -> Result<u8> {
             cfg.observers = started.observers.clone();
         }
         tracing::info!(gateway = %g.gateway, plants = plants.len(), "hosting");
-        let runs =
-            crate::gateway::run_gateway(&session, &g.gateway, plants, run_id, shutdown).await;
+        let runs = crate::gateway::run_gateway(
+            &session,
+            &g.gateway,
+            plants,
+            g.key.clone(),
+            run_id,
+            shutdown,
+        )
+        .await;
         started.finish().await;
         let _ = session.close().await;
         Ok(runs?)

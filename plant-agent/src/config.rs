@@ -89,6 +89,12 @@ pub struct AgentFile {
     /// `record = { path = "agent.mcap" }` (absent: no recording). In a gateway's file, set
     /// it once at the top level.
     pub record: Option<telemetry::RecordSpec>,
+    /// The device's key file (64 hexadecimal digits; `mfc-deploy` writes
+    /// `keys/{device}.key`), relative to this file: samples go out sealed with it and only
+    /// commands sealed with it are judged (`protocol::auth`). Absent: the plant runs open,
+    /// commands from anyone who can put on its key are judged, and the log says so. In a
+    /// gateway's file, the gateway's own `key_file` serves all its plants.
+    pub key_file: Option<PathBuf>,
 }
 
 impl Default for AgentFile {
@@ -105,8 +111,27 @@ impl Default for AgentFile {
             out: PathBuf::from("out/run"),
             metrics: None,
             record: None,
+            key_file: None,
         }
     }
+}
+
+/// A key file named in `file`, read (relative to `file`'s directory).
+pub fn read_key(
+    file: &Path,
+    key_file: Option<&Path>,
+) -> Result<Option<protocol::auth::Key>, AgentConfigError> {
+    let Some(k) = key_file else {
+        return Ok(None);
+    };
+    let path = file.parent().unwrap_or(Path::new(".")).join(k);
+    protocol::auth::Key::from_file(&path)
+        .map(Some)
+        .map_err(|e| AgentConfigError::Invalid {
+            file: file.to_path_buf(),
+            field: "key_file",
+            reason: e.to_string(),
+        })
 }
 
 /// `p` relative to `dir` when it names a file there; otherwise as given (a shipped name,
@@ -201,6 +226,7 @@ impl AgentFile {
         }
         let mut loop_config = LoopConfig::new(&scenario, &controller, &device, safety);
         loop_config.resend = self.resend;
+        loop_config.auth = read_key(file, self.key_file.as_deref())?;
         Ok(Resolved {
             scenario,
             controller,

@@ -27,15 +27,18 @@
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 use std::time::Duration;
 
+use protocol::auth::{Key, Kind};
 use protocol::{decode, encode, keys, pb, PROTOCOL_VERSION};
 use serde::{Deserialize, Serialize};
 use tokio::sync::{mpsc, watch};
 use tokio::time::Instant;
 use zenoh::Session;
 
-use crate::agent::{self, AgentError, AgentRun};
+use crate::agent::{self, AgentError, AgentRun, AuthReport};
 use crate::config::{AgentConfigError, AgentFile, Resolved};
 use plant::Plant;
 
@@ -60,6 +63,11 @@ pub struct GatewayFile {
     /// Record all its plants into one MCAP file (absent: no recording).
     #[serde(default)]
     pub record: Option<telemetry::RecordSpec>,
+    /// The gateway's key file (`mfc-deploy` writes `keys/{gateway}.gateway.key`), relative
+    /// to this file: one MAC per batch each way. Absent: the gateway runs open. Its plants
+    /// have no `key_file` of their own.
+    #[serde(default)]
+    pub key_file: Option<PathBuf>,
     /// The plants, each as a single agent's file would describe it (`device` required;
     /// its `out` is ignored). At least one, at most [`MAX_PLANTS`], unique ids, one period.
     pub plants: Vec<AgentFile>,
@@ -72,6 +80,8 @@ pub struct ResolvedGateway {
     pub out: PathBuf,
     pub metrics: Option<telemetry::MetricsSpec>,
     pub record: Option<telemetry::RecordSpec>,
+    /// The gateway's key (`None`: open).
+    pub key: Option<Key>,
     pub plants: Vec<Resolved>,
 }
 
@@ -109,6 +119,12 @@ impl GatewayFile {
         let mut plants = Vec::with_capacity(self.plants.len());
         let mut seen = std::collections::HashSet::new();
         for p in &self.plants {
+            if p.key_file.is_some() {
+                return Err(invalid(
+                    "plants.key_file",
+                    "a gateway's plants share the gateway's key_file (one MAC per batch)".into(),
+                ));
+            }
             let r = p.resolve(path)?;
             if !seen.insert(r.loop_config.device_id.clone()) {
                 return Err(invalid(
@@ -138,6 +154,7 @@ impl GatewayFile {
             gateway: self.gateway.clone(),
             metrics: self.metrics.clone(),
             record: self.record.clone(),
+            key: crate::config::read_key(path, self.key_file.as_deref())?,
             plants,
         })
     }
@@ -145,15 +162,26 @@ impl GatewayFile {
 
 /// Run every plant of a gateway until its scenario ends or `stop` resolves; each gets its
 /// safe stop, and its run comes back (an error for a plant that could not start).
+///
+/// `key` is the gateway's own (`protocol::auth::Secret::gateway`): one MAC per batch each
+/// way, not one per plant. A command batch that does not open with it is dropped whole
+/// and counted in every hosted run's `auth.forged`. `None` runs open.
 pub async fn run_gateway(
     session: &Session,
     gateway: &str,
     plants: Vec<(Box<dyn Plant>, agent::LoopConfig)>,
+    key: Option<Key>,
     run_id: impl Fn() -> u64,
     stop: impl std::future::Future<Output = ()>,
 ) -> Result<Vec<Result<AgentRun, AgentError>>, AgentError> {
     keys::check_id(gateway).map_err(|e| AgentError::Config(e.to_string()))?;
     let n = plants.len();
+    let forged = Arc::new(AtomicU64::new(0));
+    if key.is_some() {
+        tracing::info!(gateway, "auth: gateway key (batches sealed and checked)");
+    } else {
+        tracing::warn!(gateway, "auth: open (no key_file): batches unauthenticated");
+    }
     // Commands: split the batch among the plants, each to its loop's queue.
     let mut routes: HashMap<String, mpsc::Sender<(Instant, Vec<u8>)>> = HashMap::new();
     let mut receivers = Vec::with_capacity(n);
@@ -162,33 +190,11 @@ pub async fn run_gateway(
         routes.insert(cfg.device_id.clone(), tx);
         receivers.push(rx);
     }
-    let gw = gateway.to_string();
-    let _commands = session
-        .declare_subscriber(keys::gateway_commands(gateway))
-        .callback(move |s| {
-            let now = Instant::now();
-            let Ok(batch) = decode::<pb::CommandBatch>(&s.payload().to_bytes()) else {
-                return;
-            };
-            if batch.gateway_id != gw {
-                return;
-            }
-            for c in batch.commands {
-                if let Some(tx) = routes.get(&c.device_id) {
-                    // A full queue drops the command: the supervisor counts it as lost.
-                    let _ = tx.try_send((now, encode(&c)));
-                }
-            }
-        })
-        .await
-        .map_err(|e| transport::TransportError::Declare {
-            what: format!("subscriber {}", keys::gateway_commands(gateway)),
-            reason: e.to_string(),
-        })?;
+    let _commands = command_router(session, gateway, routes, key.clone(), forged.clone()).await?;
     let publisher =
         transport::control_publisher(session, keys::shard_gateway_samples(gateway)).await?;
     let (sample_tx, sample_rx) = mpsc::channel::<pb::Sample>(4 * n + 16);
-    let batcher = batcher(&publisher, gateway, n, sample_rx);
+    let batcher = batcher(&publisher, gateway, key.as_ref(), n, sample_rx);
 
     let (stop_tx, stop_rx) = watch::channel(false);
     // Each plant's loop is a task of its own, so a thousand plants cost a thousand wakes a
@@ -200,6 +206,8 @@ pub async fn run_gateway(
             // Hundreds of loops: tokio's timer, not a blocking thread per wait
             // (`LoopConfig::precise_wake`); the batch waits for the slowest plant anyway.
             cfg.precise_wake = false;
+            // The batch is sealed and opened here, with the gateway's key.
+            cfg.auth = None;
             let (samples, mut stopped) = (sample_tx.clone(), stop_rx.clone());
             let (session, id) = (session.clone(), run_id());
             tokio::spawn(async move {
@@ -224,9 +232,19 @@ pub async fn run_gateway(
     };
     tokio::pin!(all, stop, batcher);
     let mut stop_sent = false;
+    let authenticated = key.is_some();
     loop {
         tokio::select! {
-            runs = &mut all => return Ok(runs),
+            mut runs = &mut all => {
+                let forged = forged.load(Ordering::Relaxed);
+                if forged > 0 {
+                    tracing::warn!(gateway, forged, "command batches refused for their MAC");
+                }
+                for r in runs.iter_mut().flatten() {
+                    r.report.auth = AuthReport { authenticated, forged };
+                }
+                return Ok(runs);
+            }
             () = &mut stop, if !stop_sent => {
                 let _ = stop_tx.send(true);
                 stop_sent = true;
@@ -236,10 +254,57 @@ pub async fn run_gateway(
     }
 }
 
+/// The gateway's command subscriber: each batch that opens with `key` (counted in
+/// `forged` when it does not) is split among the plants, each command to its loop's queue.
+async fn command_router(
+    session: &Session,
+    gateway: &str,
+    routes: HashMap<String, mpsc::Sender<(Instant, Vec<u8>)>>,
+    key: Option<Key>,
+    forged: Arc<AtomicU64>,
+) -> Result<zenoh::pubsub::Subscriber<()>, AgentError> {
+    let gw = gateway.to_string();
+    session
+        .declare_subscriber(keys::gateway_commands(gateway))
+        .callback(move |s| {
+            let now = Instant::now();
+            let bytes = s.payload().to_bytes();
+            let body = match &key {
+                Some(k) => match k.open(Kind::CommandBatch, &bytes) {
+                    Ok(body) => body,
+                    Err(_) => {
+                        forged.fetch_add(1, Ordering::Relaxed);
+                        return;
+                    }
+                },
+                None => &bytes[..],
+            };
+            let Ok(batch) = decode::<pb::CommandBatch>(body) else {
+                return;
+            };
+            if batch.gateway_id != gw {
+                return;
+            }
+            for c in batch.commands {
+                if let Some(tx) = routes.get(&c.device_id) {
+                    // A full queue drops the command: the supervisor counts it as lost.
+                    let _ = tx.try_send((now, encode(&c)));
+                }
+            }
+        })
+        .await
+        .map_err(|e| transport::TransportError::Declare {
+            what: format!("subscriber {}", keys::gateway_commands(gateway)),
+            reason: e.to_string(),
+        })
+        .map_err(AgentError::from)
+}
+
 /// Collect the plants' samples and send one batch per period.
 async fn batcher(
     publisher: &zenoh::pubsub::Publisher<'_>,
     gateway: &str,
+    key: Option<&Key>,
     plants: usize,
     mut rx: mpsc::Receiver<pb::Sample>,
 ) {
@@ -251,7 +316,12 @@ async fn batcher(
             version: PROTOCOL_VERSION,
             gateway_id: gateway.to_string(),
             samples: batch,
+            mac: Vec::new(),
         });
+        let payload = match key {
+            Some(k) => k.seal(Kind::SampleBatch, payload),
+            None => payload,
+        };
         async move {
             if let Err(e) = publisher.put(payload).await {
                 tracing::warn!("publishing a gateway batch: {e}");

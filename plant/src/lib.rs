@@ -116,14 +116,17 @@ pub fn open(
 
 /// A run id that differs between runs: the controller service rebuilds a device's state
 /// when it changes (a restarted plant). Never 0, which the protocol reserves for "not
-/// set". Reads the wall clock (nanoseconds since the Unix epoch) and mixes in the process
-/// id, so two processes started in the same nanosecond still differ.
+/// set". It grows from one start to the next, as the wall clock does: the time in
+/// nanoseconds since the Unix epoch, its low 16 bits replaced by the process id's, so two
+/// processes started within the same 65 µs still differ. A service with keys relies on
+/// the order: an authenticated sample of a run older than the one in force is a replay
+/// of a captured run, refused (`controller-service`'s rule 3).
 pub fn run_id() -> u64 {
     let unix_ns = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_nanos() as u64)
         .unwrap_or(0);
-    (unix_ns ^ u64::from(std::process::id()).rotate_left(32)).max(1)
+    ((unix_ns & !0xFFFF) | u64::from(std::process::id() & 0xFFFF)).max(1)
 }
 
 #[cfg(test)]

@@ -6,6 +6,7 @@
 //! * [`decode`]: decoders that check the protocol version and never panic on any input;
 //! * [`convert`]: conversions between the wire configuration and the control core's types.
 
+pub mod auth;
 pub mod convert;
 pub mod keys;
 

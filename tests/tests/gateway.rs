@@ -63,6 +63,7 @@ fn batch(gw: &str, samples: Vec<pb::Sample>) -> Vec<u8> {
         version: PROTOCOL_VERSION,
         gateway_id: gw.into(),
         samples,
+        ..Default::default()
     })
 }
 
@@ -330,9 +331,11 @@ async fn gateway_run(
     use mfc_lab::harness::{default_safety, service_config, ServiceHandle};
     use plant_agent::agent::{open_plant, LoopConfig};
 
-    let service = ServiceHandle::start(service_config(sc, c, ids), None)
+    // With keys, as a deployment runs: one MAC per batch each way, under the gateway's key.
+    let service = ServiceHandle::start_keyed(service_config(sc, c, ids), None)
         .await
         .unwrap();
+    let secret = service.secret.clone().unwrap();
     let session = service.client().await.unwrap();
     let mut plants = Vec::new();
     for id in ids {
@@ -345,6 +348,7 @@ async fn gateway_run(
         &session,
         "cell-t",
         plants,
+        Some(secret.gateway("cell-t")),
         plant::run_id,
         std::future::pending(),
     )
@@ -383,6 +387,9 @@ async fn a_gateway_agent_serves_its_plants_in_one_batch_per_period() {
             eprintln!("attempt {attempt}: {}", r.headline());
             assert!(r.completed() && r.safe_stop_applied, "{r:?}");
             assert_eq!(r.link, plant_agent::agent::ControllerLink::Kept, "{r:?}");
+            // Every batch each way carried the gateway's MAC, and every one was good.
+            assert!(r.auth.authenticated && r.auth.forged == 0, "{:?}", r.auth);
+            assert!(status.authenticated && status.forged == 0, "{status:?}");
             let k = &r.counters;
             assert_eq!(k.periods as usize, sc.steps());
             assert_eq!(

@@ -50,19 +50,67 @@ pub enum OpError {
     Usage(String),
 }
 
+/// Who asks: a session, and the operators' key (`protocol::auth::Secret::operator`) that
+/// replies must be sealed with. A bare [`Session`] asks without one and takes any reply
+/// (a deployment that runs open); an [`Operator`] with a key takes only replies sealed
+/// for the key expression they came on and the request they answer, so a process that may
+/// reply on a device's keys (any holder of a service certificate) cannot put words in the
+/// controller's mouth.
+pub trait Asker {
+    /// The session queries go through.
+    fn session(&self) -> &Session;
+    /// The key replies must be sealed with, if any.
+    fn key(&self) -> Option<&protocol::auth::Key>;
+}
+
+impl Asker for Session {
+    fn session(&self) -> &Session {
+        self
+    }
+    fn key(&self) -> Option<&protocol::auth::Key> {
+        None
+    }
+}
+
+/// A session and the operators' key: replies are checked ([`Asker`]).
+pub struct Operator {
+    /// The session queries go through.
+    pub session: Session,
+    /// The operators' key (`None`: replies are taken unchecked).
+    pub key: Option<protocol::auth::Key>,
+}
+
+impl Asker for Operator {
+    fn session(&self) -> &Session {
+        &self.session
+    }
+    fn key(&self) -> Option<&protocol::auth::Key> {
+        self.key.as_ref()
+    }
+}
+
+/// What an operator is told of a reply that does not prove it came from a controller.
+pub const UNPROVEN: &str = "a reply without a valid proof of origin (ignored)";
+
 /// Every reply to a query on `key` (good ones decoded as `M`, errors as text), waiting at
-/// most `timeout`: a wildcard gets one reply per service.
+/// most `timeout`: a wildcard gets one reply per service. With the asker's key, a reply
+/// not sealed for its key expression and this request is an error ([`UNPROVEN`]).
 async fn replies<M: protocol::Versioned>(
-    session: &Session,
+    asker: &impl Asker,
     key: &str,
     payload: Option<Vec<u8>>,
     timeout: Duration,
 ) -> Result<Vec<Result<M, String>>, OpError> {
     let what = format!("query {key}");
-    let mut get = session
+    let mut get = asker
+        .session()
         .get(key)
         .target(zenoh::query::QueryTarget::All)
+        // Every reply, not one per key: zenoh's default consolidation keeps a single
+        // reply per key expression, which can be a forger's in place of the controller's.
+        .consolidation(zenoh::query::ConsolidationMode::None)
         .timeout(timeout);
+    let request = payload.clone().unwrap_or_default();
     if let Some(p) = payload {
         get = get.payload(p);
     }
@@ -74,12 +122,22 @@ async fn replies<M: protocol::Versioned>(
     while let Ok(reply) = rx.recv_async().await {
         let item = match reply.result() {
             Ok(s) => {
-                Ok(
-                    decode::<M>(&s.payload().to_bytes()).map_err(|source| OpError::Decode {
+                let bytes = s.payload().to_bytes();
+                let body = match asker.key() {
+                    Some(k) => {
+                        let ctx = protocol::auth::reply_context(s.key_expr().as_str(), &request);
+                        k.open_in(protocol::auth::Kind::Reply, &ctx, &bytes)
+                            .map_err(|_| UNPROVEN.to_string())
+                    }
+                    None => Ok(&bytes[..]),
+                };
+                match body {
+                    Ok(body) => Ok(decode::<M>(body).map_err(|source| OpError::Decode {
                         what: what.clone(),
                         source,
-                    })?,
-                )
+                    })?),
+                    Err(e) => Err(e),
+                }
             }
             Err(e) => Err(String::from_utf8_lossy(&e.payload().to_bytes()).into_owned()),
         };
@@ -91,7 +149,7 @@ async fn replies<M: protocol::Versioned>(
 /// The good reply of the controller that serves the device (others say they do not, with
 /// an error); the first error if no controller answered well.
 async fn one<M: protocol::Versioned>(
-    session: &Session,
+    session: &impl Asker,
     key: &str,
     payload: Option<Vec<u8>>,
     timeout: Duration,
@@ -120,7 +178,7 @@ async fn one<M: protocol::Versioned>(
 
 /// The status of every controller that answers, by controller id.
 pub async fn services(
-    session: &Session,
+    session: &impl Asker,
     timeout: Duration,
 ) -> Result<Vec<pb::ServiceStatus>, OpError> {
     let key = format!("{}/service/*/status", keys::PREFIX);
@@ -159,7 +217,7 @@ pub async fn alive(session: &Session, what: &str) -> Result<Vec<String>, OpError
 
 /// One device's status, from the controller that serves it.
 pub async fn device_status(
-    session: &Session,
+    session: &impl Asker,
     id: &str,
     timeout: Duration,
 ) -> Result<pb::DeviceStatus, OpError> {
@@ -169,7 +227,7 @@ pub async fn device_status(
 
 /// One device's configuration in force (laws, output maps, envelope, reference).
 pub async fn config(
-    session: &Session,
+    session: &impl Asker,
     id: &str,
     timeout: Duration,
 ) -> Result<pb::DeviceConfig, OpError> {
@@ -180,7 +238,7 @@ pub async fn config(
 
 /// A partial change of one channel: only the fields of `update` that are set change.
 pub async fn update(
-    session: &Session,
+    session: &impl Asker,
     id: &str,
     update: pb::ChannelUpdate,
     timeout: Duration,
@@ -198,7 +256,7 @@ pub async fn update(
 
 /// Replace the device's reference (answered: a refusal comes back with its reason).
 pub async fn set_reference(
-    session: &Session,
+    session: &impl Asker,
     id: &str,
     reference: pb::Reference,
     timeout: Duration,
@@ -215,7 +273,7 @@ pub async fn set_reference(
 
 /// Change the device's envelope (narrowing; widening only where the service allows it).
 pub async fn change_envelope(
-    session: &Session,
+    session: &impl Asker,
     id: &str,
     envelope: pb::Envelope,
     reason: &str,

@@ -160,6 +160,8 @@ pub(super) enum Run {
     New,
     /// A late sample of a run that already ended.
     Retired,
+    /// With ordered runs: a run id below the one in force, not a late one of those retired.
+    Earlier,
 }
 
 /// What the service holds for one device: its control state, where the plant's run stands,
@@ -496,13 +498,16 @@ impl Device {
         Ok(())
     }
 
-    /// Rule 3.
-    pub(super) fn run_of(&self, s: &pb::Sample) -> Run {
+    /// Rule 3; `ordered`: run ids grow from one start to the next (authenticated plants,
+    /// `plant::run_id`), so one below the run in force is [`Run::Earlier`].
+    pub(super) fn run_of(&self, s: &pb::Sample, ordered: bool) -> Run {
         match (self.run_id, self.last_seq) {
             (None, _) => Run::New,
             (Some(r), _) if s.run_id != r => {
                 if self.retired.contains(&s.run_id) && self.run_samples < REORDER_WINDOW {
                     Run::Retired
+                } else if ordered && s.run_id < r {
+                    Run::Earlier
                 } else {
                     Run::New
                 }

@@ -230,6 +230,9 @@ pub struct Registry {
     /// This process among those that may carry the same controller id: the plant's lease
     /// names it ([`Registry::set_instance`]).
     instance: u64,
+    /// The fleet's secret ([`Registry::set_secret`]); not part of the configuration's
+    /// copy in recordings.
+    secret: Option<protocol::auth::Secret>,
     config: ServiceConfig,
     /// A hash map: a gateway's batch looks up thousands of devices a period. Whatever
     /// lists them sorts them first, so listings stay in id order.
@@ -271,6 +274,7 @@ impl Registry {
             controller_id: config.controller_id.clone(),
             lease_policy: LeasePolicy::default(),
             instance: 0,
+            secret: None,
             config,
             devices,
             unknown_samples: 0,
@@ -398,6 +402,17 @@ impl Registry {
         self.instance = instance;
     }
 
+    /// Give this member the fleet's secret (`protocol::auth`): its samples are then
+    /// checked and its commands and replies sealed. Without it the service runs open.
+    pub fn set_secret(&mut self, secret: Option<protocol::auth::Secret>) {
+        self.secret = secret;
+    }
+
+    /// The fleet's secret, if this member has it.
+    pub fn secret(&self) -> Option<&protocol::auth::Secret> {
+        self.secret.as_ref()
+    }
+
     /// Answer a sample by the rules of the module doc, writing the command into `out`
     /// (reusing its buffers: a gateway's batch keeps one command per sample from batch to
     /// batch, so answering allocates nothing). `now_unix_ns` is the time the answer
@@ -418,6 +433,7 @@ impl Registry {
                 now_unix_ns,
                 lease: &self.lease_policy,
                 instance: self.instance,
+                ordered_runs: self.secret.is_some(),
             };
             return served(step::answer(cx, d, via, s, out), false);
         }
@@ -436,6 +452,7 @@ impl Registry {
             now_unix_ns,
             lease: &self.lease_policy,
             instance: self.instance,
+            ordered_runs: self.secret.is_some(),
         };
         served(step::answer(cx, d, via, s, out), true)
     }

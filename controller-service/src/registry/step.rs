@@ -33,6 +33,9 @@ pub(super) struct Context<'a> {
     pub(super) now_unix_ns: u64,
     pub(super) lease: &'a LeasePolicy,
     pub(super) instance: u64,
+    /// Samples are authenticated, so a run id is the plant's own and its runs are ordered
+    /// (`plant::run_id`): a run older than the one in force is a replay, not a restart.
+    pub(super) ordered_runs: bool,
 }
 
 /// Step device `d` with a sample that came `via`, and write the command into `out`,
@@ -104,7 +107,7 @@ enum Refusal {
 /// Rules 2-6 for a served device `d`.
 fn step_sample(cx: &mut Context<'_>, d: &mut Device, key_id: &str, s: &pb::Sample) -> Answered {
     d.samples += 1;
-    let new_run = match admit(d, key_id, s) {
+    let new_run = match admit(d, key_id, s, cx.ordered_runs) {
         Ok(new_run) => new_run,
         Err(Refusal::Duplicate) => {
             return match &d.last_command {
@@ -161,16 +164,28 @@ fn refuse(
 }
 
 /// Rules 2-4: whether the sample is admitted, and if so whether it starts a new run.
-fn admit(d: &mut Device, key_id: &str, s: &pb::Sample) -> Result<bool, Refusal> {
+fn admit(d: &mut Device, key_id: &str, s: &pb::Sample, ordered: bool) -> Result<bool, Refusal> {
     // Rule 2.
     precheck(key_id, s)
         .and_then(|()| d.check_values(s))
         .map_err(Refusal::Rejected)?;
     // Rule 3.
     d.run_samples = d.run_samples.saturating_add(1);
-    match d.run_of(s) {
+    match d.run_of(s, ordered) {
         Run::New => return Ok(true),
         Run::Retired => return Err(Refusal::Stale("a sample of an earlier run of the plant")),
+        // A captured run played back: refused as out of step, so that only a plant whose
+        // clock went back, and that keeps sending, is followed (after RESYNC_AFTER
+        // samples in a row with none of the run in force between them).
+        Run::Earlier => {
+            return if d.out_of_step(s) {
+                Ok(true)
+            } else {
+                Err(Refusal::Stale(
+                    "a sample of a run older than the one in force",
+                ))
+            };
+        }
         Run::Same => {}
     }
     // Rule 4, within the run in force.

@@ -12,6 +12,7 @@ use zenoh::pubsub::Publisher;
 use zenoh::{Session, Wait};
 
 use super::intake::Drops;
+use super::keyring::{sealed, Keyring};
 use super::log::{throttled, Warnings};
 use super::{lock, GATEWAY_PUBLISHERS};
 use crate::inbox::{Inbox, Taken};
@@ -66,6 +67,8 @@ pub(super) struct Shared {
     pub(super) drops: Drops,
     /// Wakes the worker when a sample or a batch waits.
     pub(super) wake: Notify,
+    /// The fleet's keys (`None`: the service runs open).
+    pub(super) keys: Option<Arc<Keyring>>,
 }
 
 /// What the answer to a sample needs: the device state, its observers and the publishers
@@ -91,11 +94,14 @@ pub(super) struct Core {
     pool: Vec<pb::Command>,
     /// Whether each answer of a batch is sent, kept for the next batch.
     sends: Vec<bool>,
+    /// The fleet's keys, to seal commands (`None`: open).
+    keys: Option<Arc<Keyring>>,
 }
 
 impl Core {
-    pub(super) fn new(registry: Registry, watch: Watch) -> Self {
+    pub(super) fn new(registry: Registry, watch: Watch, keys: Option<Arc<Keyring>>) -> Self {
         Self {
+            keys,
             registry,
             watch,
             warn: Warnings::default(),
@@ -254,8 +260,13 @@ impl Core {
             gateway_id: gw.clone(),
             commands,
             controller_id: self.registry.controller_id().to_string(),
+            mac: Vec::new(),
         };
-        let payload = (sent > 0).then(|| encode(&out));
+        let payload = (sent > 0).then(|| {
+            sealed(self.keys.as_deref(), encode(&out), |k, b| {
+                k.seal_batch(&gw, b)
+            })
+        });
         self.pool = out.commands;
         self.pool.extend(spare);
         payload.map(|p| (gw, p))
@@ -276,7 +287,10 @@ impl Core {
             }
         }
         if let Some(p) = self.publishers.get(dev) {
-            if let Err(e) = p.put(encode(cmd)).wait() {
+            let bytes = sealed(self.keys.as_deref(), encode(cmd), |k, b| {
+                k.seal_command(dev, b)
+            });
+            if let Err(e) = p.put(bytes).wait() {
                 tracing::warn!(device = %dev, "publishing a command: {e}");
             }
         }
@@ -297,7 +311,10 @@ impl Core {
 /// Publish a command on a served device's key from the worker's task, declaring its
 /// publisher the first time; the core is not held while sending.
 pub(super) async fn publish(session: &Session, core: &Mutex<Core>, dev: &str, cmd: &pb::Command) {
-    let known = lock(core).publishers.get(dev).cloned();
+    let (known, keys) = {
+        let c = lock(core);
+        (c.publishers.get(dev).cloned(), c.keys.clone())
+    };
     let publisher = match known {
         Some(p) => p,
         None => match transport::control_publisher(session, keys::command(dev)).await {
@@ -312,7 +329,8 @@ pub(super) async fn publish(session: &Session, core: &Mutex<Core>, dev: &str, cm
             }
         },
     };
-    if let Err(e) = publisher.put(encode(cmd)).await {
+    let bytes = sealed(keys.as_deref(), encode(cmd), |k, b| k.seal_command(dev, b));
+    if let Err(e) = publisher.put(bytes).await {
         tracing::warn!(device = %dev, "publishing a command: {e}");
     }
 }

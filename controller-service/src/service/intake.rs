@@ -71,6 +71,8 @@ pub(super) struct Drops {
     /// Samples on the key of a device neither declared nor matched by a template: no slot,
     /// no decoding, just this count (added to the registry's in the status).
     pub(super) unknown: AtomicU64,
+    /// Samples and batches refused for their MAC (`protocol::auth`), before decoding.
+    pub(super) forged: AtomicU64,
     /// The first [`UNKNOWN_NAMED`] of their ids, for the status.
     pub(super) unknown_names: Mutex<BTreeSet<String>>,
 }
@@ -106,14 +108,15 @@ impl Drops {
     }
 
     /// The counters a report tells, in its order: oversized, bad key, queue full (the
-    /// inboxes' `full` added by the caller), undecodable, unknown.
-    pub(super) fn counts(&self) -> [u64; 5] {
+    /// inboxes' `full` added by the caller), undecodable, unknown, forged.
+    pub(super) fn counts(&self) -> [u64; 6] {
         [
             self.oversized.load(Ordering::Relaxed),
             self.bad_key.load(Ordering::Relaxed),
             self.queue_full.load(Ordering::Relaxed),
             self.undecodable.load(Ordering::Relaxed),
             self.unknown.load(Ordering::Relaxed),
+            self.forged.load(Ordering::Relaxed),
         ]
     }
 }
@@ -160,7 +163,16 @@ impl Intake {
             drops.unknown(dev);
             return;
         }
-        let Ok(sample) = decode::<pb::Sample>(&s.payload().to_bytes()) else {
+        let bytes = s.payload().to_bytes();
+        // Proof of origin first: a forged sample is neither decoded nor answered.
+        let body = match &self.shared.keys {
+            Some(k) => match k.open_sample(dev, &bytes) {
+                Some(body) => body,
+                None => return Drops::count(&drops.forged),
+            },
+            None => &bytes[..],
+        };
+        let Ok(sample) = decode::<pb::Sample>(body) else {
             Drops::count(&drops.undecodable);
             return;
         };
@@ -222,7 +234,15 @@ impl Intake {
         if !self.shared.masks.steps(protocol::shard_of(gw)) {
             return;
         }
-        let Ok(batch) = decode::<pb::SampleBatch>(&s.payload().to_bytes()) else {
+        let bytes = s.payload().to_bytes();
+        let body = match &self.shared.keys {
+            Some(k) => match k.open_batch(gw, &bytes) {
+                Some(body) => body,
+                None => return Drops::count(&drops.forged),
+            },
+            None => &bytes[..],
+        };
+        let Ok(batch) = decode::<pb::SampleBatch>(body) else {
             Drops::count(&drops.undecodable);
             return;
         };

@@ -32,6 +32,7 @@
 mod core;
 mod handover;
 mod intake;
+mod keyring;
 mod log;
 mod requests;
 mod routes;

@@ -159,7 +159,8 @@ impl Worker {
         if !reply.accepted {
             self.refused(&dev, what, &reply.reason);
         }
-        let _ = q.reply(q.key_expr().clone(), encode(&reply)).await;
+        let bytes = self.sealed_reply(q.key_expr().as_str(), body.as_deref(), encode(&reply));
+        let _ = q.reply(q.key_expr().clone(), bytes).await;
         if reply.accepted && body.is_some() {
             self.sync_device(&dev).await;
         }
@@ -208,6 +209,7 @@ impl Worker {
     pub(super) async fn handle_status(&mut self, q: Query) {
         if q.key_expr().as_str().contains('*') {
             for (key, bytes) in self.statuses_matching(&q) {
+                let bytes = self.sealed_reply(&key, None, bytes);
                 let _ = q.reply(key, bytes).await;
             }
             return;
@@ -233,6 +235,7 @@ impl Worker {
         };
         match reply {
             Some(Ok(bytes)) => {
+                let bytes = self.sealed_reply(q.key_expr().as_str(), None, bytes);
                 let _ = q.reply(q.key_expr().clone(), bytes).await;
             }
             Some(Err(why)) => {
@@ -280,7 +283,19 @@ impl Worker {
     /// several services gets one reply from each, each telling which service it is.
     pub(super) async fn handle_service_status(&mut self, q: Query) {
         let s = self.service_status();
-        let _ = q.reply(keys::service_status(&self.id), encode(&s)).await;
+        let key = keys::service_status(&self.id);
+        let bytes = self.sealed_reply(&key, None, encode(&s));
+        let _ = q.reply(key, bytes).await;
+    }
+
+    /// A good reply's bytes, sealed for the operators when this member has keys: bound to
+    /// the key it goes out on and to the query's payload (`protocol::auth::reply_context`).
+    /// Error replies stay plain text: a client shows one only when no good reply came.
+    fn sealed_reply(&self, key: &str, request: Option<&[u8]>, bytes: Vec<u8>) -> Vec<u8> {
+        match &self.shared.keys {
+            Some(k) => k.seal_reply(key, request.unwrap_or_default(), bytes),
+            None => bytes,
+        }
     }
 }
 

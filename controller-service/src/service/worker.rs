@@ -15,6 +15,7 @@ use zenoh::Session;
 
 use super::core::{publish, publish_batch, record_config, Core, Masks, Shared, Watch};
 use super::intake::{Drops, Intake, Msg, UNKNOWN_NAMED};
+use super::keyring::Keyring;
 use super::log::{throttled, Warnings};
 use super::routes::{FleetRoutes, Routes, ShardRoutes, StandbyRoutes};
 use super::{declare_err, lock, ServiceError};
@@ -55,7 +56,7 @@ pub(super) struct Worker {
     /// Throttles for what the worker logs (the core keeps its own).
     pub(super) warn: Warnings,
     /// The drop counts last reported, in [`Drops::counts`]'s order then superseded.
-    reported: [u64; 6],
+    reported: [u64; 7],
     started: Instant,
 }
 
@@ -105,17 +106,19 @@ impl Worker {
         let (tx, rx) = mpsc::channel::<Msg>(QUEUE);
         let (hb_tx, hb_rx) = mpsc::channel::<Vec<u8>>(HEARTBEATS);
         let templates = registry.template_patterns();
+        let keys = Keyring::of(&registry);
         let mut inbox = Inbox::<pb::Sample>::new(OTHERS);
         for d in registry.device_ids() {
             inbox.serve(d);
         }
         let shared = Arc::new(Shared {
-            core: std::sync::Mutex::new(Core::new(registry, watch)),
+            core: std::sync::Mutex::new(Core::new(registry, watch, keys.clone())),
             inbox: std::sync::Mutex::new(inbox),
             gateways: std::sync::Mutex::new(Inbox::new(GATEWAYS_PENDING)),
             // Nothing answered until the roles are known (`sync_masks` below).
             masks: Masks::new(if fleet_spec.is_some() { 0 } else { u64::MAX }, 0),
             drops: Drops::default(),
+            keys,
             wake: Notify::new(),
         });
         let intake = Arc::new(Intake {
@@ -169,7 +172,7 @@ impl Worker {
             standby,
             snapshots,
             warn: Warnings::default(),
-            reported: [0; 6],
+            reported: [0; 7],
             started,
         };
         tracing::info!(controller = %worker.id, devices = lock(&worker.shared.core).registry.device_count(), "serving");
@@ -322,7 +325,7 @@ impl Worker {
             (ib.superseded(), ib.full())
         };
         let full = full + lock(&shared.gateways).full();
-        let [oversized, bad_key, queue_full, undecodable, unknown] = shared.drops.counts();
+        let [oversized, bad_key, queue_full, undecodable, unknown, forged] = shared.drops.counts();
         let now = [
             oversized,
             bad_key,
@@ -330,11 +333,12 @@ impl Worker {
             superseded,
             undecodable,
             unknown,
+            forged,
         ];
         let d: Vec<u64> = now.iter().zip(&self.reported).map(|(a, b)| a - b).collect();
         if d.iter().any(|&x| x > 0) {
             tracing::warn!(oversized = d[0], bad_key = d[1], queue_full = d[2], superseded = d[3], undecodable_samples = d[4],
-                unknown_devices = d[5], "messages dropped since the last report (every drop is counted in the service status)");
+                unknown_devices = d[5], forged = d[6], "messages dropped since the last report (every drop is counted in the service status)");
         }
         self.reported = now;
         self.warn.flush(Instant::now());
@@ -355,7 +359,9 @@ impl Worker {
             let g = lock(&shared.gateways);
             (g.superseded(), g.full())
         };
-        let [oversized, bad_key, queue_full, undecodable, unknown] = shared.drops.counts();
+        let [oversized, bad_key, queue_full, undecodable, unknown, forged] = shared.drops.counts();
+        s.forged = forged;
+        s.authenticated = shared.keys.is_some();
         s.superseded_batches = superseded_batches;
         s.unknown_samples += unknown;
         for name in lock(&shared.drops.unknown_names).iter() {
