@@ -19,6 +19,11 @@ host, and attacks from the intruder host: forged puts, queries and subscriptions
 aero-1's certificate on aero-2's keys (counted by a witness holding the controller's
 identity: 0 must arrive, against all of them on aero-1's own sample key), a client with no
 certificate, plain TCP and a foreign CA (refused), and no listening socket on the plants.
+Phase 3 adds a second service (host controller-2, .3) to the inventory, runs both as one
+fleet under the regenerated access control, and lets a rogue on the intruder's host hold
+controller-1's certificate (not the fleet's secret): its member tokens, in a made-up name
+and in controller-2's, must give it no shard; its commands must all be refused by the
+plant as forged; both plants must run to the end served by the fleet's members only.
 
 Needs root, iproute2 and zenohd; without them it prints SKIP and exits 0. Exit 1 on any
 failed check (all are reported). Logs and records: $MFC_MULTIHOST_LOGS (default
@@ -48,6 +53,7 @@ UNITS = ROOT / "deploy" / "systemd"
 HOSTS = {
     "router": ("mfc-router", "10.77.0.1"),
     "controller": ("mfc-ctl", "10.77.0.2"),
+    "controller-2": ("mfc-ctl2", "10.77.0.3"),
     "plant-1": ("mfc-plant1", "10.77.0.11"),
     "plant-2": ("mfc-plant2", "10.77.0.12"),
     "operator": ("mfc-op", "10.77.0.21"),
@@ -616,6 +622,98 @@ def run_test(env, args):
               f"new {sorted(new)}, changed {sorted(changed)}")
     acl = (env.work / "fleet" / "router" / "zenohd.json5").read_text()
     check("mfc/v1/device/aero-3/sample" in acl, "the router's access control names the new device")
+
+    fleet_phase(env, bg, results)
+
+
+def fleet_view(env, want, timeout):
+    """The services' statuses once `want` members each see both and own disjoint shards
+    covering all 64 (or the last seen after `timeout` s)."""
+    deadline, last = time.time() + timeout, None
+    while time.time() < deadline:
+        last, _ = mfcctl(env, "services")
+        if last and {x["controller_id"] for x in last} == want and all(
+                set(x.get("fleet_members", [])) == want for x in last):
+            owned = [set(x.get("owned_shards", [])) for x in last]
+            if sum(len(o) for o in owned) == 64 and len(set().union(*owned)) == 64:
+                return last, True
+        time.sleep(1)
+    return last, False
+
+
+def fleet_phase(env, bg, results):
+    """Phase 3: two services in one fleet under the generated access control; a rogue holds
+    controller-1's certificate but not the fleet's secret."""
+    log("phase 3: a fleet of two services, and a rogue with controller-1's certificate")
+    admin = (
+        "sed -i 's/^services = .*/services = [\"controller-1\", \"controller-2\"]/' fleet.toml\n"
+        "mfc-deploy generate --inventory fleet.toml --out fleet\n"
+        "for c in controller-1 controller-2; do\n"
+        "  mfc-lab service-config --devices aero-1,aero-2 --scenario 2 --secret-file fleet.secret"
+        " > fleet/services/$c/$c.service.toml\n"
+        "  printf '\\n[fleet]\\nname = \"f\"\\n' >> fleet/services/$c/$c.service.toml\n"
+        "done\n"
+        "ssh root@10.77.0.3 install -d -m 750 /etc/mfc\n"
+        "scp fleet/router/* root@10.77.0.1:/etc/mfc/\n"
+        "scp fleet/services/controller-1/* root@10.77.0.2:/etc/mfc/\n"
+        "scp fleet/services/controller-2/* root@10.77.0.3:/etc/mfc/\n")
+    r = env.run("admin", admin)
+    if not check(r.returncode == 0, "phase 3: a second service is generated, configured and copied",
+                 r.stderr.strip()[-400:]):
+        return
+    env.stop("controller")
+    env.stop("router")
+    env.start(bg["router"][0], "router", bg["router"][1])
+    env.start(bg["controller"][0], "controller", bg["controller"][1])
+    env.start("controller-2", "controller-2", bg["controller"][1].replace("controller-1", "controller-2"))
+    for d in ["aero-1", "aero-2"]:
+        env.start(bg[d][0], d, bg[d][1])
+    want = {"controller-1", "controller-2"}
+    before, ok = fleet_view(env, want, 30)
+    check(ok, "phase 3: both members see each other and split the 64 shards", str(before)[:400])
+    owned = {x["controller_id"]: sorted(x.get("owned_shards", [])) for x in before or []}
+    results["phase3_owned_shards"] = {k: len(v) for k, v in owned.items()}
+    # The rogue: controller-1's certificate and zenoh config, without fleet.secret.
+    intr = f"/etc/netns/{HOSTS['intruder'][0]}/mfc"
+    for f in (env.work / "fleet" / "services" / "controller-1").iterdir():
+        if f.name != "fleet.secret":
+            shutil.copy(f, intr)
+    rogue = "/etc/mfc/controller-1.json5"
+    tokens = [subprocess.Popen(
+        ["ip", "netns", "exec", HOSTS["intruder"][0], "zenoh-probe", "--zenoh-config", rogue,
+         "token", "--key", f"mfc/v1/fleet/f/member/{name}", "--secs", "6"],
+        env=env.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        for name in ["controller-9", "controller-2"]]
+    time.sleep(2)
+    plants_running(env, "when the rogue joins")
+    rc, _ = probe(env, "intruder", rogue, "put", "--key", "mfc/v1/device/aero-1/command",
+                  "--count", str(FORGED), "--interval-ms", "5")
+    check(rc == 0, "the rogue's session opens with controller-1's certificate, and may put commands")
+    during, _ = mfcctl(env, "services")
+    for t in tokens:
+        t.communicate(timeout=30)
+    after, ok = fleet_view(env, want, 10)
+    for when, view in [("while the rogue's tokens stand", during), ("after", after)]:
+        got = {x["controller_id"]: sorted(x.get("owned_shards", [])) for x in view or []}
+        members = [sorted(x.get("fleet_members", [])) for x in view or []]
+        check(got == owned and all(m == sorted(want) for m in members),
+              f"phase 3: no member made up and no shard given up {when}",
+              f"owned {({k: len(v) for k, v in got.items()})}, members {members}")
+    for d in ["aero-1", "aero-2"]:
+        rc = env.wait(d, 120)
+        check(rc == 0, f"phase 3: {d} exits 0 (served by the fleet to the end)", f"exit {rc}")
+        s = json.loads(Path(f"/var/lib/mfc/{d}/summary.json").read_text())
+        holders = {sp.get("holder") for sp in s.get("lease", {}).get("spans", [])}
+        results[f"phase3_{d}_auth"] = s.get("auth")
+        results[f"phase3_{d}_holders"] = sorted(h for h in holders if h)
+        check(holders and holders <= want, f"phase 3: {d} was commanded by the fleet's members only",
+              str(holders))
+        forged = s.get("auth", {}).get("forged", -1)
+        want_forged = FORGED if d == "aero-1" else 0
+        check(forged == want_forged,
+              f"phase 3: {d} refused every forged command as unauthenticated ({want_forged})",
+              f"forged {forged}")
+        shutil.move(f"/var/lib/mfc/{d}", env.logs / f"phase3-{d}")
 
 
 def find_alpha(cfg, channel):

@@ -11,7 +11,7 @@
 //! | role | sends (ingress) | receives (egress) |
 //! |---|---|---|
 //! | device `d` | put `device/d/sample` and `shard/{s}/device/d/sample` (`s` its shard, where the agent publishes); subscribe `device/d/command`; token `alive/plant/d` | put `device/d/command`; the services' subscriptions `device/*/sample`, `shard/*/device/*/sample` |
-//! | service `s` | put `device/*/command`, `gateway/*/commands`, `group/**`, `fleet/**`; subscribe and serve `device/*/…`, `shard/*/…`, `gateway/*/samples`, `group/**`, `fleet/**`; replies; tokens `alive/controller/s`, `fleet/**`; queryable `service/s/status` | samples, batches, references, heartbeats, fleet traffic, queries, the agents' and operators' declarations |
+//! | service `s` | put `device/*/command`, `gateway/*/commands`, `group/**`, `fleet/*/sync/*`; subscribe `device/*/{sample,reference}`, `shard/*/device/*/sample`, `gateway/*/samples`, `group/**`, `fleet/*/sync/*`, the members `fleet/*/member/*`; serve and reply on `device/*/{config,status,envelope,reference}` and the same under `shard/*/` (no wildcard leaf); query other members' `fleet/*/member/*/shard/*`; tokens `alive/controller/s` and `fleet/*/member/s`, handover queryable `fleet/*/member/s/shard/*` and status queryable `service/s/status`, under its own name only | samples, batches, references, heartbeats, fleet traffic, queries, the agents' and operators' declarations |
 //! | operator | query `device/*/{config,status,envelope,reference}`, `service/*/status`; put `device/*/reference`; subscribe samples and commands (watch); liveliness queries | replies, samples, commands, tokens |
 //!
 //! So a device holding its own certificate can neither put on nor watch another device's
@@ -121,8 +121,8 @@ impl Acl {
 /// Key sets that several roles' rules name.
 struct SharedKeys {
     /// What services serve as queryables (and answer): every device's queried leaves, with
-    /// and without the shard, and every shard's leaves (a service without a fleet serves
-    /// every shard with one queryable).
+    /// and without the shard; no wildcard over leaves (a service declares one queryable
+    /// per queried leaf, so the leaves it does not serve stay closed).
     served: Vec<String>,
     /// `served` and the services' status keys: what may be queried.
     queried: Vec<String>,
@@ -132,7 +132,6 @@ impl SharedKeys {
     fn new() -> Self {
         let mut served: Vec<String> = QUERIED.iter().map(|l| dev("*", l)).collect();
         served.extend(QUERIED.iter().map(|l| sdev("*", l)));
-        served.push(sdev("*", "*"));
         let mut queried = served.clone();
         queried.push(format!("{P}/service/*/status"));
         Self { served, queried }
@@ -178,10 +177,23 @@ fn device_rules(d: &str) -> Vec<Value> {
     ]
 }
 
+/// A fleet's member tokens, `fleet/*/member/*`.
+fn members() -> String {
+    format!("{P}/fleet/*/member/*")
+}
+
+/// Every member's handover queryables, `fleet/*/member/*/shard/*`.
+fn handovers() -> String {
+    format!("{P}/fleet/*/member/*/shard/*")
+}
+
 /// What every service may do: every device (several services share a fleet, issue 11).
+/// In a fleet, it may see every member and ask any of them for a shard, but declare a
+/// member token and a handover queryable only under its own name
+/// ([`service_own_rules`]): a service certificate cannot make up members.
 fn service_rules(keys: &SharedKeys) -> Vec<Value> {
     let group = format!("{P}/group/**");
-    let fleet = format!("{P}/fleet/**");
+    let sync = format!("{P}/fleet/*/sync/*");
     let gw_samples = format!("{P}/gateway/*/samples");
     let shard_gw_samples = format!("{P}/shard/*/gateway/*/samples");
     vec![
@@ -193,7 +205,7 @@ fn service_rules(keys: &SharedKeys) -> Vec<Value> {
                 dev("*", "command"),
                 format!("{P}/gateway/*/commands"),
                 group.clone(),
-                fleet.clone(),
+                sync.clone(),
             ],
         ),
         rule(
@@ -207,24 +219,31 @@ fn service_rules(keys: &SharedKeys) -> Vec<Value> {
                 shard_gw_samples.clone(),
                 dev("*", "reference"),
                 group.clone(),
-                fleet.clone(),
+                sync.clone(),
+                members(),
             ],
         ),
-        // Members of a fleet: tokens, handover queries and replies among themselves.
+        // Members of a fleet: who is in it, and asking another member for a shard.
         rule(
-            "service-fleet".into(),
-            &["ingress", "egress"],
+            "service-fleet-ask".into(),
+            &["ingress"],
+            &["liveliness_query", "query"],
+            vec![members(), handovers()],
+        ),
+        // What the other members send and declare, towards this one.
+        rule(
+            "service-fleet-hear".into(),
+            &["egress"],
             &[
                 "liveliness_token",
-                "liveliness_query",
+                "declare_liveliness_subscriber",
                 "declare_queryable",
+                "declare_subscriber",
                 "query",
                 "reply",
                 "put",
-                "declare_subscriber",
-                "declare_liveliness_subscriber",
             ],
-            vec![fleet],
+            vec![members(), handovers(), sync],
         ),
         // The agents' command subscriptions, declared towards the service.
         rule(
@@ -261,9 +280,22 @@ fn service_rules(keys: &SharedKeys) -> Vec<Value> {
     ]
 }
 
-/// A service's own liveliness token and status queryable.
+/// A service's own liveliness token and status queryable, and in a fleet its own member
+/// token and handover queryable.
 fn service_own_rules(s: &str) -> Vec<Value> {
     vec![
+        rule(
+            format!("service-{s}-member"),
+            &["ingress"],
+            &["liveliness_token"],
+            vec![format!("{P}/fleet/*/member/{s}")],
+        ),
+        rule(
+            format!("service-{s}-handover"),
+            &["ingress"],
+            &["declare_queryable", "reply"],
+            vec![format!("{P}/fleet/*/member/{s}/shard/*")],
+        ),
         rule(
             format!("service-{s}-own"),
             &["ingress"],
@@ -451,6 +483,79 @@ mod tests {
             "liveliness_token",
             &format!("{P}/alive/controller/ctl")
         ));
+    }
+
+    #[test]
+    fn a_service_joins_a_fleet_under_its_own_name_only() {
+        let inv = Inventory::parse(
+            "services = [\"ctl-a\", \"ctl-b\"]\ndevices = [\"aero-1\"]\n[router]\nhosts = [\"10.0.0.1\"]\n",
+        )
+        .unwrap();
+        let acl = access_control(&inv);
+        let f = |rest: &str| format!("{P}/fleet/f/{rest}");
+        // What a member declares and sends, under its own name: allowed.
+        for (m, k) in [
+            ("liveliness_token", f("member/ctl-a")),
+            ("declare_queryable", f("member/ctl-a/shard/*")),
+            ("reply", f("member/ctl-a/shard/7")),
+            ("declare_liveliness_subscriber", f("member/*")),
+            ("liveliness_query", f("member/*")),
+            ("query", f("member/ctl-b/shard/7")),
+            ("declare_subscriber", f("sync/*")),
+            ("put", f("sync/7")),
+        ] {
+            assert!(allowed(&acl, "ctl-a", "ingress", m, &k), "{m} {k}");
+        }
+        // ... and what it hears of the others.
+        for (m, k) in [
+            ("liveliness_token", f("member/ctl-b")),
+            ("query", f("member/ctl-a/shard/7")),
+            ("reply", f("member/ctl-b/shard/7")),
+            ("put", f("sync/7")),
+        ] {
+            assert!(allowed(&acl, "ctl-a", "egress", m, &k), "{m} {k}");
+        }
+        // Another member's name, a made-up one, a wildcard: refused.
+        for (m, k) in [
+            ("liveliness_token", f("member/ctl-b")),
+            ("liveliness_token", f("member/ctl-z")),
+            ("liveliness_token", f("member/*")),
+            ("liveliness_token", format!("{P}/fleet/**")),
+            ("declare_queryable", f("member/ctl-b/shard/*")),
+            ("reply", f("member/ctl-b/shard/7")),
+            ("declare_queryable", f("**")),
+        ] {
+            assert!(!allowed(&acl, "ctl-a", "ingress", m, &k), "{m} {k}");
+        }
+        // No wildcard over leaves: only the queried ones are served.
+        for k in [
+            sdev("*", "*"),
+            dev("*", "*"),
+            sdev("*", "sample"),
+            dev("*", "command"),
+        ] {
+            assert!(
+                !allowed(&acl, "ctl-a", "ingress", "declare_queryable", &k),
+                "{k}"
+            );
+            assert!(!allowed(&acl, "ctl-a", "ingress", "reply", &k), "{k}");
+        }
+        for leaf in QUERIED {
+            assert!(allowed(
+                &acl,
+                "ctl-a",
+                "ingress",
+                "declare_queryable",
+                &sdev("*", leaf)
+            ));
+            assert!(allowed(
+                &acl,
+                "ctl-a",
+                "ingress",
+                "declare_queryable",
+                &dev("*", leaf)
+            ));
+        }
     }
 
     #[test]

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import zenoh
 
-from . import keys
+from . import auth, keys
 from ._pb import PROTOCOL_VERSION, pb
 
 #: What ``step_fn`` of :meth:`PlantLink.run` is: ``(t, dt, v) -> outputs``.
@@ -52,6 +52,8 @@ class LinkStats:
     ignored: int = 0
     #: Payloads that did not decode or carried another protocol version.
     undecodable: int = 0
+    #: With a key: commands dropped unread, unsealed or sealed under another key.
+    forged: int = 0
 
 
 @dataclass
@@ -99,8 +101,12 @@ class PlantLink:
         *,
         run_id: int | None = None,
         first_seq: int = 1,
+        key: bytes | None = None,
     ) -> None:
         self.device_id = keys.check_id(device_id)
+        #: The device's key (:mod:`mfc_client.auth`): samples go out sealed, and only
+        #: commands sealed with it are taken. None: the link runs open.
+        self.key = key
         self.run_id = new_run_id() if run_id is None else run_id
         self.last_rtt_us = 0
         self.stats = LinkStats()
@@ -164,6 +170,8 @@ class PlantLink:
             if len(self._sent) > 256:
                 self._sent.pop(next(iter(self._sent)))
             message = message.SerializeToString()
+            if self.key is not None:
+                message = auth.seal(self.key, auth.SAMPLE, message)
         self._publisher.put(message)
 
     def send(
@@ -194,6 +202,12 @@ class PlantLink:
                 raw, t_recv = self._inbox.get(timeout=left) if left > 0 else self._inbox.get_nowait()
             except queue.Empty:
                 return None
+            if self.key is not None:
+                body = auth.open_sealed(self.key, auth.COMMAND, raw)
+                if body is None:
+                    self.stats.forged += 1
+                    continue
+                raw = body
             cmd = pb.Command()
             try:
                 cmd.ParseFromString(raw)

@@ -84,6 +84,21 @@ law = {{ law = "pid", params = {{ kp = 1.0 }} }}
 output = {{ min = -1.0, max = 1.0 }}
 """
 NARROW = [(-8.0, 8.0), (-4.0, 4.0)]
+# A third service with the fleet's secret (keys, as a deployment runs): only sealed samples
+# are answered, and its commands are sealed with the device's key.
+KEYED = "conf-ctl-k"
+KEYED_DEVICE = "conf-k"
+SECRET = bytes(range(32))
+KEYED_TOML = f"""
+controller_id = "{KEYED}"
+secret_file = "fleet.secret"
+
+[[devices]]
+id = "{KEYED_DEVICE}"
+[[devices.channels]]
+law = {{ law = "pid", params = {{ kp = 1.0 }} }}
+output = {{ min = -1.0, max = 1.0 }}
+"""
 
 T = TypeVar("T")
 
@@ -344,13 +359,14 @@ class Conformance:
                 st = pb.ServiceStatus()
                 st.ParseFromString(reply.ok.payload.to_bytes())
                 got.append((str(reply.ok.key_expr), st.controller_id))
-        want = sorted((mc.keys.service_status(c), c) for c in (CONTROLLER, OTHER))
+        want = sorted((mc.keys.service_status(c), c) for c in (CONTROLLER, OTHER, KEYED))
         self.r.check("wildcard service status: one reply per service, each on its own key",
                      sorted(got) == want, f"{sorted(got)}")
         services = self.op.services(timeout=WAIT)
         devs = {s.controller_id: [d.device_id for d in s.devices] for s in services}
         self.r.check("Operator.services(): each service with its declared device",
-                     devs == {CONTROLLER: [DEVICE], OTHER: [OTHER_DEVICE]}, f"{devs}")
+                     devs == {CONTROLLER: [DEVICE], OTHER: [OTHER_DEVICE], KEYED: [KEYED_DEVICE]},
+                     f"{devs}")
         other = self.op.config(OTHER_DEVICE)
         self.r.check("a device's config comes from the service serving it (the other refuses)",
                      other.device_id == OTHER_DEVICE and map_limits(other) == [(-1.0, 1.0)],
@@ -652,6 +668,38 @@ def device_status(session: zenoh.Session, device: str) -> pb.DeviceStatus | None
         return None
 
 
+def keyed(session: zenoh.Session, report: Report) -> None:
+    """Against the service with keys: a link with the device's key is answered, with sealed
+    commands; an unsealed sample and one sealed under another key are dropped unread and
+    counted as forged; an unsealed command on the device's key is dropped by the link."""
+    op = mc.Operator(session, timeout=WAIT)
+    key = mc.auth.device_key(SECRET, KEYED_DEVICE)
+    link = mc.PlantLink(session, KEYED_DEVICE, key=key)
+    answers = [link.exchange([0.1], [0.0], 0.01 * (k + 1), WAIT) for k in range(5)]
+    report.check("a sealed sample is answered, its command sealed with the device's key",
+                 all(a is not None for a in answers) and link.stats.forged == 0,
+                 f"{sum(a is not None for a in answers)}/5 answered, {link.stats.forged} forged")
+    base = op.service(KEYED).forged
+    open_link = mc.PlantLink(session, KEYED_DEVICE, run_id=link.run_id)
+    got = open_link.exchange([0.1], [0.0], 1.0, 1.0)
+    wrong = mc.PlantLink(session, KEYED_DEVICE, run_id=link.run_id, key=bytes(32))
+    got2 = wrong.exchange([0.1], [0.0], 1.0, 1.0)
+    st = poll(lambda: op.service(KEYED), lambda s: s.forged >= base + 2)
+    report.check("an unsealed sample and one under another key: unanswered, counted as forged",
+                 got is None and got2 is None and st.forged == base + 2 and st.authenticated,
+                 f"answers {got is not None}/{got2 is not None}, forged {st.forged - base}")
+    forged_cmd = pb.Command(version=mc.PROTOCOL_VERSION, device_id=KEYED_DEVICE,
+                            seq=link.next_seq, mode=pb.MODE_CONTROL, v=[1.0])
+    session.put(mc.keys.command(KEYED_DEVICE), forged_cmd.SerializeToString())
+    seq = link.send([0.1], [0.0], 2.0)
+    cmd = link.wait(seq, WAIT)
+    report.check("an unsealed command is dropped by a link with a key, the real one taken",
+                 cmd is not None and link.stats.forged == 1,
+                 f"answer {cmd is not None}, forged {link.stats.forged}")
+    for ln in (link, open_link, wrong):
+        ln.close()
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--service-bin", required=True, help="path of the controller-service binary")
@@ -667,8 +715,10 @@ def main() -> int:
     started = time.monotonic()
     logs: dict[str, str] = {}
     with tempfile.TemporaryDirectory(prefix="mfc-conformance-") as tmp:
+        (Path(tmp) / "fleet.secret").write_text(SECRET.hex() + "\n")
         services = [Service(binary, Path(tmp), CONTROLLER, SERVICE_TOML),
-                    Service(binary, Path(tmp), OTHER, OTHER_TOML)]
+                    Service(binary, Path(tmp), OTHER, OTHER_TOML),
+                    Service(binary, Path(tmp), KEYED, KEYED_TOML)]
         session = None
         try:
             session = mc.connect(connect=[sv.endpoint for sv in services])
@@ -679,6 +729,11 @@ def main() -> int:
                                    "\"serving\")", ok, "" if ok else f"exit {sv.proc.poll()}")
             if up:
                 Conformance(session, report).run()
+                print("keys:", flush=True)
+                try:
+                    keyed(session, report)
+                except Exception as e:  # noqa: BLE001
+                    report.crash("keys (no exception)", e)
                 print("example plant:", flush=True)
                 services.append(example_plant(report, binary, Path(tmp)))
         except Exception as e:  # noqa: BLE001

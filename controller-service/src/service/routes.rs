@@ -26,7 +26,7 @@ pub(super) struct Routes {
     _gateways: Subscriber<()>,
     _device_queries: Vec<Queryable<()>>,
     _service_status: Queryable<()>,
-    _all_shards: Option<(Subscriber<()>, Subscriber<()>, Queryable<()>)>,
+    _all_shards: Option<(Subscriber<()>, Subscriber<()>, Vec<Queryable<()>>)>,
 }
 
 impl Routes {
@@ -54,11 +54,9 @@ impl Routes {
                     Kind::Gateway,
                 )
                 .await?,
-                device_queries(
-                    session,
-                    intake,
-                    format!("{}/shard/*/device/*/*", keys::PREFIX),
-                )
+                leaf_queries(session, intake, |leaf| {
+                    format!("{}/shard/*/device/*/{leaf}", keys::PREFIX)
+                })
                 .await?,
             ))
         };
@@ -84,16 +82,7 @@ impl Routes {
                 Kind::Gateway,
             )
             .await?,
-            _device_queries: {
-                // One per leaf, as the deployment's access control allows (see
-                // `keys::QUERIED_LEAVES`).
-                let mut queryables = Vec::with_capacity(keys::QUERIED_LEAVES.len());
-                for leaf in keys::QUERIED_LEAVES {
-                    queryables
-                        .push(device_queries(session, intake, keys::all_devices(leaf)).await?);
-                }
-                queryables
-            },
+            _device_queries: leaf_queries(session, intake, keys::all_devices).await?,
             _service_status: service_status,
             _all_shards: all_shards,
         })
@@ -151,6 +140,21 @@ async fn device_queries(
         .callback(move |q| i.on_device_query(q))
         .await
         .map_err(declare_err(format!("device queryable on {key}")))
+}
+
+/// One device queryable per queried leaf (`keys::QUERIED_LEAVES`), each on `key(leaf)`:
+/// never one over every leaf, so that the deployment's access control can let a service
+/// serve those leaves and nothing else (no `…/device/*/*`).
+async fn leaf_queries(
+    session: &Session,
+    intake: &Arc<Intake>,
+    key: impl Fn(&str) -> String,
+) -> Result<Vec<Queryable<()>>, ServiceError> {
+    let mut queryables = Vec::with_capacity(keys::QUERIED_LEAVES.len());
+    for leaf in keys::QUERIED_LEAVES {
+        queryables.push(device_queries(session, intake, key(leaf)).await?);
+    }
+    Ok(queryables)
 }
 
 /// A fleet member's own declarations: the members' tokens, the handover requests made to
@@ -268,7 +272,7 @@ impl StandbyRoutes {
 #[derive(Default)]
 pub(super) struct ShardRoutes {
     subs: HashMap<u32, (Subscriber<()>, Subscriber<()>)>,
-    queryables: HashMap<u32, Queryable<()>>,
+    queryables: HashMap<u32, Vec<Queryable<()>>>,
 }
 
 impl ShardRoutes {
@@ -298,7 +302,8 @@ impl ShardRoutes {
                 }
             }
             if answer & (1u64 << shard) != 0 && !self.queryables.contains_key(&shard) {
-                match device_queries(session, intake, keys::shard_devices(shard, "*")).await {
+                let key = |leaf: &str| keys::shard_devices(shard, leaf);
+                match leaf_queries(session, intake, key).await {
                     Ok(q) => {
                         self.queryables.insert(shard, q);
                     }
