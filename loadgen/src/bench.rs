@@ -61,6 +61,9 @@ pub struct BenchSpec {
     pub p99_at: usize,
     /// Where results go (`bench.json`, `bench.md`).
     pub out: PathBuf,
+    /// Run the service with keys (`protocol::auth`): the generator seals its samples and
+    /// batches and checks the service's commands; the echo anchor stays open.
+    pub auth: bool,
 }
 
 /// One trial.
@@ -101,6 +104,8 @@ pub struct Results {
     /// Largest gateway fleet that held, per target.
     pub gateway_capacity_service: Option<usize>,
     pub gateway_capacity_echo: Option<usize>,
+    /// Whether the service ran with keys.
+    pub auth: bool,
 }
 
 /// The medians of one target's rounds at one size.
@@ -316,6 +321,13 @@ async fn trial(
             measure: spec.measure,
             // The benchmark's figures are for plants that send no copies (`docs/scale.md`).
             resend: 0,
+            // The service's secret, if it has one; the anchor runs open.
+            secret: match target {
+                Target::Service if spec.auth => Some(protocol::auth::Secret::from_file(
+                    &dir.join("fleet.secret"),
+                )?),
+                _ => None,
+            },
         };
         // CPU and memory are read over the measured window, beside the generator.
         let (warmup, measure) = (spec.warmup, spec.measure);
@@ -455,7 +467,14 @@ pub async fn run(spec: &BenchSpec) -> anyhow::Result<Results> {
         );
     }
     let dir = tempfile::tempdir()?;
-    std::fs::write(dir.path().join("service.toml"), SERVICE_TOML)?;
+    let toml = if spec.auth {
+        let secret = protocol::auth::Secret::random()?;
+        std::fs::write(dir.path().join("fleet.secret"), secret.to_hex())?;
+        format!("secret_file = \"fleet.secret\"\n{SERVICE_TOML}")
+    } else {
+        SERVICE_TOML.to_string()
+    };
+    std::fs::write(dir.path().join("service.toml"), toml)?;
     std::fs::create_dir_all(&spec.out)?;
     let mut trials = Vec::new();
     let mut points = Vec::new();
@@ -500,6 +519,7 @@ pub async fn run(spec: &BenchSpec) -> anyhow::Result<Results> {
         capacity_echo: ce,
         gateway_capacity_service: gs,
         gateway_capacity_echo: ge,
+        auth: spec.auth,
     };
     std::fs::write(
         spec.out.join("bench.json"),
@@ -517,8 +537,9 @@ pub fn markdown(r: &Results) -> String {
     let pct = |x: Option<f64>| x.map_or("-".into(), |v| format!("{:.3} %", 100.0 * v));
     let name = |t: Target| format!("{t:?}").to_lowercase();
     s += &format!(
-        "Rate {} Hz; service workers {}; {} rounds per size, the targets in alternating order; a size holds when the median round has {:.1} % of its commands back within the period (warm-up {} s, window {} s).\n\n",
-        r.rate_hz, r.service_workers, r.rounds, 100.0 * r.inside, r.warmup_s, r.measure_s
+        "Rate {} Hz; service workers {}; {} rounds per size, the targets in alternating order; a size holds when the median round has {:.1} % of its commands back within the period (warm-up {} s, window {} s). {}\n\n",
+        r.rate_hz, r.service_workers, r.rounds, 100.0 * r.inside, r.warmup_s, r.measure_s,
+        if r.auth { "The service with keys: every sample and batch sealed, every command checked (the echo open)." } else { "Open: no MACs." }
     );
     s += "Medians over the rounds:\n\n| path | devices | target | valid rounds | within period | p99 us | CPU us/sample | holds |\n|---|---:|---|---:|---:|---:|---:|---|\n";
     let mut points: Vec<&BenchPoint> = r.points.iter().collect();

@@ -98,6 +98,10 @@ pub enum Cmd {
         /// The per-device fleet size whose p99 round trips are compared.
         #[arg(long, default_value_t = 100)]
         p99_at: usize,
+        /// Run the service with keys: samples and batches sealed, commands checked (the
+        /// echo anchor stays open), to measure what the proof of origin costs.
+        #[arg(long)]
+        auth: bool,
     },
 }
 
@@ -172,6 +176,7 @@ async fn run(cli: LoadgenCli) -> Result<()> {
                 warmup: secs("warmup", warmup)?,
                 measure: secs("measure", measure)?,
                 resend,
+                secret: None,
             };
             let r = crate::gen::run(&session, &spec).await?;
             let _ = session.close().await;
@@ -199,6 +204,7 @@ async fn run(cli: LoadgenCli) -> Result<()> {
             inside,
             rounds,
             p99_at,
+            auth,
         } => {
             let me = std::env::current_exe().context("locating this program")?;
             let service_bin =
@@ -218,6 +224,7 @@ async fn run(cli: LoadgenCli) -> Result<()> {
                 rounds,
                 p99_at,
                 out: out.clone(),
+                auth,
             };
             let r = crate::bench::run(&spec).await?;
             println!("{}", crate::bench::markdown(&r));

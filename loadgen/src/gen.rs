@@ -14,10 +14,12 @@
 //! sent in the measurement window (after the warm-up) are counted, except duplicates,
 //! which are counted over the whole run.
 
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use protocol::auth::{Key, Kind};
 use protocol::{decode, encode, keys, pb, PROTOCOL_VERSION};
 use serde::Serialize;
 use zenoh::{Session, Wait};
@@ -45,6 +47,10 @@ pub struct Spec {
     /// plant's current values at the earlier times (no sample is lost on loopback, so
     /// only their size matters).
     pub resend: usize,
+    /// The fleet's secret, for a target that has it (`protocol::auth`): samples and
+    /// batches go out sealed with the device's or gateway's key, and only commands sealed
+    /// with it count as answers. `None`: open (the echo anchor's way).
+    pub secret: Option<protocol::auth::Secret>,
 }
 
 /// What came back. Times are round trips measured on this process's clock (sample sent to
@@ -232,7 +238,7 @@ pub async fn run(session: &Session, spec: &Spec) -> Result<LoadReport, GenError>
         duplicates: AtomicU64::new(0),
         max_gap: AtomicU64::new(0),
     });
-    let sub = subscribe_commands(session, &shared, spec.gateways > 0).await?;
+    let sub = subscribe_commands(session, &shared, spec).await?;
     let publishers = publishers(session, spec).await?;
     let late = Arc::new(AtomicU64::new(0));
     let stop = Arc::new(AtomicBool::new(false));
@@ -300,19 +306,57 @@ fn check(spec: &Spec) -> Result<(), GenError> {
     Ok(())
 }
 
+/// The keys of every sender (device, or gateway), by id, when the spec has a secret.
+fn sender_keys(spec: &Spec) -> HashMap<String, Key> {
+    let Some(secret) = &spec.secret else {
+        return HashMap::new();
+    };
+    if spec.gateways == 0 {
+        (0..spec.devices)
+            .map(|i| format!("{}-{i}", spec.prefix))
+            .map(|id| (id.clone(), secret.device(&id)))
+            .collect()
+    } else {
+        (0..spec.gateways)
+            .map(|g| format!("{}-gw-{g}", spec.prefix))
+            .map(|id| (id.clone(), secret.gateway(&id)))
+            .collect()
+    }
+}
+
+/// The body of a command (batch) that came on `key` for sender `id`: checked with its
+/// key when the spec has keys (a bad MAC is no answer), as it is otherwise.
+fn opened<'a>(
+    keys: &HashMap<String, Key>,
+    kind: Kind,
+    id: Option<&str>,
+    bytes: &'a [u8],
+) -> Option<&'a [u8]> {
+    if keys.is_empty() {
+        return Some(bytes);
+    }
+    keys.get(id?)?.open(kind, bytes).ok()
+}
+
 /// Take every command (or, through gateways, every command batch) into `shared`.
 async fn subscribe_commands(
     session: &Session,
     shared: &Arc<Shared>,
-    gateways: bool,
+    spec: &Spec,
 ) -> Result<zenoh::pubsub::Subscriber<()>, GenError> {
     let sh = shared.clone();
-    if !gateways {
+    let sealers = sender_keys(spec);
+    if spec.gateways == 0 {
         return session
             .declare_subscriber(keys::all_devices("command"))
             .callback(move |s| {
                 let now = protocol::unix_ns();
-                if let Ok(c) = decode::<pb::Command>(&s.payload().to_bytes()) {
+                let bytes = s.payload().to_bytes();
+                let id = keys::device_of(s.key_expr().as_str());
+                let Some(body) = opened(&sealers, Kind::Command, id, &bytes) else {
+                    return;
+                };
+                if let Ok(c) = decode::<pb::Command>(body) {
                     sh.take(&mut lock(&sh.rx), &c, now);
                 }
             })
@@ -323,7 +367,12 @@ async fn subscribe_commands(
         .declare_subscriber(keys::all_gateways("commands"))
         .callback(move |s| {
             let now = protocol::unix_ns();
-            if let Ok(b) = decode::<pb::CommandBatch>(&s.payload().to_bytes()) {
+            let bytes = s.payload().to_bytes();
+            let id = keys::gateway_of(s.key_expr().as_str());
+            let Some(body) = opened(&sealers, Kind::CommandBatch, id, &bytes) else {
+                return;
+            };
+            if let Ok(b) = decode::<pb::CommandBatch>(body) {
                 let mut rx = lock(&sh.rx);
                 for c in &b.commands {
                     sh.take(&mut rx, c, now);
@@ -377,6 +426,7 @@ fn send_loop(
     let n = spec.devices;
     let senders = publishers.len();
     let ids: Vec<String> = (0..n).map(|i| format!("{}-{i}", spec.prefix)).collect();
+    let sealers = sender_keys(spec);
     let mut y = vec![0.0f64; n];
     let mut applied = vec![0.0f64; n];
     let start = Instant::now() + Duration::from_millis(10);
@@ -425,8 +475,8 @@ fn send_loop(
                     ..Default::default()
                 }
             };
-            let payload = if spec.gateways == 0 {
-                encode(&sample(j, &mut y))
+            let (payload, kind, sender) = if spec.gateways == 0 {
+                (encode(&sample(j, &mut y)), Kind::Sample, ids[j].clone())
             } else {
                 let batch = pb::SampleBatch {
                     version: PROTOCOL_VERSION,
@@ -434,7 +484,11 @@ fn send_loop(
                     samples: range.map(|i| sample(i, &mut y)).collect(),
                     mac: Vec::new(),
                 };
-                encode(&batch)
+                (encode(&batch), Kind::SampleBatch, batch.gateway_id)
+            };
+            let payload = match sealers.get(&sender) {
+                Some(k) => k.seal(kind, payload),
+                None => payload,
             };
             let _ = publisher.put(payload).wait();
         }

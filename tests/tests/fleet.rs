@@ -130,6 +130,7 @@ fn spec(measure_s: f64) -> Spec {
         warmup: Duration::from_millis(1500),
         measure: Duration::from_secs_f64(measure_s),
         resend: 0,
+        secret: None,
     }
 }
 

@@ -26,8 +26,12 @@ pub(super) struct Routes {
     _gateways: Subscriber<()>,
     _device_queries: Vec<Queryable<()>>,
     _service_status: Queryable<()>,
-    _all_shards: Option<(Subscriber<()>, Subscriber<()>, Vec<Queryable<()>>)>,
+    _all_shards: Option<AllShards>,
 }
+
+/// Without a fleet: every shard's samples and batches, and its device queries, one
+/// queryable per queried leaf.
+type AllShards = (Subscriber<()>, Subscriber<()>, Vec<Queryable<()>>);
 
 impl Routes {
     pub(super) async fn declare(
