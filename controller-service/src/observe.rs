@@ -203,6 +203,11 @@ const SERVICE_COUNTERS: &[(&str, &str, Field<pb::ServiceStatus>)] = &[
         "Samples in batches with an invalid device id.",
         |s| s.bad_device_ids,
     ),
+    (
+        "mfc_service_forged_total",
+        "Samples and batches refused for their proof of origin (no MAC, or another key's).",
+        |s| s.forged,
+    ),
 ];
 
 const TROUBLE: u32 = pb::SampleFlags::Holding as u32

@@ -626,6 +626,51 @@ def run_test(env, args):
     fleet_phase(env, bg, results)
 
 
+# SIGSTOP of the member holding the plants' leases: (seconds stopped, the pause's start and
+# end on this clock). 3 s is shorter than zenoh's liveliness lease (the fleet still sees the
+# member); 12 s longer (the fleet sees it leave, and come back).
+PAUSES = [3.0, 12.0]
+
+
+def pause_the_holder(env):
+    """Stop controller-1 (it holds both plants' leases) for each of PAUSES, with a gap of 4 s
+    after each; returns what was done, for the report."""
+    done = []
+    pid = env.procs["controller"][0].pid
+    for secs in PAUSES:
+        plants_running(env, f"before a {secs:.0f} s pause of the holder")
+        log(f"SIGSTOP controller-1 for {secs:.0f} s")
+        os.kill(pid, signal.SIGSTOP)
+        time.sleep(secs)
+        os.kill(pid, signal.SIGCONT)
+        done.append(secs)
+        time.sleep(4)
+    return done
+
+
+def judge_takeovers(d, spans, pauses, results):
+    """From the plant's own record of who commanded (its lease spans): never two holders
+    at once, epochs only up, and each pause of the holder ended by another member taking
+    over. The takeover time is counted in the plant's periods (10 ms), from the last period
+    the paused holder commanded to the first its successor did."""
+    overlap = [(a, b) for a, b in zip(spans, spans[1:]) if b["first"] <= a["last"]]
+    check(not overlap, f"phase 3: {d} never applied commands of two holders in one period",
+          str(overlap)[:300])
+    epochs = [sp["epoch"] for sp in spans]
+    check(epochs == sorted(set(epochs)), f"phase 3: {d}'s lease epochs only went up", str(epochs))
+    takeovers = [b["first"] - a["last"] for a, b in zip(spans, spans[1:])
+                 if a["holder"] == "controller-1" and b["holder"] == "controller-2"]
+    results[f"phase3_{d}_spans"] = [(sp["holder"], sp["epoch"], sp["first"], sp["last"])
+                                    for sp in spans]
+    results[f"phase3_{d}_takeover_periods"] = takeovers
+    if spans and spans[0]["holder"] != "controller-1":
+        log(f"phase 3: {d} was not held by controller-1: its pauses judge nothing here")
+        return
+    check(len(takeovers) >= len(pauses),
+          f"phase 3: {d}: controller-2 took over at each pause of controller-1 ({len(pauses)})",
+          f"takeovers after {takeovers} periods; spans {results[f'phase3_{d}_spans']}")
+
+
 def fleet_view(env, want, timeout):
     """The services' statuses once `want` members each see both and own disjoint shards
     covering all 64 (or the last seen after `timeout` s)."""
@@ -699,6 +744,7 @@ def fleet_phase(env, bg, results):
         check(got == owned and all(m == sorted(want) for m in members),
               f"phase 3: no member made up and no shard given up {when}",
               f"owned {({k: len(v) for k, v in got.items()})}, members {members}")
+    pauses = pause_the_holder(env)
     for d in ["aero-1", "aero-2"]:
         rc = env.wait(d, 120)
         check(rc == 0, f"phase 3: {d} exits 0 (served by the fleet to the end)", f"exit {rc}")
@@ -708,6 +754,8 @@ def fleet_phase(env, bg, results):
         results[f"phase3_{d}_holders"] = sorted(h for h in holders if h)
         check(holders and holders <= want, f"phase 3: {d} was commanded by the fleet's members only",
               str(holders))
+        spans = s.get("lease", {}).get("spans", [])
+        judge_takeovers(d, spans, pauses, results)
         forged = s.get("auth", {}).get("forged", -1)
         want_forged = FORGED if d == "aero-1" else 0
         check(forged == want_forged,

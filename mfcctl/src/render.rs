@@ -23,8 +23,8 @@ pub fn services(list: &[pb::ServiceStatus], alive: &[String]) -> String {
     let mut out = String::new();
     let _ = writeln!(
         out,
-        "{:<20} {:<8} {:>5} {:>8} {:>9}  drops",
-        "controller", "role", "term", "devices", "uptime s"
+        "{:<20} {:<8} {:>5} {:>8} {:>9} {:<5}  drops",
+        "controller", "role", "term", "devices", "uptime s", "auth"
     );
     for s in list {
         let drops = [
@@ -37,6 +37,7 @@ pub fn services(list: &[pb::ServiceStatus], alive: &[String]) -> String {
             ("queue_full", s.queue_full),
             ("rejected", s.rejected),
             ("refused", s.requests_refused),
+            ("forged", s.forged),
         ]
         .iter()
         .filter(|(_, n)| *n > 0)
@@ -45,12 +46,14 @@ pub fn services(list: &[pb::ServiceStatus], alive: &[String]) -> String {
         .join(", ");
         let _ = writeln!(
             out,
-            "{:<20} {:<8} {:>5} {:>8} {:>9.0}  {}",
+            "{:<20} {:<8} {:>5} {:>8} {:>9.0} {:<5}  {}",
             s.controller_id,
             if s.active { "active" } else { "standby" },
             s.term,
             s.devices.len(),
             s.uptime,
+            // Keys: samples checked, commands and replies sealed; open: none of it.
+            if s.authenticated { "keys" } else { "open" },
             if drops.is_empty() {
                 "none".into()
             } else {
