@@ -381,7 +381,7 @@ fn demo_command(args: &DemoArgs) -> Result<()> {
     let (scenario, set) = scenario_and_controller(&args.scenario, args.controller.as_deref())?;
     let offline = simulate(&scenario, &set, false)?.summary;
     println!(
-        "{}: {} plant(s) and a controller service over Zenoh on loopback, {:.0} s in real time...",
+        "{}: {} plant(s) and a controller service over Zenoh on loopback, keys made at start (every sample and command carries its MAC), {:.0} s in real time...",
         scenario.name, plants, scenario.duration
     );
     let runtime = tokio::runtime::Builder::new_multi_thread()
