@@ -23,7 +23,11 @@ Phase 3 adds a second service (host controller-2, .3) to the inventory, runs bot
 fleet under the regenerated access control, and lets a rogue on the intruder's host hold
 controller-1's certificate (not the fleet's secret): its member tokens, in a made-up name
 and in controller-2's, must give it no shard; its commands must all be refused by the
-plant as forged; both plants must run to the end served by the fleet's members only.
+plant as forged. Then controller-1, which holds both plants' leases, is cut off one way
+(its packets to the router dropped) for 3 s, and stopped (SIGSTOP) for 3 s and for 12 s:
+each time controller-2 must take over, and the plants' own records must show no period
+with commands of two holders and epochs that only go up; both plants must run to the end
+served by the fleet's members only.
 
 Needs root, iproute2 and zenohd; without them it prints SKIP and exits 0. Exit 1 on any
 failed check (all are reported). Logs and records: $MFC_MULTIHOST_LOGS (default
@@ -632,10 +636,24 @@ def run_test(env, args):
 PAUSES = [3.0, 12.0]
 
 
+# A one-way partition first: controller-1's host drops what it sends to the router for this
+# long, while it still receives the plants' samples (it sees the lease move and keeps quiet).
+ONE_WAY = 3.0
+
+
 def pause_the_holder(env):
-    """Stop controller-1 (it holds both plants' leases) for each of PAUSES, with a gap of 4 s
-    after each; returns what was done, for the report."""
+    """Cut controller-1 (it holds both plants' leases) off one way for ONE_WAY s, then stop
+    it for each of PAUSES, with a gap of 4 s after each; returns the faults, for the report."""
     done = []
+    rule = ["OUTPUT", "-d", HOSTS["router"][1], "-j", "DROP"]
+    ns = ["ip", "netns", "exec", HOSTS["controller"][0], "iptables"]
+    plants_running(env, "before the one-way partition of the holder")
+    log(f"controller-1 cut off one way (its packets to the router dropped) for {ONE_WAY:.0f} s")
+    sh(ns + ["-A"] + rule)
+    time.sleep(ONE_WAY)
+    sh(ns + ["-D"] + rule)
+    done.append("one-way")
+    time.sleep(4)
     pid = env.procs["controller"][0].pid
     for secs in PAUSES:
         plants_running(env, f"before a {secs:.0f} s pause of the holder")
@@ -643,7 +661,7 @@ def pause_the_holder(env):
         os.kill(pid, signal.SIGSTOP)
         time.sleep(secs)
         os.kill(pid, signal.SIGCONT)
-        done.append(secs)
+        done.append(f"SIGSTOP {secs:.0f} s")
         time.sleep(4)
     return done
 
@@ -665,24 +683,31 @@ def judge_takeovers(d, spans, pauses, results):
     results[f"phase3_{d}_takeover_periods"] = takeovers
     if spans and spans[0]["holder"] != "controller-1":
         log(f"phase 3: {d} was not held by controller-1: its pauses judge nothing here")
-        return
+        return False
     check(len(takeovers) >= len(pauses),
-          f"phase 3: {d}: controller-2 took over at each pause of controller-1 ({len(pauses)})",
+          f"phase 3: {d}: controller-2 took over at each fault of controller-1 ({', '.join(pauses)})",
           f"takeovers after {takeovers} periods; spans {results[f'phase3_{d}_spans']}")
+    return True
 
 
 def fleet_view(env, want, timeout):
     """The services' statuses once `want` members each see both and own disjoint shards
-    covering all 64 (or the last seen after `timeout` s)."""
-    deadline, last = time.time() + timeout, None
+    covering all 64, the same in two reads 1.5 s apart (an owner outranked by a newcomer
+    keeps a shard up to its release timeout, 1 s, so one read may catch a handover); or
+    the last seen after `timeout` s."""
+    deadline, last, seen = time.time() + timeout, None, None
     while time.time() < deadline:
         last, _ = mfcctl(env, "services")
+        owned = None
         if last and {x["controller_id"] for x in last} == want and all(
                 set(x.get("fleet_members", [])) == want for x in last):
-            owned = [set(x.get("owned_shards", [])) for x in last]
-            if sum(len(o) for o in owned) == 64 and len(set().union(*owned)) == 64:
-                return last, True
-        time.sleep(1)
+            sets = [set(x.get("owned_shards", [])) for x in last]
+            if sum(len(o) for o in sets) == 64 and len(set().union(*sets)) == 64:
+                owned = {x["controller_id"]: sorted(x.get("owned_shards", [])) for x in last}
+        if owned is not None and owned == seen:
+            return last, True
+        seen = owned
+        time.sleep(1.5)
     return last, False
 
 
@@ -745,6 +770,7 @@ def fleet_phase(env, bg, results):
               f"phase 3: no member made up and no shard given up {when}",
               f"owned {({k: len(v) for k, v in got.items()})}, members {members}")
     pauses = pause_the_holder(env)
+    judged = 0
     for d in ["aero-1", "aero-2"]:
         rc = env.wait(d, 120)
         check(rc == 0, f"phase 3: {d} exits 0 (served by the fleet to the end)", f"exit {rc}")
@@ -755,13 +781,15 @@ def fleet_phase(env, bg, results):
         check(holders and holders <= want, f"phase 3: {d} was commanded by the fleet's members only",
               str(holders))
         spans = s.get("lease", {}).get("spans", [])
-        judge_takeovers(d, spans, pauses, results)
+        judged += judge_takeovers(d, spans, pauses, results)
         forged = s.get("auth", {}).get("forged", -1)
         want_forged = FORGED if d == "aero-1" else 0
         check(forged == want_forged,
               f"phase 3: {d} refused every forged command as unauthenticated ({want_forged})",
               f"forged {forged}")
         shutil.move(f"/var/lib/mfc/{d}", env.logs / f"phase3-{d}")
+    check(judged > 0, "phase 3: the takeovers were judged on a plant controller-1 held",
+          f"{judged} of 2 plants held by controller-1 at the start")
 
 
 def find_alpha(cfg, channel):
