@@ -93,6 +93,10 @@ pub enum Request<'a> {
     Copy(&'a str),
     /// `offer:{id}`: `id` still answers the shard, which this member outranks it for.
     Offer(&'a str),
+    /// `hold:{id}`: `id` answers the shard and accepted a change; this member, which
+    /// would take the shard over from it, is to hold the device's new state (sent with
+    /// the request) before `id` acknowledges the change.
+    Hold(&'a str),
 }
 
 impl<'a> Request<'a> {
@@ -105,6 +109,7 @@ impl<'a> Request<'a> {
             "release" => Some(Self::Release(who)),
             "copy" => Some(Self::Copy(who)),
             "offer" => Some(Self::Offer(who)),
+            "hold" => Some(Self::Hold(who)),
             _ => None,
         }
     }
@@ -115,6 +120,7 @@ impl<'a> Request<'a> {
             Self::Release(id) => format!("release:{id}"),
             Self::Copy(id) => format!("copy:{id}"),
             Self::Offer(id) => format!("offer:{id}"),
+            Self::Hold(id) => format!("hold:{id}"),
         }
     }
 }
@@ -127,6 +133,8 @@ pub enum Reply {
     State,
     /// This member owns the shard already: the offerer must stop answering it.
     Owned,
+    /// Restore the state sent with the request, then say it is held.
+    Hold,
     /// Refused, with why: the asker asks again later.
     Refused(&'static str),
 }
@@ -137,6 +145,7 @@ pub enum RequestKind {
     Release,
     Copy,
     Offer,
+    Hold,
 }
 
 impl Request<'_> {
@@ -146,6 +155,7 @@ impl Request<'_> {
             Self::Release(_) => RequestKind::Release,
             Self::Copy(_) => RequestKind::Copy,
             Self::Offer(_) => RequestKind::Offer,
+            Self::Hold(_) => RequestKind::Hold,
         }
     }
 }
@@ -481,7 +491,44 @@ impl Fleet {
                 Vec::new(),
             ),
             Request::Copy(_) => (Reply::Refused("no such shard"), Vec::new()),
+            Request::Hold(by) => (self.hold(shard, by), Vec::new()),
         }
+    }
+
+    /// `by` asks this member to hold a change to one of `shard`'s devices. Taken from a
+    /// member in this view only (a stray or forged request changes nothing), and only
+    /// for a shard this member steps: it is then the one that takes the shard over, warm.
+    fn hold(&self, shard: u32, by: &str) -> Reply {
+        if !self.steps(shard) {
+            Reply::Refused("this member does not step the shard: it cannot hold its changes")
+        } else if by == self.me || !self.members.contains(by) {
+            Reply::Refused("the asker is not a member in this view (yet)")
+        } else {
+            Reply::Hold
+        }
+    }
+
+    /// The members that must hold a change to one of `shard`'s devices before this member
+    /// acknowledges it: the others among those that step the shard in this view (its
+    /// owner and, with standbys, the standby). Empty when this member is alone.
+    ///
+    /// The owner's partner is its standby, which takes over warm if the owner goes; a
+    /// member that commands a device in the owner's place (it holds the plant's lease
+    /// while the owner is paused or cut off) has the owner as partner, so the owner, once
+    /// back, claims the device with every change made meanwhile.
+    pub fn partners(&self, shard: u32) -> Vec<String> {
+        let k = if self.standby { 2 } else { 1 };
+        ranked(shard, &self.members)
+            .into_iter()
+            .take(k)
+            .filter(|m| *m != self.me)
+            .map(str::to_string)
+            .collect()
+    }
+
+    /// Whether members keep warm standbys (a change then needs a partner to be held).
+    pub fn keeps_standbys(&self) -> bool {
+        self.standby
     }
 
     /// `by` asks this member to release `shard`.
@@ -550,6 +597,8 @@ impl Fleet {
             return Vec::new();
         };
         match (kind, got, slot.role) {
+            // A hold's answer goes to the change it was for, never to a handover.
+            (RequestKind::Hold, ..) => {}
             (RequestKind::Release, Got::State, ShardRole::Acquiring) => {
                 self.set_role(shard, ShardRole::Owner);
             }

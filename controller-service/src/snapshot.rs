@@ -11,11 +11,13 @@ use bincode::{Decode, Encode};
 use mfc::trajectory::Piece;
 
 /// Bumped whenever the layout changes; a file of another version is refused and its
-/// device starts from the configuration. 2: the estimators' rings span their window
+/// device starts from the configuration (and a handed state of another version is not
+/// restored). 6: a handed device carries its configuration's version and whether the
+/// sender holds its lease. 2: the estimators' rings span their window
 /// only (files of 1 would be read with the wrong layout). 4: the intelligent laws'
 /// `hold_estimate_filter` and `hold_after`, and the time their reference has rested.
 /// 5: an intelligent controller keeps its estimate's trend, for predictions.
-pub const SNAPSHOT_VERSION: u32 = 5;
+pub const SNAPSHOT_VERSION: u32 = 6;
 
 /// What a device snapshot holds.
 #[derive(Debug, Clone, Encode, Decode)]
@@ -89,6 +91,15 @@ pub struct HandedDevice {
     /// Whether the live configuration (laws, maps) is to be taken as it is, even where it
     /// differs from the file's (a remote change made on the previous owner).
     pub live_config: bool,
+    /// Which changes its configuration holds: it replaces the receiver's only if not
+    /// older.
+    pub config_version: crate::lease::Version,
+    /// The plant's run and the lease epoch under which the sender holds the device's
+    /// lease, if it does: the receiver is then in step with the holder.
+    pub holds: Option<(u64, u64)>,
+    /// The run and epoch of the lease as the sender last heard it (`(0, 0)`: never
+    /// leased there): a receiver in step only with an earlier one missed a holder.
+    pub heard: (u64, u64),
 }
 
 /// The state of one shard, in a handover reply.

@@ -335,7 +335,9 @@ impl Sim {
             Some(Request::Release(_)) => Asked::Release,
             Some(Request::Copy(_)) => Asked::Copy,
             Some(Request::Offer(_)) => Asked::Offer,
-            None => panic!("the harness sent a request the fleet cannot parse: {body}"),
+            Some(Request::Hold(_)) | None => {
+                panic!("the harness sent a request the fleet cannot parse: {body}")
+            }
         };
         let Some(f) = self.fleets[to].as_mut() else {
             let timeout = self.timeout;
@@ -383,7 +385,7 @@ impl Sim {
         let got = match reply {
             Some(Reply::State) => Got::State,
             Some(Reply::Owned) => Got::Owned,
-            Some(Reply::Refused(_)) | None => Got::Nothing,
+            Some(Reply::Refused(_) | Reply::Hold) | None => Got::Nothing,
         };
         let actions = f.on_answer(shard, kind, got, now);
         self.carry_out(member, actions);

@@ -11,7 +11,7 @@
 //! | role | sends (ingress) | receives (egress) |
 //! |---|---|---|
 //! | device `d` | put `device/d/sample` and `shard/{s}/device/d/sample` (`s` its shard, where the agent publishes); subscribe `device/d/command`; token `alive/plant/d` | put `device/d/command`; the services' subscriptions `device/*/sample`, `shard/*/device/*/sample` |
-//! | service `s` | put `device/*/command`, `gateway/*/commands`, `group/**`, `fleet/*/sync/*`; subscribe `device/*/{sample,reference}`, `shard/*/device/*/sample`, `gateway/*/samples`, `group/**`, `fleet/*/sync/*`, the members `fleet/*/member/*`; serve and reply on `device/*/{config,status,envelope,reference}` and the same under `shard/*/` (no wildcard leaf); query other members' `fleet/*/member/*/shard/*`; tokens `alive/controller/s` and `fleet/*/member/s`, handover queryable `fleet/*/member/s/shard/*` and status queryable `service/s/status`, under its own name only | samples, batches, references, heartbeats, fleet traffic, queries, the agents' and operators' declarations |
+//! | service `s` | put `device/*/command`, `gateway/*/commands`, `group/**`; subscribe `device/*/{sample,reference}`, `shard/*/device/*/sample`, `gateway/*/samples`, `group/**`, the members `fleet/*/member/*`; serve and reply on `device/*/{config,status,envelope,reference}` and the same under `shard/*/` (no wildcard leaf); query other members' `fleet/*/member/*/shard/*`; tokens `alive/controller/s` and `fleet/*/member/s`, handover queryable `fleet/*/member/s/shard/*` and status queryable `service/s/status`, under its own name only | samples, batches, references, heartbeats, fleet traffic, queries, the agents' and operators' declarations |
 //! | operator | query `device/*/{config,status,envelope,reference}`, `service/*/status`; put `device/*/reference`; subscribe samples and commands (watch); liveliness queries | replies, samples, commands, tokens |
 //!
 //! So a device holding its own certificate can neither put on nor watch another device's
@@ -193,7 +193,6 @@ fn handovers() -> String {
 /// ([`service_own_rules`]): a service certificate cannot make up members.
 fn service_rules(keys: &SharedKeys) -> Vec<Value> {
     let group = format!("{P}/group/**");
-    let sync = format!("{P}/fleet/*/sync/*");
     let gw_samples = format!("{P}/gateway/*/samples");
     let shard_gw_samples = format!("{P}/shard/*/gateway/*/samples");
     vec![
@@ -205,7 +204,6 @@ fn service_rules(keys: &SharedKeys) -> Vec<Value> {
                 dev("*", "command"),
                 format!("{P}/gateway/*/commands"),
                 group.clone(),
-                sync.clone(),
             ],
         ),
         rule(
@@ -219,7 +217,6 @@ fn service_rules(keys: &SharedKeys) -> Vec<Value> {
                 shard_gw_samples.clone(),
                 dev("*", "reference"),
                 group.clone(),
-                sync.clone(),
                 members(),
             ],
         ),
@@ -243,7 +240,7 @@ fn service_rules(keys: &SharedKeys) -> Vec<Value> {
                 "reply",
                 "put",
             ],
-            vec![members(), handovers(), sync],
+            vec![members(), handovers()],
         ),
         // The agents' command subscriptions, declared towards the service.
         rule(
@@ -501,8 +498,6 @@ mod tests {
             ("declare_liveliness_subscriber", f("member/*")),
             ("liveliness_query", f("member/*")),
             ("query", f("member/ctl-b/shard/7")),
-            ("declare_subscriber", f("sync/*")),
-            ("put", f("sync/7")),
         ] {
             assert!(allowed(&acl, "ctl-a", "ingress", m, &k), "{m} {k}");
         }
@@ -511,7 +506,6 @@ mod tests {
             ("liveliness_token", f("member/ctl-b")),
             ("query", f("member/ctl-a/shard/7")),
             ("reply", f("member/ctl-b/shard/7")),
-            ("put", f("sync/7")),
         ] {
             assert!(allowed(&acl, "ctl-a", "egress", m, &k), "{m} {k}");
         }
@@ -524,6 +518,10 @@ mod tests {
             ("declare_queryable", f("member/ctl-b/shard/*")),
             ("reply", f("member/ctl-b/shard/7")),
             ("declare_queryable", f("**")),
+            // Owners' changes travel as sealed handover queries now: no put on the
+            // fleet's keys at all.
+            ("put", f("sync/7")),
+            ("declare_subscriber", f("sync/*")),
         ] {
             assert!(!allowed(&acl, "ctl-a", "ingress", m, &k), "{m} {k}");
         }

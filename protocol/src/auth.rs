@@ -42,6 +42,8 @@ pub enum Kind {
     CommandBatch,
     /// A reply to an operator's query (status, config, envelope, reference).
     Reply,
+    /// A fleet member's handover message: a shard's state, or a change it holds.
+    Handover,
 }
 
 impl Kind {
@@ -52,6 +54,7 @@ impl Kind {
             Kind::SampleBatch => b"mfc/v1/sample-batch\0",
             Kind::CommandBatch => b"mfc/v1/command-batch\0",
             Kind::Reply => b"mfc/v1/reply\0",
+            Kind::Handover => b"mfc/v1/handover\0",
         }
     }
 }
@@ -134,6 +137,13 @@ impl Secret {
     /// them.
     pub fn operator(&self) -> Key {
         self.derive(b"mfc/v1/operator-key\0", "")
+    }
+
+    /// The key fleet members seal their handover messages with (shard states, changes
+    /// to hold). Only services hold the secret it derives from: an operator's or a
+    /// device's key cannot forge a state a member would restore.
+    pub fn member(&self) -> Key {
+        self.derive(b"mfc/v1/member-key\0", "")
     }
 
     fn derive(&self, label: &[u8], id: &str) -> Key {

@@ -16,8 +16,7 @@
 //! | `mfc/v1/shard/{s}/device/{id}/{config,status,envelope,reference}` | queryables on the shard's owner only | as the keys without `shard/{s}`, which every member declares and only the owner answers |
 //! | `mfc/v1/shard/{s}/gateway/{gateway}/samples` | gateway → controller | a [`SampleBatch`](crate::pb::SampleBatch), `s` the gateway's shard |
 //! | `mfc/v1/fleet/{fleet}/member/{controller}` | liveliness token | a member of a fleet of service instances is up |
-//! | `mfc/v1/fleet/{fleet}/member/{controller}/shard/{s}` | queryable on each member | handover of a shard's state to another member |
-//! | `mfc/v1/fleet/{fleet}/sync/{s}` | owner → standby | a device's state after a configuration change |
+//! | `mfc/v1/fleet/{fleet}/member/{controller}/shard/{s}` | queryable on each member | handover of a shard's state to another member, and a change to hold before the member that accepted it acknowledges it |
 //! | `mfc/v1/gateway/{gateway}/samples` | gateway → controller, pub/sub | [`SampleBatch`](crate::pb::SampleBatch): the samples of all its plants, every period |
 //! | `mfc/v1/gateway/{gateway}/commands` | controller → gateway, pub/sub | [`CommandBatch`](crate::pb::CommandBatch) answering a batch |
 //!
@@ -144,10 +143,6 @@ pub fn fleet_members(fleet: &str) -> String {
 pub fn fleet_handover(fleet: &str, controller: &str, shard: u32) -> String {
     format!("{PREFIX}/fleet/{fleet}/member/{controller}/shard/{shard}")
 }
-/// `mfc/v1/fleet/{fleet}/sync/{s}`.
-pub fn fleet_sync(fleet: &str, shard: u32) -> String {
-    format!("{PREFIX}/fleet/{fleet}/sync/{shard}")
-}
 /// The member id in a key `mfc/v1/fleet/{fleet}/member/{controller}[/...]`.
 pub fn member_of(key: &str) -> Option<&str> {
     let rest = key.strip_prefix(PREFIX)?.strip_prefix("/fleet/")?;
@@ -156,7 +151,7 @@ pub fn member_of(key: &str) -> Option<&str> {
     let id = rest.split('/').next()?;
     check_id(id).ok()
 }
-/// The shard in a key whose last chunk is a shard number (`.../shard/{s}`, `.../sync/{s}`),
+/// The shard in a key whose last chunk is a shard number (`.../shard/{s}`),
 /// if below [`SHARDS`](crate::SHARDS).
 pub fn last_shard(key: &str) -> Option<u32> {
     let n: u32 = key.rsplit('/').next()?.parse().ok()?;
@@ -262,6 +257,5 @@ mod tests {
         assert_eq!(member_of(&fleet_member("main", "c-2")), Some("c-2"));
         assert_eq!(member_of(&fleet_handover("main", "c-2", 7)), Some("c-2"));
         assert_eq!(last_shard(&fleet_handover("main", "c-2", 7)), Some(7));
-        assert_eq!(last_shard(&fleet_sync("main", 64)), None);
     }
 }

@@ -276,3 +276,100 @@ async fn instances_split_take_over_and_hand_over_without_double_answers() {
     drop(c3_proc);
     drop((c0, c2));
 }
+
+/// A gain change of `dev`'s channel 0 to `kp`, sent to the fleet; the reply.
+async fn change_kp(s: &Session, dev: &str, kp: f64) -> pb::ConfigReply {
+    let update = transport::ops::parse_update(0, &[format!("kp={kp}")]).unwrap();
+    let req = pb::ConfigRequest {
+        version: protocol::PROTOCOL_VERSION,
+        updates: vec![update],
+        ..Default::default()
+    };
+    query(s, keys::config(dev), Some(protocol::encode(&req)))
+        .await
+        .unwrap()
+}
+
+fn signal(m: &Member, sig: &str) {
+    let ok = Command::new("kill")
+        .args([&format!("-{sig}"), &m.proc.0.id().to_string()])
+        .status()
+        .unwrap()
+        .success();
+    assert!(ok, "kill -{sig} {}", m.id);
+}
+
+/// Nothing acknowledged is lost: a change is acknowledged only once the device's standby
+/// holds it (the reply names both), so after `kill -9` of the owner the standby carries
+/// on with exactly the configuration acknowledged last; with the standby stopped
+/// (SIGSTOP), a change is in force on the owner but not acknowledged, and the reply says
+/// which member did not confirm it.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_change_is_acknowledged_once_the_standby_holds_it_and_outlives_the_owner() {
+    let _s = SERIAL.lock().await;
+    let dir = scratch_dir("fleet-ack");
+    std::fs::write(dir.join("service.toml"), config()).unwrap();
+    let c0 = start(&dir, "c-0", &[]);
+    let c1 = start(&dir, "c-1", &[&c0.endpoint]);
+    let gen_endpoint = format!("tcp/127.0.0.1:{}", transport::free_local_port().unwrap());
+    let s = generator(&gen_endpoint, &[&c0.endpoint, &c1.endpoint]).await;
+    for m in [&c0, &c1] {
+        let up = keys::alive_controller(&m.id);
+        assert!(transport::wait_for_token(&s, &up, Duration::from_secs(20)).await);
+    }
+    settled(&s, &["c-0", "c-1"]).await;
+    // The plants provision their devices (templates) on both members.
+    check("provision", &gen::run(&s, &spec(1.0)).await.unwrap());
+    let all = settled(&s, &["c-0", "c-1"]).await;
+    let (owner, dev) = all
+        .iter()
+        .find_map(|(id, st)| {
+            st.devices
+                .first()
+                .map(|d| (id.clone(), d.device_id.clone()))
+        })
+        .expect("a device served");
+    let (own, other) = if owner == "c-0" {
+        (&c0, &c1)
+    } else {
+        (&c1, &c0)
+    };
+
+    // 1. Held by both: acknowledged, and the reply says so.
+    let before: pb::ConfigReply = query(&s, keys::config(&dev), None).await.unwrap();
+    let r = change_kp(&s, &dev, 6.5).await;
+    assert!(r.accepted, "{r:?}");
+    assert_eq!(r.held_by, [own.id.clone(), other.id.clone()]);
+    assert_ne!(
+        r.config, before.config,
+        "the change changed the configuration"
+    );
+
+    // 2. The standby stopped: in force on the owner, not acknowledged, and said why.
+    signal(other, "STOP");
+    let r = change_kp(&s, &dev, 7.0).await;
+    signal(other, "CONT");
+    assert!(!r.accepted, "acknowledged without the standby: {r:?}");
+    assert_eq!(r.held_by, std::slice::from_ref(&own.id));
+    assert!(
+        r.reason.contains(&format!("{} did not confirm", other.id)),
+        "{}",
+        r.reason
+    );
+
+    // 3. Sent again once the standby is back (and seen again: a pause may outlast the
+    //    link's lease): acknowledged; then the owner is killed and the standby answers
+    //    with exactly that configuration.
+    settled(&s, &["c-0", "c-1"]).await;
+    let acked = change_kp(&s, &dev, 7.5).await;
+    assert!(acked.accepted, "{acked:?}");
+    assert_eq!(acked.held_by.len(), 2);
+    signal(own, "KILL");
+    settled(&s, &[&other.id]).await;
+    let after: pb::ConfigReply = query(&s, keys::config(&dev), None).await.unwrap();
+    assert_eq!(
+        after.config, acked.config,
+        "the survivor's configuration is the one acknowledged last"
+    );
+    let _ = s.close().await;
+}

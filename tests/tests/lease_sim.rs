@@ -20,16 +20,28 @@
 //!   past it the fallback runs;
 //! * once the faults are over, the plant is back under remote control by one holder
 //!   (off the fallback through the last half second, commands in most periods, from one
-//!   holder, or two if it yielded to the member the fleet prefers).
+//!   holder, or two if it yielded to the member the fleet prefers);
+//! * no acknowledged change lost: an operator changes the configuration every 150 to
+//!   400 ms through whichever member answers operators (the holder, else the shard's
+//!   owner), which acknowledges as the service does (only while it commands the plant,
+//!   once every partner holds it); every command applied afterwards comes from a state
+//!   that holds every change acknowledged before it was sent, unless no member holding
+//!   the change could have commanded in step through a behind member's whole wait (all
+//!   crashed, stopped, cut off, or unsure), which is counted and printed.
 //!
-//! What the members do between themselves (handover requests, shard state) is the fleet's
-//! own simulation's (`controller-service/tests/virtual_time.rs`); here a member is only
-//! what decides whether it answers a plant, which is all the lease has to withstand.
+//! The members' exchanges are modelled after the service's wiring: the holds of a change
+//! (one replicator queue per member, in order, with a timeout), the states a holder
+//! sends when it takes the lease, halfway to a yield and to a member that comes into its
+//! view, the copy a member asks for when it starts following the shard, and the
+//! versioned, holder-checked restore (`Registry::restore_shard`, `hold_shard`). The
+//! shard's ownership itself (handover requests) is the fleet's own simulation's
+//! (`controller-service/tests/virtual_time.rs`).
 
 use std::collections::{BTreeSet, HashMap};
+use std::io::Write;
 
 use controller_service::fleet::ranked;
-use controller_service::lease::{Claimer, Decision, LeasePolicy, Seen};
+use controller_service::lease::{Claimer, Decision, Holder, LeasePolicy, Seen, Standing, Version};
 use mfc::{ChannelConfig, ControllerKind, LawConfig, Order, OutputMapConfig, Reference};
 use plant_agent::lease::Credentials;
 use plant_agent::safety::{
@@ -50,6 +62,13 @@ const WARMUP: u32 = 20;
 const CAPTURED: usize = 300;
 /// How long the others still see a paused member (zenoh's link lease, in ms; shortened).
 const ZENOH_LEASE: u64 = 500;
+/// How long a member waits for its partners to hold a change (the fleet's
+/// `handover_timeout_ms`), and how long the operator waits for the reply, ms.
+const HOLD_TIMEOUT: u64 = 500;
+const OPERATOR_TIMEOUT: u64 = 2000;
+/// How recently the member commanding a device must have heard it to acknowledge (ms):
+/// five periods (`Registry::live_ns`).
+const LIVE: u64 = 5 * H;
 
 /// SplitMix64, so that a seed replays exactly.
 struct Rng(u64);
@@ -85,6 +104,10 @@ struct SampleMsg {
 #[derive(Debug, Clone)]
 struct CommandMsg {
     from: String,
+    /// The sender's configuration when it answered: the changes it holds.
+    state: std::rc::Rc<Vec<u32>>,
+    /// When it was sent (ms).
+    sent_at: u64,
     instance: u64,
     run_id: u64,
     seq: u64,
@@ -100,6 +123,57 @@ enum Payload {
     /// A sample to the rogue.
     Rogue(SampleMsg),
     Command(CommandMsg),
+    /// A change to hold (or the states sent to a member back in view), member to member.
+    Hold {
+        from: usize,
+        to: usize,
+        job: u64,
+        handed: Handed,
+    },
+    /// A member that starts stepping the shard asks another that steps it for a copy of
+    /// its state (`ShardAction::Copy`, `Acquire`); the answer comes as a `Hold` with job 0.
+    Copy {
+        from: usize,
+        to: usize,
+    },
+    /// Its answer, from member `by`.
+    Held {
+        to: usize,
+        by: usize,
+        job: u64,
+        ok: bool,
+        /// The answering member is in step with the sender (`hold_state`).
+        in_step: bool,
+    },
+}
+
+/// A device's state as one member hands it to another (`HandedDevice`).
+#[derive(Debug, Clone)]
+struct Handed {
+    state: Vec<u32>,
+    version: Version,
+    /// The run and epoch of the lease the sender holds, if it does, and as it last
+    /// heard it.
+    holds: Option<(u64, u64)>,
+    heard: (u64, u64),
+}
+
+/// A member's change on its way to being held, as its replicator task carries it out:
+/// one at a time, in order.
+#[derive(Debug, Clone)]
+struct Job {
+    id: u64,
+    /// The change acknowledged if every partner holds it (none: states sent to a member
+    /// back in view), and when the operator asked.
+    change: Option<(u32, u64)>,
+    handed: Handed,
+    partners: Vec<usize>,
+    started: Option<u64>,
+    held: BTreeSet<usize>,
+    /// The partners that answered (a refusal ends the wait for one as an answer does).
+    answered: BTreeSet<usize>,
+    /// Some partner said it is behind.
+    behind: bool,
 }
 
 /// A fault over `[from, to)` ms.
@@ -142,6 +216,48 @@ struct Member {
     backlog: Vec<SampleMsg>,
     /// Crashed: its state is gone until it restarts (a new instance).
     down: bool,
+    /// The changes its configuration holds, in order (a crash loses them: it restarts
+    /// from its file).
+    state: Vec<u32>,
+    /// The holder its last sample named, the lease's epoch, and when it came (ms).
+    holder: String,
+    epoch: u64,
+    heard: u64,
+    /// Which changes its state holds (`Device::version`).
+    version: Version,
+    /// Its replicator's queue.
+    jobs: std::collections::VecDeque<Job>,
+    /// The fleet it saw at the last tick, to tell who came into view.
+    seen: BTreeSet<String>,
+    /// Whether it stepped the device's shard at the last tick, to tell when it starts.
+    stepping: bool,
+    /// Since when it could have commanded the plant in step (running, reaching the plant
+    /// both ways, following the shard, not behind), if it can now.
+    ready_since: Option<u64>,
+}
+
+impl Member {
+    fn new(name: String, instance: u64, down: bool) -> Self {
+        Self {
+            name,
+            instance,
+            claimer: Claimer::default(),
+            run: 0,
+            stepped: 0,
+            frozen_view: None,
+            backlog: Vec::new(),
+            down,
+            state: Vec::new(),
+            holder: String::new(),
+            epoch: 0,
+            heard: 0,
+            version: Version::default(),
+            jobs: std::collections::VecDeque::new(),
+            seen: BTreeSet::new(),
+            stepping: false,
+            ready_since: None,
+        }
+    }
 }
 
 /// A run's verdict, kept for the summary.
@@ -153,8 +269,14 @@ struct Tally {
     takeovers: Vec<u64>,
     /// Periods from the holder's silencing (crash, pause, cut) to another member's first
     /// applied command, counted only when another member was free of faults, followed
-    /// the device warm, and the links lost nothing: the takeover the issue bounds.
+    /// the device warm and in step with the holder, and the links lost nothing: the
+    /// takeover the issue bounds.
     clean: Vec<u64>,
+    /// Operators' changes: sent, acknowledged, and acknowledged but lost with every
+    /// member that held them (crashed, so restarted from the file).
+    changes: u64,
+    acked: u64,
+    lost_with_holders: u64,
 }
 
 struct Sim {
@@ -190,6 +312,14 @@ struct Sim {
     /// A silenced holder (its name) and the period it went silent, while a takeover is
     /// awaited.
     watch: Option<(String, u64)>,
+    /// Changes acknowledged to the operator, and when; those lost since with every member
+    /// that held them.
+    acked: HashMap<u32, u64>,
+    lost: BTreeSet<u32>,
+    next_change: u32,
+    next_job: u64,
+    /// When the operator sends its next change (ms).
+    next_op: u64,
 }
 
 fn channel() -> ChannelConfig {
@@ -238,7 +368,7 @@ impl Sim {
             let to = (from + H * (1 + rng.below(300))).min(horizon);
             windows.push(Window { fault, from, to });
         }
-        let run_id = rng.next() | 1;
+        let run_id = (rng.next() >> 2) | 1;
         let rogue = rng.below(3) == 0;
         Self {
             rogue,
@@ -249,17 +379,13 @@ impl Sim {
             dup: rng.pick(&[0.0, 0.01, 0.05]),
             delay: (rng.below(6), rng.below(14)),
             members: (0..MEMBERS)
-                .map(|i| Member {
-                    name: format!("m{i}"),
-                    instance: 1,
-                    claimer: Claimer::default(),
-                    run: 0,
-                    stepped: 0,
-                    frozen_view: None,
-                    backlog: Vec::new(),
-                    down: false,
-                })
+                .map(|i| Member::new(format!("m{i}"), 1, false))
                 .collect(),
+            acked: HashMap::new(),
+            lost: BTreeSet::new(),
+            next_change: 1,
+            next_job: 1,
+            next_op: 300,
             rng,
             t: 0,
             windows,
@@ -304,14 +430,16 @@ impl Sim {
         if a == b {
             return true;
         }
-        if self.crashed(b) || self.active(Fault::Split(a)) || self.active(Fault::Split(b)) {
+        // A crashed member's connections close: it leaves at once. A paused one, or a
+        // partition, is noticed when zenoh's lease on the silent link ends.
+        if self.crashed(b) {
             return false;
         }
-        // A paused member is seen until zenoh's lease on its silent link ends.
-        !self
-            .windows
-            .iter()
-            .any(|w| w.fault == Fault::Pause(b) && w.from + ZENOH_LEASE <= self.t && self.t < w.to)
+        let late = |w: &Window| w.from + ZENOH_LEASE <= self.t && self.t < w.to;
+        !self.windows.iter().any(|w| {
+            let cut = matches!(w.fault, Fault::Split(x) if x == a || x == b);
+            (w.fault == Fault::Pause(b) || cut) && late(w)
+        })
     }
 
     fn view(&self, m: usize) -> BTreeSet<String> {
@@ -377,6 +505,8 @@ impl Sim {
         let vacant = s.holder.is_empty();
         let cmd = CommandMsg {
             from: "rogue".into(),
+            state: std::rc::Rc::new(Vec::new()),
+            sent_at: self.t,
             instance: 9,
             run_id: s.run_id,
             seq: s.seq,
@@ -400,23 +530,47 @@ impl Sim {
             // Neither owner nor standby: not subscribed to the shard.
             return;
         }
+        let sees_holder = Some(view.contains(&s.holder));
+        let t = self.t;
         let member = &mut self.members[m];
+        // A second of silence (`GAP_NS`) may hide changes of holder.
+        let gap = member.heard > 0 && t - member.heard > 1000;
         if member.run != s.run_id {
             member.run = s.run_id;
             member.stepped = 0;
         }
         member.stepped = member.stepped.saturating_add(1);
+        member.holder.clone_from(&s.holder);
+        member.epoch = s.epoch;
+        member.heard = t;
         let seen = Seen {
             granted: true,
+            run: s.run_id,
             holder: &s.holder,
             instance: s.instance,
             epoch: s.epoch,
         };
         let mine = (me.as_str(), member.instance);
         let warm = member.stepped > WARMUP;
-        let decision = member
-            .claimer
-            .decide(&self.policy, mine, (rank == 0, warm), seen);
+        let st = Standing {
+            preferred: rank == 0,
+            warm,
+            sees_holder,
+            gap,
+        };
+        let before = member.claimer.holder;
+        let decision = member.claimer.decide(&self.policy, mine, st, seen);
+        if self.trace && matches!(decision, Decision::Send { claim: true, .. }) {
+            eprintln!("t {t} m{m} claims: {:?} {st:?}", member.claimer);
+        }
+        let took = before != Holder::Me && member.claimer.holder == Holder::Me;
+        if took || member.claimer.hand_over_due(&self.policy) {
+            // Its state goes to its partners when it takes the lease and halfway to a
+            // yield (`Worker::hand_over`).
+            let partners = self.partners(m);
+            self.queue_job(m, None, partners);
+        }
+        let member = &mut self.members[m];
         let Decision::Send {
             epoch,
             claim,
@@ -427,6 +581,8 @@ impl Sim {
         };
         let cmd = CommandMsg {
             instance: member.instance,
+            state: std::rc::Rc::new(member.state.clone()),
+            sent_at: t,
             from: me,
             run_id: s.run_id,
             seq: s.seq,
@@ -480,6 +636,27 @@ impl Sim {
     fn check_applied(&mut self, c: &CommandMsg) {
         let lease = self.sup.lease().expect("leases granted");
         self.tally.applied += 1;
+        if c.from != "rogue" {
+            let missing = self.acked.iter().find(|(ch, at)| {
+                **at <= c.sent_at && !self.lost.contains(*ch) && !c.state.contains(*ch)
+            });
+            let missing = missing.map(|(ch, at)| (*ch, *at));
+            // Lost with its holders: every member holding it can no longer command the
+            // plant (crashed, stopped, or cut off from it), and one behind took over after
+            // waiting for them (`LeasePolicy::behind_delay`).
+            let from = c.from.as_str();
+            let lost = |ch: u32| self.unavailable_holders(ch, from, c.sent_at);
+            if let Some((ch, _)) = missing.filter(|(ch, _)| lost(*ch)) {
+                self.lost.insert(ch);
+                self.tally.lost_with_holders += 1;
+            } else if let Some((ch, at)) = missing {
+                self.fail(format!(
+                    "change {ch}, acknowledged at {at} ms, missing from the configuration \
+                     of {}, whose command sent at {} ms was applied",
+                    c.from, c.sent_at
+                ));
+            }
+        }
         if c.run_id != self.run_id {
             self.fail(format!("a command of run {:#x} applied", c.run_id));
         }
@@ -516,7 +693,7 @@ impl Sim {
         }
         if let Some((_, since)) = self.watch.take_if(|(h, _)| *h != c.from) {
             self.tally.clean.push(self.k - since);
-            if self.trace && self.k - since > 10 {
+            if (self.trace || std::env::var_os("MFC_LEASE_SLOW").is_some()) && self.k - since > 10 {
                 eprintln!(
                     "slow takeover: seed {}, period {}, faults {:?}",
                     self.seed, self.k, self.windows
@@ -572,7 +749,8 @@ impl Sim {
             .iter()
             .any(|w| w.fault == Fault::AgentRestart && w.from / H * H == self.t && self.t > 0)
         {
-            self.run_id = self.rng.next() | 1;
+            // Run ids grow from start to start (`plant::run_id`).
+            self.run_id += 1 + self.rng.below(1 << 20);
             self.sup = supervisor(self.run_id);
             // Someone captured the last run's commands and plays each one back when the
             // new run reaches its sequence number: same holder names, same epochs.
@@ -640,16 +818,24 @@ impl Sim {
             return;
         };
         let calm = !self.active(Fault::Lossy) && self.loss == 0.0;
+        let fleet = Standing {
+            preferred: false,
+            warm: true,
+            sees_holder: Some(true),
+            gap: false,
+        };
         // Another member free of faults that follows the device (owner or standby in its
-        // own view of the fleet) and is warm: it has stepped this run past the warm-up.
+        // own view of the fleet), is warm (it has stepped this run past the warm-up) and
+        // in step with the holder (a member behind waits longer, by design).
         let ready = |o: usize| {
+            let in_step = !self.members[o].claimer.behind(fleet);
             let view = self.view(o);
             let follows = ranked(0, &view)
                 .iter()
                 .position(|n| *n == self.members[o].name)
                 .is_some_and(|r| r <= 1);
             let warm = self.members[o].run == self.run_id && self.members[o].stepped > WARMUP;
-            o != m && self.healthy(o) && follows && warm
+            o != m && self.healthy(o) && follows && warm && in_step
         };
         if calm && self.silenced(m) && (0..MEMBERS).any(ready) {
             self.watch = Some((h, self.k));
@@ -658,6 +844,20 @@ impl Sim {
 
     /// Members that just resumed serve what waited; crashed ones lose everything.
     fn members_tick(&mut self) {
+        let fleet = Standing {
+            preferred: false,
+            warm: true,
+            sees_holder: Some(true),
+            gap: false,
+        };
+        for m in 0..MEMBERS {
+            let ready = !self.silenced(m)
+                && !self.active(Fault::CutToMember(m))
+                && self.members[m].stepping
+                && !self.members[m].claimer.behind(fleet);
+            let since = self.members[m].ready_since;
+            self.members[m].ready_since = if ready { since.or(Some(self.t)) } else { None };
+        }
         for m in 0..MEMBERS {
             if self.crashed(m) {
                 if self.members[m].down {
@@ -665,16 +865,8 @@ impl Sim {
                 }
                 let name = self.members[m].name.clone();
                 let instance = self.members[m].instance + 1;
-                self.members[m] = Member {
-                    name,
-                    instance,
-                    claimer: Claimer::default(),
-                    run: 0,
-                    stepped: 0,
-                    frozen_view: None,
-                    backlog: Vec::new(),
-                    down: true,
-                };
+                self.members[m] = Member::new(name, instance, true);
+                self.forget_lost();
             } else if self.paused(m) {
                 if self.members[m].frozen_view.is_none() {
                     let v = self.view(m);
@@ -692,6 +884,299 @@ impl Sim {
         }
     }
 
+    /// Whether members `a` and `b` reach each other (a stopped one reads later).
+    fn linked(&self, a: usize, b: usize) -> bool {
+        !self.crashed(a)
+            && !self.crashed(b)
+            && !self.active(Fault::Split(a))
+            && !self.active(Fault::Split(b))
+    }
+
+    /// The rank of member `m` for the device's shard in its own view, if it steps it.
+    fn rank(&self, m: usize) -> Option<usize> {
+        let view = self.view(m);
+        ranked(0, &view)
+            .iter()
+            .position(|n| *n == self.members[m].name)
+            .filter(|&r| r <= 1)
+    }
+
+    /// The members that must hold a change member `m` makes (`Fleet::partners`).
+    fn partners(&self, m: usize) -> Vec<usize> {
+        let view = self.view(m);
+        ranked(0, &view)
+            .into_iter()
+            .take(2)
+            .filter_map(|n| (0..MEMBERS).find(|&o| self.members[o].name == n))
+            .filter(|&o| o != m)
+            .collect()
+    }
+
+    /// Now and then an operator changes the device's configuration, through whichever
+    /// member answers operators about it (`answers_device`), which acknowledges as the
+    /// service does (`to_hold`, `may_acknowledge`).
+    fn operate(&mut self) {
+        if self.t < self.next_op || self.t + OPERATOR_TIMEOUT >= (FAULTY + CALM) * H {
+            return;
+        }
+        self.next_op = self.t + 150 + self.rng.below(250);
+        let answering: Vec<usize> = (0..MEMBERS)
+            .filter(|&m| !self.crashed(m) && !self.paused(m))
+            .filter(|&m| match self.members[m].claimer.holder {
+                Holder::Me => true,
+                Holder::Other => false,
+                _ => self.rank(m) == Some(0),
+            })
+            .collect();
+        if answering.is_empty() {
+            return;
+        }
+        let m = self.rng.pick(&answering);
+        let change = self.next_change;
+        self.next_change += 1;
+        self.tally.changes += 1;
+        let member = &mut self.members[m];
+        member.state.push(change);
+        if member.claimer.holder == Holder::Me {
+            member.version = member.version.next(member.run, member.epoch);
+        }
+        let member = &self.members[m];
+        let may = match member.claimer.holder {
+            Holder::Me => self.t.saturating_sub(member.heard) <= LIVE,
+            Holder::Vacant | Holder::Other => false,
+            Holder::Nobody | Holder::Unknown => true,
+        };
+        let partners = self.partners(m);
+        if self.trace {
+            eprintln!(
+                "t {} change {change} on m{m} (holder {:?}, may {may}, partners {partners:?})",
+                self.t, member.claimer.holder
+            );
+        }
+        if may && !partners.is_empty() {
+            self.queue_job(m, Some((change, self.t)), partners);
+        }
+    }
+
+    fn queue_job(&mut self, m: usize, change: Option<(u32, u64)>, partners: Vec<usize>) {
+        let id = self.next_job;
+        self.next_job += 1;
+        let handed = self.handed(m);
+        self.members[m].jobs.push_back(Job {
+            id,
+            change,
+            handed,
+            partners,
+            started: None,
+            held: BTreeSet::new(),
+            answered: BTreeSet::new(),
+            behind: false,
+        });
+    }
+
+    /// Member `m`'s state as it hands it (`Registry::handed`).
+    fn handed(&self, m: usize) -> Handed {
+        let member = &self.members[m];
+        Handed {
+            state: member.state.clone(),
+            version: member.version,
+            holds: (member.claimer.holder == Holder::Me).then_some((member.run, member.epoch)),
+            heard: (member.run, member.epoch),
+        }
+    }
+
+    /// Each running member's replicator: the job at the head of its queue sends its holds,
+    /// then ends when every partner held it or the time is up. A member that sees another
+    /// come into view sends it the states of the devices it commands (`send_commanded`).
+    fn replicate(&mut self) {
+        for m in 0..MEMBERS {
+            if self.crashed(m) || self.paused(m) {
+                continue;
+            }
+            self.replicate_head(m);
+            // Changes of view, every 5 ms (a member hears of them through liveliness).
+            if self.t % 5 != 0 {
+                continue;
+            }
+            let view = self.view(m);
+            let new: Vec<String> = view.difference(&self.members[m].seen).cloned().collect();
+            self.members[m].seen = view;
+            let stepping = self.rank(m).is_some();
+            if !stepping && self.members[m].stepping {
+                // It no longer follows the shard: its devices' state is dropped
+                // (`ShardAction::Unsubscribe`, `Registry::forget_shard`).
+                let member = &mut self.members[m];
+                member.claimer = Claimer::default();
+                member.state.clear();
+                member.version = Version::default();
+            }
+            if stepping && !self.members[m].stepping {
+                for o in self.partners(m) {
+                    let cut = !self.linked(m, o);
+                    self.send(Payload::Copy { from: m, to: o }, cut);
+                }
+            }
+            self.members[m].stepping = stepping;
+            if self.members[m].claimer.holder == Holder::Me {
+                for n in new {
+                    let partners = self.partners(m);
+                    if let Some(o) = partners.into_iter().find(|&o| self.members[o].name == n) {
+                        self.queue_job(m, None, vec![o]);
+                    }
+                }
+            }
+        }
+    }
+
+    fn replicate_head(&mut self, m: usize) {
+        let t = self.t;
+        let Some(job) = self.members[m].jobs.front_mut() else {
+            return;
+        };
+        if job.started.is_none() {
+            job.started = Some(t);
+            let (id, handed, partners) = (job.id, job.handed.clone(), job.partners.clone());
+            for to in partners {
+                let cut = !self.linked(m, to);
+                let p = Payload::Hold {
+                    from: m,
+                    to,
+                    job: id,
+                    handed: handed.clone(),
+                };
+                self.send(p, cut);
+            }
+            return;
+        }
+        let done = job.partners.iter().all(|p| job.held.contains(p));
+        let answered = job.partners.iter().all(|p| job.answered.contains(p));
+        if !answered && t <= job.started.unwrap_or(t) + HOLD_TIMEOUT {
+            return;
+        }
+        let job = self.members[m].jobs.pop_front().expect("a head");
+        if job.change.is_none() {
+            // States sent without a change: the holder learns whether its partners are in
+            // step with it (`Msg::HandedOver`).
+            let in_step = done && !job.behind;
+            self.members[m].claimer.handed_over(in_step);
+        }
+        if let Some((change, asked)) = job.change {
+            if self.trace {
+                eprintln!("t {t} change {change} on m{m}: held by {:?}", job.held);
+            }
+            if done && t - asked <= OPERATOR_TIMEOUT {
+                self.acked.insert(change, t);
+                self.tally.acked += 1;
+            }
+        }
+    }
+
+    /// Member `to` is asked by `from` to hold `state` (`Fleet::hold`, `hold_state`,
+    /// `from_holder`).
+    fn on_hold(&mut self, from: usize, to: usize, job: u64, handed: Handed) {
+        let sender = self.members[from].name.clone();
+        // A hold is taken by a member that steps the shard, from a member in its view
+        // (`Fleet::hold`); a copy's answer by one that steps it (`restore_handed`).
+        let view = self.view(to);
+        let steps = self.rank(to).is_some() && (job == 0 || view.contains(&sender));
+        let member = &mut self.members[to];
+        // `Registry::restore_shard`: never an older configuration, nor the same one over
+        // the holder's own; in step with a holder under an epoch not older than heard.
+        let mine = member.claimer.holder == Holder::Me;
+        // A change to hold comes from the holder the plant last named here, or is refused
+        // (`Registry::hold_shard`).
+        let leased = matches!(
+            member.claimer.holder,
+            Holder::Me | Holder::Other | Holder::Vacant
+        );
+        let from_holder = job == 0
+            || !leased
+            || handed
+                .holds
+                .is_some_and(|k| k >= (member.run, member.epoch));
+        let ok = steps
+            && from_holder
+            && !(handed.version < member.version || mine && handed.version == member.version);
+        let same = steps && from_holder && mine && handed.version == member.version;
+        if self.trace {
+            eprintln!(
+                "t {} m{to} handed by {sender} {:?} at {:?}: {ok} (steps {steps}, own {:?})",
+                self.t, handed.state, handed.version, member.version
+            );
+        }
+        if ok {
+            member.state = handed.state;
+            member.version = handed.version;
+        }
+        let heard = (member.run, member.epoch);
+        if let Some(k) = handed.holds.filter(|k| (ok || same) && *k >= heard) {
+            member.claimer.caught_up(k);
+        } else if ok || same {
+            member.claimer.heard_of(handed.heard);
+        }
+        let ok = ok || same;
+        if job == 0 {
+            return;
+        }
+        let fleet = Standing {
+            preferred: false,
+            warm: true,
+            sees_holder: Some(true),
+            gap: false,
+        };
+        let in_step = !self.members[to].claimer.behind(fleet);
+        let cut = !self.linked(from, to);
+        let p = Payload::Held {
+            to: from,
+            by: to,
+            job,
+            ok,
+            in_step,
+        };
+        self.send(p, cut);
+    }
+
+    fn on_held(&mut self, to: usize, by: usize, job: u64, in_step: bool, ok: bool) {
+        if let Some(j) = self.members[to].jobs.front_mut().filter(|j| j.id == job) {
+            j.answered.insert(by);
+            if ok {
+                j.held.insert(by);
+                j.behind |= !in_step;
+            }
+        }
+    }
+
+    /// Whether no member but `sender` that holds change `ch` could have commanded the
+    /// plant in step through the wait of a member behind (`LeasePolicy::behind_delay`)
+    /// before `sent_at` (the sender may have taken the change back since from another
+    /// member): each was crashed, stopped, cut off from the plant, not following the
+    /// shard, or unsure that it was in step (it lost sight of the holder, or heard
+    /// nothing for a long while) at some time in it.
+    fn unavailable_holders(&self, ch: u32, sender: &str, sent_at: u64) -> bool {
+        let wait = u64::from(self.policy.behind_delay) * H;
+        (0..MEMBERS)
+            .filter(|&m| self.members[m].name != sender && self.members[m].state.contains(&ch))
+            .all(|m| {
+                self.members[m]
+                    .ready_since
+                    .is_none_or(|r| r + wait > sent_at)
+            })
+    }
+
+    /// Acknowledged changes that no member holds any more (every one that held them
+    /// crashed, restarting from its file): lost with their holders, not by the rules.
+    fn forget_lost(&mut self) {
+        let gone: Vec<u32> = self
+            .acked
+            .keys()
+            .filter(|c| !self.lost.contains(*c))
+            .filter(|c| !self.members.iter().any(|m| m.state.contains(*c)))
+            .copied()
+            .collect();
+        self.tally.lost_with_holders += gone.len() as u64;
+        self.lost.extend(gone);
+    }
+
     fn deliver(&mut self) {
         let now = self.t;
         let mut due: Vec<(u64, u64, Payload)> = Vec::new();
@@ -706,12 +1191,45 @@ impl Sim {
         // Same-millisecond arrivals in a seeded random order.
         due.sort_by_key(|f| (f.1.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ self.seed, f.1));
         for (_, _, p) in due {
-            match p {
+            match p.clone() {
                 Payload::Sample(m, s) if self.crashed(m) => drop(s),
                 Payload::Sample(m, s) if self.paused(m) => self.members[m].backlog.push(s),
                 Payload::Sample(m, s) => self.on_sample(m, &s),
                 Payload::Command(c) => self.on_command(&c),
                 Payload::Rogue(s) => self.on_rogue(&s),
+                Payload::Hold { to, .. } | Payload::Held { to, .. } | Payload::Copy { to, .. }
+                    if self.crashed(to) => {}
+                Payload::Hold { to, .. } | Payload::Held { to, .. } | Payload::Copy { to, .. }
+                    if self.paused(to) =>
+                {
+                    // A stopped process reads it when it resumes.
+                    self.order += 1;
+                    self.flight.push((now + 1, self.order, p));
+                }
+                Payload::Hold {
+                    from,
+                    to,
+                    job,
+                    handed,
+                } => self.on_hold(from, to, job, handed),
+                Payload::Held {
+                    to,
+                    by,
+                    job,
+                    ok,
+                    in_step,
+                } => self.on_held(to, by, job, ok && in_step, ok),
+                Payload::Copy { from, to } => {
+                    let handed = self.handed(to);
+                    let cut = !self.linked(from, to);
+                    let p = Payload::Hold {
+                        from: to,
+                        to: from,
+                        job: 0,
+                        handed,
+                    };
+                    self.send(p, cut);
+                }
             }
         }
     }
@@ -741,6 +1259,8 @@ impl Sim {
             }
             self.members_tick();
             self.deliver();
+            self.operate();
+            self.replicate();
             self.t += 1;
         }
         self.end_period();
@@ -790,6 +1310,14 @@ fn one_holder_per_period_under_random_faults() {
     let started = std::time::Instant::now();
     let (mut runs, mut total) = (0u64, Tally::default());
     for seed in seeds() {
+        if std::env::var_os("MFC_LEASE_SURVEY").is_some() {
+            // Count the failing seeds instead of stopping at the first (a survey).
+            let r = std::panic::catch_unwind(|| Sim::new(seed).run());
+            if r.is_err() {
+                eprintln!("SURVEY failed seed {seed}");
+            }
+            continue;
+        }
         let t = Sim::new(seed).run();
         runs += 1;
         total.applied += t.applied;
@@ -797,10 +1325,17 @@ fn one_holder_per_period_under_random_faults() {
         total.grants += t.grants;
         total.takeovers.extend(t.takeovers);
         total.clean.extend(t.clean);
+        total.changes += t.changes;
+        total.acked += t.acked;
+        total.lost_with_holders += t.lost_with_holders;
     }
     // Something was judged: commands were applied, and some were fenced off.
     assert!(total.applied > runs * (FAULTY + CALM) / 2);
     assert!(runs < 100 || total.fenced > 0);
+    assert!(
+        runs < 100 || total.acked > total.changes / 4,
+        "changes were acknowledged"
+    );
     let n = total.takeovers.len();
     let (p50, p99, max) = (
         percentile(&mut total.takeovers, 0.5),
@@ -813,15 +1348,24 @@ fn one_holder_per_period_under_random_faults() {
         percentile(&mut total.clean, 0.99),
         total.clean.iter().max().copied().unwrap_or(0),
     );
-    eprintln!(
+    // Straight to stderr, past the test harness's capture: the figures show in CI's log.
+    let _ = writeln!(
+        std::io::stderr(),
         "{runs} fault schedules in {:.1} s: {} commands applied, {} fenced, {} leases granted; \
          {n} changes of holder after silence, periods from the first silent one to the new \
          holder's first command: p50 {p50}, p99 {p99}, max {max}; {m} takeovers of a \
-         silenced holder with a healthy member and no loss, periods from the silencing to \
-         the new holder's first command: p50 {c50}, p99 {c99}, max {cmax}",
+         silenced holder with a healthy member in step and no loss, periods from the \
+         silencing to \
+         the new holder's first command: p50 {c50}, p99 {c99}, max {cmax}; operators' \
+         changes: {} made, {} acknowledged, none lost but {} with every member that held \
+         them (each crashed, stopped, cut off from the plant, or itself behind, for the \
+         whole wait of a member behind)",
         started.elapsed().as_secs_f64(),
         total.applied,
         total.fenced,
-        total.grants
+        total.grants,
+        total.changes,
+        total.acked,
+        total.lost_with_holders
     );
 }

@@ -14,7 +14,7 @@ use protocol::{pb, PROTOCOL_VERSION};
 use super::{latency, REORDER_WINDOW, RESYNC_AFTER};
 use crate::config::{DeviceChannel, Prediction};
 use crate::envelope::Limits;
-use crate::lease::Claimer;
+use crate::lease::{Claimer, Holder, Version};
 use protocol::MAX_HORIZON;
 
 /// Most recent round trips kept per device for the status percentiles; older ones drop out.
@@ -173,6 +173,10 @@ pub(super) struct Device {
     pub(super) home: u32,
     /// This member's side of the plant's command lease ([`crate::lease`]).
     pub(super) claimer: Claimer,
+    /// When its last sample was stepped here (Unix ns; 0: never).
+    pub(super) heard_unix_ns: u64,
+    /// Which changes its configuration holds ([`crate::lease::Version`]).
+    pub(super) version: Version,
     /// The lease as the last sample reported it: holder (at most an id's length), epoch,
     /// and the plant's count of refused commands.
     pub(super) lease_holder: String,
@@ -317,6 +321,43 @@ impl Schedule {
 }
 
 impl Device {
+    /// A change was accepted: numbered after the last if this member holds the plant's
+    /// lease (only the holder's changes are ever acknowledged), left as it was otherwise.
+    pub(super) fn changed(&mut self) {
+        if self.claimer.holder == Holder::Me {
+            self.version = self
+                .version
+                .next(self.run_id.unwrap_or(0), self.lease_epoch);
+        }
+    }
+
+    /// Why a change to hold, sent by a member that holds the lease under `holds` (if it
+    /// does), is not from the device's holder as heard here; `None` if it is, or if the
+    /// device is under no lease here.
+    pub(super) fn not_holder(&self, holds: Option<(u64, u64)>) -> Option<String> {
+        let leased = matches!(
+            self.claimer.holder,
+            Holder::Me | Holder::Other | Holder::Vacant
+        );
+        match holds {
+            _ if !leased => None,
+            Some(k) if k >= self.lease_key() => None,
+            Some(k) => Some(format!(
+                "sent under epoch {} of run {:#x}; epoch {} of run {:#x} heard here since",
+                k.1,
+                k.0,
+                self.lease_epoch,
+                self.run_id.unwrap_or(0)
+            )),
+            None => Some("sent by a member that does not hold the device's lease".into()),
+        }
+    }
+
+    /// The run and epoch of the lease as last heard here.
+    pub(super) fn lease_key(&self) -> (u64, u64) {
+        (self.run_id.unwrap_or(0), self.lease_epoch)
+    }
+
     /// The counters a snapshot keeps, in its order (`DeviceSnapshot::counters`).
     pub(super) fn counters(&self) -> [u64; 7] {
         [
@@ -370,6 +411,8 @@ impl Device {
         Ok(Self {
             home: 0,
             claimer: Claimer::default(),
+            heard_unix_ns: 0,
+            version: Version::default(),
             lease_holder: String::new(),
             lease_epoch: 0,
             lease_refused: 0,

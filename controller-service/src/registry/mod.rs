@@ -50,7 +50,7 @@ use std::collections::{BTreeSet, HashMap, VecDeque};
 use protocol::{pb, printable, PROTOCOL_VERSION};
 
 use crate::config::ServiceConfig;
-use crate::lease::{LeasePolicy, Seen};
+use crate::lease::{LeasePolicy, Seen, Standing};
 use device::{reply, Device, DeviceKey};
 pub use shards::Restored;
 
@@ -227,6 +227,11 @@ pub struct Registry {
     controller_id: String,
     /// When this member claims and yields plants' leases.
     lease_policy: LeasePolicy,
+    /// The fleet's members this one sees (`None` without a fleet): a member that does not
+    /// see a device's holder may lack its changes ([`crate::lease::Claimer::behind`]).
+    view: Option<std::collections::BTreeSet<String>>,
+    /// Devices whose state is to go to their partners ([`Registry::take_handing`]).
+    handing: Vec<String>,
     /// This process among those that may carry the same controller id: the plant's lease
     /// names it ([`Registry::set_instance`]).
     instance: u64,
@@ -273,6 +278,8 @@ impl Registry {
         Ok(Self {
             controller_id: config.controller_id.clone(),
             lease_policy: LeasePolicy::default(),
+            view: None,
+            handing: Vec::new(),
             instance: 0,
             secret: None,
             config,
@@ -432,10 +439,11 @@ impl Registry {
                 rejected: &mut self.rejected,
                 now_unix_ns,
                 lease: &self.lease_policy,
+                view: self.view.as_ref(),
                 instance: self.instance,
                 ordered_runs: self.secret.is_some(),
             };
-            return served(step::answer(cx, d, via, s, out), false);
+            return served(step::answer((cx, &mut self.handing), d, via, s, out), false);
         }
         // Not served yet (the rare path): a template may provision it, and then it is
         // served as any other.
@@ -451,10 +459,11 @@ impl Registry {
             rejected: &mut self.rejected,
             now_unix_ns,
             lease: &self.lease_policy,
+            view: self.view.as_ref(),
             instance: self.instance,
             ordered_runs: self.secret.is_some(),
         };
-        served(step::answer(cx, d, via, s, out), true)
+        served(step::answer((cx, &mut self.handing), d, via, s, out), true)
     }
 
     /// Count a sample whose device cannot be served (rule 1).
@@ -497,11 +506,78 @@ impl Registry {
             reason,
         );
         let me = (self.controller_id.as_str(), self.instance);
-        let decision = d
-            .claimer
-            .decide(&self.lease_policy, me, (preferred, true), Seen::of(s));
+        let decision = d.claimer.decide(
+            &self.lease_policy,
+            me,
+            Standing::plain(preferred, true),
+            Seen::of(s),
+        );
         decision.stamp(s.run_id, self.instance, &mut cmd);
         Some((cmd, decision.sends()))
+    }
+
+    /// The fleet's members this one sees now (the wiring sets it at every change of view).
+    pub fn set_view(&mut self, members: &std::collections::BTreeSet<String>) {
+        self.view = Some(members.clone());
+    }
+
+    /// The devices whose lease this member just took, or will soon yield to the
+    /// preferred member, in the order they came due: the wiring sends their state to the
+    /// device's partners, so that they are in step with it (and the preferred member
+    /// claims in step).
+    pub fn take_handing(&mut self) -> Vec<String> {
+        std::mem::take(&mut self.handing)
+    }
+
+    /// The id of the member holding device `id`'s lease at its last sample (empty:
+    /// vacant or none granted).
+    pub fn lease_holder_id(&self, id: &str) -> Option<&str> {
+        self.devices.get(id).map(|d| d.lease_holder.as_str())
+    }
+
+    /// How recently the member holding device `id`'s lease must have heard it to be sure
+    /// enough it still commands it: five periods (the agent's lease lapses after three
+    /// without a command), 50 ms at least; one second while the period is not known.
+    pub fn live_ns(&self, id: &str) -> u64 {
+        let period = self.devices.get(id).and_then(|d| d.period());
+        period.map_or(1_000_000_000, |p| ((5.0 * p).max(0.05) * 1e9) as u64)
+    }
+
+    /// Whether this member's partners are in step with it for device `id`
+    /// ([`crate::lease::Claimer::handed_over`]).
+    pub fn handed_over(&mut self, id: &str, in_step: bool) {
+        if let Some(d) = self.devices.get_mut(id) {
+            d.claimer.handed_over(in_step);
+        }
+    }
+
+    /// Whether this member is in step with the holder of device `id`'s lease (see
+    /// [`crate::lease::Claimer::behind`]; always without a fleet, or for a device not
+    /// served).
+    pub fn in_step(&self, id: &str) -> bool {
+        let fleet = crate::lease::Standing {
+            preferred: false,
+            warm: true,
+            sees_holder: self.view.as_ref().map(|_| true),
+            gap: false,
+        };
+        self.devices
+            .get(id)
+            .is_none_or(|d| !d.claimer.behind(fleet))
+    }
+
+    /// When device `id`'s last sample was stepped here (Unix ns, as the
+    /// caller passed it to [`Registry::handle_sample`]; 0: never).
+    pub fn heard_unix_ns(&self, id: &str) -> u64 {
+        self.devices.get(id).map_or(0, |d| d.heard_unix_ns)
+    }
+
+    /// Who held device `id`'s lease at its last sample (`Unknown` for a device not
+    /// served or not heard yet).
+    pub fn lease_holder(&self, id: &str) -> crate::lease::Holder {
+        self.devices
+            .get(id)
+            .map_or(crate::lease::Holder::Unknown, |d| d.claimer.holder)
     }
 
     /// Status of one device.

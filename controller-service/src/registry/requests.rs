@@ -113,6 +113,7 @@ impl Registry {
 fn refused(reason: String, config: Option<pb::DeviceConfig>) -> pb::ConfigReply {
     pb::ConfigReply {
         version: PROTOCOL_VERSION,
+        held_by: Vec::new(),
         accepted: false,
         reason,
         config,
@@ -127,9 +128,13 @@ fn conclude(
     id: &str,
     applied: Result<(), String>,
 ) -> pb::ConfigReply {
+    if applied.is_ok() {
+        d.changed();
+    }
     match applied {
         Ok(()) => pb::ConfigReply {
             version: PROTOCOL_VERSION,
+            held_by: Vec::new(),
             accepted: true,
             reason: String::new(),
             config: Some(d.config_pb(id)),

@@ -15,7 +15,9 @@ use crate::snapshot::{DeviceSnapshot, HandedDevice, ShardState, SNAPSHOT_VERSION
 pub struct Restored {
     /// Devices restored.
     pub restored: usize,
-    /// Devices refused: their id (printable) and why.
+    /// Devices whose state here is already as new (the same changes), kept.
+    pub same: usize,
+    /// Devices refused: their id (printable) and why (an older configuration among them).
     pub refused: Vec<(String, String)>,
 }
 
@@ -67,12 +69,63 @@ impl Registry {
     /// previous owner had it (configuration, envelope, estimators, sequence), so the next
     /// sample continues bumplessly. Returns how many were restored, and each device
     /// refused with its reason (for the caller to log).
+    ///
+    /// A handed state replaces this member's only if its configuration is not older
+    /// ([`crate::lease::Version`]), and not a state as new while this member holds the
+    /// device's lease (its own is the one in force). A device handed by the member that
+    /// holds its lease, under an epoch not older than this member has heard, with every
+    /// change this member now holds, is in step with the holder
+    /// ([`crate::lease::Claimer::caught_up`]).
     pub fn restore_shard(&mut self, state: &ShardState) -> Restored {
+        self.take_shard(state, false)
+    }
+
+    /// [`Registry::restore_shard`] for a change to hold (or the states a holder sends its
+    /// partners): besides, a device under a lease is taken only from the member that
+    /// holds it, under an epoch not older than this member has heard. A member cut off
+    /// from the plant, which still believes it holds, cannot have its changes held here
+    /// once this member has heard of its successor.
+    pub fn hold_shard(&mut self, state: &ShardState) -> Restored {
+        self.take_shard(state, true)
+    }
+
+    fn take_shard(&mut self, state: &ShardState, hold: bool) -> Restored {
         let mut out = Restored::default();
         for h in &state.devices {
-            match self.restore_handed(h) {
-                Ok(()) => out.restored += 1,
-                Err(reason) => out.refused.push((printable(&h.snapshot.id), reason)),
+            let id = h.snapshot.id.as_str();
+            if hold {
+                if let Some(why) = self.devices.get(id).and_then(|d| d.not_holder(h.holds)) {
+                    out.refused.push((printable(id), why));
+                    continue;
+                }
+            }
+            let here = self.devices.get(id).map(|d| {
+                let holds = d.claimer.holder == crate::lease::Holder::Me;
+                (d.version, holds, d.lease_key())
+            });
+            let heard = here.map_or((0, 0), |x| x.2);
+            match here {
+                Some((v, _, _)) if h.config_version < v => {
+                    let why = format!("its configuration ({v:?}) is newer than the one handed");
+                    out.refused.push((printable(id), why));
+                    continue;
+                }
+                Some((v, true, _)) if h.config_version == v => out.same += 1,
+                _ => match self.restore_handed(h) {
+                    Ok(()) => out.restored += 1,
+                    Err(reason) => {
+                        out.refused.push((printable(id), reason));
+                        continue;
+                    }
+                },
+            }
+            if let Some(d) = self.devices.get_mut(id) {
+                d.version = d.version.max(h.config_version);
+                if let Some(k) = h.holds.filter(|k| *k >= heard) {
+                    d.claimer.caught_up(k);
+                } else {
+                    d.claimer.heard_of(h.heard);
+                }
             }
         }
         out
@@ -93,7 +146,9 @@ impl Registry {
             l.check()?;
         }
         // Build the device if this member never saw it, then narrow its envelope to the
-        // handed one: a handover never widens what the file allows here.
+        // handed one: a handover never widens what the file allows here. Where the file
+        // allows remote widening (the same file on every member), the handed envelope is
+        // taken as it is: a widening the owner acknowledged is held here too.
         if !self.devices.contains_key(h.snapshot.id.as_str()) {
             self.provision(&h.snapshot.id)
                 .map_err(|why| format!("cannot serve it here: {why:?}"))?;
@@ -109,11 +164,18 @@ impl Registry {
                 d.envelope.len()
             ));
         }
+        let widen = self.config.allow_remote_widening;
         let narrowed: Vec<Limits> = d
             .envelope
             .iter()
             .zip(&envelope)
-            .map(|(mine, theirs)| mine.intersect(theirs))
+            .map(|(mine, theirs)| {
+                if widen {
+                    *theirs
+                } else {
+                    mine.intersect(theirs)
+                }
+            })
             .collect();
         for l in &narrowed {
             l.check()?;
@@ -200,6 +262,9 @@ impl Registry {
                 .map(|l| (l.min, l.max, l.rate_limit))
                 .collect(),
             live_config: true,
+            config_version: d.version,
+            holds: (d.claimer.holder == crate::lease::Holder::Me).then(|| d.lease_key()),
+            heard: d.lease_key(),
         })
     }
 

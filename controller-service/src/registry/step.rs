@@ -9,7 +9,7 @@ use protocol::pb;
 
 use super::device::{reply, Answer, Answered, Device, PerChannel, Run};
 use super::{capped, precheck, Via, MAX_SEQ_JUMP};
-use crate::lease::{LeasePolicy, Seen};
+use crate::lease::{Holder, LeasePolicy, Seen, Standing};
 use protocol::MAX_HORIZON;
 
 /// A gap longer than this (s) between a snapshot and the next sample makes the restored
@@ -32,6 +32,8 @@ pub(super) struct Context<'a> {
     pub(super) rejected: &'a mut u64,
     pub(super) now_unix_ns: u64,
     pub(super) lease: &'a LeasePolicy,
+    /// The fleet's members this one sees (`None` without a fleet).
+    pub(super) view: Option<&'a std::collections::BTreeSet<String>>,
     pub(super) instance: u64,
     /// Samples are authenticated, so a run id is the plant's own and its runs are ordered
     /// (`plant::run_id`): a run older than the one in force is a replay, not a restart.
@@ -43,14 +45,30 @@ pub(super) struct Context<'a> {
 /// [`crate::lease::Decision`]), or `None` if the sample is not to be answered at all
 /// ([`super::Served::AlreadyAnswered`]). Every member steps every sample it gets, whoever
 /// holds the lease: the state of one that does not command stays warm.
+/// A silence of the device this long (its samples stopped reaching this member, or this
+/// process was stopped) may have hidden changes of holder: the member is then behind
+/// until a holder's state reaches it ([`crate::lease::Claimer::behind`]).
+const GAP_NS: u64 = 1_000_000_000;
+
+/// Devices awaiting their hand-over at most; beyond, a yield goes without (the preferred
+/// member then claims late, or the holder takes the lease back).
+const MAX_HANDING: usize = 4096;
+
+///
+/// A device whose lease this member just took, or will soon yield to the preferred
+/// member, goes into `handing`: its state is to be sent to its partners
+/// ([`crate::Registry::take_handing`]).
 pub(super) fn answer(
-    cx: Context<'_>,
+    (cx, handing): (Context<'_>, &mut Vec<String>),
     d: &mut Device,
     via: Via<'_>,
     s: &pb::Sample,
     out: &mut pb::Command,
 ) -> Option<bool> {
-    let (me, policy) = ((cx.controller_id, cx.instance), cx.lease);
+    let (me, policy, view) = ((cx.controller_id, cx.instance), cx.lease, cx.view);
+    let silent = cx.now_unix_ns.saturating_sub(d.heard_unix_ns);
+    let gap = d.heard_unix_ns > 0 && silent > GAP_NS;
+    d.heard_unix_ns = cx.now_unix_ns;
     if !write_answer(cx, d, via, s, out) {
         return None;
     }
@@ -61,7 +79,20 @@ pub(super) fn answer(
     }
     (d.lease_epoch, d.lease_refused) = (seen.epoch, s.lease_refused);
     let warm = out.mode == pb::Mode::Control as i32;
-    let decision = d.claimer.decide(policy, me, (via.preferred, warm), seen);
+    let st = Standing {
+        preferred: via.preferred,
+        warm,
+        sees_holder: view.map(|v| v.contains(seen.holder)),
+        gap,
+    };
+    let before = d.claimer.holder;
+    let decision = d.claimer.decide(policy, me, st, seen);
+    // Its state goes to its partners when it starts to hold the lease (they are then in
+    // step with it) and halfway to a yield (the preferred member claims in step).
+    let took = before != Holder::Me && d.claimer.holder == Holder::Me;
+    if (took || d.claimer.hand_over_due(policy)) && handing.len() < MAX_HANDING {
+        handing.push(via.key_id.to_string());
+    }
     decision.stamp(s.run_id, me.1, out);
     Some(decision.sends())
 }

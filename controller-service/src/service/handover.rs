@@ -5,6 +5,7 @@
 //! sent, shard routes declared or dropped, and the masks the callbacks read set, always
 //! after any change, with the core held.
 
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use protocol::{decode, encode, keys, pb, printable};
@@ -12,11 +13,16 @@ use tokio::sync::mpsc;
 use zenoh::query::Query;
 use zenoh::Session;
 
+use super::hold;
+use super::hold::HoldJob;
 use super::intake::Msg;
+use super::keyring::Keyring;
 use super::lock;
 use super::log::throttled;
 use super::worker::Worker;
 use crate::fleet::{Got, Reply, Request, RequestKind, ShardAction};
+use crate::lease::Holder;
+use crate::registry::Restored;
 use crate::snapshot::{decode_shard, encode_shard};
 
 impl Worker {
@@ -45,6 +51,7 @@ impl Worker {
         }
         self.sync_masks();
         if let Some(m) = &self.member {
+            lock(&self.shared.core).registry.set_view(m.fleet.members());
             self.shard_routes
                 .sync(&self.session, &self.intake, &m.fleet)
                 .await;
@@ -57,8 +64,12 @@ impl Worker {
         let timeout = Duration::from_millis(m.spec.handover_timeout_ms);
         let ask = |to: &str, shard, request: Request<'_>| {
             spawn_request(
-                (self.session.clone(), self.tx.clone()),
-                keys::fleet_handover(name, to, shard),
+                (
+                    self.session.clone(),
+                    self.tx.clone(),
+                    self.shared.keys.clone(),
+                ),
+                (keys::fleet_handover(name, to, shard), to.to_string()),
                 (request.body(), request.kind(), shard),
                 timeout,
             );
@@ -94,6 +105,73 @@ impl Worker {
             tracing::info!(controller = %self.id, member = %member, alive, owned = m.fleet.answer_mask().count_ones(), "fleet member {}", if alive { "joined" } else { "left" });
         }
         self.apply_fleet(actions).await;
+        if alive && member != self.id {
+            self.send_commanded(member);
+        }
+    }
+
+    /// The devices whose lease this member just took, or will soon yield to the preferred
+    /// member: their state goes to their partners, which are then in step with it (and
+    /// the preferred member claims in step).
+    fn hand_over(&self) {
+        let due = lock(&self.shared.core).registry.take_handing();
+        if !due.is_empty() {
+            self.send_states(due, None);
+        }
+    }
+
+    /// A member came (back) into view: the state of every device this member commands
+    /// (holds the plant's lease of) in a shard it shares with the newcomer goes to it, as
+    /// changes to hold. After a partition, the member the fleet prefers, fenced meanwhile,
+    /// so holds the state in force before the lease is yielded to it; and a standby that
+    /// lost sight of its owner is in step again.
+    fn send_commanded(&self, member: &str) {
+        let commanded: Vec<String> = {
+            let c = lock(&self.shared.core);
+            let r = &c.registry;
+            r.device_ids()
+                .filter(|d| r.lease_holder(d) == Holder::Me)
+                .map(str::to_string)
+                .collect()
+        };
+        self.send_states(commanded, Some(member));
+    }
+
+    /// Send the state of `devices`, one message per shard, to each shard's partners (or
+    /// to `only` that one of them), through the queue of holds; nothing waits for it.
+    fn send_states(&self, devices: Vec<String>, only: Option<&str>) {
+        let Some(m) = &self.member else { return };
+        let jobs: Vec<HoldJob> = {
+            let c = lock(&self.shared.core);
+            let r = &c.registry;
+            let mut by_shard: std::collections::BTreeMap<u32, Vec<&str>> = Default::default();
+            for d in &devices {
+                if let Some(home) = r.home_of(d) {
+                    by_shard.entry(home).or_default().push(d);
+                }
+            }
+            by_shard
+                .into_iter()
+                .filter_map(|(shard, devs)| {
+                    let mut partners = m.fleet.partners(shard);
+                    partners.retain(|p| only.is_none_or(|o| o == p));
+                    let state = encode_shard(&r.devices_state(shard, &devs)).ok()?;
+                    (!partners.is_empty()).then(|| HoldJob {
+                        answer: None,
+                        shard,
+                        state,
+                        partners,
+                        devices: devs.iter().map(|d| d.to_string()).collect(),
+                    })
+                })
+                .collect()
+        };
+        for job in jobs {
+            if m.holds.try_send(job).is_err() {
+                tracing::warn!(controller = %self.id, "too many changes waiting: devices' states not sent to their partners");
+                break;
+            }
+        }
     }
 
     /// Another member's request about one of this member's shards.
@@ -102,55 +180,108 @@ impl Worker {
             let _ = q.reply_err("not a fleet member").await;
             return;
         };
-        let shard = keys::last_shard(q.key_expr().as_str());
-        let body = q
+        let key = q.key_expr().as_str().to_string();
+        let payload = q
             .payload()
-            .and_then(|p| String::from_utf8(p.to_bytes().into_owned()).ok())
+            .map(|p| p.to_bytes().into_owned())
             .unwrap_or_default();
-        let (Some(shard), Some(request)) = (shard, Request::parse(&body)) else {
+        let opened = hold::open(self.shared.keys.as_deref(), &key, &payload);
+        let parsed = keys::last_shard(&key)
+            .zip(opened.and_then(|(head, rest)| Some((Request::parse(head)?, rest))));
+        let Some((shard, (request, rest))) = parsed else {
             lock(&self.shared.core).registry.note_request_refused();
             let _ = q
                 .reply_err(
-                    "a handover request is release:{id}, copy:{id} or offer:{id} on a shard's key",
+                    "a handover request is release:{id}, copy:{id}, offer:{id} or hold:{id} on \
+                     a shard's key, sealed by a member when the fleet has keys",
                 )
                 .await;
             return;
         };
         let (reply, actions) = m.fleet.on_request(shard, request);
-        match reply {
-            Reply::State => self.send_state(&q, shard).await,
-            Reply::Owned => {
-                let _ = q.reply(q.key_expr().clone(), b"owned".to_vec()).await;
+        let answer = match reply {
+            Reply::State => self.shard_bytes(shard),
+            Reply::Owned => Ok(b"owned".to_vec()),
+            Reply::Hold => match request {
+                Request::Hold(by) => self.hold_state(shard, by, rest),
+                _ => Err("not a hold".into()),
+            },
+            Reply::Refused(why) => Err(why.to_string()),
+        };
+        match answer {
+            Ok(bytes) => {
+                let bytes = match &self.shared.keys {
+                    Some(k) => k.seal_handover(&[key.as_bytes(), &payload], bytes),
+                    None => bytes,
+                };
+                let _ = q.reply(q.key_expr().clone(), bytes).await;
             }
-            Reply::Refused(why) => {
+            Err(why) => {
                 let _ = q.reply_err(why).await;
             }
         }
-        tracing::debug!(controller = %self.id, shard, request = %body, "answered a handover request");
+        tracing::debug!(controller = %self.id, shard, request = ?request, "answered a handover request");
         self.apply_fleet(actions).await;
     }
 
-    /// Reply with `shard`'s state. The role changed before the state is taken, and the
+    /// `shard`'s state, to reply with. The role changed before the state is taken, and the
     /// answer mask with it, both with the core held (callbacks answer only with it held):
     /// every sample answered here is in the state, and none is answered here after it.
-    async fn send_state(&self, q: &Query, shard: u32) {
+    fn shard_bytes(&self, shard: u32) -> Result<Vec<u8>, String> {
         self.sync_masks();
         let st = lock(&self.shared.core).registry.shard_state(shard);
-        match encode_shard(&st) {
-            Ok(bytes) => {
-                let _ = q.reply(q.key_expr().clone(), bytes).await;
-            }
-            Err(e) => {
-                let _ = q.reply_err(e.to_string()).await;
+        encode_shard(&st).map_err(|e| e.to_string())
+    }
+
+    /// A partner's change to hold (or the states it sends a member back in view), from
+    /// `by`: its devices' state restored here, then `held:{me}`; an error if any of it
+    /// could not be, or a newer configuration is held here (the partner then does not
+    /// acknowledge the change).
+    fn hold_state(&self, shard: u32, by: &str, bytes: &[u8]) -> Result<Vec<u8>, String> {
+        let st = decode_shard(bytes).map_err(|e| e.to_string())?;
+        if st.shard != shard {
+            return Err("a state for another shard".into());
+        }
+        let r = self.take_states(&st, true);
+        if let Some((dev, why)) = r.refused.first() {
+            tracing::warn!(shard, device = %dev, from = %by, "a partner's change not held: {why}");
+            return Err(format!("device {dev} not held: {why}"));
+        }
+        // Held; and whether this member is in step with the sender now, which the sender
+        // waits for before it yields the lease to it.
+        let c = lock(&self.shared.core);
+        let behind = st
+            .devices
+            .iter()
+            .any(|d| !c.registry.in_step(&d.snapshot.id));
+        let suffix = if behind { ":behind" } else { "" };
+        Ok(format!("held:{}{suffix}", self.id).into_bytes())
+    }
+
+    /// Restore the devices of `st` as [`crate::Registry::restore_shard`] allows (never an
+    /// older configuration over a newer one), and serve them.
+    /// With `hold`, as [`crate::Registry::hold_shard`] allows.
+    fn take_states(&self, st: &crate::snapshot::ShardState, hold: bool) -> Restored {
+        let mut c = lock(&self.shared.core);
+        let r = if hold {
+            c.registry.hold_shard(st)
+        } else {
+            c.registry.restore_shard(st)
+        };
+        let mut ib = lock(&self.shared.inbox);
+        for d in &st.devices {
+            if c.registry.serves(&d.snapshot.id) {
+                ib.serve(&d.snapshot.id);
             }
         }
+        r
     }
 
     /// What came back for this member's own request about `shard`: a state is restored
     /// (if it decodes and this member still steps the shard), then the fleet decides.
     pub(super) async fn handle_answer(
         &mut self,
-        shard: u32,
+        (shard, from): (u32, &str),
         kind: RequestKind,
         reply: Option<Vec<u8>>,
     ) {
@@ -159,7 +290,7 @@ impl Worker {
             (RequestKind::Release | RequestKind::Copy, Some(bytes)) => {
                 // Taken as a state even if it does not restore: after a release the
                 // previous owner no longer answers, so this member must.
-                self.restore_handed(shard, &bytes);
+                self.restore_handed((shard, from), &bytes);
                 Got::State
             }
             _ => Got::Nothing,
@@ -174,23 +305,17 @@ impl Worker {
         }
     }
 
-    /// Restore a shard's state handed by another member.
-    fn restore_handed(&mut self, shard: u32, bytes: &[u8]) {
+    /// Restore a shard's state handed by member `from` (a release or a copy), device by
+    /// device unless the configuration here is newer.
+    fn restore_handed(&mut self, (shard, from): (u32, &str), bytes: &[u8]) {
         let steps = self.member.as_ref().is_some_and(|m| m.fleet.steps(shard));
         match decode_shard(bytes) {
             Ok(st) if st.shard == shard && steps => {
-                let mut c = lock(&self.shared.core);
-                let r = c.registry.restore_shard(&st);
-                let mut ib = lock(&self.shared.inbox);
-                for d in &st.devices {
-                    if c.registry.serves(&d.snapshot.id) {
-                        ib.serve(&d.snapshot.id);
-                    }
-                }
+                let r = self.take_states(&st, false);
                 for (dev, why) in &r.refused {
-                    tracing::warn!(shard, device = %dev, "handed state not restored: {why}");
+                    tracing::warn!(shard, device = %dev, from = %from, "handed state not restored: {why}");
                 }
-                tracing::debug!(controller = %self.id, shard, restored = r.restored, "took a shard's state");
+                tracing::debug!(controller = %self.id, shard, from = %from, restored = r.restored, "took a shard's state");
             }
             Ok(st) if st.shard != shard => {
                 tracing::warn!(shard, "a handover reply for another shard: ignored");
@@ -200,47 +325,9 @@ impl Worker {
         }
     }
 
-    /// An owner's update after a configuration change. Only a member that steps the shard
-    /// without answering it takes it: the owner itself, and members outside the shard,
-    /// ignore it.
-    pub(super) fn handle_sync(&mut self, shard: u32, bytes: &[u8]) {
-        let follows = self
-            .member
-            .as_ref()
-            .is_some_and(|m| m.fleet.steps(shard) && !m.fleet.answers(shard));
-        if !follows {
-            return;
-        }
-        let mut c = lock(&self.shared.core);
-        match decode_shard(bytes) {
-            Ok(st) if st.shard == shard => {
-                for (dev, why) in c.registry.restore_shard(&st).refused {
-                    tracing::warn!(shard, device = %dev, "an owner's update not restored: {why}");
-                }
-            }
-            _ => c.registry.note_undecodable(),
-        }
-    }
-
-    /// After a configuration change accepted by the owner: the device's state to its
-    /// standby, so a takeover keeps the change.
-    pub(super) async fn sync_device(&self, dev: &str) {
-        let Some(m) = &self.member else { return };
-        let update = {
-            let c = lock(&self.shared.core);
-            c.registry.home_of(dev).and_then(|home| {
-                let st = c.registry.devices_state(home, &[dev]);
-                let bytes = encode_shard(&st).ok()?;
-                Some((keys::fleet_sync(&m.spec.name, home), bytes))
-            })
-        };
-        if let Some((key, bytes)) = update {
-            let _ = self.session.put(key, bytes).await;
-        }
-    }
-
     /// Time passed: releases nobody asked for end, unanswered requests are made again.
     pub(super) async fn on_fleet_tick(&mut self) {
+        self.hand_over();
         let Some(m) = self.member.as_mut() else {
             return;
         };
@@ -292,21 +379,38 @@ impl Worker {
 /// payload, or nothing if no good reply came within `timeout`) returns as
 /// [`Msg::Answer`]. Whether to ask again is the fleet's decision, not this task's.
 fn spawn_request(
-    (session, tx): (Session, mpsc::Sender<Msg>),
-    key: String,
+    (session, tx, keys): (Session, mpsc::Sender<Msg>, Option<Arc<Keyring>>),
+    (key, from): (String, String),
     (body, kind, shard): (String, RequestKind, u32),
     timeout: Duration,
 ) {
     tokio::spawn(async move {
         let mut reply = None;
-        if let Ok(replies) = session.get(key).payload(body).timeout(timeout).await {
+        let payload = hold::seal(keys.as_deref(), &key, &body, &[]);
+        let asked = session.get(&key).payload(payload.clone()).timeout(timeout);
+        if let Ok(replies) = asked.await {
             while let Ok(r) = replies.recv_async().await {
-                if let Ok(s) = r.result() {
-                    reply = Some(s.payload().to_bytes().into_owned());
+                let Ok(s) = r.result() else { continue };
+                let bytes = s.payload().to_bytes();
+                // With keys, only a member's sealed answer counts: a forged state is
+                // never restored, a forged "owned" never stops this member answering.
+                let opened = match &keys {
+                    Some(k) => k.open_handover(&[key.as_bytes(), &payload], &bytes),
+                    None => Some(&bytes[..]),
+                };
+                if let Some(b) = opened {
+                    reply = Some(b.to_vec());
                     break;
                 }
+                tracing::warn!(key = %key, "a handover answer not sealed by a member: ignored");
             }
         }
-        let _ = tx.send(Msg::Answer { shard, kind, reply }).await;
+        let msg = Msg::Answer {
+            shard,
+            kind,
+            from,
+            reply,
+        };
+        let _ = tx.send(msg).await;
     });
 }

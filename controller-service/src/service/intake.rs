@@ -52,13 +52,16 @@ pub(super) enum Msg {
     Handover(Query),
     /// What came back for this member's own request about a shard: the reply's payload,
     /// or `None` if no good reply came (an error reply, none before the timeout).
+    /// Whether a member's partners are in step with it for these devices, after it sent
+    /// them their states ([`super::hold`]).
+    HandedOver { devices: Vec<String>, in_step: bool },
     Answer {
         shard: u32,
         kind: RequestKind,
+        /// The member asked.
+        from: String,
         reply: Option<Vec<u8>>,
     },
-    /// An owner's device state after a configuration change, for its standbys.
-    Sync(u32, Vec<u8>),
 }
 
 /// Drops counted in zenoh's callbacks, before the worker sees anything.
@@ -324,16 +327,6 @@ impl Intake {
     pub(super) fn on_handover(&self, q: Query) {
         if self.shared.drops.query_fits(&q) {
             self.queue(Msg::Handover(q));
-        }
-    }
-
-    /// An owner's update for its standbys: only a member that steps the shard takes it.
-    pub(super) fn on_sync(&self, s: Sample) {
-        let Some(shard) = keys::last_shard(s.key_expr().as_str()) else {
-            return;
-        };
-        if self.shared.masks.steps(shard) {
-            self.queue(Msg::Sync(shard, s.payload().to_bytes().into_owned()));
         }
     }
 

@@ -22,6 +22,7 @@ pub(super) struct Keyring {
     devices: Mutex<HashMap<String, Key>>,
     gateways: Mutex<HashMap<String, Key>>,
     operator: Key,
+    member: Key,
 }
 
 impl Keyring {
@@ -51,6 +52,7 @@ impl Keyring {
     pub(super) fn new(secret: Secret) -> Self {
         Self {
             operator: secret.operator(),
+            member: secret.member(),
             secret,
             devices: Mutex::new(HashMap::new()),
             gateways: Mutex::new(HashMap::new()),
@@ -103,6 +105,22 @@ impl Keyring {
     pub(super) fn seal_reply(&self, key_expr: &str, request: &[u8], bytes: Vec<u8>) -> Vec<u8> {
         let ctx = protocol::auth::reply_context(key_expr, request);
         self.operator.seal_in(Kind::Reply, &ctx, bytes)
+    }
+}
+
+impl Keyring {
+    /// A handover message between members (a shard's state, a change to hold, the
+    /// answer), sealed with the members' key, bound to the key expression it travels on
+    /// and, for an answer, to the request's payload.
+    pub(super) fn seal_handover(&self, context: &[&[u8]], bytes: Vec<u8>) -> Vec<u8> {
+        self.member.seal_in(Kind::Handover, context, bytes)
+    }
+
+    /// The body of a handover message sealed by a member, or `None`: a process without
+    /// the fleet's secret (an operator, a device, a rogue holding only a certificate)
+    /// cannot make a member restore a state or count a change as held.
+    pub(super) fn open_handover<'a>(&self, context: &[&[u8]], bytes: &'a [u8]) -> Option<&'a [u8]> {
+        self.member.open_in(Kind::Handover, context, bytes).ok()
     }
 }
 

@@ -31,6 +31,7 @@
 
 mod core;
 mod handover;
+mod hold;
 mod intake;
 mod keyring;
 mod log;

@@ -9,10 +9,25 @@ use telemetry::Topic;
 use zenoh::query::Query;
 
 use super::core::Core;
+use super::hold::{self, HoldJob};
 use super::lock;
 use super::log::throttled;
 use super::worker::Worker;
+use crate::lease::Holder;
+use crate::snapshot::encode_shard;
 use crate::Registry;
+
+/// Who must hold an accepted change before it is acknowledged.
+enum ToHold {
+    /// This member only: no fleet, or a fleet without standbys (whose takeovers start
+    /// afresh from the file anyway).
+    Here,
+    /// Not acknowledged, why: a fleet with standbys, and nobody else in view, or this
+    /// member does not command the plant now.
+    Not(String),
+    /// These partners, sent the device's state in shard `.0`.
+    Partners(u32, Vec<u8>, Vec<String>),
+}
 
 impl Worker {
     /// A live reference update (put). A put reaches every service, and every fleet
@@ -134,8 +149,9 @@ impl Worker {
 
     /// A configuration, envelope or reference query on a device this member answers for:
     /// no payload reads the configuration in force; a payload is decoded as `R` and
-    /// applied by `apply` with the core held. A refusal is logged, the reply sent, and an
-    /// accepted change sent on to the standby.
+    /// applied by `apply` with the core held. A refusal is logged and replied to at once;
+    /// an accepted change is acknowledged once the member's partners hold it
+    /// ([`super::hold`]).
     async fn change_query<R: Versioned>(
         &mut self,
         q: Query,
@@ -146,23 +162,78 @@ impl Worker {
             return;
         };
         let body = q.payload().map(|p| p.to_bytes().into_owned());
-        let reply = {
+        let (mut reply, hold) = {
             let mut c = lock(&self.shared.core);
-            match &body {
+            let reply = match &body {
                 None => read_config(&c.registry, &dev),
                 Some(bytes) => match decode::<R>(bytes) {
                     Ok(r) => apply(&mut c, &dev, &r, bytes),
                     Err(e) => undecodable_request(&mut c.registry, &dev, e),
                 },
-            }
+            };
+            // The state to hold is taken with the change, under the same lock: what the
+            // partners hold is exactly what is in force here.
+            let hold = (reply.accepted && body.is_some()).then(|| self.to_hold(&c.registry, &dev));
+            (reply, hold)
         };
         if !reply.accepted {
             self.refused(&dev, what, &reply.reason);
         }
+        match hold {
+            Some(ToHold::Partners(shard, state, partners)) => {
+                let Some(m) = &self.member else { return };
+                let job = HoldJob {
+                    answer: Some((q, body.unwrap_or_default(), reply)),
+                    shard,
+                    state,
+                    partners,
+                    devices: Vec::new(),
+                };
+                if let Err(e) = m.holds.try_send(job) {
+                    let Some((q, request, mut reply)) = e.into_inner().answer else {
+                        return;
+                    };
+                    let busy = Some("too many changes are waiting for their partners");
+                    hold::acknowledge(&mut reply, &self.id, vec![self.id.clone()], busy);
+                    let key = q.key_expr().as_str();
+                    let bytes = self.sealed_reply(key, Some(&request), encode(&reply));
+                    let _ = q.reply(q.key_expr().clone(), bytes).await;
+                }
+                return;
+            }
+            Some(ToHold::Not(why)) => {
+                hold::acknowledge(&mut reply, &self.id, vec![self.id.clone()], Some(&why));
+            }
+            Some(ToHold::Here) => reply.held_by = vec![self.id.clone()],
+            None => {}
+        }
         let bytes = self.sealed_reply(q.key_expr().as_str(), body.as_deref(), encode(&reply));
         let _ = q.reply(q.key_expr().clone(), bytes).await;
-        if reply.accepted && body.is_some() {
-            self.sync_device(&dev).await;
+    }
+
+    /// Who must hold an accepted change to `dev` before it is acknowledged.
+    fn to_hold(&self, registry: &Registry, dev: &str) -> ToHold {
+        let Some(m) = &self.member else {
+            return ToHold::Here;
+        };
+        let Some(home) = registry.home_of(dev) else {
+            return ToHold::Here;
+        };
+        if !m.fleet.keeps_standbys() {
+            return ToHold::Here;
+        }
+        let holder = registry.lease_holder(dev);
+        let heard = (registry.heard_unix_ns(dev), registry.live_ns(dev));
+        if let Err(why) = hold::may_acknowledge(holder, heard, protocol::unix_ns()) {
+            return ToHold::Not(why);
+        }
+        let partners = m.fleet.partners(home);
+        if partners.is_empty() {
+            return ToHold::Not("no other member in the fleet's view holds it".into());
+        }
+        match encode_shard(&registry.devices_state(home, &[dev])) {
+            Ok(state) => ToHold::Partners(home, state, partners),
+            Err(e) => ToHold::Not(format!("its state could not be encoded: {e}")),
         }
     }
 
@@ -185,7 +256,7 @@ impl Worker {
                     let home = registry
                         .home_of(dev)
                         .unwrap_or_else(|| protocol::shard_of(dev));
-                    if self.member.as_ref().is_some_and(|m| !m.fleet.answers(home)) {
+                    if !self.answers_device(registry, dev, home) {
                         return None;
                     }
                     if registry.serves(dev) {
@@ -245,11 +316,27 @@ impl Worker {
         }
     }
 
-    /// Whether this member answers for device `d` (always, without a fleet).
+    /// Whether this member answers for device `d`, served here.
     fn answers_for(&self, registry: &Registry, d: &str) -> bool {
-        self.member
-            .as_ref()
-            .is_none_or(|m| registry.home_of(d).is_some_and(|h| m.fleet.answers(h)))
+        registry
+            .home_of(d)
+            .is_some_and(|h| self.answers_device(registry, d, h))
+    }
+
+    /// Whether this member answers operators about device `d` of shard `home`: the one
+    /// that holds the plant's lease does (its changes are the ones in force, whatever the
+    /// fleet's ranking says, while it commands in the owner's place); one fenced by
+    /// another holder never does (a paused or cut-off owner would accept changes the
+    /// plant never sees); before a lease (none granted, vacant, not heard yet), the
+    /// shard's owner, or any service without a fleet.
+    fn answers_device(&self, registry: &Registry, d: &str, home: u32) -> bool {
+        match registry.lease_holder(d) {
+            Holder::Me => true,
+            Holder::Other => false,
+            Holder::Nobody | Holder::Vacant | Holder::Unknown => {
+                self.member.as_ref().is_none_or(|m| m.fleet.answers(home))
+            }
+        }
     }
 
     /// The statuses a wildcard status query asks for, each with the key it goes on (the
@@ -303,12 +390,14 @@ fn read_config(registry: &Registry, dev: &str) -> pb::ConfigReply {
     match registry.config_of(dev) {
         Some(c) => pb::ConfigReply {
             version: protocol::PROTOCOL_VERSION,
+            held_by: Vec::new(),
             accepted: true,
             reason: String::new(),
             config: Some(c),
         },
         None => pb::ConfigReply {
             version: protocol::PROTOCOL_VERSION,
+            held_by: Vec::new(),
             accepted: false,
             reason: format!("unknown device \"{dev}\""),
             config: None,
@@ -324,6 +413,7 @@ fn undecodable_request(
     registry.note_undecodable();
     pb::ConfigReply {
         version: protocol::PROTOCOL_VERSION,
+        held_by: Vec::new(),
         accepted: false,
         reason: e.to_string(),
         config: registry.config_of(dev),

@@ -100,7 +100,6 @@ enum Kind {
     Gateway,
     Reference,
     Member,
-    Sync,
     Heartbeat,
 }
 
@@ -116,7 +115,6 @@ async fn subscribe(
         Kind::Gateway => i.on_gateway_batch(s),
         Kind::Reference => i.on_reference(s),
         Kind::Member => i.on_member(s),
-        Kind::Sync => i.on_sync(s),
         Kind::Heartbeat => i.on_heartbeat(s),
     };
     let what = format!("{kind:?} subscriber on {key}").to_lowercase();
@@ -162,13 +160,12 @@ async fn leaf_queries(
 }
 
 /// A fleet member's own declarations: the members' tokens, the handover requests made to
-/// it, the owners' updates for their standbys, and its own token (declared last, undeclared
-/// first: a member that hears from this one can also hear it leave).
+/// it (changes to hold among them), and its own token (declared last, undeclared first: a
+/// member that hears from this one can also hear it leave).
 pub(super) struct FleetRoutes {
     _token: LivelinessToken,
     _members: Subscriber<()>,
     _handover: Queryable<()>,
-    _sync: Subscriber<()>,
 }
 
 impl FleetRoutes {
@@ -178,7 +175,7 @@ impl FleetRoutes {
         session: &Session,
         intake: &Arc<Intake>,
         (fleet, me): (&str, &str),
-    ) -> Result<(Subscriber<()>, Queryable<()>, Subscriber<()>), ServiceError> {
+    ) -> Result<(Subscriber<()>, Queryable<()>), ServiceError> {
         let members = subscribe(session, intake, keys::fleet_members(fleet), Kind::Member).await?;
         let i = intake.clone();
         let handover = session
@@ -186,20 +183,13 @@ impl FleetRoutes {
             .callback(move |q| i.on_handover(q))
             .await
             .map_err(declare_err("handover queryable"))?;
-        let sync = subscribe(
-            session,
-            intake,
-            format!("{}/fleet/{fleet}/sync/*", keys::PREFIX),
-            Kind::Sync,
-        )
-        .await?;
-        Ok((members, handover, sync))
+        Ok((members, handover))
     }
 
     /// Declare the member's token: from now on the others see this member.
     pub(super) async fn join(
         session: &Session,
-        (members, handover, sync): (Subscriber<()>, Queryable<()>, Subscriber<()>),
+        (members, handover): (Subscriber<()>, Queryable<()>),
         (fleet, me): (&str, &str),
     ) -> Result<Self, ServiceError> {
         let token = session
@@ -211,7 +201,6 @@ impl FleetRoutes {
             _token: token,
             _members: members,
             _handover: handover,
-            _sync: sync,
         })
     }
 }

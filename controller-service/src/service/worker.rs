@@ -33,6 +33,8 @@ use crate::Registry;
 pub(super) struct Member {
     pub(super) fleet: Fleet,
     pub(super) spec: FleetSpec,
+    /// The queue of accepted changes waiting for their partners ([`super::hold`]).
+    pub(super) holds: mpsc::Sender<super::hold::HoldJob>,
 }
 
 /// One worker: its declarations (fields drop in order: its liveliness token goes first,
@@ -231,8 +233,18 @@ impl Worker {
             Msg::ServiceStatus(q) => self.handle_service_status(q).await,
             Msg::Member(m, alive) => self.handle_member(&m, alive).await,
             Msg::Handover(q) => self.handle_handover(q).await,
-            Msg::Answer { shard, kind, reply } => self.handle_answer(shard, kind, reply).await,
-            Msg::Sync(shard, bytes) => self.handle_sync(shard, &bytes),
+            Msg::HandedOver { devices, in_step } => {
+                let mut c = lock(&self.shared.core);
+                for d in &devices {
+                    c.registry.handed_over(d, in_step);
+                }
+            }
+            Msg::Answer {
+                shard,
+                kind,
+                from,
+                reply,
+            } => self.handle_answer((shard, &from), kind, reply).await,
         }
     }
 
@@ -455,9 +467,19 @@ async fn join_fleet(
     };
     let mut fleet = Fleet::new(id, spec.standby, timing);
     let actions = fleet.start(others);
+    let holds = super::hold::Replicator {
+        session: session.clone(),
+        fleet: spec.name.clone(),
+        me: id.to_string(),
+        keys: intake.shared.keys.clone(),
+        timeout: Duration::from_millis(spec.handover_timeout_ms),
+        tx: intake.tx.clone(),
+    }
+    .spawn();
     let member = Member {
         fleet,
         spec: spec.clone(),
+        holds,
     };
     Ok((routes, member, actions))
 }
