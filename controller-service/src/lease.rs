@@ -150,6 +150,10 @@ impl Version {
 /// that cannot tell waits 27 samples more than one a single epoch behind.
 const MAX_BEHIND: u64 = 10;
 
+/// Samples after a silence that may still be late ones, waiting in the service's inbox
+/// (which keeps only the newest per device) or in zenoh's queues.
+const LATE_SAMPLES: u32 = 5;
+
 /// Where a member stands for one device when a sample comes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Standing {
@@ -250,11 +254,16 @@ pub struct Claimer {
     /// missed a new holder's state (stopped, cut off, or over lossy links) is behind its
     /// epoch. `(0, 0)`: in step with a device under no lease yet (where it starts).
     synced: Option<(u64, u64)>,
-    /// After it heard nothing for a long while, the newest lease it has heard since:
-    /// states sent under it or before may be late copies of what it missed, so only a
-    /// later holder's state (or holding the lease itself) puts it in step again. A
-    /// member stopped for a while is thus behind until the lease changes hands.
+    /// After it heard nothing for a long while, the newest lease among the first samples
+    /// since ([`LATE_SAMPLES`], which may have waited for it): states sent under it or
+    /// before may be late copies of what it missed, so only a later holder's state (or
+    /// holding the lease itself) puts it in step again. A member stopped for a while is
+    /// thus behind until the lease changes hands (a holder that is not preferred makes it
+    /// change hands to bring it in step).
     gap_at: Option<(u64, u64)>,
+    /// Samples taken since the silence, while they may still be late ones that waited
+    /// (the service keeps at most the newest few per device).
+    since_gap: u32,
     /// While it holds the lease without being preferred: its partners said they are in
     /// step with it (its state reached them, and they were not behind): it may yield.
     handed: bool,
@@ -277,6 +286,7 @@ impl Default for Claimer {
             key: (0, 0),
             synced: Some((0, 0)),
             gap_at: None,
+            since_gap: 0,
             handed: false,
             reclaim: false,
         }
@@ -362,10 +372,15 @@ impl Claimer {
         if st.gap || run_ended {
             self.synced = None;
         }
-        if st.gap || self.gap_at.is_some() {
+        if st.gap {
+            self.since_gap = 0;
+        }
+        if st.gap || self.gap_at.is_some() && self.since_gap < LATE_SAMPLES {
             // Until a later holder's state comes, what arrives may be a late copy of a
-            // state sent before or during the silence.
+            // state sent before or during the silence: the newest epoch among the samples
+            // that waited for it is where a later one starts.
             self.gap_at = Some(self.gap_at.unwrap_or(self.key).max(key));
+            self.since_gap += 1;
         }
         self.key = key;
         self.holder = match seen.holder {

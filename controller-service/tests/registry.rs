@@ -640,3 +640,71 @@ fn with_keys_an_older_run_is_a_replay_and_a_newer_one_a_restart() {
     assert_ne!(c.mode, pb::Mode::Stale as i32);
     assert_eq!(open.device_status("aero-1").unwrap().restarts, starts + 1);
 }
+
+/// Nothing acknowledged is lost, the registry's part: a change made while holding the
+/// plant's lease is numbered after the ones before it; a handed state replaces a member's
+/// only if it is not older; a change to hold is taken only from the member that holds the
+/// lease as the receiver last heard it; and the holder's state puts the receiver in step.
+#[test]
+fn a_newer_state_wins_and_a_change_is_held_only_from_the_holder() {
+    use controller_service::registry::Via;
+    let member = |id: &str| {
+        let mut cfg = ServiceConfig::parse("test.toml", CONFIG).unwrap();
+        cfg.controller_id = id.into();
+        let mut r = Registry::new(cfg).unwrap();
+        let fleet: std::collections::BTreeSet<String> =
+            ["c1", "c2", "c3"].iter().map(|s| s.to_string()).collect();
+        r.set_view(&fleet);
+        r
+    };
+    let leased = |seq: u64, holder: &str, epoch: u64| pb::Sample {
+        flags: pb::SampleFlags::Lease as u32,
+        lease_holder: holder.into(),
+        lease_epoch: epoch,
+        ..sample("aero-1", seq, seq as f64 * 0.01, &[0.0, 0.5])
+    };
+    let step = |r: &mut Registry, s: &pb::Sample| {
+        let mut out = pb::Command::default();
+        r.handle_sample(Via::key("aero-1"), s, 1, &mut out);
+    };
+    let kp = |kp: f64| {
+        let mut u = pb::ChannelUpdate::default();
+        *protocol::convert::update_field(&mut u, "kp").unwrap() = Some(kp);
+        pb::ConfigRequest {
+            version: PROTOCOL_VERSION,
+            updates: vec![u],
+            ..Default::default()
+        }
+    };
+    let shard = protocol::shard_of("aero-1");
+    let (mut a, mut b, mut c) = (member("c1"), member("c2"), member("c3"));
+    for r in [&mut a, &mut b, &mut c] {
+        step(r, &leased(0, "c1", 1));
+    }
+    let before = a.devices_state(shard, &["aero-1"]);
+    assert!(!b.in_step("aero-1"), "b never got the holder's state");
+    // c1 holds the lease: its change is numbered, and b, its partner, holds it.
+    assert!(a.configure("aero-1", &kp(3.0)).accepted);
+    let held = b.hold_shard(&a.devices_state(shard, &["aero-1"]));
+    assert_eq!((held.restored, held.refused.len()), (1, 0), "{held:?}");
+    assert_eq!(b.config_of("aero-1"), a.config_of("aero-1"));
+    assert!(b.in_step("aero-1"), "the holder's state puts it in step");
+    // The state from before the change never replaces the newer one.
+    let stale = b.restore_shard(&before);
+    assert_eq!(stale.restored, 0);
+    assert!(stale.refused[0].1.contains("newer"), "{stale:?}");
+    assert_eq!(b.config_of("aero-1"), a.config_of("aero-1"));
+    // A change made by a member that does not hold the lease is not numbered, and is not
+    // held by a partner that heard another holder.
+    assert!(c.configure("aero-1", &kp(9.0)).accepted);
+    let forged = b.hold_shard(&c.devices_state(shard, &["aero-1"]));
+    assert_eq!(forged.restored, 0);
+    assert!(forged.refused[0].1.contains("does not hold"), "{forged:?}");
+    // Nor is a change by the former holder once a later holder was heard.
+    step(&mut b, &leased(1, "c3", 2));
+    assert!(a.configure("aero-1", &kp(4.0)).accepted);
+    let late = b.hold_shard(&a.devices_state(shard, &["aero-1"]));
+    assert_eq!(late.restored, 0);
+    assert!(late.refused[0].1.contains("heard here since"), "{late:?}");
+    assert!(!b.in_step("aero-1"), "it missed epoch 2's holder");
+}

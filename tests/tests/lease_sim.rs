@@ -1193,7 +1193,15 @@ impl Sim {
         for (_, _, p) in due {
             match p.clone() {
                 Payload::Sample(m, s) if self.crashed(m) => drop(s),
-                Payload::Sample(m, s) if self.paused(m) => self.members[m].backlog.push(s),
+                Payload::Sample(m, s) if self.paused(m) => {
+                    // What waits for a stopped member: the service's inbox keeps the
+                    // newest sample per device, zenoh's queues a few more.
+                    let backlog = &mut self.members[m].backlog;
+                    backlog.push(s);
+                    if backlog.len() > 3 {
+                        backlog.remove(0);
+                    }
+                }
                 Payload::Sample(m, s) => self.on_sample(m, &s),
                 Payload::Command(c) => self.on_command(&c),
                 Payload::Rogue(s) => self.on_rogue(&s),
