@@ -169,6 +169,15 @@ async fn generator(listen: &str, endpoints: &[&str]) -> Session {
     .unwrap()
 }
 
+/// Wait until every member's liveliness token is seen.
+async fn all_up(s: &Session, members: &[&Member]) {
+    for m in members {
+        let up = keys::alive_controller(&m.id);
+        let seen = transport::wait_for_token(s, &up, Duration::from_secs(20)).await;
+        assert!(seen, "{} came up", m.id);
+    }
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn instances_split_take_over_and_hand_over_without_double_answers() {
     let _s = SERIAL.lock().await;
@@ -179,14 +188,7 @@ async fn instances_split_take_over_and_hand_over_without_double_answers() {
     let c2 = start(&dir, "c-2", &[&c0.endpoint, &c1.endpoint]);
     let gen_endpoint = format!("tcp/127.0.0.1:{}", transport::free_local_port().unwrap());
     let s = generator(&gen_endpoint, &[&c0.endpoint, &c1.endpoint, &c2.endpoint]).await;
-    for m in [&c0, &c1, &c2] {
-        assert!(
-            transport::wait_for_token(&s, &keys::alive_controller(&m.id), Duration::from_secs(20))
-                .await,
-            "{} came up",
-            m.id
-        );
-    }
+    all_up(&s, &[&c0, &c1, &c2]).await;
     settled(&s, &["c-0", "c-1", "c-2"]).await;
 
     // 1. Three instances split the devices.
@@ -313,10 +315,7 @@ async fn a_change_is_acknowledged_once_the_standby_holds_it_and_outlives_the_own
     let c1 = start(&dir, "c-1", &[&c0.endpoint]);
     let gen_endpoint = format!("tcp/127.0.0.1:{}", transport::free_local_port().unwrap());
     let s = generator(&gen_endpoint, &[&c0.endpoint, &c1.endpoint]).await;
-    for m in [&c0, &c1] {
-        let up = keys::alive_controller(&m.id);
-        assert!(transport::wait_for_token(&s, &up, Duration::from_secs(20)).await);
-    }
+    all_up(&s, &[&c0, &c1]).await;
     settled(&s, &["c-0", "c-1"]).await;
     // The plants provision their devices (templates) on both members.
     check("provision", &gen::run(&s, &spec(1.0)).await.unwrap());

@@ -40,11 +40,6 @@ pub(super) struct Context<'a> {
     pub(super) ordered_runs: bool,
 }
 
-/// Step device `d` with a sample that came `via`, and write the command into `out`,
-/// stamped with the plant's lease; whether this member sends it (the lease's
-/// [`crate::lease::Decision`]), or `None` if the sample is not to be answered at all
-/// ([`super::Served::AlreadyAnswered`]). Every member steps every sample it gets, whoever
-/// holds the lease: the state of one that does not command stays warm.
 /// A silence of the device this long (its samples stopped reaching this member, or this
 /// process was stopped) may have hidden changes of holder: the member is then behind
 /// until a holder's state reaches it ([`crate::lease::Claimer::behind`]).
@@ -54,6 +49,11 @@ const GAP_NS: u64 = 1_000_000_000;
 /// member then claims late, or the holder takes the lease back).
 const MAX_HANDING: usize = 4096;
 
+/// Step device `d` with a sample that came `via`, and write the command into `out`,
+/// stamped with the plant's lease; whether this member sends it (the lease's
+/// [`crate::lease::Decision`]), or `None` if the sample is not to be answered at all
+/// ([`super::Served::AlreadyAnswered`]). Every member steps every sample it gets, whoever
+/// holds the lease: the state of one that does not command stays warm.
 ///
 /// A device whose lease this member just took, or will soon yield to the preferred
 /// member, goes into `handing`: its state is to be sent to its partners
