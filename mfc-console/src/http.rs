@@ -344,10 +344,10 @@ async fn gains(
         assignments.join(" ")
     );
     match ops::update(&c.operator, &id, update, c.timeout()).await {
-        Ok(config) => {
+        Ok(ops::Changed { config, held_by }) => {
             let views = fleet::channel_views(&config);
             c.fleet().apply_config(&id, config, c.now());
-            Json(json!({ "accepted": true, "changed": change.fields, "channel": change.channel, "config": views }))
+            Json(json!({ "accepted": true, "changed": change.fields, "channel": change.channel, "config": views, "held_by": held_by }))
                 .into_response()
         }
         Err(e) => {
@@ -391,9 +391,10 @@ async fn reference(
     tracing::info!("reference of {id}: constant {:?}", change.values);
     let r = protocol::convert::reference_to_pb(&pieces, 0.0);
     match ops::set_reference(&c.operator, &id, r, c.timeout()).await {
-        Ok(config) => {
+        Ok(ops::Changed { config, held_by }) => {
             c.fleet().apply_config(&id, config, c.now());
-            Json(json!({ "accepted": true, "values": change.values })).into_response()
+            Json(json!({ "accepted": true, "values": change.values, "held_by": held_by }))
+                .into_response()
         }
         Err(e) => op_failed(e),
     }

@@ -292,7 +292,7 @@ async fn command(
         } => {
             let u = ops::parse_update(*channel, fields)?;
             let c = ops::update(operator, device, u, timeout).await?;
-            out(json, &c, render::config)?
+            out(json, &c, render::changed)?
         }
         Command::Params { markdown } => params(*markdown, json)?,
         Command::Reference {
@@ -312,7 +312,7 @@ async fn command(
             .await?;
             let r = protocol::convert::reference_to_pb(&pieces, start);
             let c = ops::set_reference(operator, device, r, timeout).await?;
-            out(json, &c, render::config)?
+            out(json, &c, render::changed)?
         }
         Command::Envelope {
             device,
@@ -334,7 +334,7 @@ async fn command(
                 rate_limit: *rate,
             };
             let c = ops::change_envelope(operator, device, env, reason, timeout).await?;
-            out(json, &c, render::config)?
+            out(json, &c, render::changed)?
         }
     })
 }

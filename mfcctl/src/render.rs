@@ -6,6 +6,7 @@ use std::fmt::Write;
 use mfc::params::{LawKind, Param, Scope, PARAMS};
 use protocol::pb;
 use serde::Serialize;
+use transport::ops;
 
 fn opt(v: Option<f64>) -> String {
     v.map_or("-".into(), |x| format!("{x}"))
@@ -199,6 +200,18 @@ fn law(c: &pb::ChannelConfig) -> String {
 }
 
 /// A device's configuration: each channel's law, output map and envelope, the reference.
+/// An accepted change: the configuration in force, then who holds it. One name means the
+/// change lives only as long as that member (a single service, or a fleet without standbys).
+pub fn changed(c: &ops::Changed) -> String {
+    let mut out = config(&c.config);
+    let _ = match c.held_by.as_slice() {
+        [] => writeln!(out, "acknowledged"),
+        [one] => writeln!(out, "acknowledged: held by {one} only"),
+        all => writeln!(out, "acknowledged: held by {}", all.join(", ")),
+    };
+    out
+}
+
 pub fn config(c: &pb::DeviceConfig) -> String {
     let mut out = String::new();
     let _ = writeln!(out, "device {}", c.device_id);

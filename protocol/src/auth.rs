@@ -42,6 +42,9 @@ pub enum Kind {
     CommandBatch,
     /// A reply to an operator's query (status, config, envelope, reference).
     Reply,
+    /// An error reply to an operator's query ("does not serve", a bad key): as proven as
+    /// a good one, so that a forger cannot show an operator a refusal either.
+    ErrorReply,
     /// A fleet member's handover message: a shard's state, or a change it holds.
     Handover,
 }
@@ -54,6 +57,7 @@ impl Kind {
             Kind::SampleBatch => b"mfc/v1/sample-batch\0",
             Kind::CommandBatch => b"mfc/v1/command-batch\0",
             Kind::Reply => b"mfc/v1/reply\0",
+            Kind::ErrorReply => b"mfc/v1/error-reply\0",
             Kind::Handover => b"mfc/v1/handover\0",
         }
     }
@@ -261,6 +265,13 @@ pub fn reply_context<'a>(key_expr: &'a str, request: &'a [u8]) -> [&'a [u8]; 2] 
 }
 
 /// A sealed message's body and MAC, if it ends with a well-formed `mac` field.
+/// The body of a message that may be sealed, unchecked: what a client without the key
+/// shows of a keyed service's error reply (its text without the MAC's bytes). Proves
+/// nothing.
+pub fn unchecked_body(bytes: &[u8]) -> &[u8] {
+    split(bytes).map_or(bytes, |(body, _)| body)
+}
+
 fn split(sealed: &[u8]) -> Result<(&[u8], &[u8]), AuthError> {
     let Some(at) = sealed.len().checked_sub(TRAILER_LEN) else {
         return Err(AuthError::Unsealed);
@@ -383,6 +394,14 @@ mod tests {
             .open_in(Kind::Reply, &[b"mfc/v1/a/statu", b"s"], &sealed)
             .is_err());
         assert!(key.open(Kind::Reply, &sealed).is_err());
+        // An error reply is not a good reply, nor the other way round.
+        let err = key.seal_in(Kind::ErrorReply, &[b"mfc/v1/a/status", b""], b"no".to_vec());
+        assert!(key
+            .open_in(Kind::Reply, &[b"mfc/v1/a/status", b""], &err)
+            .is_err());
+        assert!(key
+            .open_in(Kind::ErrorReply, &[b"mfc/v1/a/status", b""], &sealed)
+            .is_err());
     }
 
     #[test]

@@ -96,10 +96,31 @@ async fn ask_beside_the_forger(asker: &zenoh::Session, secret: &protocol::auth::
             fooled += usize::from(st.samples == FAKE_SAMPLES);
         }
     }
+    // A device nobody serves: the controller says so, the forger refuses in its own words.
+    for _ in 0..QUERIES {
+        let e = ops::device_status(&operator, "aero-9", Duration::from_secs(2))
+            .await
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("does not serve") && !e.contains(FORGED_REFUSAL),
+            "a keyed operator shown: {e}"
+        );
+    }
+    let mut fooled_err = 0;
+    for _ in 0..QUERIES {
+        if let Err(e) = ops::device_status(asker, "aero-9", Duration::from_secs(2)).await {
+            fooled_err += usize::from(e.to_string().contains(FORGED_REFUSAL));
+        }
+    }
     eprintln!(
-        "keyed operator: {QUERIES}/{QUERIES} real replies; unkeyed: fooled {fooled}/{QUERIES}"
+        "keyed operator: {QUERIES}/{QUERIES} real replies and refusals; unkeyed: fooled \
+         {fooled}/{QUERIES}, shown the forged refusal {fooled_err}/{QUERIES}"
     );
 }
+
+/// The forger's refusal, as it would read to an operator.
+const FORGED_REFUSAL: &str = "FORGED: device retired";
 
 #[tokio::test(flavor = "multi_thread")]
 async fn forged_samples_commands_and_replies_change_nothing() {
@@ -140,6 +161,14 @@ async fn forged_samples_commands_and_replies_change_nothing() {
         .callback(move |q| {
             use zenoh::Wait;
             let _ = q.reply(q.key_expr().clone(), fake_bytes.clone()).wait();
+        })
+        .await
+        .unwrap();
+    let _rogue_err = forger
+        .declare_queryable(keys::status("aero-9"))
+        .callback(|q| {
+            use zenoh::Wait;
+            let _ = q.reply_err(FORGED_REFUSAL).wait();
         })
         .await
         .unwrap();

@@ -62,6 +62,10 @@ async fn the_operator_reads_and_changes_a_running_device() {
         .await
         .unwrap();
     assert!(text.contains("kp 12 "), "{text}");
+    assert!(
+        text.contains("acknowledged: held by "),
+        "who holds the change: {text}"
+    );
     let after = ctl(&ep, &["--json", "config", "aero-1"]).await.unwrap();
     let after: serde_json::Value = serde_json::from_str(&after).unwrap();
     assert_eq!(

@@ -302,6 +302,9 @@ async fn metrics_match_the_status_and_a_recording_decodes_and_replays() {
     let now = transport::ops::update(&client, "aero-1", upd, Duration::from_secs(2))
         .await
         .expect("a partial gain change, accepted");
+    // A single service: the change lives with it alone, and the reply says so.
+    assert_eq!(now.held_by, ["controller-1"]);
+    let now = now.config;
     assert_eq!(now.channels.len(), 2);
     let mid = scrape(addr).await;
     assert!(

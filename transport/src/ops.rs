@@ -139,7 +139,22 @@ async fn replies<M: protocol::Versioned>(
                     Err(e) => Err(e),
                 }
             }
-            Err(e) => Err(String::from_utf8_lossy(&e.payload().to_bytes()).into_owned()),
+            Err(e) => {
+                let bytes = e.payload().to_bytes();
+                // With a key, an error is shown only if a controller sealed it: a forger
+                // must not be able to show an operator a refusal either.
+                Err(match asker.key() {
+                    Some(k) => {
+                        let ctx = protocol::auth::reply_context(key, &request);
+                        k.open_in(protocol::auth::Kind::ErrorReply, &ctx, &bytes)
+                            .map(|t| String::from_utf8_lossy(t).into_owned())
+                            .unwrap_or_else(|_| UNPROVEN.to_string())
+                    }
+                    None => {
+                        String::from_utf8_lossy(protocol::auth::unchecked_body(&bytes)).into_owned()
+                    }
+                })
+            }
         };
         out.push(item);
     }
@@ -159,9 +174,11 @@ async fn one<M: protocol::Versioned>(
     for r in all {
         match r {
             Ok(m) => return Ok(m),
-            Err(e) => {
-                first_err.get_or_insert(e);
+            // A proven error (a controller's) over an unproven one, whichever came first.
+            Err(e) if first_err.is_none() || first_err.as_deref() == Some(UNPROVEN) => {
+                first_err = Some(e);
             }
+            Err(_) => {}
         }
     }
     Err(match first_err {
@@ -242,7 +259,7 @@ pub async fn update(
     id: &str,
     update: pb::ChannelUpdate,
     timeout: Duration,
-) -> Result<pb::DeviceConfig, OpError> {
+) -> Result<Changed, OpError> {
     check(id)?;
     let req = pb::ConfigRequest {
         version: PROTOCOL_VERSION,
@@ -251,7 +268,7 @@ pub async fn update(
     };
     let reply: pb::ConfigReply =
         one(session, &keys::config(id), Some(encode(&req)), timeout).await?;
-    accepted(&keys::config(id), reply)
+    changed(&keys::config(id), reply)
 }
 
 /// Replace the device's reference (answered: a refusal comes back with its reason).
@@ -260,7 +277,7 @@ pub async fn set_reference(
     id: &str,
     reference: pb::Reference,
     timeout: Duration,
-) -> Result<pb::DeviceConfig, OpError> {
+) -> Result<Changed, OpError> {
     check(id)?;
     let u = pb::ReferenceUpdate {
         version: PROTOCOL_VERSION,
@@ -268,7 +285,7 @@ pub async fn set_reference(
     };
     let reply: pb::ConfigReply =
         one(session, &keys::reference(id), Some(encode(&u)), timeout).await?;
-    accepted(&keys::reference(id), reply)
+    changed(&keys::reference(id), reply)
 }
 
 /// Change the device's envelope (narrowing; widening only where the service allows it).
@@ -278,7 +295,7 @@ pub async fn change_envelope(
     envelope: pb::Envelope,
     reason: &str,
     timeout: Duration,
-) -> Result<pb::DeviceConfig, OpError> {
+) -> Result<Changed, OpError> {
     check(id)?;
     let req = pb::EnvelopeRequest {
         version: PROTOCOL_VERSION,
@@ -287,7 +304,7 @@ pub async fn change_envelope(
     };
     let reply: pb::ConfigReply =
         one(session, &keys::envelope(id), Some(encode(&req)), timeout).await?;
-    accepted(&keys::envelope(id), reply)
+    changed(&keys::envelope(id), reply)
 }
 
 /// A `FIELD=VALUE` list as a partial change of `channel`: only the named fields are set,
@@ -325,6 +342,22 @@ fn check(id: &str) -> Result<(), OpError> {
     keys::check_id(id)
         .map(|_| ())
         .map_err(|e| OpError::Usage(e.to_string()))
+}
+
+/// A change the service accepted: the configuration now in force, and who holds it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct Changed {
+    /// The device's configuration with the change in it.
+    pub config: pb::DeviceConfig,
+    /// The fleet members holding the change (the one commanding the plant first): the
+    /// change outlives any one of them. One name in a fleet without standbys or a single
+    /// service: then it lives as long as that member does.
+    pub held_by: Vec<String>,
+}
+
+fn changed(key: &str, reply: pb::ConfigReply) -> Result<Changed, OpError> {
+    let held_by = reply.held_by.clone();
+    accepted(key, reply).map(|config| Changed { config, held_by })
 }
 
 fn accepted(key: &str, reply: pb::ConfigReply) -> Result<pb::DeviceConfig, OpError> {

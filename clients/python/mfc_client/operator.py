@@ -38,6 +38,18 @@ def _update_fields() -> tuple[tuple[str, ...], tuple[str, ...]]:
 UPDATE_FIELDS, LAW_FIELDS = _update_fields()
 
 
+
+# A keyed service seals its error replies (protobuf field 100: a2 06 20, then 32 bytes of
+# MAC): without the key they are shown without those bytes, unchecked.
+_TRAILER_HEAD = b"\xa2\x06\x20"
+_TRAILER_LEN = len(_TRAILER_HEAD) + 32
+
+
+def _error_text(raw: bytes) -> str:
+    if len(raw) >= _TRAILER_LEN and raw[-_TRAILER_LEN:-32] == _TRAILER_HEAD:
+        raw = raw[:-_TRAILER_LEN]
+    return raw.decode("utf-8", errors="replace")
+
 class MfcError(Exception):
     """Any failure of a request to a controller."""
 
@@ -119,7 +131,7 @@ class Operator:
             if r.ok is not None:
                 oks.append(r.ok.payload.to_bytes())
             elif r.err is not None:
-                errors.append(r.err.payload.to_string())
+                errors.append(_error_text(r.err.payload.to_bytes()))
         return oks, errors
 
     def _ask(self, key: str, payload: bytes | None) -> bytes:

@@ -106,6 +106,13 @@ impl Keyring {
         let ctx = protocol::auth::reply_context(key_expr, request);
         self.operator.seal_in(Kind::Reply, &ctx, bytes)
     }
+
+    /// An error reply to an operator's query, sealed like a good one but as an error.
+    pub(super) fn seal_error(&self, key_expr: &str, request: &[u8], text: &str) -> Vec<u8> {
+        let ctx = protocol::auth::reply_context(key_expr, request);
+        self.operator
+            .seal_in(Kind::ErrorReply, &ctx, text.as_bytes().to_vec())
+    }
 }
 
 impl Keyring {

@@ -270,7 +270,7 @@ impl Worker {
             }
         };
         if let Some(why) = why {
-            let _ = q.reply_err(why).await;
+            self.reply_error(q, &why).await;
         }
         None
     }
@@ -309,11 +309,25 @@ impl Worker {
                 let bytes = self.sealed_reply(q.key_expr().as_str(), None, bytes);
                 let _ = q.reply(q.key_expr().clone(), bytes).await;
             }
-            Some(Err(why)) => {
-                let _ = q.reply_err(why).await;
-            }
+            Some(Err(why)) => self.reply_error(&q, &why).await,
             None => {}
         }
+    }
+
+    /// An error reply to an operator's query, sealed when the service has keys (bound to
+    /// the key expression and the request, as a good reply is).
+    async fn reply_error(&self, q: &Query, why: &str) {
+        let bytes = match &self.shared.keys {
+            Some(k) => {
+                let request = q
+                    .payload()
+                    .map(|p| p.to_bytes().to_vec())
+                    .unwrap_or_default();
+                k.seal_error(q.key_expr().as_str(), &request, why)
+            }
+            None => why.as_bytes().to_vec(),
+        };
+        let _ = q.reply_err(bytes).await;
     }
 
     /// Whether this member answers for device `d`, served here.

@@ -245,6 +245,9 @@ impl StandbyRoutes {
         intake: &Arc<Intake>,
         group: &str,
     ) -> Result<Self, ServiceError> {
+        // The group's standbys hear only heartbeats: an operator's change lives on the
+        // active member alone (its reply's `held_by` names it alone).
+        tracing::warn!(group = %group, "hot-standby group: changes are held by the active member only; a fleet with standbys holds them on two");
         let heartbeats =
             subscribe(session, intake, keys::heartbeat(group), Kind::Heartbeat).await?;
         let publisher = transport::control_publisher(session, keys::heartbeat(group))

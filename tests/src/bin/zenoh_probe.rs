@@ -45,6 +45,22 @@ enum What {
         secs: f64,
         #[arg(long, default_value = "FORGED")]
         marker: String,
+        /// Also write every payload received, one hex line each, to this file (a
+        /// capture to play back with `replay`).
+        #[arg(long)]
+        save: Option<std::path::PathBuf>,
+    },
+    /// Put every payload of a `sub --save` file on `key` as it was captured, one every
+    /// `interval_ms`, `rounds` times over.
+    Replay {
+        #[arg(long)]
+        key: String,
+        #[arg(long)]
+        file: std::path::PathBuf,
+        #[arg(long, default_value_t = 10)]
+        interval_ms: u64,
+        #[arg(long, default_value_t = 1)]
+        rounds: u32,
     },
     /// Send `count` queries on `key` (with `payload_hex` as payload, if given) and count the
     /// replies: good ones, those whose payload starts with `marker`, and errors.
@@ -124,7 +140,18 @@ async fn run(cli: Cli) -> anyhow::Result<serde_json::Value> {
             interval_ms,
             marker,
         } => put(s, &key, count, interval_ms, &marker).await,
-        What::Sub { key, secs, marker } => sub(s, key, secs, &marker).await,
+        What::Sub {
+            key,
+            secs,
+            marker,
+            save,
+        } => sub(s, key, secs, &marker, save.as_deref()).await,
+        What::Replay {
+            key,
+            file,
+            interval_ms,
+            rounds,
+        } => replay(s, &key, &file, interval_ms, rounds).await,
         What::Get {
             key,
             count,
@@ -167,17 +194,25 @@ async fn sub(
     keys: Vec<String>,
     secs: f64,
     marker: &str,
+    save: Option<&std::path::Path>,
 ) -> anyhow::Result<serde_json::Value> {
     let counts = Counts::default();
+    let saved = std::sync::Arc::new(std::sync::Mutex::new(Vec::<String>::new()));
     let mut subs = Vec::new();
     for k in keys {
         counts.lock().unwrap().insert(k.clone(), (0, 0, 0));
         let (c, m, kk) = (counts.clone(), marker.to_string(), k.clone());
+        let keep = save.map(|_| saved.clone());
         subs.push(
             session
                 .declare_subscriber(&k)
                 .callback(move |s| {
-                    let forged = s.payload().to_bytes().starts_with(m.as_bytes());
+                    let bytes = s.payload().to_bytes();
+                    if let Some(keep) = &keep {
+                        let line = bytes.iter().map(|b| format!("{b:02x}")).collect();
+                        keep.lock().unwrap().push(line);
+                    }
+                    let forged = bytes.starts_with(m.as_bytes());
                     let delete = s.kind() == zenoh::sample::SampleKind::Delete;
                     if let Some(e) = c.lock().unwrap().get_mut(&kk) {
                         e.0 += 1;
@@ -191,6 +226,11 @@ async fn sub(
     }
     tokio::time::sleep(Duration::from_secs_f64(secs)).await;
     drop(subs);
+    if let Some(path) = save {
+        let lines = saved.lock().unwrap().join("\n");
+        std::fs::write(path, lines + "\n")
+            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    }
     let counts = counts.lock().unwrap().clone();
     let per_key: serde_json::Map<String, serde_json::Value> = counts
         .iter()
@@ -206,6 +246,33 @@ async fn sub(
         "marked": counts.values().map(|c| c.1).sum::<u64>(),
         "per_key": per_key,
     }))
+}
+
+async fn replay(
+    session: &Session,
+    key: &str,
+    file: &std::path::Path,
+    interval_ms: u64,
+    rounds: u32,
+) -> anyhow::Result<serde_json::Value> {
+    let text =
+        std::fs::read_to_string(file).map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
+    let payloads: Vec<Vec<u8>> = text
+        .lines()
+        .filter(|l| !l.is_empty())
+        .map(hex)
+        .collect::<anyhow::Result<_>>()?;
+    let mut errors = 0;
+    for _ in 0..rounds {
+        for p in &payloads {
+            if session.put(key, p.clone()).await.is_err() {
+                errors += 1;
+            }
+            tokio::time::sleep(Duration::from_millis(interval_ms)).await;
+        }
+    }
+    let put = payloads.len() as u64 * u64::from(rounds);
+    Ok(json!({ "captured": payloads.len(), "put": put, "errors": errors }))
 }
 
 async fn get(
