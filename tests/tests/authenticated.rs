@@ -231,3 +231,88 @@ async fn forged_samples_commands_and_replies_change_nothing() {
     }
     service.stop().await.unwrap();
 }
+
+/// A hot-standby group with keys: heartbeats are sealed with the members' key. A forger's
+/// heartbeats claiming a far higher term leave the active member active (counted as
+/// forged); the same heartbeat sealed with the members' key makes it stand by (the
+/// control: the forger's did arrive, and would have won without the seal).
+#[tokio::test(flavor = "multi_thread")]
+async fn a_forged_heartbeat_does_not_make_the_active_member_stand_by() {
+    use controller_service::config::{StandbyRole, StandbySpec};
+    use plant::scenario::{load_scenario, shipped_controller};
+
+    let _s = SERIAL.lock().await;
+    let sc = load_scenario("2").unwrap();
+    let c = shipped_controller("ipd").unwrap();
+    let mut cfg = service_config(&sc, &c, &["aero-1".to_string()]);
+    cfg.standby = Some(StandbySpec {
+        group: "g1".into(),
+        role: StandbyRole::Active,
+        heartbeat_ms: 10,
+        takeover_ms: 30,
+    });
+    let service = ServiceHandle::start_keyed(cfg, None).await.unwrap();
+    let secret = service.secret.clone().unwrap();
+    let forger = open_session(None, vec![service.endpoint.clone()], true)
+        .await
+        .unwrap();
+    let status = || async {
+        query::<pb::ServiceStatus>(&forger, keys::service_status("controller-1"), None)
+            .await
+            .unwrap()
+    };
+    // Past the start-up grace, in which an active member listens for another one.
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    assert!(status().await.active, "active at start");
+    let key = keys::heartbeat("g1");
+    let hb = encode(&pb::Heartbeat {
+        version: PROTOCOL_VERSION,
+        controller_id: "rogue".into(),
+        term: 1_000_000,
+    });
+    // Each kind of heartbeat is kept up while the status is read: 30 ms after the last
+    // one a member that stood by takes over again, under a higher term, as it should.
+    let beat = |bytes: Vec<u8>| {
+        let (forger, key) = (forger.clone(), key.clone());
+        tokio::spawn(async move {
+            loop {
+                let _ = forger.put(&key, bytes.clone()).await;
+                tokio::time::sleep(Duration::from_millis(10)).await;
+            }
+        })
+    };
+    // Five reads, 100 ms apart, while the heartbeats go on: every one must be active
+    // under forged heartbeats; under a member's, one standing by is the proof (a busy
+    // machine may pause the sender past the takeover time between them).
+    let reads = || async {
+        let mut v = Vec::new();
+        for _ in 0..5 {
+            tokio::time::sleep(Duration::from_millis(100)).await;
+            v.push(status().await);
+        }
+        v
+    };
+    let forged = beat(hb.clone());
+    let during = reads().await;
+    forged.abort();
+    assert!(
+        during.iter().all(|s| s.active),
+        "a forged heartbeat made the active member stand by"
+    );
+    assert!(
+        during.last().unwrap().forged > 0,
+        "the forged heartbeats arrived, and were counted"
+    );
+    let sealed = secret
+        .member()
+        .seal_in(protocol::auth::Kind::Handover, &[key.as_bytes()], hb);
+    let member = beat(sealed);
+    let stood_by = reads().await.iter().any(|s| !s.active);
+    member.abort();
+    assert!(
+        stood_by,
+        "control: a member's heartbeat with a higher term makes it stand by"
+    );
+    let _ = forger.close().await;
+    service.stop().await.unwrap();
+}

@@ -369,8 +369,13 @@ impl Worker {
             tracing::warn!(controller = %self.id, term = self.standby.term, "no heartbeat from the active member: taking over");
         }
         if let (true, Some(routes)) = (self.standby.active, &self.standby_routes) {
-            let hb = self.standby.heartbeat_of(&self.id);
-            let _ = routes.publisher.put(encode(&hb)).await;
+            let hb = encode(&self.standby.heartbeat_of(&self.id));
+            let key = routes.publisher.key_expr().as_str().as_bytes();
+            let bytes = match &self.shared.keys {
+                Some(k) => k.seal_handover(&[key], hb),
+                None => hb,
+            };
+            let _ = routes.publisher.put(bytes).await;
         }
     }
 }

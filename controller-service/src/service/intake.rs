@@ -335,11 +335,17 @@ impl Intake {
         if !self.shared.drops.fits(s.payload().len()) {
             return;
         }
-        if self
-            .heartbeats
-            .try_send(s.payload().to_bytes().into_owned())
-            .is_err()
-        {
+        let bytes = s.payload().to_bytes();
+        // With keys, only a member's heartbeat counts: a forged one with a higher term
+        // would make the active member stand by.
+        let body = match &self.shared.keys {
+            Some(k) => match k.open_handover(&[s.key_expr().as_str().as_bytes()], &bytes) {
+                Some(body) => body,
+                None => return Drops::count(&self.shared.drops.forged),
+            },
+            None => &bytes[..],
+        };
+        if self.heartbeats.try_send(body.to_vec()).is_err() {
             Drops::count(&self.shared.drops.queue_full);
         }
     }
