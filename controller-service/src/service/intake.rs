@@ -50,11 +50,11 @@ pub(super) enum Msg {
     /// Another member's request about one of this member's shards
     /// ([`crate::fleet::Request`]).
     Handover(Query),
-    /// What came back for this member's own request about a shard: the reply's payload,
-    /// or `None` if no good reply came (an error reply, none before the timeout).
     /// Whether a member's partners are in step with it for these devices, after it sent
     /// them their states ([`super::hold`]).
     HandedOver { devices: Vec<String>, in_step: bool },
+    /// What came back for this member's own request about a shard: the reply's payload,
+    /// or `None` if no good reply came (an error reply, none before the timeout).
     Answer {
         shard: u32,
         kind: RequestKind,
