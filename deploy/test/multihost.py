@@ -437,7 +437,7 @@ def run_test(env, args):
         if "bg" in b["attrs"]:
             bg[b["attrs"]["bg"]] = (b["host"], b["body"].strip())
     expect = {"mfc-router.service": ("router", None), "mfc-controller@.service": ("controller", "controller-1"),
-              "mfc-agent@.service": ("aero-1", "aero-1")}
+              "mfc-agent@.service": ("aero-1", "aero-1"), "mfc-gateway@.service": ("cell-1", "cell-1")}
     for unit, (name, inst) in expect.items():
         line = units.get(unit)
         line = line.replace("%i", inst) if line and inst else line
@@ -520,6 +520,7 @@ def run_test(env, args):
         for ch, q in results[f"phase1_attempt{attempt}_{d}_rms_ratio"].items():
             check(q <= RMS_RATIO, f"phase 1: {d} {ch} tracks within {RMS_RATIO}x of offline",
                   f"ratio {q:.3f} (attempt {attempt}, loop overruns {over[d]:.1%})")
+    gateway_plants(env, off)
 
     # ---------------- phase 2: reverse start order, router restart, gain change, attacks
     log("phase 2: plants first, then the controller, then the router")
@@ -911,6 +912,35 @@ def find_alpha(cfg, channel):
     return found[0] if found else None
 
 
+# The gateway of the guide and the plants it hosts.
+GATEWAY, GATEWAY_PLANTS = "cell-1", ["aero-g1", "aero-g2"]
+
+
+def gateway_plants(env, off):
+    """Phase 1's gateway ran its plants beside aero-1 and aero-2, through the router, under
+    its own certificate and batch key: each plant served to its end, every batch sealed and
+    every command batch proved."""
+    code = env.wait(GATEWAY, 120)
+    check(code == 0, f"phase 1: the gateway {GATEWAY} exits 0 (a controller answered each plant)",
+          f"exit {code}; log: {env.log_text(GATEWAY)[-400:]}")
+    for d in GATEWAY_PLANTS:
+        path = Path(f"/var/lib/mfc/{GATEWAY}/{d}/summary.json")
+        if not check(path.is_file(), f"phase 1: {d} (gateway {GATEWAY}) wrote its record", str(path)):
+            continue
+        s = json.loads(path.read_text())
+        auth = s.get("auth", {})
+        results[f"phase1_{d}_rms_ratio"] = {c["name"]: c["rms"] / off[c["name"]] for c in s["channels"]}
+        results[f"phase1_{d}_counters"] = s["counters"]
+        check(auth.get("authenticated") is True and auth.get("forged") == 0,
+              f"phase 1: {d}'s batches were sealed and every command batch proved its origin",
+              str(auth))
+        k = s["counters"]
+        check(k["commands"] >= 0.9 * k["periods"],
+              f"phase 1: {d} was commanded through the gateway in at least 90 % of its periods",
+              f"{k['commands']} commands in {k['periods']} periods")
+    shutil.move(f"/var/lib/mfc/{GATEWAY}", env.logs / f"phase1-{GATEWAY}")
+
+
 def plants_running(env, what):
     """Checks made while both plants run are only worth something while they run."""
     running = all(env.procs[d][0].poll() is None for d in ("aero-1", "aero-2"))
@@ -919,8 +949,11 @@ def plants_running(env, what):
 
 def attacks(env):
     intr = f"/etc/netns/{HOSTS['intruder'][0]}/mfc"
-    # The intruder holds aero-1's bundle (a stolen plant).
+    # The intruder holds aero-1's bundle (a stolen plant) and the gateway's.
     shutil.copytree(env.work / "fleet" / "devices" / "aero-1", intr, dirs_exist_ok=True)
+    shutil.copytree(env.work / "fleet" / "gateways" / GATEWAY, intr, dirs_exist_ok=True)
+    gw = f"/etc/mfc/{GATEWAY}.json5"
+    gw_batches = {g: f"mfc/v1/shard/{shard_of(g)}/gateway/{g}/samples" for g in (GATEWAY, "cell-2")}
     p = "mfc/v1/device"
     stolen = "/etc/mfc/aero-1.json5"
     # aero-1's config, giving up at once instead of retrying: the base of the direct dials
@@ -946,7 +979,8 @@ def attacks(env):
              "sub", "--secs", "20"] + sum([["--key", k] for k in keys], []),
             env=env.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     witnesses = [witness("operator", "/etc/mfc/alice.json5", watched[:2] + watched[3:]),
-                 witness("controller", "/etc/mfc/controller-1.json5", watched[2:3])]
+                 witness("controller", "/etc/mfc/controller-1.json5",
+                         watched[2:3] + list(gw_batches.values()))]
     time.sleep(1.5)
     plants_running(env, "when the attacks start")
     forged = {}
@@ -955,6 +989,11 @@ def attacks(env):
                           "--count", str(FORGED), "--interval-ms", "5")
     for k in watched[:3]:
         forged[k + " (delete)"] = probe(env, "intruder", stolen, "delete", "--key", k, "--count", "10")
+    # The gateway's certificate: another device's keys, another gateway's batches, and (the
+    # control) its own batch key, which the services' subscription does receive.
+    for k in watched[:3] + list(gw_batches.values()):
+        forged[k + " (gateway)"] = probe(env, "intruder", gw, "put", "--key", k,
+                                         "--count", str(FORGED), "--interval-ms", "5")
     # An operator may steer and watch, never command.
     forged["operator command"] = probe(env, "operator", "/etc/mfc/alice.json5", "put", "--key",
                                        f"{p}/aero-2/command", "--count", str(FORGED),
@@ -1001,14 +1040,21 @@ def attacks(env):
           "the forger's sessions open with aero-1's certificate", str(forged))
     for k in watched[:3]:
         got = per.get(k, {})
-        check(got.get("marked") == 0, f"forged puts on {k} arriving: 0 (of {FORGED}, and of {FORGED} "
-              "more by the operator on the command key)" if k.endswith("command") else
-              f"forged puts on {k} arriving: 0 of {FORGED}", str(got))
+        check(got.get("marked") == 0, f"forged puts on {k} arriving: 0 (of {FORGED} with aero-1's "
+              f"certificate, {FORGED} with the gateway's" + (f", {FORGED} by the operator)"
+              if k.endswith("command") else ")"), str(got))
         check(got.get("deletes") == 0, f"forged deletes on {k} arriving: 0 of 10", str(got))
         check(got.get("received", 0) >= 10, f"the witness does see {k}'s real traffic", str(got))
     ctl = per.get(watched[3], {})
     check(ctl.get("marked", 0) >= 0.9 * FORGED,
           "control: the same forger's puts on aero-1's own sample key arrive", str(ctl))
+    other = per.get(gw_batches["cell-2"], {})
+    check(other.get("marked") == 0,
+          f"puts with {GATEWAY}'s certificate on another gateway's batch key arriving: 0 of {FORGED}",
+          str(other))
+    own = per.get(gw_batches[GATEWAY], {})
+    check(own.get("marked", 0) >= 0.9 * FORGED,
+          f"control: puts with {GATEWAY}'s certificate on its own batch key arrive", str(own))
     pk = seen.get("per_key", {})
     check(pk.get(sample_key("aero-2"), {}).get("received") == 0
           and pk.get(f"{p}/aero-2/command", {}).get("received") == 0,

@@ -12,10 +12,12 @@
 //! |---|---|---|
 //! | device `d` | put `device/d/sample` and `shard/{s}/device/d/sample` (`s` its shard, where the agent publishes); subscribe `device/d/command`; token `alive/plant/d` | put `device/d/command`; the services' subscriptions `device/*/sample`, `shard/*/device/*/sample` |
 //! | service `s` | put `device/*/command`, `gateway/*/commands`, `group/**`; subscribe `device/*/{sample,reference}`, `shard/*/device/*/sample`, `gateway/*/samples`, `group/**`, the members `fleet/*/member/*`; serve and reply on `device/*/{config,status,envelope,reference}` and the same under `shard/*/` (no wildcard leaf); query other members' `fleet/*/member/*/shard/*`; tokens `alive/controller/s` and `fleet/*/member/s`, handover queryable `fleet/*/member/s/shard/*` and status queryable `service/s/status`, under its own name only | samples, batches, references, heartbeats, fleet traffic, queries, the agents' and operators' declarations |
+//! | gateway `g` hosting plants `p…` | put `gateway/g/samples` and `shard/{s}/gateway/g/samples` (`s` its shard); subscribe `gateway/g/commands`; tokens `alive/plant/p` for each of its plants | put `gateway/g/commands`; the services' subscriptions `gateway/*/samples`, `shard/*/gateway/*/samples` |
 //! | operator | query `device/*/{config,status,envelope,reference}`, `service/*/status`; put `device/*/reference`; subscribe samples and commands (watch); liveliness queries | replies, samples, commands, tokens |
 //!
 //! So a device holding its own certificate can neither put on nor watch another device's
-//! keys, cannot command even itself, and cannot change any configuration; an operator can
+//! keys, cannot command even itself, and cannot change any configuration (a gateway's
+//! likewise, for its plants' batches: no single plant's keys, no other gateway's); an operator can
 //! steer and tune but never puts a command or a sample; only services command.
 //!
 //! Traps this avoids: the service subscribes with a wildcard (`device/*/sample`), so the
@@ -60,6 +62,13 @@ pub fn access_control(inv: &Inventory) -> Value {
     let mut acl = Acl::default();
     for d in &inv.devices {
         acl.policy(format!("device-{d}"), vec![d.clone()], device_rules(d));
+    }
+    for g in &inv.gateways {
+        acl.policy(
+            format!("gateway-{}", g.id),
+            vec![g.id.clone()],
+            gateway_rules(&g.id, &g.plants),
+        );
     }
     let keys = SharedKeys::new();
     let service_ids = acl.add(service_rules(&keys));
@@ -177,6 +186,50 @@ fn device_rules(d: &str) -> Vec<Value> {
     ]
 }
 
+/// A gateway's own batch keys, and its plants' liveliness tokens.
+fn gateway_rules(g: &str, plants: &[String]) -> Vec<Value> {
+    let r = |n: &str| format!("gateway-{g}-{n}");
+    let commands = protocol::keys::gateway_commands(g);
+    vec![
+        rule(
+            r("put-samples"),
+            &["ingress"],
+            &["put"],
+            vec![
+                protocol::keys::gateway_samples(g),
+                protocol::keys::shard_gateway_samples(g),
+            ],
+        ),
+        rule(
+            r("sub-commands"),
+            &["ingress"],
+            &["declare_subscriber"],
+            vec![commands.clone()],
+        ),
+        // Each hosted plant announces itself as a single rig would.
+        rule(
+            r("tokens"),
+            &["ingress"],
+            &["liveliness_token"],
+            plants
+                .iter()
+                .map(|p| protocol::keys::alive_plant(p))
+                .collect(),
+        ),
+        rule(r("get-commands"), &["egress"], &["put"], vec![commands]),
+        // The services' wildcard subscriptions, declared towards the gateway.
+        rule(
+            r("see-subscription"),
+            &["egress"],
+            &["declare_subscriber"],
+            vec![
+                protocol::keys::all_gateways("samples"),
+                format!("{P}/shard/*/gateway/*/samples"),
+            ],
+        ),
+    ]
+}
+
 /// A fleet's member tokens, `fleet/*/member/*`.
 fn members() -> String {
     format!("{P}/fleet/*/member/*")
@@ -242,12 +295,16 @@ fn service_rules(keys: &SharedKeys) -> Vec<Value> {
             ],
             vec![members(), handovers()],
         ),
-        // The agents' command subscriptions, declared towards the service.
+        // The agents' and gateways' command subscriptions, declared towards the service.
         rule(
             "service-see-subscriptions".into(),
             &["egress"],
             &["declare_subscriber"],
-            vec![dev("*", "command"), group.clone()],
+            vec![
+                dev("*", "command"),
+                format!("{P}/gateway/*/commands"),
+                group.clone(),
+            ],
         ),
         rule(
             "service-serve".into(),
@@ -479,6 +536,91 @@ mod tests {
             "ingress",
             "liveliness_token",
             &format!("{P}/alive/controller/ctl")
+        ));
+    }
+
+    #[test]
+    fn a_gateway_speaks_for_its_own_plants_batches_only() {
+        use protocol::keys;
+        let inv = Inventory::parse(
+            "services = [\"ctl\"]\ndevices = [\"aero-1\"]\n[router]\nhosts = [\"10.0.0.1\"]\n[[gateways]]\nid = \"cell-1\"\nplants = [\"heater-1\", \"heater-2\"]\n[[gateways]]\nid = \"cell-2\"\nplants = [\"heater-3\"]\n",
+        )
+        .unwrap();
+        let acl = access_control(&inv);
+        let (g, other) = ("cell-1", "cell-2");
+        // The loop, end to end: batches in from the gateway and out to the service,
+        // commands in from the service and out to the gateway, both subscriptions seen.
+        for (cn, flow, m, k) in [
+            (g, "ingress", "put", keys::shard_gateway_samples(g)),
+            (g, "ingress", "put", keys::gateway_samples(g)),
+            ("ctl", "egress", "put", keys::shard_gateway_samples(g)),
+            ("ctl", "ingress", "put", keys::gateway_commands(g)),
+            (g, "egress", "put", keys::gateway_commands(g)),
+            (
+                g,
+                "ingress",
+                "declare_subscriber",
+                keys::gateway_commands(g),
+            ),
+            (
+                "ctl",
+                "egress",
+                "declare_subscriber",
+                keys::gateway_commands(g),
+            ),
+            (
+                g,
+                "egress",
+                "declare_subscriber",
+                keys::all_gateways("samples"),
+            ),
+            (
+                g,
+                "ingress",
+                "liveliness_token",
+                keys::alive_plant("heater-1"),
+            ),
+            (
+                g,
+                "ingress",
+                "liveliness_token",
+                keys::alive_plant("heater-2"),
+            ),
+        ] {
+            assert!(allowed(&acl, cn, flow, m, &k), "{cn} {flow} {m} {k}");
+        }
+        // Nothing of another gateway, of a single device, of a plant it does not host;
+        // no command, no configuration.
+        for (flow, m, k) in [
+            ("ingress", "put", keys::shard_gateway_samples(other)),
+            ("ingress", "put", keys::gateway_samples(other)),
+            ("ingress", "put", keys::gateway_commands(g)),
+            ("ingress", "put", dev("aero-1", "sample")),
+            ("ingress", "put", sdev("heater-1", "sample")),
+            ("ingress", "put", dev("heater-1", "command")),
+            ("ingress", "put", dev("heater-1", "reference")),
+            (
+                "ingress",
+                "declare_subscriber",
+                keys::gateway_commands(other),
+            ),
+            ("ingress", "declare_subscriber", dev("heater-1", "command")),
+            ("ingress", "liveliness_token", keys::alive_plant("heater-3")),
+            ("ingress", "liveliness_token", keys::alive_plant("aero-1")),
+            ("ingress", "query", dev("heater-1", "config")),
+            ("ingress", "declare_queryable", dev("heater-1", "status")),
+            ("egress", "put", keys::gateway_commands(other)),
+            ("egress", "put", dev("aero-1", "command")),
+        ] {
+            assert!(!allowed(&acl, g, flow, m, &k), "{g} may {flow} {m} {k}");
+        }
+        // A device's certificate cannot pass for a gateway either.
+        assert!(!allowed(
+            &acl,
+            "aero-1",
+            "ingress",
+            "put",
+            &keys::shard_gateway_samples(g)
         ));
     }
 

@@ -65,7 +65,7 @@ pub fn router(inv: &Inventory, access_control: Value) -> Value {
 
 /// A client's config: dial the router over mutual TLS, never listen, never scout.
 ///
-/// Services and plants retry forever (`timeout_ms: -1`), so start order does not matter
+/// Services, plants and gateways retry forever (`timeout_ms: -1`), so start order does not matter
 /// and a router restart is ridden through; operators give up after
 /// [`OPERATOR_CONNECT_TIMEOUT_MS`].
 pub fn client(inv: &Inventory, role: IdentityKind, name: &str) -> Value {

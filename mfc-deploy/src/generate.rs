@@ -7,6 +7,7 @@
 //! OUT/services/ID/ID.json5 ID.pem ID.key ca.pem fleet.secret
 //! OUT/devices/ID/…   ID.auth            the device's message key
 //! OUT/operators/ID/… ID.auth            the operators' reply key
+//! OUT/gateways/ID/…  ID.auth            the gateway's batch key (its plants have none)
 //! OUT/acl.json5                        the access control, for review (also in zenohd.json5)
 //! OUT/retired/…                        bundles of names no longer in the inventory
 //! ```
@@ -248,8 +249,9 @@ fn load_or_create_secret(out: &Path) -> Result<protocol::auth::Secret, DeployErr
 /// The message key an identity's bundle gets, private: a service the fleet's secret
 /// (`fleet.secret`: it checks every device's messages and seals its commands), a device
 /// its own key (`ID.auth`: it speaks for itself only), an operator the operators' key
-/// (`ID.auth`: it can check replies, not forge commands); the router none (it forwards,
-/// and cannot forge what it forwards).
+/// (`ID.auth`: it can check replies, not forge commands), a gateway its own batch key
+/// (`ID.auth`: it seals its plants' batches and opens their commands, nobody else's); the
+/// router none (it forwards, and cannot forge what it forwards).
 fn write_message_key(
     secret: &protocol::auth::Secret,
     out: &Path,
@@ -262,6 +264,7 @@ fn write_message_key(
         IdentityKind::Service => ("fleet.secret".to_string(), secret.to_hex()),
         IdentityKind::Device => (format!("{name}.auth"), secret.device(name).to_hex()),
         IdentityKind::Operator => (format!("{name}.auth"), secret.operator().to_hex()),
+        IdentityKind::Gateway => (format!("{name}.auth"), secret.gateway(name).to_hex()),
     };
     write(&dir.join(file), &format!("{hex}\n"), true)
 }
@@ -338,6 +341,7 @@ fn retire_departed(
         IdentityKind::Service,
         IdentityKind::Device,
         IdentityKind::Operator,
+        IdentityKind::Gateway,
     ] {
         let dir = out.join(role.dir());
         let Ok(listing) = fs::read_dir(&dir) else {
@@ -577,5 +581,38 @@ mod tests {
             hex("devices/aero-1/aero-1.auth"),
             secret.device("aero-1").to_hex()
         );
+    }
+
+    #[test]
+    fn a_gateway_gets_a_certificate_its_own_batch_key_and_is_retired_when_it_leaves() {
+        use protocol::auth::{Key, Secret};
+        let out = tempfile::tempdir().unwrap();
+        let o = out.path();
+        let with_gateway = Inventory::parse(
+            "services = [\"ctl\"]\ndevices = [\"aero-1\"]\n[router]\nhosts = [\"10.0.0.1\"]\n[[gateways]]\nid = \"cell-1\"\nplants = [\"heater-1\", \"heater-2\"]\n",
+        )
+        .unwrap();
+        let r = generate(&with_gateway, o, &[], now()).unwrap();
+        let gw = r.entries.iter().find(|e| e.name == "cell-1").unwrap();
+        assert_eq!(
+            (gw.role, gw.bundle.clone()),
+            (IdentityKind::Gateway, o.join("gateways/cell-1"))
+        );
+        for f in ["cell-1.pem", "cell-1.key", "cell-1.json5", "ca.pem"] {
+            assert!(gw.bundle.join(f).is_file(), "{f}");
+        }
+        let secret = Secret::from_file(&o.join("ca/fleet.secret")).unwrap();
+        let key = Key::from_file(&o.join("gateways/cell-1/cell-1.auth")).unwrap();
+        assert_eq!(key.to_hex(), secret.gateway("cell-1").to_hex());
+        // Its batch key is neither a plant's device key nor the secret.
+        assert_ne!(key.to_hex(), secret.device("cell-1").to_hex());
+        let files: Vec<_> = fs::read_dir(&gw.bundle).unwrap().flatten().collect();
+        assert!(files.iter().all(|f| !fs::read_to_string(f.path())
+            .unwrap_or_default()
+            .contains(&secret.to_hex())));
+        let r = generate(&inv(&["aero-1"]), o, &[], now()).unwrap();
+        assert_eq!(r.retired, [o.join("retired/gateways/cell-1")]);
+        let cfg = fs::read_to_string(o.join("router/zenohd.json5")).unwrap();
+        assert!(!cfg.contains("cell-1") && !cfg.contains("heater-1"));
     }
 }

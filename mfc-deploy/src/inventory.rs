@@ -45,6 +45,24 @@ pub struct Inventory {
     /// references through the services, never put a command or a sample.
     #[serde(default)]
     pub operators: Vec<String>,
+    /// Gateways (`plant-agent gateway`: one process hosting many plants, one batch a
+    /// period each way): CN of their certificates; each may speak for the plants it lists
+    /// only.
+    #[serde(default)]
+    pub gateways: Vec<Gateway>,
+}
+
+/// A gateway and the plants it hosts.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Gateway {
+    /// Its id (the gateway file's `gateway`): the CN of its certificate.
+    pub id: String,
+    /// The device ids of its plants (the gateway file's `plants[].device`). They get no
+    /// certificate of their own: the gateway announces them (`alive/plant/{id}`) and its
+    /// key seals their batches. A plant is hosted by one gateway at most, and is not also
+    /// listed in `devices`.
+    pub plants: Vec<String>,
 }
 
 /// The router (zenohd).
@@ -128,6 +146,8 @@ pub enum IdentityKind {
     Device,
     /// An operator.
     Operator,
+    /// A gateway (one agent process hosting many plants).
+    Gateway,
 }
 
 impl IdentityKind {
@@ -138,6 +158,7 @@ impl IdentityKind {
             IdentityKind::Service => "services",
             IdentityKind::Device => "devices",
             IdentityKind::Operator => "operators",
+            IdentityKind::Gateway => "gateways",
         }
     }
 }
@@ -183,6 +204,11 @@ impl Inventory {
             self.operators
                 .iter()
                 .map(|s| (IdentityKind::Operator, s.clone())),
+        );
+        v.extend(
+            self.gateways
+                .iter()
+                .map(|g| (IdentityKind::Gateway, g.id.clone())),
         );
         v
     }
@@ -275,8 +301,34 @@ impl Inventory {
             }
             if !seen.insert(id.clone()) {
                 return bad(format!(
-                    "{id:?} is listed twice: every router, service, device and operator needs its own name (the access control tells them apart by certificate name)"
+                    "{id:?} is listed twice: every router, service, device, operator and gateway needs its own name (the access control tells them apart by certificate name)"
                 ));
+            }
+        }
+        self.check_hosted(&self.devices.iter().cloned().collect())
+    }
+
+    /// Every gateway hosts at least one plant, each plant a valid device id hosted once
+    /// and not also a device of its own (two processes would speak for it).
+    fn check_hosted(&self, devices: &BTreeSet<String>) -> Result<(), DeployError> {
+        let mut hosted = BTreeSet::new();
+        for g in &self.gateways {
+            if g.plants.is_empty() {
+                return Err(DeployError::Inventory(format!(
+                    "gateway {:?} lists no plants",
+                    g.id
+                )));
+            }
+            for p in &g.plants {
+                protocol::keys::check_id(p).map_err(|e| {
+                    DeployError::Inventory(format!("gateway {:?}: plant {p:?}: {e}", g.id))
+                })?;
+                if devices.contains(p) || !hosted.insert(p.clone()) {
+                    return Err(DeployError::Inventory(format!(
+                        "plant {p:?} of gateway {:?} is already a device or another gateway's plant: one process speaks for a plant",
+                        g.id
+                    )));
+                }
             }
         }
         Ok(())
@@ -317,6 +369,12 @@ services = ["controller-1"]
 devices = ["aero-1", "aero-2"]
 operators = ["alice"]
 
+# Gateways (`plant-agent gateway`): the id is the gateway file's `gateway`, the plants its
+# `plants[].device`. Optional; none by default.
+# [[gateways]]
+# id = "cell-1"
+# plants = ["heater-1", "heater-2"]
+
 [router]
 # Addresses or DNS names clients dial; all go into the router certificate. The first is dialled.
 hosts = ["10.0.0.1", "router.example.org"]
@@ -353,6 +411,25 @@ mod tests {
             ("renew_days = 400\n", "renew_days"),
             ("colour = 1\n", "unknown field"),
         ];
+        let gw = |g: &str| format!("devices = [\"d\"]\n{base}{g}");
+        let gateway_cases = [
+            ("[[gateways]]\nid = \"c\"\nplants = [\"p\"]\n", "listed twice"),
+            ("[[gateways]]\nid = \"g\"\nplants = []\n", "no plants"),
+            ("[[gateways]]\nid = \"g\"\nplants = [\"d\"]\n", "already a device"),
+            (
+                "[[gateways]]\nid = \"g\"\nplants = [\"p\"]\n[[gateways]]\nid = \"h\"\nplants = [\"p\"]\n",
+                "another gateway's plant",
+            ),
+            ("[[gateways]]\nid = \"g\"\nplants = [\"p/q\"]\n", "plant \"p/q\""),
+            ("[[gateways]]\nid = \"g\"\nplants = [\"p\"]\nrole = 1\n", "unknown field"),
+        ];
+        for (g, want) in gateway_cases {
+            let e = Inventory::parse(&gw(g)).unwrap_err().to_string();
+            assert!(e.contains(want), "{g:?}: {e}");
+        }
+        let ok =
+            Inventory::parse(&gw("[[gateways]]\nid = \"g\"\nplants = [\"p\", \"q\"]\n")).unwrap();
+        assert_eq!(ok.gateways[0].plants, ["p", "q"]);
         for (extra, want) in cases {
             let e = Inventory::parse(&format!("{extra}{base}"))
                 .unwrap_err()

@@ -65,9 +65,9 @@ pub struct GatewayFile {
     pub record: Option<telemetry::RecordSpec>,
     /// The gateway's key file (the hex of `protocol::auth::Secret::gateway(id)`), relative
     /// to this file: one MAC per batch each way. Absent: the gateway runs open. Its plants
-    /// have no `key_file` of their own. `mfc-deploy` has no gateway role yet (no
-    /// certificate, key file or access-control rules for one): the load generator and
-    /// the tests derive the key from the fleet's secret themselves.
+    /// have no `key_file` of their own. `mfc-deploy` writes it (`ID.auth` in the gateway's
+    /// bundle, with its certificate and access-control rules) for every gateway of the
+    /// inventory's `[[gateways]]`.
     #[serde(default)]
     pub key_file: Option<PathBuf>,
     /// The plants, each as a single agent's file would describe it (`device` required;
