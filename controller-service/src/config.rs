@@ -30,6 +30,7 @@ use mfc::{ChannelConfig, LawConfig, OutputMapConfig};
 use protocol::MAX_HORIZON;
 use serde::{Deserialize, Serialize};
 
+use crate::bounds::ChannelBounds;
 use crate::envelope::Limits;
 
 /// Why a configuration was refused.
@@ -92,6 +93,16 @@ pub struct DeviceChannel {
     /// envelope's.
     #[serde(default)]
     pub envelope: Option<Limits>,
+    /// Bounds on what a change may set, per parameter, replacing the ones derived from
+    /// the device's period and envelope and the table's (`crate::bounds`), wider or
+    /// narrower: `{ kp = [0.0, 500.0] }`. Default: none (the derived ones apply).
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub bounds: std::collections::BTreeMap<String, [f64; 2]>,
+    /// The range of the channel's measured output, `[lo, hi]`: every reference, its pieces
+    /// summed at their extremes, stays inside. Default: none (each piece at most
+    /// `crate::bounds::REFERENCE_LIMIT` in size).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub range: Option<[f64; 2]>,
 }
 
 impl DeviceChannel {
@@ -108,6 +119,11 @@ impl DeviceChannel {
     pub fn limits(&self) -> Limits {
         self.envelope
             .unwrap_or_else(|| Limits::of_map(&self.output))
+    }
+
+    /// What a change of this channel may set (`bounds` and `range` checked).
+    pub fn bounds(&self) -> Result<ChannelBounds, (String, String)> {
+        ChannelBounds::from_file(&self.bounds, self.range)
     }
 }
 
@@ -449,6 +465,17 @@ fn check_channels(file: &str, at: &str, channels: &[DeviceChannel]) -> Result<()
                 invalid(format!("{at}.channels[{i}].reference[{j}].{f}"), r.into())
             })?;
         }
+        // The file's own values obey the bounds it sets (the device's period is not known
+        // yet: the table's and the envelope's apply).
+        let bounds = c
+            .bounds()
+            .map_err(|(f, r)| invalid(format!("{at}.channels[{i}].{f}"), r))?;
+        bounds
+            .check_all(&c.channel(), &limits, None)
+            .map_err(|r| invalid(format!("{at}.channels[{i}]"), r))?;
+        bounds
+            .check_reference(&c.reference, None)
+            .map_err(|r| invalid(format!("{at}.channels[{i}].reference"), r))?;
     }
     Ok(())
 }

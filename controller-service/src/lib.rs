@@ -17,6 +17,7 @@
 //! * [`snapshot`]: the snapshots' format and files; [`replay`]: a recording played again;
 //! * [`observe`]: metrics; [`cli`]: the command line (the binary is a one-line `main`).
 
+pub mod bounds;
 pub mod cli;
 pub mod config;
 pub mod envelope;

@@ -188,6 +188,11 @@ fn bad_config_files_are_refused() {
         ("[[devices]]\nid = \"x\"\n[[devices.channels]]\nlaw = { law = \"intelligent\", params = { alpha = 0.0 } }", "devices[0].channels[0]"),
         ("[[templates]]\npattern = \"a//b\"\n[[templates.channels]]", "templates[0].pattern"),
         ("[[devices]]\nid = \"x\"\n[[devices.channels]]\n[[devices]]\nid = \"x\"\n[[devices.channels]]", "duplicate"),
+        ("[[devices]]\nid = \"x\"\n[[devices.channels]]\nlaw = { law = \"pid\", params = { kp = 1e7 } }", "kp = 1e7 is outside [-1e6, 1e6]"),
+        ("[[devices]]\nid = \"x\"\n[[devices.channels]]\nbounds = { gain = [0.0, 1.0] }", "bounds.gain"),
+        ("[[devices]]\nid = \"x\"\n[[devices.channels]]\nbounds = { kp = [2.0, 1.0] }", "bounds.kp"),
+        ("[[devices]]\nid = \"x\"\n[[devices.channels]]\nrange = [1.0, -1.0]", "devices[0].channels[0].range"),
+        ("[[devices]]\nid = \"x\"\n[[devices.channels]]\nrange = [-1.0, 1.0]\nreference = [{ kind = \"constant\", value = 2.0 }]", "outside the channel's range"),
     ] {
         let e = ServiceConfig::parse("svc.toml", text).unwrap_err().to_string();
         assert!(e.contains("svc.toml") && e.contains(needle), "{needle}: {e}");
@@ -707,4 +712,223 @@ fn a_newer_state_wins_and_a_change_is_held_only_from_the_holder() {
     assert_eq!(late.restored, 0);
     assert!(late.refused[0].1.contains("heard here since"), "{late:?}");
     assert!(!b.in_step("aero-1"), "it missed epoch 2's holder");
+}
+
+/// A device of two AERO-like channels (iP on a first-order model, iPD on a second-order
+/// one, +-24 V), after ten samples 10 ms apart: its period is known.
+fn aero_with_period() -> Registry {
+    let text = r#"
+controller_id = "c1"
+[[devices]]
+id = "aero-1"
+[[devices.channels]]
+law = { law = "intelligent", params = { kind = "ip", alpha = 1.0, kp = 2.0 }, estimator = { window = 3 } }
+output = { dead_zone = 1.0, min = -24.0, max = 24.0 }
+[[devices.channels]]
+law = { law = "intelligent", params = { kind = "ipd", order = "two", alpha = 1.0, kp = 9.0, kd = 3.0 }, estimator = { window = 3 } }
+output = { min = -24.0, max = 24.0 }
+"#;
+    let mut r = Registry::new(ServiceConfig::parse("test.toml", text).unwrap()).unwrap();
+    for k in 0..10u64 {
+        answered(r.answer("aero-1", &sample("aero-1", k, k as f64 * 0.01, &[0.0, 0.0])));
+    }
+    r
+}
+
+/// A partial change of one channel of `aero-1`.
+type Edit = fn(&mut pb::ChannelUpdate);
+
+fn set(r: &mut Registry, ch: u32, f: Edit) -> pb::ConfigReply {
+    let mut u = pb::ChannelUpdate {
+        channel: ch,
+        ..Default::default()
+    };
+    f(&mut u);
+    r.configure(
+        "aero-1",
+        &pb::ConfigRequest {
+            version: PROTOCOL_VERSION,
+            updates: vec![u],
+            ..Default::default()
+        },
+    )
+}
+
+/// The issue's absurd settings, each refused with its reason from the registry (every
+/// client's way in), the configuration in force unchanged; a sane change still accepted.
+#[test]
+fn absurd_gains_are_refused_and_change_nothing() {
+    let mut r = aero_with_period();
+    let before = r.config_of("aero-1").unwrap();
+    let cases: [(u32, Edit, &str); 6] = [
+        (
+            1,
+            |u| u.kp = Some(1e308),
+            "kp = 1e308 is outside [-4e4, 4e4] ((2/h)^2",
+        ),
+        (1, |u| u.kd = Some(1e308), "kd = 1e308"),
+        (
+            0,
+            |u| u.alpha = Some(1e-300),
+            "alpha = 1e-300 is outside |x| in [1e-6, 1e6]",
+        ),
+        (
+            0,
+            |u| u.dead_zone = Some(1e308),
+            "dead_zone = 1e308 is outside [0, 24]",
+        ),
+        // Finite and inside the table, but the loop at 10 ms diverges beyond 2/h = 200.
+        (
+            0,
+            |u| u.kp = Some(250.0),
+            "kp = 250 is outside [-200, 200] ((2/h)^1",
+        ),
+        (
+            1,
+            |u| u.kd = Some(250.0),
+            "kd = 250 is outside [-200, 200] ((2/h)^1",
+        ),
+    ];
+    for (ch, f, want) in cases {
+        let reply = set(&mut r, ch, f);
+        assert!(!reply.accepted, "{want}");
+        assert!(reply.reason.contains(want), "{want}: {}", reply.reason);
+        assert_eq!(r.config_of("aero-1").unwrap(), before, "{want}");
+    }
+    // A sane change is still accepted, and a value just inside a derived bound too.
+    assert!(set(&mut r, 0, |u| u.kp = Some(150.0)).accepted);
+    assert!(set(&mut r, 0, |u| u.dead_zone = Some(8.0)).accepted);
+}
+
+/// Absurd references: refused with the piece and the reason, nothing changed; a sane one
+/// accepted, and the samples after it answered (the reference stays finite).
+#[test]
+fn absurd_references_are_refused_and_change_nothing() {
+    use mfc::trajectory::Piece;
+    let mut r = aero_with_period();
+    let refs = |pieces: Vec<Piece>| pb::ReferenceUpdate {
+        version: PROTOCOL_VERSION,
+        reference: Some(protocol::convert::reference_to_pb(
+            &[pieces, vec![Piece::Constant { value: 0.0 }]],
+            0.0,
+        )),
+    };
+    let sine = |period: f64| Piece::Sine {
+        amplitude: 1.0,
+        period,
+        phase: 0.0,
+        start: 0.0,
+        end: f64::INFINITY,
+        fade: 0.0,
+    };
+    let before = r.config_of("aero-1").unwrap();
+    for (pieces, want) in [
+        (vec![Piece::Constant { value: 1e308 }], "reaches 1e308"),
+        (
+            vec![sine(1e-300)],
+            "period: 1e-300 s is shorter than 0.02 s",
+        ),
+        (
+            vec![sine(0.015)],
+            "shorter than 0.02 s (two of the device's periods)",
+        ),
+        (
+            vec![Piece::Ramp {
+                start: 0.0,
+                end: 1e12,
+                slope: 1.0,
+            }],
+            "end: 1e12 s is beyond",
+        ),
+    ] {
+        let reply = r.set_reference("aero-1", &refs(pieces));
+        assert!(
+            !reply.accepted && reply.reason.contains(want),
+            "{want}: {}",
+            reply.reason
+        );
+        assert_eq!(r.config_of("aero-1").unwrap(), before, "{want}");
+    }
+    assert!(r.set_reference("aero-1", &refs(vec![sine(0.05)])).accepted);
+    for k in 10..20u64 {
+        let c = answered(r.answer("aero-1", &sample("aero-1", k, k as f64 * 0.01, &[0.0, 0.0])));
+        assert_eq!(c.mode, pb::Mode::Control as i32, "{c:?}");
+    }
+}
+
+/// The file may widen or narrow a bound; a bound narrowed below a value in force does not
+/// block a change of another parameter.
+#[test]
+fn the_file_sets_bounds_and_only_moved_values_are_checked() {
+    let text = r#"
+controller_id = "c1"
+[[devices]]
+id = "aero-1"
+[[devices.channels]]
+law = { law = "intelligent", params = { kind = "ip", alpha = 1.0, kp = 2.0 }, estimator = { window = 3 } }
+bounds = { kp = [0.0, 1000.0], alpha = [0.5, 2.0] }
+"#;
+    let mut r = Registry::new(ServiceConfig::parse("test.toml", text).unwrap()).unwrap();
+    for k in 0..10u64 {
+        answered(r.answer("aero-1", &sample("aero-1", k, k as f64 * 0.01, &[0.0])));
+    }
+    let update = |u: pb::ChannelUpdate| pb::ConfigRequest {
+        version: PROTOCOL_VERSION,
+        updates: vec![u],
+        ..Default::default()
+    };
+    // Wider than the derived 200: the file decides.
+    let wide = r.configure(
+        "aero-1",
+        &update(pb::ChannelUpdate {
+            kp: Some(500.0),
+            ..Default::default()
+        }),
+    );
+    assert!(wide.accepted, "{}", wide.reason);
+    let narrow = r.configure(
+        "aero-1",
+        &update(pb::ChannelUpdate {
+            alpha: Some(3.0),
+            ..Default::default()
+        }),
+    );
+    assert!(
+        !narrow.accepted
+            && narrow
+                .reason
+                .contains("alpha = 3 is outside [0.5, 2] (set in the service's file"),
+        "{}",
+        narrow.reason
+    );
+    let other = r.configure(
+        "aero-1",
+        &update(pb::ChannelUpdate {
+            alpha: Some(1.5),
+            ..Default::default()
+        }),
+    );
+    assert!(other.accepted, "{}", other.reason);
+}
+
+/// A REJECTED sample arrived: the gap it leaves is not counted as lost; a sample that
+/// never came is.
+#[test]
+fn rejected_samples_are_not_counted_as_lost() {
+    let mut r = registry();
+    for k in 0..5u64 {
+        answered(r.answer("aero-1", &sample("aero-1", k, k as f64 * 0.01, &[0.0, 0.0])));
+    }
+    // Ten samples with a NaN output: answered REJECTED.
+    for k in 5..15u64 {
+        let c = answered(r.answer(
+            "aero-1",
+            &sample("aero-1", k, k as f64 * 0.01, &[f64::NAN, 0.0]),
+        ));
+        assert_eq!(c.mode, pb::Mode::Rejected as i32);
+    }
+    // 15 is lost on the way; 16 is good.
+    answered(r.answer("aero-1", &sample("aero-1", 16, 0.16, &[0.0, 0.0])));
+    let st = r.device_status("aero-1").unwrap();
+    assert_eq!((st.rejected, st.lost), (10, 1), "{st:?}");
 }

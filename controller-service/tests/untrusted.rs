@@ -332,7 +332,8 @@ fn a_one_sided_rate_limited_envelope_holds_through_any_gain() {
             version: PROTOCOL_VERSION,
             updates: vec![pb::ChannelUpdate {
                 channel: 0,
-                kp: Some(1e9),
+                // The largest gain the bounds let through (`controller_service::bounds`).
+                kp: Some(1e6),
                 ..Default::default()
             }],
             ..Default::default()

@@ -44,6 +44,9 @@ pub fn service_config(
                         reference: c.reference.clone(),
                         // The envelope is the scenario's actuator range (its output map).
                         envelope: None,
+                        // The bounds derived from the device and the table's.
+                        bounds: Default::default(),
+                        range: None,
                     })
                     .collect(),
                 prediction: Default::default(),

@@ -12,9 +12,10 @@
 //! gain changed when it did not.
 //!
 //! The bounds are absolute sanity limits (no plant needs `|kp| > 1e6`), chosen from what
-//! the laws mean and what the shipped controllers use. They are data only: nothing here
-//! refuses a value outside them; the laws' own checks (`validate`) still decide what a
-//! channel accepts.
+//! the laws mean and what the shipped controllers use. They are data here: the controller
+//! service refuses a change outside them (and narrows them from the device's period and
+//! envelope, `controller-service/src/bounds.rs`); the laws' own checks (`validate`) also
+//! decide what a channel accepts.
 //!
 //! Units: `y` is the unit of the channel's measured output, `u` of the law's command, `v`
 //! of what the actuator gets (the output map's side, e.g. volts), and `n` the order of the
@@ -86,8 +87,8 @@ impl Scope {
     }
 }
 
-/// Sanity limits of a parameter's value (data only: nothing refuses a value outside them
-/// yet). An infinite limit is no limit; NaN is never inside.
+/// Sanity limits of a parameter's value (the controller service refuses a change outside
+/// them). An infinite limit is no limit; NaN is never inside.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Bounds {
     /// `lo <= x <= hi`.
@@ -112,6 +113,23 @@ impl Bounds {
         match self {
             Bounds::Range { lo, hi } => lo <= x && x <= hi,
             Bounds::Magnitude { lo, hi } => lo <= x.abs() && x.abs() <= hi,
+        }
+    }
+}
+
+/// A number as people read it: `1e308` rather than 309 digits, `2e-5` rather than
+/// `0.00002`, and plain in between (`0.0001` up to `9999999`), shortest form that reads
+/// back to the same value either way.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Readable(pub f64);
+
+impl fmt::Display for Readable {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let x = self.0;
+        if x == 0.0 || !x.is_finite() || (1e-4..1e7).contains(&x.abs()) {
+            write!(f, "{x}")
+        } else {
+            write!(f, "{x:e}")
         }
     }
 }
@@ -160,7 +178,7 @@ pub struct Param {
     pub unit: &'static str,
     /// What it does, in one line.
     pub meaning: &'static str,
-    /// Sanity limits (data only for now).
+    /// Sanity limits (see [`Bounds`]).
     pub bounds: Bounds,
     slot: Slot,
 }

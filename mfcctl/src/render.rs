@@ -3,19 +3,19 @@
 
 use std::fmt::Write;
 
-use mfc::params::{LawKind, Param, Scope, PARAMS};
+use mfc::params::{LawKind, Param, Readable, Scope, PARAMS};
 use protocol::pb;
 use serde::Serialize;
 use transport::ops;
 
 fn opt(v: Option<f64>) -> String {
-    v.map_or("-".into(), |x| format!("{x}"))
+    v.map_or("-".into(), |x| Readable(x).to_string())
 }
 
 fn limits(l: &pb::ChannelLimits) -> String {
     let rate = l
         .rate_limit
-        .map_or(String::new(), |r| format!(", at most {r}/s"));
+        .map_or(String::new(), |r| format!(", at most {}/s", Readable(r)));
     format!("[{}, {}]{rate}", opt(l.min), opt(l.max))
 }
 
@@ -187,14 +187,25 @@ fn law(c: &pb::ChannelConfig) -> String {
                 "i{} order {} alpha {} kp {} ki {} kd {} (window {window})",
                 kind.trim_start_matches('i'),
                 i.order,
-                i.alpha,
-                i.kp,
-                i.ki,
-                i.kd
+                Readable(i.alpha),
+                Readable(i.kp),
+                Readable(i.ki),
+                Readable(i.kd)
             )
         }
-        Some(Law::Pid(p)) => format!("pid kp {} ki {} kd {}", p.kp, p.ki, p.kd),
-        Some(Law::Adrc(a)) => format!("adrc order {} b0 {} wc {} wo {}", a.order, a.b0, a.wc, a.wo),
+        Some(Law::Pid(p)) => format!(
+            "pid kp {} ki {} kd {}",
+            Readable(p.kp),
+            Readable(p.ki),
+            Readable(p.kd)
+        ),
+        Some(Law::Adrc(a)) => format!(
+            "adrc order {} b0 {} wc {} wo {}",
+            a.order,
+            Readable(a.b0),
+            Readable(a.wc),
+            Readable(a.wo)
+        ),
         None => "no law".into(),
     }
 }
@@ -222,9 +233,9 @@ pub fn config(c: &pb::DeviceConfig) -> String {
         let _ = writeln!(
             out,
             "    output: dead zone {}{}, limits [{}, {}], rate {}",
-            o.dead_zone,
+            Readable(o.dead_zone),
             if o.smoothing > 0.0 {
-                format!(" (smooth, {})", o.smoothing)
+                format!(" (smooth, {})", Readable(o.smoothing))
             } else {
                 String::new()
             },
@@ -240,7 +251,11 @@ pub fn config(c: &pb::DeviceConfig) -> String {
         }
     }
     if let Some(r) = &c.reference {
-        let _ = writeln!(out, "  reference starts at plant time {} s", r.start_time);
+        let _ = writeln!(
+            out,
+            "  reference starts at plant time {} s",
+            Readable(r.start_time)
+        );
     }
     out
 }
@@ -308,8 +323,13 @@ what the actuator gets (the output map's side, e.g. volts), and `n` the order of
 ultra-local model `y^(n) = F + alpha u`. An output limit or rate limit that is not set reads
 as infinite.
 
-The bounds are sanity limits, data only for now: no value is refused for lying outside them.
-The laws' own checks still decide (`alpha` and `b0` not 0; the intelligent laws' gains and
+The bounds are the absolute sanity limits. The controller service refuses a change that moves
+a value outside them, with the reason, and narrows some of them further from the device
+(`controller-service/src/bounds.rs`): from its period once its first samples came (an
+intelligent law's `|kp| <= (2/h)^n`, `|ki| <= (2/h)^(n+1)`, `|kd| <= 2/h` for `n = 2`; a
+bandwidth at most the Nyquist frequency `pi/h`), and from its envelope (`dead_zone` at most
+its largest command). A channel's `bounds` in the service's file replace them, wider or
+narrower. The laws' own checks also decide (`alpha` and `b0` not 0; the intelligent laws' gains and
 every time constant >= 0; the PID's gains of one sign; `wc`, `wo`, `rate_limit` > 0;
 `min <= 0 <= max`).
 

@@ -319,6 +319,7 @@ impl Attacker {
     /// 2. NaN with a new run id, another device's id, and a 60 KiB id, on the good key:
     ///    refused before anything changes (no restart of the good device).
     async fn refused_samples(&mut self) {
+        let before = device(&self.status().await, "good-1").rejected;
         for k in 0..300u64 {
             let run = self.rng.next() | 1;
             let s = sample("good-1", run, 1_000_000_000_000 + k, 1e6, f64::NAN);
@@ -333,9 +334,9 @@ impl Attacker {
             let s = sample(&id, 0x600d, 3_000_000_000_000 + k, 1e6, 0.0);
             self.put(keys::sample("good-1"), encode(&s)).await;
         }
-        let st = settle(&self.h, |st| device(st, "good-1").rejected >= 510).await;
+        let st = settle(&self.h, |st| device(st, "good-1").rejected >= before + 510).await;
         let g = device(&st, "good-1");
-        assert_eq!(g.rejected, 510, "NaN, wrong id, huge id");
+        assert_eq!(g.rejected - before, 510, "NaN, wrong id, huge id");
         assert_eq!(g.restarts, 1, "a refused sample never restarts the device");
         assert!(
             g.last_error.len() < 300,
@@ -344,19 +345,31 @@ impl Attacker {
         );
     }
 
-    /// 3. 1 MiB messages: dropped unread.
+    /// 3. 1 MiB messages: dropped unread; a request is answered that it was (a sample has
+    ///    nothing to answer to: its number and run are in the bytes left unread).
     async fn oversized(&mut self) {
         for _ in 0..20 {
             self.put(keys::sample("good-1"), vec![0u8; 1 << 20]).await;
-            // A 1 MiB configuration request: dropped unread too (so it gets no reply; the
-            // reply channel is not awaited).
-            let _ = self
+            // Every service hears the query: the one serving good-1 says why it refused
+            // it, the other that it does not serve the device (in either order).
+            let replies = self
                 .h
                 .get(keys::config("good-1"))
                 .payload(vec![0u8; 1 << 20])
-                .timeout(Duration::from_millis(200))
+                .timeout(Duration::from_secs(10))
                 .await
                 .unwrap();
+            let mut errors = Vec::new();
+            while let Ok(reply) = replies.recv_async().await {
+                match reply.result() {
+                    Ok(_) => panic!("a 1 MiB request was answered as if read"),
+                    Err(e) => {
+                        errors.push(String::from_utf8_lossy(&e.payload().to_bytes()).into_owned())
+                    }
+                }
+            }
+            let said = |e: &String| e.contains("a request of 1048576 bytes, refused unread");
+            assert!(errors.iter().any(said), "a 1 MiB request got {errors:?}");
         }
         let st = settle(&self.h, |st| st.oversized >= 40).await;
         assert_eq!(st.oversized, 40, "1 MiB samples and requests");
@@ -488,23 +501,88 @@ impl Attacker {
         );
     }
 
-    /// 7. Configuration attacks on its own device: a huge gain is accepted but bounded by
-    ///    the envelope; widening is refused; a law-only change keeps the limits.
-    async fn configuration_attacks(&mut self, run: u64) {
+    /// 7a. Absurd but finite settings, each refused with its reason, nothing changed.
+    async fn absurd_settings(&mut self) {
+        use mfc::trajectory::Piece;
         let h = &self.h;
-        let update = pb::ConfigRequest {
-            version: PROTOCOL_VERSION,
-            updates: vec![pb::ChannelUpdate {
-                channel: 0,
-                kp: Some(1e12),
-                ..Default::default()
-            }],
-            ..Default::default()
+        let read = || async {
+            let r: pb::ConfigReply = query(h, keys::config("hostile-1"), None).await.unwrap();
+            r.config.unwrap()
         };
-        let r: pb::ConfigReply = query(h, keys::config("hostile-1"), Some(encode(&update)))
-            .await
-            .unwrap();
-        assert!(r.accepted, "{}", r.reason);
+        let before = read().await;
+        let update = |f: fn(&mut pb::ChannelUpdate)| {
+            let mut u = pb::ChannelUpdate::default();
+            f(&mut u);
+            encode(&pb::ConfigRequest {
+                version: PROTOCOL_VERSION,
+                updates: vec![u],
+                ..Default::default()
+            })
+        };
+        let reference = |piece: Piece| {
+            encode(&pb::ReferenceUpdate {
+                version: PROTOCOL_VERSION,
+                reference: Some(protocol::convert::reference_to_pb(&[vec![piece]], 0.0)),
+            })
+        };
+        let constant = |value| Piece::Constant { value };
+        let sine = Piece::Sine {
+            amplitude: 1.0,
+            period: 1e-300,
+            phase: 0.0,
+            start: 0.0,
+            end: f64::INFINITY,
+            fade: 0.0,
+        };
+        let attempts = [
+            (
+                keys::config("hostile-1"),
+                update(|u| u.kp = Some(1e308)),
+                "kp = 1e308 is outside",
+            ),
+            (
+                keys::config("hostile-1"),
+                update(|u| u.kd = Some(1e308)),
+                "kd = 1e308 is outside",
+            ),
+            (
+                keys::config("hostile-1"),
+                update(|u| u.kp = Some(1e12)),
+                "kp = 1e12 is outside",
+            ),
+            (
+                keys::config("hostile-1"),
+                update(|u| u.dead_zone = Some(1e308)),
+                "dead_zone = 1e308 is outside [0, 5]",
+            ),
+            (
+                keys::reference("hostile-1"),
+                reference(constant(1e308)),
+                "reaches 1e308",
+            ),
+            (
+                keys::reference("hostile-1"),
+                reference(sine),
+                "period: 1e-300 s is shorter",
+            ),
+        ];
+        for (key, payload, want) in attempts {
+            let r: pb::ConfigReply = query(h, key, Some(payload)).await.unwrap();
+            assert!(
+                !r.accepted && r.reason.contains(want),
+                "{want}: {}",
+                r.reason
+            );
+            assert_eq!(r.config.as_ref(), Some(&before), "{want}: nothing changed");
+        }
+        assert_eq!(read().await, before);
+    }
+
+    /// 7. Configuration attacks on its own device: the largest gain the bounds allow is
+    ///    bounded by the envelope; widening is refused; a law-only change keeps the limits.
+    async fn configuration_attacks(&mut self, run: u64) {
+        self.absurd_settings().await;
+        let h = &self.h;
         let widen = pb::EnvelopeRequest {
             version: PROTOCOL_VERSION,
             envelope: Some(pb::Envelope {
@@ -524,11 +602,13 @@ impl Attacker {
             "{}",
             r.reason
         );
+        // The largest gain the bounds let through, with the output map left out: the
+        // envelope still holds every command.
         let law_only = pb::ConfigRequest {
             version: PROTOCOL_VERSION,
             channels: vec![pb::ChannelConfig {
                 law: Some(pb::channel_config::Law::Pid(pb::Pid {
-                    kp: 1e12,
+                    kp: 1e6,
                     ..Default::default()
                 })),
                 output: None,

@@ -12,6 +12,7 @@ use protocol::convert::{
 use protocol::{pb, PROTOCOL_VERSION};
 
 use super::{latency, REORDER_WINDOW, RESYNC_AFTER};
+use crate::bounds::ChannelBounds;
 use crate::config::{DeviceChannel, Prediction};
 use crate::envelope::Limits;
 use crate::lease::{Claimer, Holder, Version};
@@ -35,6 +36,10 @@ const RETIRED_RUNS: usize = 4;
 /// thousands of devices no longer fit the caches (`docs/scale.md`). More channels spill to
 /// the heap and work the same.
 pub(super) type PerChannel<T> = SmallVec<[T; 2]>;
+
+/// Rejected sequence numbers a device keeps at most (`Device::rejected_seqs`): a stream of
+/// rejected samples longer than this counts the rest as lost, never more memory.
+pub(super) const REJECTED_KEPT: usize = 64;
 
 /// The last CONTROL or WARMING_UP answer, kept to send again verbatim for a duplicate: the
 /// values of the command without its ids (the device's key and the controller's own),
@@ -190,6 +195,8 @@ pub(super) struct Device {
     pub(super) from_template: bool,
     /// The safety envelope per channel. Every output map in `configs` lies inside it.
     pub(super) envelope: PerChannel<Limits>,
+    /// What a change of each channel may set (`crate::bounds`), from the file.
+    pub(super) bounds: PerChannel<ChannelBounds>,
     /// Laws and output maps in force (changed by `configure`); a snapshot of a declared
     /// device is restored only if its laws equal these.
     pub(super) configs: Vec<ChannelConfig>,
@@ -201,6 +208,10 @@ pub(super) struct Device {
     pub(super) reference_start: f64,
     /// The plant run this state belongs to (`None` before the first sample).
     pub(super) run_id: Option<u64>,
+    /// Sequence numbers of the run in force, after the last answered one, whose samples
+    /// were answered REJECTED (at most [`REJECTED_KEPT`]): they arrived, so the gap they
+    /// leave before the next good sample is not counted as lost.
+    pub(super) rejected_seqs: VecDeque<u64>,
     /// Runs that ended, newest last, at most `RETIRED_RUNS`.
     pub(super) retired: VecDeque<u64>,
     /// Samples received since the run in force started, refused ones included: a sample of
@@ -407,8 +418,17 @@ impl Device {
                 })
             })
             .collect::<Result<Vec<_>, String>>()?;
+        let bounds = channels
+            .iter()
+            .enumerate()
+            .map(|(i, c)| {
+                c.bounds()
+                    .map_err(|(f, r)| format!("channels[{i}].{f}: {r}"))
+            })
+            .collect::<Result<PerChannel<_>, String>>()?;
         let n = configs.len();
         Ok(Self {
+            bounds,
             home: 0,
             claimer: Claimer::default(),
             heard_unix_ns: 0,
@@ -424,6 +444,7 @@ impl Device {
             reference: channels.iter().map(|c| c.reference.clone()).collect(),
             reference_start: 0.0,
             run_id: None,
+            rejected_seqs: VecDeque::new(),
             retired: VecDeque::with_capacity(RETIRED_RUNS),
             run_samples: 0,
             last_seq: None,
@@ -474,6 +495,7 @@ impl Device {
         self.retired.retain(|r| *r != run_id);
         self.mimo = fresh;
         self.run_id = Some(run_id);
+        self.rejected_seqs.clear();
         self.run_samples = 0;
         self.restored = false;
         self.last_seq = None;
@@ -484,6 +506,33 @@ impl Device {
         if let Some(s) = &mut self.schedule {
             **s = Schedule::new(s.n);
         }
+    }
+
+    /// A sample of the run in force was answered REJECTED: note its number if it lies
+    /// ahead of the last answered one (see `rejected_seqs`).
+    pub(super) fn note_rejected(&mut self, run_id: u64, seq: u64) {
+        let ahead = self.last_seq.is_some_and(|l| seq > l);
+        if self.run_id == Some(run_id)
+            && ahead
+            && self.rejected_seqs.len() < REJECTED_KEPT
+            && !self.rejected_seqs.contains(&seq)
+        {
+            self.rejected_seqs.push_back(seq);
+        }
+    }
+
+    /// Samples missing between the last answered one (`last`) and `seq`: the numbers in
+    /// between that never arrived (those answered REJECTED did). Forgets the noted ones up
+    /// to `seq`.
+    pub(super) fn missing_before(&mut self, last: u64, seq: u64) -> u64 {
+        let gap = seq.saturating_sub(last).saturating_sub(1);
+        let arrived = self
+            .rejected_seqs
+            .iter()
+            .filter(|&&q| q > last && q < seq)
+            .count() as u64;
+        self.rejected_seqs.retain(|&q| q > seq);
+        gap.saturating_sub(arrived)
     }
 
     /// The sample period: the lower median of the recent intervals; `None` before
@@ -693,7 +742,29 @@ impl Device {
                 Err(e) => return Err(format!("reference.{}: {}", e.field, e.reason)),
             },
         };
+        self.check_bounds(&configs, reference.as_ref().map(|(p, _)| &p[..]))?;
         Ok((configs, reference))
+    }
+
+    /// Whether `configs` move no parameter, and `reference` (if any) no piece, out of its
+    /// bounds at the device's period as known now (`crate::bounds`).
+    fn check_bounds(
+        &self,
+        configs: &[ChannelConfig],
+        reference: Option<&[Vec<Piece>]>,
+    ) -> Result<(), String> {
+        let h = self.period();
+        for (i, new) in configs.iter().enumerate() {
+            self.bounds[i]
+                .check_change(&self.configs[i], new, &self.envelope[i], h)
+                .map_err(|e| format!("channel {i}: {e}"))?;
+        }
+        for (i, pieces) in reference.into_iter().flatten().enumerate() {
+            self.bounds[i]
+                .check_reference(pieces, h)
+                .map_err(|e| format!("reference.channels[{i}]: {e}"))?;
+        }
+        Ok(())
     }
 }
 

@@ -497,6 +497,7 @@ impl Registry {
         let reason = capped(reason);
         d.samples += 1;
         d.rejected += 1;
+        d.note_rejected(s.run_id, s.seq);
         self.rejected += 1;
         d.last_error.clone_from(&reason);
         let mut cmd = reply(

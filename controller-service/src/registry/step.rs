@@ -184,6 +184,7 @@ fn refuse(
 ) -> Answered {
     let reason = capped(reason);
     d.rejected += 1;
+    d.note_rejected(s.run_id, s.seq);
     *cx.rejected += 1;
     d.last_error.clone_from(&reason);
     Answered::Reply(reply(
@@ -323,7 +324,7 @@ fn take_in(d: &mut Device, s: &pb::Sample, fresh: Option<MimoController>) -> Pac
     };
     if let Some(last) = d.last_seq {
         // s.seq > last here.
-        d.lost += s.seq.saturating_sub(last).saturating_sub(1);
+        d.lost += d.missing_before(last, s.seq);
         if s.seq - last == 1 {
             d.note_interval(dt);
         }

@@ -45,6 +45,10 @@ pub(super) enum Msg {
     Status(Query),
     /// A service status query, answered with the hot-standby state and the drops.
     ServiceStatus(Query),
+    /// An operator's query whose payload is over [`MAX_PAYLOAD`], on a device's key
+    /// (`device`) or on this service's status key: counted as oversized, refused unread
+    /// with an error reply that says so, so the operator does not wait for nothing.
+    TooLarge { q: Query, device: bool },
     /// A fleet member appeared (`true`) or disappeared.
     Member(String, bool),
     /// Another member's request about one of this member's shards
@@ -175,6 +179,8 @@ impl Intake {
             },
             None => &bytes[..],
         };
+        // A sample of another protocol version is undecodable too, and not answered: an
+        // answer would be a command of this version, which its agent refuses unread.
         let Ok(sample) = decode::<pb::Sample>(body) else {
             Drops::count(&drops.undecodable);
             return;
@@ -288,12 +294,11 @@ impl Intake {
     }
 
     /// A query on a device's key (`.../device/{id}/{leaf}`, with or without its shard),
-    /// sorted by its leaf. An oversized payload is dropped (the querier gets no reply, as
-    /// from a lost message).
+    /// sorted by its leaf. An oversized payload is counted and refused unread.
     pub(super) fn on_device_query(&self, q: Query) {
         let drops = &self.shared.drops;
         if !drops.query_fits(&q) {
-            return;
+            return self.queue(Msg::TooLarge { q, device: true });
         }
         let msg = match q.key_expr().as_str().rsplit('/').next() {
             Some("config") => Msg::Config(q),
@@ -312,6 +317,8 @@ impl Intake {
     pub(super) fn on_service_query(&self, q: Query) {
         if self.shared.drops.query_fits(&q) {
             self.queue(Msg::ServiceStatus(q));
+        } else {
+            self.queue(Msg::TooLarge { q, device: false });
         }
     }
 

@@ -314,6 +314,21 @@ impl Worker {
         }
     }
 
+    /// A query whose payload is over the limit, refused unread: on a device's key by the
+    /// member that answers for the device (the others stay silent, as for any query), on
+    /// this service's status key by this service.
+    pub(super) async fn handle_too_large(&mut self, q: Query, device: bool) {
+        if device && self.served(&q).await.is_none() {
+            return;
+        }
+        let len = q.payload().map_or(0, |p| p.len());
+        let why = format!(
+            "a request of {len} bytes, refused unread: at most {} bytes",
+            protocol::MAX_PAYLOAD
+        );
+        self.reply_error(&q, &why).await;
+    }
+
     /// An error reply to an operator's query, sealed when the service has keys (bound to
     /// the key expression and the request, as a good reply is).
     async fn reply_error(&self, q: &Query, why: &str) {

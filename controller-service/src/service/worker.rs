@@ -231,6 +231,7 @@ impl Worker {
             Msg::ReferenceQuery(q) => self.handle_reference_query(q).await,
             Msg::Status(q) => self.handle_status(q).await,
             Msg::ServiceStatus(q) => self.handle_service_status(q).await,
+            Msg::TooLarge { q, device } => self.handle_too_large(q, device).await,
             Msg::Member(m, alive) => self.handle_member(&m, alive).await,
             Msg::Handover(q) => self.handle_handover(q).await,
             Msg::HandedOver { devices, in_step } => {
