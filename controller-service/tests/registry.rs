@@ -755,7 +755,8 @@ fn set(r: &mut Registry, ch: u32, f: Edit) -> pb::ConfigReply {
 }
 
 /// The issue's absurd settings, each refused with its reason from the registry (every
-/// client's way in), the configuration in force unchanged; a sane change still accepted.
+/// client's way in), the configuration in force unchanged; a sane change still accepted;
+/// only the values a change moves are checked.
 #[test]
 fn absurd_gains_are_refused_and_change_nothing() {
     let mut r = aero_with_period();
@@ -798,6 +799,29 @@ fn absurd_gains_are_refused_and_change_nothing() {
     // A sane change is still accepted, and a value just inside a derived bound too.
     assert!(set(&mut r, 0, |u| u.kp = Some(150.0)).accepted);
     assert!(set(&mut r, 0, |u| u.dead_zone = Some(8.0)).accepted);
+    // The envelope narrowed to +-5 V: the dead zone in force (8) is now beyond its bound,
+    // which blocks no change of another value, only a move of the dead zone itself.
+    let limits = |m: f64| pb::ChannelLimits {
+        min: Some(-m),
+        max: Some(m),
+        rate_limit: None,
+    };
+    let narrow = pb::EnvelopeRequest {
+        version: PROTOCOL_VERSION,
+        envelope: Some(pb::Envelope {
+            channels: vec![limits(5.0), limits(5.0)],
+        }),
+        reason: "test".into(),
+    };
+    assert!(r.change_envelope("aero-1", &narrow).accepted);
+    let kp = set(&mut r, 0, |u| u.kp = Some(100.0));
+    assert!(kp.accepted, "{}", kp.reason);
+    let dz = set(&mut r, 0, |u| u.dead_zone = Some(6.0));
+    assert!(
+        dz.reason.contains("dead_zone = 6 is outside [0, 5]"),
+        "{}",
+        dz.reason
+    );
 }
 
 /// Absurd references: refused with the piece and the reason, nothing changed; a sane one
@@ -856,10 +880,9 @@ fn absurd_references_are_refused_and_change_nothing() {
     }
 }
 
-/// The file may widen or narrow a bound; a bound narrowed below a value in force does not
-/// block a change of another parameter.
+/// The file may widen or narrow a bound.
 #[test]
-fn the_file_sets_bounds_and_only_moved_values_are_checked() {
+fn the_file_widens_or_narrows_a_bound() {
     let text = r#"
 controller_id = "c1"
 [[devices]]
@@ -872,42 +895,18 @@ bounds = { kp = [0.0, 1000.0], alpha = [0.5, 2.0] }
     for k in 0..10u64 {
         answered(r.answer("aero-1", &sample("aero-1", k, k as f64 * 0.01, &[0.0])));
     }
-    let update = |u: pb::ChannelUpdate| pb::ConfigRequest {
-        version: PROTOCOL_VERSION,
-        updates: vec![u],
-        ..Default::default()
-    };
     // Wider than the derived 200: the file decides.
-    let wide = r.configure(
-        "aero-1",
-        &update(pb::ChannelUpdate {
-            kp: Some(500.0),
-            ..Default::default()
-        }),
-    );
+    let wide = set(&mut r, 0, |u| u.kp = Some(500.0));
     assert!(wide.accepted, "{}", wide.reason);
-    let narrow = r.configure(
-        "aero-1",
-        &update(pb::ChannelUpdate {
-            alpha: Some(3.0),
-            ..Default::default()
-        }),
-    );
+    let narrow = set(&mut r, 0, |u| u.alpha = Some(3.0));
+    let want = "alpha = 3 is outside [0.5, 2] (set in the service's file";
     assert!(
-        !narrow.accepted
-            && narrow
-                .reason
-                .contains("alpha = 3 is outside [0.5, 2] (set in the service's file"),
+        !narrow.accepted && narrow.reason.contains(want),
         "{}",
         narrow.reason
     );
-    let other = r.configure(
-        "aero-1",
-        &update(pb::ChannelUpdate {
-            alpha: Some(1.5),
-            ..Default::default()
-        }),
-    );
+    // A value inside the file's bound: accepted.
+    let other = set(&mut r, 0, |u| u.alpha = Some(1.5));
     assert!(other.accepted, "{}", other.reason);
 }
 
