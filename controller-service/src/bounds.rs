@@ -49,8 +49,8 @@ pub const MIN_SINE_PERIOD: f64 = 2e-3;
 /// A channel's bounds as the service's file sets them.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct ChannelBounds {
-    /// Per parameter (its index in `PARAMS`), `[lo, hi]` replacing the derived bound.
-    set: Vec<(usize, Bounds)>,
+    /// Per parameter (its name in `PARAMS`), `[lo, hi]` replacing the derived bound.
+    set: Vec<(&'static str, Bounds)>,
     /// The range of the channel's measured output: every reference stays inside.
     range: Option<(f64, f64)>,
 }
@@ -63,7 +63,7 @@ impl ChannelBounds {
     ) -> Result<Self, (String, String)> {
         let mut set = Vec::with_capacity(bounds.len());
         for (name, &[lo, hi]) in bounds {
-            let Some(i) = PARAMS.iter().position(|p| p.name == name) else {
+            let Some(p) = mfc::params::param(name) else {
                 let names: Vec<_> = mfc::params::names().collect();
                 return Err((
                     format!("bounds.{name}"),
@@ -76,7 +76,7 @@ impl ChannelBounds {
                     format!("[{lo}, {hi}]: lo must not be above hi, neither NaN"),
                 ));
             }
-            set.push((i, Bounds::Range { lo, hi }));
+            set.push((p.name, Bounds::Range { lo, hi }));
         }
         let range = match range {
             None => None,
@@ -101,8 +101,7 @@ impl ChannelBounds {
         h: Option<f64>,
     ) -> (Bounds, String) {
         let h = tidy(h);
-        let index = PARAMS.iter().position(|q| q.name == p.name);
-        if let Some((_, b)) = self.set.iter().find(|(i, _)| Some(*i) == index) {
+        if let Some((_, b)) = self.set.iter().find(|(name, _)| *name == p.name) {
             return (*b, "set in the service's file".into());
         }
         match derived(p, c, envelope, h) {
@@ -287,14 +286,8 @@ fn derived(p: &Param, c: &ChannelConfig, env: &Limits, h: Option<f64>) -> Option
                 )
             })
         }
-        ("derivative_observer", LawConfig::Intelligent { .. }, Some(h)) => Some((
-            nyquist(h),
-            format!(
-                "the Nyquist frequency π/h at the device's period h = {} s",
-                readable(h)
-            ),
-        )),
-        ("wc" | "wo", LawConfig::Adrc { .. }, Some(h)) => Some((
+        ("derivative_observer", LawConfig::Intelligent { .. }, Some(h))
+        | ("wc" | "wo", LawConfig::Adrc { .. }, Some(h)) => Some((
             nyquist(h),
             format!(
                 "the Nyquist frequency π/h at the device's period h = {} s",

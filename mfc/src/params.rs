@@ -117,30 +117,20 @@ impl Bounds {
     }
 }
 
-/// A number as people read it: `1e308` rather than 309 digits, `2e-5` rather than
-/// `0.00002`, and plain in between (`0.0001` up to `9999999`), shortest form that reads
-/// back to the same value either way.
+/// A number as operators write it: `inf`, `-inf`, `0`, `0.001` to `9999.5` plain, and
+/// beyond in scientific notation (`1e6`, `1e-6`, `1e308` rather than 309 digits), in the
+/// shortest form that reads back to the same value.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Readable(pub f64);
 
 impl fmt::Display for Readable {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let x = self.0;
-        if x == 0.0 || !x.is_finite() || (1e-4..1e7).contains(&x.abs()) {
+        if x == 0.0 || !x.is_finite() || (1e-3..1e4).contains(&x.abs()) {
             write!(f, "{x}")
         } else {
             write!(f, "{x:e}")
         }
-    }
-}
-
-/// A limit as operators write it: `inf`, `-inf`, `0`, `10`, or powers in scientific
-/// notation (`1e6`, `1e-6`).
-fn limit(f: &mut fmt::Formatter<'_>, x: f64) -> fmt::Result {
-    if x.is_infinite() || x == 0.0 || (1e-3..1e4).contains(&x.abs()) {
-        write!(f, "{x}")
-    } else {
-        write!(f, "{x:e}")
     }
 }
 
@@ -155,9 +145,9 @@ impl fmt::Display for Bounds {
             }
         };
         f.write_str("[")?;
-        limit(f, lo)?;
+        write!(f, "{}", Readable(lo))?;
         f.write_str(", ")?;
-        limit(f, hi)?;
+        write!(f, "{}", Readable(hi))?;
         f.write_str("]")
     }
 }

@@ -6,7 +6,8 @@
 //! * [`intake`]: zenoh's callbacks, on zenoh's receive threads. They must never block, so
 //!   they only sort messages, and cheaply: a payload over [`MAX_PAYLOAD`] is counted and
 //!   dropped before it is copied (a query over it is refused unread, with an error reply
-//!   that says why: a sample over it has nothing to answer to); a key that names no device is counted and dropped; so is
+//!   that says why: a sample over it has nothing to answer to); a key that names no
+//!   device is counted and dropped; so is
 //!   a sample for a device neither declared nor matched by a template (as unknown); a
 //!   sample is decoded and prechecked ([`precheck`]: version, its key's own id, finite
 //!   values). A good sample is answered at once on the callback's thread when the worker
