@@ -102,10 +102,17 @@ pub async fn run(cli: ServiceCli) -> Result<()> {
     if let Some(path) = cli.record {
         config.record = Some(telemetry::RecordSpec::at(path));
     }
-    let observers = observers(&config)?;
+    let here = cli.config.parent().unwrap_or(Path::new("."));
+    if let Some(a) = &mut config.audit {
+        a.path = here.join(&a.path);
+    }
+    if let Some(m) = &mut config.metrics {
+        m.resolve(here);
+    }
+    let (observers, earlier) = observers(&config)?;
     let secret = match &config.secret_file {
         Some(f) => {
-            let path = cli.config.parent().unwrap_or(Path::new(".")).join(f);
+            let path = here.join(f);
             Some(protocol::auth::Secret::from_file(&path).context("secret_file")?)
         }
         None => None,
@@ -115,6 +122,9 @@ pub async fn run(cli: ServiceCli) -> Result<()> {
     for c in configs {
         let mut r = Registry::new(c).context("building the devices")?;
         r.set_secret(secret.clone());
+        for e in &earlier {
+            r.audit(e.clone());
+        }
         registries.push(r);
     }
     // A client of a router retries until the router answers (start order must not matter):
@@ -173,9 +183,10 @@ pub async fn run(cli: ServiceCli) -> Result<()> {
     result
 }
 
-/// The recording and the metrics the file asks for. The recording starts with the
-/// configuration itself attached (`service-config.toml`), which is what a replay needs.
-pub fn observers(config: &ServiceConfig) -> Result<Observers> {
+/// The recording, the metrics and the audit file the file asks for, and the entries the
+/// audit file already holds. The recording starts with the configuration itself attached
+/// (`service-config.toml`), which is what a replay needs.
+pub fn observers(config: &ServiceConfig) -> Result<(Observers, Vec<protocol::pb::AuditEntry>)> {
     let recording = match &config.record {
         Some(spec) => {
             let r = Recording::create(spec, "controller-service")?;
@@ -196,7 +207,26 @@ pub fn observers(config: &ServiceConfig) -> Result<Observers> {
             recording.clone(),
         ))
     });
-    Ok(Observers { metrics, recording })
+    let (audit, earlier) = match &config.audit {
+        Some(spec) => {
+            let (trail, earlier) = crate::service::AuditTrail::open(spec)
+                .with_context(|| format!("audit file {}", spec.path.display()))?;
+            tracing::info!(path = %spec.path.display(), entries = earlier.len(), "audit trail: every operator's change is appended and fsynced");
+            (Some(trail), earlier)
+        }
+        None => {
+            tracing::warn!("audit trail in memory only (no audit file in the configuration): the latest 64 decisions per device, lost with the process");
+            (None, Vec::new())
+        }
+    };
+    Ok((
+        Observers {
+            metrics,
+            recording,
+            audit,
+        },
+        earlier,
+    ))
 }
 
 async fn serve_workers(

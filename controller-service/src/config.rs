@@ -409,6 +409,41 @@ pub struct ServiceConfig {
     /// Absent: the service runs open, and the log says so.
     #[serde(default)]
     pub secret_file: Option<std::path::PathBuf>,
+    /// Who may do what (`crate::access`): `[access] verified = true` and
+    /// `[[access.operators]] name = "alice", role = "operator", devices = ["aero-*"]`.
+    /// Absent: every request is taken, from whoever its key names (or nobody), and the
+    /// audit trail records each name as unverified.
+    #[serde(default)]
+    pub access: Option<crate::access::AccessSpec>,
+    /// The audit trail's file (absent: the entries are kept in memory only, the latest
+    /// 64 per device, and the log says so at start). `audit = { path = "audit.jsonl" }`.
+    #[serde(default)]
+    pub audit: Option<AuditSpec>,
+}
+
+/// The audit trail's file: one JSON line per decision on an operator's change
+/// (`crate::audit::to_line`), appended and fsynced before the change is acknowledged,
+/// rotated by size.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AuditSpec {
+    /// The file, relative to this configuration file; its directory is created if
+    /// missing. Rotated files are `{path}.1` (newest) to `{path}.{keep}`.
+    pub path: std::path::PathBuf,
+    /// Size at which the file is rotated (bytes, at least 4096). Default 16 MiB.
+    #[serde(default = "rotate_bytes")]
+    pub rotate_bytes: u64,
+    /// Rotated files kept (at least 1). Default 10: with the default size, the latest
+    /// 176 MiB of decisions.
+    #[serde(default = "audit_keep")]
+    pub keep: u32,
+}
+
+fn rotate_bytes() -> u64 {
+    16 << 20
+}
+fn audit_keep() -> u32 {
+    10
 }
 
 fn max_devices() -> usize {
@@ -434,6 +469,8 @@ impl Default for ServiceConfig {
             metrics: None,
             record: None,
             secret_file: None,
+            access: None,
+            audit: None,
         }
     }
 }
@@ -547,6 +584,20 @@ impl ServiceConfig {
                 return Err(invalid((
                     "snapshots.interval_ms".into(),
                     "must be > 0".into(),
+                )));
+            }
+        }
+        if let Some(a) = &self.access {
+            a.check().map_err(invalid)?;
+        }
+        if let Some(a) = &self.audit {
+            if a.rotate_bytes < 4096 || a.keep == 0 {
+                return Err(invalid((
+                    "audit".into(),
+                    format!(
+                        "rotate_bytes must be at least 4096 and keep at least 1 (got {} and {})",
+                        a.rotate_bytes, a.keep
+                    ),
                 )));
             }
         }

@@ -7,7 +7,9 @@
 //! * [`fleet`]: several instances sharing the devices: who owns, who stands by, handover;
 //! * [`standby`]: a hot-standby group: who is active, takeover after silence;
 //! * [`lease`]: the plant's command lease seen from a member: answer, claim, yield, or
-//!   stay silent because another holds it (the plant decides who commands it).
+//!   stay silent because another holds it (the plant decides who commands it);
+//! * [`access`]: operators, their roles and devices; [`audit`]: what an audit entry
+//!   says, a change's old and new values, entries handed over with a device.
 //!
 //! Around them:
 //! * [`config`]: the TOML file (declared devices, templates, envelopes, fleet, standby);
@@ -17,6 +19,8 @@
 //! * [`snapshot`]: the snapshots' format and files; [`replay`]: a recording played again;
 //! * [`observe`]: metrics; [`cli`]: the command line (the binary is a one-line `main`).
 
+pub mod access;
+pub mod audit;
 pub mod bounds;
 pub mod cli;
 pub mod config;

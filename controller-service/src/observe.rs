@@ -40,6 +40,8 @@ pub struct Observers {
     pub metrics: Option<Arc<ServiceMetrics>>,
     /// The recording of this process.
     pub recording: Option<Recording>,
+    /// The audit trail's file of this process (absent: entries in memory only).
+    pub audit: Option<crate::service::AuditTrail>,
 }
 
 /// A device's histograms, registered at its first sample.
@@ -207,6 +209,31 @@ const SERVICE_COUNTERS: &[(&str, &str, Field<pb::ServiceStatus>)] = &[
         "mfc_service_forged_total",
         "Samples and batches refused for their proof of origin (no MAC, or another key's).",
         |s| s.forged,
+    ),
+    (
+        "mfc_service_changes_accepted_total",
+        "Operators' changes accepted, each an audit entry.",
+        |s| s.changes_accepted,
+    ),
+    (
+        "mfc_service_changes_refused_total",
+        "Operators' changes refused (access, bounds, any check), each an audit entry.",
+        |s| s.changes_refused,
+    ),
+    (
+        "mfc_service_audit_unwritten_total",
+        "Refusals whose audit entry found the audit file's queue full (kept in memory only).",
+        |s| s.audit_unwritten,
+    ),
+    (
+        "mfc_service_audit_written_total",
+        "Audit entries written and fsynced to the process's audit file (each worker of a process reports the same file).",
+        |s| s.audit_written,
+    ),
+    (
+        "mfc_service_audit_errors_total",
+        "Audit entries the process's audit file could not take (the log says why).",
+        |s| s.audit_errors,
     ),
 ];
 

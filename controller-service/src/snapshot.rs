@@ -12,12 +12,12 @@ use mfc::trajectory::Piece;
 
 /// Bumped whenever the layout changes; a file of another version is refused and its
 /// device starts from the configuration (and a handed state of another version is not
-/// restored). 6: a handed device carries its configuration's version and whether the
+/// restored). 7: a handed device carries its latest audit entries. 6: a handed device carries its configuration's version and whether the
 /// sender holds its lease. 2: the estimators' rings span their window
 /// only (files of 1 would be read with the wrong layout). 4: the intelligent laws'
 /// `hold_estimate_filter` and `hold_after`, and the time their reference has rested.
 /// 5: an intelligent controller keeps its estimate's trend, for predictions.
-pub const SNAPSHOT_VERSION: u32 = 6;
+pub const SNAPSHOT_VERSION: u32 = 7;
 
 /// What a device snapshot holds.
 #[derive(Debug, Clone, Encode, Decode)]
@@ -100,6 +100,9 @@ pub struct HandedDevice {
     /// The run and epoch of the lease as the sender last heard it (`(0, 0)`: never
     /// leased there): a receiver in step only with an earlier one missed a holder.
     pub heard: (u64, u64),
+    /// Its latest audit entries (`pb::AuditLog`, protobuf), so that the member taking it
+    /// over keeps its history (`crate::audit::merge`).
+    pub audit: Vec<u8>,
 }
 
 /// The state of one shard, in a handover reply.

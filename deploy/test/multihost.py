@@ -15,7 +15,9 @@ started more than MFC_TEST_MULTIHOST_MAX_OVERRUNS (10 %) of its periods late is 
 the network, was late then; if no run kept time, that fails too.
 Phase 2 starts the same commands in reverse order (plants, controller, then the router),
 kills the router with SIGKILL mid-run and restarts it, changes a gain from the operator's
-host, and attacks from the intruder host: forged puts, queries and subscriptions with
+host (it must be in the audit trail under alice's certificate name, verified, with its old
+and new value, and in the service's audit file; vera, a viewer, is refused and recorded;
+alice asking as vera reaches no service), and attacks from the intruder host: forged puts, queries and subscriptions with
 aero-1's certificate on aero-2's keys (counted by a witness holding the controller's
 identity: 0 must arrive, against all of them on aero-1's own sample key), a client with no
 certificate, plain TCP and a foreign CA (refused), and no listening socket on the plants.
@@ -288,6 +290,58 @@ def mfcctl(env, *args):
         return None, f"{e}: {r.stdout[:200]}"
 
 
+def audit_of(env, who, device):
+    """`mfcctl audit DEVICE --json` as `who` (its own bundle): the device's entries."""
+    r = env.run("operator", f"mfcctl --zenoh-config /etc/mfc/{who}.json5 --key-file /etc/mfc/{who}.auth "
+                f"--json audit {device}", timeout=30)
+    if r.returncode != 0:
+        return None, r.stderr.strip()
+    logs = json.loads(r.stdout)
+    return (logs[0]["entries"] if logs else []), None
+
+
+def audit_checks(env, alpha, results):
+    """Phase 2: alice's change is on the record under her certificate's name; vera's (a
+    viewer) is refused and recorded; alice asking as vera reaches no service."""
+    entries, err = audit_of(env, "vera", "aero-2")
+    if not check(entries is not None, "the viewer reads aero-2's audit trail", err or ""):
+        return
+    mine = [e for e in entries if e.get("operator") == "alice" and e.get("accepted")]
+    moved = [c for e in mine for c in e.get("changes", []) if c["what"] == "channel 0 alpha"]
+    check(any(abs(float(c["new"]) - alpha) <= 1e-9 * abs(alpha) for c in moved),
+          "alice's alpha change is in the audit trail with its new value", json.dumps(mine)[-400:])
+    check(all(e.get("verified") and e.get("role") == "operator" and e.get("member") == "controller-1"
+              for e in mine) and mine,
+          "alice's entries are verified (her certificate's name), role operator, decided by controller-1",
+          json.dumps(mine)[-400:])
+    set_alpha = "set aero-2 --channel 0 alpha=1"
+    r = env.run("operator", f"mfcctl --zenoh-config /etc/mfc/vera.json5 --key-file /etc/mfc/vera.auth {set_alpha}",
+                timeout=30)
+    check(r.returncode != 0 and "is a viewer" in r.stderr,
+          "vera (a viewer) cannot change a gain, and is told why", f"exit {r.returncode}: {r.stderr.strip()[-200:]}")
+    r = env.run("operator", f"mfcctl --zenoh-config /etc/mfc/alice.json5 --key-file /etc/mfc/alice.auth "
+                f"--operator vera --timeout-ms 1500 {set_alpha}", timeout=30)
+    check(r.returncode != 0 and "no answer" in r.stderr,
+          "alice cannot ask as vera: the router drops the request", f"exit {r.returncode}: {r.stderr.strip()[-200:]}")
+    after, err = audit_of(env, "alice", "aero-2")
+    if not check(after is not None, "alice reads aero-2's audit trail", err or ""):
+        return
+    veras = [e for e in after if e.get("operator") == "vera"]
+    check(len(veras) == 1 and not veras[0]["accepted"] and "viewer" in veras[0]["reason"],
+          "vera's attempt is recorded once, refused, with why; alice's attempt as vera is not there",
+          json.dumps([(e["operator"], e["accepted"], e["reason"]) for e in after]))
+    check(len(after) == len(entries) + 1, "exactly one more entry (vera's)",
+          f"{len(entries)} then {len(after)}")
+    results["audit_aero2"] = after
+    # The same decisions are in the service's audit file, fsynced before each reply.
+    path = Path("/var/lib/mfc/audit/controller-1.jsonl")
+    lines = [json.loads(l) for l in path.read_text().splitlines()] if path.exists() else []
+    on_file = [(l["operator"], l["accepted"], l["n"]) for l in lines if l["device"] == "aero-2"]
+    served = [(e["operator"], e["accepted"], e["n"]) for e in after]
+    check(on_file == served, "the audit file holds aero-2's entries, as the service answers them",
+          f"file {on_file[-3:]} vs reply {served[-3:]}")
+
+
 def devices_up(env):
     d, err = mfcctl(env, "devices")
     if d is None:
@@ -397,7 +451,9 @@ def main():
     work.mkdir()
     made_etc = not Path("/etc/mfc").exists()
     Path("/etc/mfc").mkdir(exist_ok=True)
-    for d in ["aero-1", "aero-2"]:
+    # The audit trail too: the service gives each device its entries back from the file,
+    # and the checks count this run's.
+    for d in ["aero-1", "aero-2", "audit"]:
         shutil.rmtree(f"/var/lib/mfc/{d}", ignore_errors=True)
     env = None
     t_start = time.time()
@@ -580,6 +636,7 @@ def run_test(env, args):
         check(got is not None and abs(got - new) <= 1e-9 * abs(new),
               "the service's configuration shows the new alpha", f"{got} vs {new}")
         results["alpha_change"] = {"from": alpha, "to": new}
+        audit_checks(env, new, results)
 
     attacks(env)
 
@@ -978,9 +1035,11 @@ def attacks(env):
             ["ip", "netns", "exec", HOSTS[host][0], "zenoh-probe", "--zenoh-config", config,
              "sub", "--secs", "20"] + sum([["--key", k] for k in keys], []),
             env=env.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # The operator's reference puts go under its own name (the router lets it use no other).
+    named_reference = f"{p}/aero-2/reference/by/alice"
     witnesses = [witness("operator", "/etc/mfc/alice.json5", watched[:2] + watched[3:]),
                  witness("controller", "/etc/mfc/controller-1.json5",
-                         watched[2:3] + list(gw_batches.values()))]
+                         watched[2:3] + [named_reference] + list(gw_batches.values()))]
     time.sleep(1.5)
     plants_running(env, "when the attacks start")
     forged = {}
@@ -1000,7 +1059,7 @@ def attacks(env):
                                        "--interval-ms", "5", "--marker", "FORGED-BY-OPERATOR")
     # The controller witness's control: the operator may put on a reference key.
     forged["operator reference"] = probe(env, "operator", "/etc/mfc/alice.json5", "put", "--key",
-                                         f"{p}/aero-2/reference", "--count", "10",
+                                         named_reference, "--count", "10",
                                          "--interval-ms", "5", "--marker", "OPERATOR")
     # Watching: aero-2's keys must stay silent, aero-1's own command key (the control) not.
     rc_sub, seen = probe(env, "intruder", stolen, "sub", "--secs", "3", "--key", sample_key("aero-2"),
@@ -1008,15 +1067,15 @@ def attacks(env):
     # Serving and announcing in aero-2's name, while the operator asks.
     fake_q = subprocess.Popen(
         ["ip", "netns", "exec", HOSTS["intruder"][0], "zenoh-probe", "--zenoh-config", stolen,
-         "queryable", "--key", f"{p}/aero-2/config", "--secs", "5"],
+         "queryable", "--key", f"{p}/aero-2/config/**", "--secs", "5"],
         env=env.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     fake_t = subprocess.Popen(
         ["ip", "netns", "exec", HOSTS["intruder"][0], "zenoh-probe", "--zenoh-config", stolen,
          "token", "--key", "mfc/v1/alive/plant/aero-2-forged", "--secs", "5"],
         env=env.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     time.sleep(1.5)
-    _, asked = probe(env, "operator", "/etc/mfc/alice.json5", "get", "--key", f"{p}/aero-2/config",
-                     "--count", "3")
+    _, asked = probe(env, "operator", "/etc/mfc/alice.json5", "get", "--key",
+                     f"{p}/aero-2/config/by/alice", "--count", "3")
     _, alive = probe(env, "operator", "/etc/mfc/alice.json5", "alive", "--key", "mfc/v1/alive/**")
     fake_q.communicate(timeout=30)
     fake_t.communicate(timeout=30)
@@ -1044,7 +1103,9 @@ def attacks(env):
               f"certificate, {FORGED} with the gateway's" + (f", {FORGED} by the operator)"
               if k.endswith("command") else ")"), str(got))
         check(got.get("deletes") == 0, f"forged deletes on {k} arriving: 0 of 10", str(got))
-        check(got.get("received", 0) >= 10, f"the witness does see {k}'s real traffic", str(got))
+        real = per.get(named_reference if k.endswith("reference") else k, {})
+        check(real.get("received", 0) >= 10, f"the witness does see {k}'s real traffic"
+              + (" (the operator's, under its name)" if k.endswith("reference") else ""), str(real))
     ctl = per.get(watched[3], {})
     check(ctl.get("marked", 0) >= 0.9 * FORGED,
           "control: the same forger's puts on aero-1's own sample key arrive", str(ctl))

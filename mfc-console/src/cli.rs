@@ -37,6 +37,12 @@ pub struct ConsoleCli {
     /// sealed with it are shown. Without it, replies are taken unchecked (the log says so).
     #[arg(long)]
     pub key_file: Option<PathBuf>,
+    /// The operator the console's requests name (`…/by/{operator}`): under a deployment,
+    /// the common name of the certificate in its zenoh configuration. Default: the name
+    /// that file gives (`mfc-deploy` writes it), else the local user, which services
+    /// record as unverified.
+    #[arg(long, env = "MFC_OPERATOR")]
+    pub operator: Option<String>,
 }
 
 /// Parse `args` and run until a signal; the process's exit code: 0 stopped by a signal, 1
@@ -120,7 +126,17 @@ pub async fn run(
             None
         }
     };
-    let console = Arc::new(Console::new(session.clone(), settings.clone(), key));
+    let mut console = Console::new(session.clone(), settings.clone(), key);
+    console.operator.name = match &cli.operator {
+        Some(n) => Some(
+            protocol::keys::check_id(n)
+                .map_err(|e| ConsoleError::Usage(format!("--operator: {e}")))?
+                .to_string(),
+        ),
+        None => transport::ops::default_name(&cli.zenoh),
+    };
+    tracing::info!(operator = ?console.operator.name, "requests name this operator");
+    let console = Arc::new(console);
     let wiring = wire(console.clone()).await?;
     let guard = Guard::new(addr, &settings.allowed_hosts);
     tracing::info!(

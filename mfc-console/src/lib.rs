@@ -37,6 +37,9 @@ pub enum ConsoleError {
     /// The operators' key file.
     #[error("--key-file: {0}")]
     Key(#[from] protocol::auth::KeyError),
+    /// A command-line value that cannot be used.
+    #[error("{0}")]
+    Usage(String),
     /// The HTTP listener.
     #[error("HTTP on {addr}: {source}")]
     Http {

@@ -57,6 +57,7 @@ impl Console {
             operator: transport::ops::Operator {
                 session: session.clone(),
                 key,
+                name: None,
             },
             session,
             settings,

@@ -11,9 +11,9 @@
 //! | role | sends (ingress) | receives (egress) |
 //! |---|---|---|
 //! | device `d` | put `device/d/sample` and `shard/{s}/device/d/sample` (`s` its shard, where the agent publishes); subscribe `device/d/command`; token `alive/plant/d` | put `device/d/command`; the services' subscriptions `device/*/sample`, `shard/*/device/*/sample` |
-//! | service `s` | put `device/*/command`, `gateway/*/commands`, `group/**`; subscribe `device/*/{sample,reference}`, `shard/*/device/*/sample`, `gateway/*/samples`, `group/**`, the members `fleet/*/member/*`; serve and reply on `device/*/{config,status,envelope,reference}` and the same under `shard/*/` (no wildcard leaf); query other members' `fleet/*/member/*/shard/*`; tokens `alive/controller/s` and `fleet/*/member/s`, handover queryable `fleet/*/member/s/shard/*` and status queryable `service/s/status`, under its own name only | samples, batches, references, heartbeats, fleet traffic, queries, the agents' and operators' declarations |
+//! | service `s` | put `device/*/command`, `gateway/*/commands`, `group/**`; subscribe `device/*/sample`, `device/*/reference/**`, `shard/*/device/*/sample`, `gateway/*/samples`, `group/**`, the members `fleet/*/member/*`; serve and reply on `device/*/{leaf}/**` for each of `config,status,envelope,reference,audit` (the leaf and the operators' `…/by/{o}` below it) and the same under `shard/*/` (no wildcard leaf); query other members' `fleet/*/member/*/shard/*`; tokens `alive/controller/s` and `fleet/*/member/s`, handover queryable `fleet/*/member/s/shard/*` and status queryable `service/s/status`, under its own name only | samples, batches, references, heartbeats, fleet traffic, queries, the agents' and operators' declarations |
 //! | gateway `g` hosting plants `p…` | put `gateway/g/samples` and `shard/{s}/gateway/g/samples` (`s` its shard); subscribe `gateway/g/commands`; tokens `alive/plant/p` for each of its plants | put `gateway/g/commands`; the services' subscriptions `gateway/*/samples`, `shard/*/gateway/*/samples` |
-//! | operator | query `device/*/{config,status,envelope,reference}`, `service/*/status`; put `device/*/reference`; subscribe samples and commands (watch); liveliness queries | replies, samples, commands, tokens |
+//! | operator `o` | query `device/*/{config,status,envelope,reference,audit}/by/o` (and under `shard/*/`), `service/*/status`; put `device/*/reference/by/o` (not a viewer): under its own name only; subscribe samples and commands (watch); liveliness queries | replies, samples, commands, tokens |
 //!
 //! So a device holding its own certificate can neither put on nor watch another device's
 //! keys, cannot command even itself, and cannot change any configuration (a gateway's
@@ -31,7 +31,7 @@ use crate::inventory::Inventory;
 const P: &str = protocol::keys::PREFIX;
 
 /// The `device/*/…` keys a service serves as queryables and an operator queries.
-const QUERIED: [&str; 4] = protocol::keys::QUERIED_LEAVES;
+const QUERIED: [&str; 5] = protocol::keys::QUERIED_LEAVES;
 
 fn dev(id: &str, leaf: &str) -> String {
     format!("{P}/device/{id}/{leaf}")
@@ -78,11 +78,12 @@ pub fn access_control(inv: &Inventory) -> Value {
         acl.policy_of(format!("service-{s}"), vec![s.clone()], ids);
     }
     if !inv.operators.is_empty() {
-        acl.policy(
-            "operators".into(),
-            inv.operators.clone(),
-            operator_rules(&keys),
-        );
+        let shared = acl.add(operator_rules(&keys));
+        for o in &inv.operators {
+            let mut ids = shared.clone();
+            ids.extend(acl.add(operator_own_rules(&o.name, o.role != "viewer")));
+            acl.policy_of(format!("operator-{}", o.name), vec![o.name.clone()], ids);
+        }
     }
     json!({
         "enabled": true,
@@ -139,8 +140,17 @@ struct SharedKeys {
 
 impl SharedKeys {
     fn new() -> Self {
-        let mut served: Vec<String> = QUERIED.iter().map(|l| dev("*", l)).collect();
-        served.extend(QUERIED.iter().map(|l| sdev("*", l)));
+        // Each leaf and the operators' keys below it (`…/{leaf}/by/{operator}`): what a
+        // service declares (`protocol::keys::served`) and replies on.
+        let mut served: Vec<String> = QUERIED
+            .iter()
+            .map(|l| protocol::keys::served(&dev("*", l)))
+            .collect();
+        served.extend(
+            QUERIED
+                .iter()
+                .map(|l| protocol::keys::served(&sdev("*", l))),
+        );
         let mut queried = served.clone();
         queried.push(format!("{P}/service/*/status"));
         Self { served, queried }
@@ -268,7 +278,7 @@ fn service_rules(keys: &SharedKeys) -> Vec<Value> {
                 sdev("*", "sample"),
                 gw_samples.clone(),
                 shard_gw_samples.clone(),
-                dev("*", "reference"),
+                references(),
                 group.clone(),
                 members(),
             ],
@@ -321,7 +331,7 @@ fn service_rules(keys: &SharedKeys) -> Vec<Value> {
                 sdev("*", "sample"),
                 gw_samples,
                 shard_gw_samples,
-                dev("*", "reference"),
+                references(),
                 group,
             ],
         ),
@@ -365,22 +375,24 @@ fn service_own_rules(s: &str) -> Vec<Value> {
     ]
 }
 
-/// Operators: read everything, steer and tune through the services.
+/// Every device's reference puts, named or not: what services subscribe to.
+fn references() -> String {
+    protocol::keys::served(&dev("*", "reference"))
+}
+
+/// What every operator may do whoever it is: the services' status, watching samples and
+/// commands, liveliness, and seeing the services' declarations. Requests on a device go
+/// under the operator's own name only ([`operator_own_rules`]).
 fn operator_rules(keys: &SharedKeys) -> Vec<Value> {
     let alive = format!("{P}/alive/**");
     let watched = vec![dev("*", "sample"), sdev("*", "sample"), dev("*", "command")];
+    let status = vec![format!("{P}/service/*/status")];
     vec![
         rule(
-            "operator-query".into(),
+            "operator-services".into(),
             &["ingress"],
             &["query"],
-            keys.queried.clone(),
-        ),
-        rule(
-            "operator-steer".into(),
-            &["ingress"],
-            &["put"],
-            vec![dev("*", "reference")],
+            status.clone(),
         ),
         rule(
             "operator-watch".into(),
@@ -395,10 +407,16 @@ fn operator_rules(keys: &SharedKeys) -> Vec<Value> {
             vec![alive.clone()],
         ),
         rule(
-            "operator-replies".into(),
+            "operator-services-replies".into(),
             &["egress"],
             &["reply", "declare_queryable"],
-            keys.queried.clone(),
+            status,
+        ),
+        rule(
+            "operator-see-queryables".into(),
+            &["egress"],
+            &["declare_queryable"],
+            keys.served.clone(),
         ),
         rule("operator-see".into(), &["egress"], &["put"], watched),
         rule(
@@ -411,9 +429,34 @@ fn operator_rules(keys: &SharedKeys) -> Vec<Value> {
             "operator-see-subscription".into(),
             &["egress"],
             &["declare_subscriber"],
-            vec![dev("*", "reference")],
+            vec![references()],
         ),
     ]
+}
+
+/// Operator `name`'s requests on devices: queries (and their replies) on every queried
+/// leaf under its own name only (`…/{leaf}/by/{name}`, with or without the shard), and
+/// reference puts likewise if it may change anything (`steer`: not a viewer). So a
+/// certificate cannot ask as another operator, nor as nobody: the name a service reads
+/// in a request's key is the certificate's.
+fn operator_own_rules(name: &str, steer: bool) -> Vec<Value> {
+    let own = |key: String| protocol::keys::by(&key, name);
+    let mut asked: Vec<String> = QUERIED.iter().map(|l| own(dev("*", l))).collect();
+    asked.extend(QUERIED.iter().map(|l| own(sdev("*", l))));
+    let r = |n: &str| format!("operator-{name}-{n}");
+    let mut rules = vec![
+        rule(r("query"), &["ingress"], &["query"], asked.clone()),
+        rule(r("replies"), &["egress"], &["reply"], asked),
+    ];
+    if steer {
+        rules.push(rule(
+            r("steer"),
+            &["ingress"],
+            &["put"],
+            vec![own(dev("*", "reference"))],
+        ));
+    }
+    rules
 }
 
 #[cfg(test)]
@@ -488,7 +531,7 @@ mod tests {
 
     fn fleet() -> Value {
         let inv = Inventory::parse(
-            "services = [\"ctl\"]\ndevices = [\"aero-1\", \"aero-2\"]\noperators = [\"alice\"]\n[router]\nhosts = [\"10.0.0.1\"]\n",
+            "services = [\"ctl\"]\ndevices = [\"aero-1\", \"aero-2\"]\noperators = [\"alice\", { name = \"vera\", role = \"viewer\" }]\n[router]\nhosts = [\"10.0.0.1\"]\n",
         )
         .unwrap();
         access_control(&inv)
@@ -780,6 +823,41 @@ mod tests {
     }
 
     #[test]
+    fn operators_ask_under_their_own_name_only() {
+        let acl = fleet();
+        let ok = |cn: &str, flow: &str, msg: &str, key: &str| allowed(&acl, cn, flow, msg, key);
+        let by = |key: String, who: &str| protocol::keys::by(&key, who);
+        for leaf in QUERIED {
+            let (key, sharded) = (dev("aero-1", leaf), sdev("aero-1", leaf));
+            let served = protocol::keys::served(&dev("*", leaf));
+            // Under its own name, with or without the shard; the service declares,
+            // receives and replies on the same keys.
+            let mine = by(key.clone(), "alice");
+            assert!(ok("alice", "ingress", "query", &mine));
+            assert!(ok("alice", "ingress", "query", &by(sharded, "alice")));
+            assert!(ok("ctl", "egress", "query", &mine));
+            assert!(ok("ctl", "ingress", "reply", &mine));
+            assert!(ok("alice", "egress", "reply", &mine));
+            assert!(ok("ctl", "ingress", "declare_queryable", &served));
+            assert!(ok("alice", "egress", "declare_queryable", &served));
+            // Never as another operator, nor as nobody: the name a service reads is the
+            // certificate's.
+            assert!(!ok("alice", "ingress", "query", &by(key.clone(), "vera")));
+            assert!(!ok("alice", "ingress", "query", &key));
+            assert!(!ok("alice", "ingress", "query", &by(key.clone(), "*")));
+            assert!(!ok("alice", "egress", "reply", &by(key.clone(), "vera")));
+            assert!(ok("vera", "ingress", "query", &by(key, "vera")));
+        }
+        // A viewer cannot even put a reference (the services refuse its changes too).
+        let reference = |who: &str| by(dev("aero-1", "reference"), who);
+        assert!(ok("alice", "ingress", "put", &reference("alice")));
+        assert!(!ok("vera", "ingress", "put", &reference("vera")));
+        assert!(!ok("alice", "ingress", "put", &reference("vera")));
+        assert!(!ok("alice", "ingress", "put", &dev("aero-1", "reference")));
+        assert!(ok("ctl", "egress", "put", &reference("alice")));
+    }
+
+    #[test]
     fn operators_steer_and_watch_but_never_command() {
         let acl = fleet();
         assert!(allowed(
@@ -787,13 +865,6 @@ mod tests {
             "alice",
             "ingress",
             "query",
-            &dev("aero-1", "config")
-        ));
-        assert!(allowed(
-            &acl,
-            "alice",
-            "ingress",
-            "query",
             &format!("{P}/service/*/status")
         ));
         assert!(allowed(
@@ -802,27 +873,6 @@ mod tests {
             "egress",
             "query",
             &format!("{P}/service/*/status")
-        ));
-        assert!(allowed(
-            &acl,
-            "alice",
-            "egress",
-            "reply",
-            &dev("aero-1", "config")
-        ));
-        assert!(allowed(
-            &acl,
-            "alice",
-            "ingress",
-            "put",
-            &dev("aero-1", "reference")
-        ));
-        assert!(allowed(
-            &acl,
-            "ctl",
-            "egress",
-            "put",
-            &dev("aero-1", "reference")
         ));
         assert!(allowed(
             &acl,

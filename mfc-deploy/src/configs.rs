@@ -82,6 +82,9 @@ pub fn client(inv: &Inventory, role: IdentityKind, name: &str) -> Value {
             // Back within a second of the router's return.
             "retry": { "period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2 },
         },
+        // Who this client is (zenoh shows it in its admin space): `mfcctl` and the console
+        // name an operator's requests after it, the name the router holds it to.
+        "metadata": { "name": name, "role": role.dir().trim_end_matches('s') },
         // A client that listens could be reached around the router and its access control.
         "listen": { "endpoints": [] },
         "scouting": { "multicast": { "enabled": false }, "gossip": { "enabled": false } },
@@ -137,6 +140,9 @@ mod tests {
         assert_eq!(tls["connect_private_key"], "/etc/mfc/aero-1.key");
         let o = client(&inv, IdentityKind::Operator, "alice");
         assert_eq!(o["connect"]["timeout_ms"], OPERATOR_CONNECT_TIMEOUT_MS);
+        assert_eq!(o["metadata"]["name"], "alice");
+        assert_eq!(o["metadata"]["role"], "operator");
+        assert_eq!(c["metadata"]["role"], "device");
     }
 
     #[test]

@@ -5,6 +5,7 @@
 //! OUT/ca/ca.pem ca.key fleet.secret    the CA and the fleet's secret (keep both here only)
 //! OUT/router/zenohd.json5 router.pem router.key ca.pem
 //! OUT/services/ID/ID.json5 ID.pem ID.key ca.pem fleet.secret
+//!                   ID.access.toml     operators' roles and the audit file, for its config
 //! OUT/devices/ID/…   ID.auth            the device's message key
 //! OUT/operators/ID/… ID.auth            the operators' reply key
 //! OUT/gateways/ID/…  ID.auth            the gateway's batch key (its plants have none)
@@ -319,8 +320,16 @@ fn bundle(
     };
     let text = configs::to_file(&header, &config);
     let config_path = dir.join(file);
-    let config_changed = read(&config_path)?.as_deref() != Some(text.as_str());
+    let mut config_changed = read(&config_path)?.as_deref() != Some(text.as_str());
     write(&config_path, &text, false)?;
+    if role == IdentityKind::Service {
+        // Who may do what on this service, for its configuration file: the operators'
+        // roles and devices, and the audit file.
+        let access = inv.service_access(name);
+        let access_path = dir.join(format!("{name}.access.toml"));
+        config_changed |= read(&access_path)?.as_deref() != Some(access.as_str());
+        write(&access_path, &access, false)?;
+    }
     Ok(Entry {
         role,
         name: name.to_string(),
@@ -581,6 +590,63 @@ mod tests {
             hex("devices/aero-1/aero-1.auth"),
             secret.device("aero-1").to_hex()
         );
+    }
+
+    #[test]
+    fn each_service_gets_the_operators_roles_and_an_audit_file() {
+        let out = tempfile::tempdir().unwrap();
+        let o = out.path();
+        let inv = Inventory::parse(
+            "services = [\"ctl\"]\noperators = [\"alice\", { name = \"vera\", role = \"viewer\", devices = [\"aero-*\"] }]\n[router]\nhosts = [\"10.0.0.1\"]\n",
+        )
+        .unwrap();
+        generate(&inv, o, &[], now()).unwrap();
+        let text = fs::read_to_string(o.join("services/ctl/ctl.access.toml")).unwrap();
+        let v: toml::Value = toml::from_str(&text).unwrap();
+        assert_eq!(
+            v["audit"]["path"].as_str(),
+            Some("/var/lib/mfc/audit/ctl.jsonl")
+        );
+        assert_eq!(v["access"]["verified"].as_bool(), Some(true));
+        let ops = v["access"]["operators"].as_array().unwrap();
+        let got: Vec<(&str, &str, Vec<&str>)> = ops
+            .iter()
+            .map(|o| {
+                let devices = o["devices"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|d| d.as_str().unwrap())
+                    .collect();
+                (
+                    o["name"].as_str().unwrap(),
+                    o["role"].as_str().unwrap(),
+                    devices,
+                )
+            })
+            .collect();
+        assert_eq!(
+            got,
+            [
+                ("alice", "operator", vec!["*"]),
+                ("vera", "viewer", vec!["aero-*"])
+            ]
+        );
+        // Bad roles and patterns are refused with the operator's name.
+        for (bad, says) in [
+            ("{ name = \"x\", role = \"root\" }", "role \"root\""),
+            ("{ name = \"x\", devices = [\"a/b\"] }", "devices \"a/b\""),
+            (
+                "{ name = \"x\", colour = \"red\" }",
+                "unknown field `colour`",
+            ),
+        ] {
+            let text = format!(
+                "services = [\"ctl\"]\noperators = [{bad}]\n[router]\nhosts = [\"10.0.0.1\"]\n"
+            );
+            let e = Inventory::parse(&text).unwrap_err().to_string();
+            assert!(e.contains(says), "{bad}: {e}");
+        }
     }
 
     #[test]

@@ -41,15 +41,83 @@ pub struct Inventory {
     /// their agents may use.
     #[serde(default)]
     pub devices: Vec<String>,
-    /// Operators (people, consoles, scripts): read everything, change configuration and
-    /// references through the services, never put a command or a sample.
+    /// Operators (people, consoles, scripts): each a name (`"alice"`: role `operator`
+    /// on every device) or a table (`{ name = "vera", role = "viewer", devices =
+    /// ["aero-*"] }`). They act through the services only, never put a command or a
+    /// sample; the router holds each certificate to requests under its own name, and
+    /// the services check its role and devices (`ID.access.toml`, written for each
+    /// service).
     #[serde(default)]
-    pub operators: Vec<String>,
+    pub operators: Vec<OperatorGrant>,
     /// Gateways (`plant-agent gateway`: one process hosting many plants, one batch a
     /// period each way): CN of their certificates; each may speak for the plants it lists
     /// only.
     #[serde(default)]
     pub gateways: Vec<Gateway>,
+}
+
+/// An operator: who (its certificate's common name), its role and its devices.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct OperatorGrant {
+    /// The common name of its certificate, and the name in its request keys.
+    pub name: String,
+    /// `viewer` (reads), `operator` (also changes gains, laws, references, narrows
+    /// envelopes) or `admin` (also widens envelopes where a service allows it). Default
+    /// `operator`.
+    pub role: String,
+    /// Device ids, or prefixes ending in `*`. Default `["*"]`.
+    pub devices: Vec<String>,
+}
+
+/// The roles an operator may have (the services' `access::Role`).
+pub const ROLES: [&str; 3] = ["viewer", "operator", "admin"];
+
+impl<'de> Deserialize<'de> for OperatorGrant {
+    /// A bare name, or a table with `name`, `role` and `devices` (unknown fields refused).
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(deny_unknown_fields)]
+        struct Table {
+            name: String,
+            #[serde(default = "operator_role")]
+            role: String,
+            #[serde(default = "every_device")]
+            devices: Vec<String>,
+        }
+        struct V;
+        impl<'de> serde::de::Visitor<'de> for V {
+            type Value = OperatorGrant;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("an operator's name, or a table { name, role, devices }")
+            }
+            fn visit_str<E: serde::de::Error>(self, v: &str) -> Result<OperatorGrant, E> {
+                Ok(OperatorGrant {
+                    name: v.into(),
+                    role: operator_role(),
+                    devices: every_device(),
+                })
+            }
+            fn visit_map<A: serde::de::MapAccess<'de>>(
+                self,
+                m: A,
+            ) -> Result<OperatorGrant, A::Error> {
+                let t = Table::deserialize(serde::de::value::MapAccessDeserializer::new(m))?;
+                Ok(OperatorGrant {
+                    name: t.name,
+                    role: t.role,
+                    devices: t.devices,
+                })
+            }
+        }
+        d.deserialize_any(V)
+    }
+}
+
+fn operator_role() -> String {
+    "operator".into()
+}
+fn every_device() -> Vec<String> {
+    vec!["*".into()]
 }
 
 /// A gateway and the plants it hosts.
@@ -203,7 +271,7 @@ impl Inventory {
         v.extend(
             self.operators
                 .iter()
-                .map(|s| (IdentityKind::Operator, s.clone())),
+                .map(|o| (IdentityKind::Operator, o.name.clone())),
         );
         v.extend(
             self.gateways
@@ -305,7 +373,50 @@ impl Inventory {
                 ));
             }
         }
+        self.check_operators()?;
         self.check_hosted(&self.devices.iter().cloned().collect())
+    }
+
+    /// Every operator's role is one of [`ROLES`], every device pattern an id or a prefix
+    /// ending in `*`.
+    fn check_operators(&self) -> Result<(), DeployError> {
+        for o in &self.operators {
+            if !ROLES.contains(&o.role.as_str()) {
+                return Err(DeployError::Inventory(format!(
+                    "operator {:?}: role {:?} is not one of {ROLES:?}",
+                    o.name, o.role
+                )));
+            }
+            for p in &o.devices {
+                let stem = p.strip_suffix('*').unwrap_or(p);
+                if !(stem.is_empty() || protocol::keys::check_id(stem).is_ok()) {
+                    return Err(DeployError::Inventory(format!(
+                        "operator {:?}: devices {p:?} is neither a device id nor a prefix ending in '*'",
+                        o.name
+                    )));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The `[access]` section (and the audit file) of service `s`'s configuration: the
+    /// operators, their roles and devices, and `verified = true`, which the router's
+    /// access control makes true (each certificate may use its own name only).
+    pub fn service_access(&self, s: &str) -> String {
+        let mut out = format!(
+            "# Generated by `mfc-deploy generate` for service {s:?}: append it to the service's\n# configuration file. Edit the inventory's operators, not this file.\n\n[audit]\npath = \"/var/lib/mfc/audit/{s}.jsonl\"\n\n[access]\n# The router holds every operator's certificate to requests under its own name.\nverified = true\n"
+        );
+        for o in &self.operators {
+            let devices: Vec<String> = o.devices.iter().map(|d| format!("{d:?}")).collect();
+            out.push_str(&format!(
+                "\n[[access.operators]]\nname = {:?}\nrole = {:?}\ndevices = [{}]\n",
+                o.name,
+                o.role,
+                devices.join(", ")
+            ));
+        }
+        out
     }
 
     /// Every gateway hosts at least one plant, each plant a valid device id hosted once

@@ -100,6 +100,7 @@ pub async fn demo(
         config.metrics = Some(telemetry::MetricsSpec {
             listen: addr.clone(),
             per_device: true,
+            tls: None,
         });
     }
     let board = std::sync::Arc::new(ProgressBoard::new());

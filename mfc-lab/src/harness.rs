@@ -135,7 +135,7 @@ impl ServiceHandle {
             None => format!("tcp/127.0.0.1:{}", transport::free_local_port()?),
         };
         // As the service's binary: the recording and the metrics its configuration asks for.
-        let observers = controller_service::cli::observers(&config)?;
+        let (observers, earlier) = controller_service::cli::observers(&config)?;
         let mut metrics = None;
         let mut metrics_stop = None;
         if let (Some(spec), Some(m)) = (&config.metrics, &observers.metrics) {
@@ -150,6 +150,9 @@ impl ServiceHandle {
         }
         let mut registry = Registry::new(config)?;
         registry.set_secret(secret.clone());
+        for e in earlier {
+            registry.audit(e);
+        }
         // As the service's own binary: no message larger than it would count is reassembled.
         let mut zc = loopback_config(Some(endpoint.clone()), vec![], gossip)?;
         transport::bound_messages(&mut zc, protocol::MAX_TRANSPORT_MESSAGE)?;

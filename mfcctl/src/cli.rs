@@ -12,7 +12,12 @@
 //! mfcctl reference aero-1 --constant 0,0.2
 //! mfcctl reference aero-1 --file steps.toml          # pieces start now on the plant's clock
 //! mfcctl envelope aero-1 --channel 1 --min -12 --max 12 --reason "commissioning"
+//! mfcctl audit aero-1                                # who changed what, and the result
 //! ```
+//!
+//! Every request on a device names its operator (`--operator`, by default the local
+//! user): under a deployment the router holds each certificate to its own name, and the
+//! services check the name's role; without one the name is a claim, recorded as such.
 
 use std::path::PathBuf;
 use std::time::Duration;
@@ -41,6 +46,13 @@ pub struct MfcctlCli {
     /// answer for it. Without it, replies are taken unchecked.
     #[arg(long, global = true)]
     pub key_file: Option<PathBuf>,
+    /// Who asks, named in every request on a device (`…/by/{operator}`). Under a
+    /// deployment, the common name of the operator's certificate (the router refuses
+    /// any other). Default: the name the zenoh configuration file gives (`mfc-deploy`
+    /// writes the certificate's), else the local user (`$USER`), which services record
+    /// as unverified.
+    #[arg(long, global = true, env = "MFC_OPERATOR")]
+    pub operator: Option<String>,
     #[command(subcommand)]
     pub command: Command,
 }
@@ -119,6 +131,12 @@ pub enum Command {
         /// Who asks and why (logged by the service).
         #[arg(long)]
         reason: String,
+    },
+    /// The audit trail: who changed what on a device (or on every device you may see),
+    /// old and new values, accepted or refused and why; the latest 64 per device.
+    Audit {
+        /// Device id (none: every device).
+        device: Option<String>,
     },
 }
 
@@ -240,10 +258,19 @@ pub async fn run(cli: MfcctlCli) -> Result<String> {
         Some(p) => Some(protocol::auth::Key::from_file(p).context("--key-file")?),
         None => None,
     };
+    let name = match cli.operator {
+        Some(n) => Some(
+            protocol::keys::check_id(&n)
+                .context("--operator")?
+                .to_string(),
+        ),
+        None => ops::default_name(&cli.zenoh),
+    };
     let session = cli.zenoh.open().await?;
     let operator = ops::Operator {
         session: session.clone(),
         key,
+        name,
     };
     let result = command(&operator, &cli.command, cli.json, timeout).await;
     let _ = session.close().await;
@@ -335,6 +362,10 @@ async fn command(
             };
             let c = ops::change_envelope(operator, device, env, reason, timeout).await?;
             out(json, &c, render::changed)?
+        }
+        Command::Audit { device } => {
+            let logs = ops::audit(operator, device.as_deref(), timeout).await?;
+            out(json, &logs, |l| render::audit(l))?
         }
     })
 }

@@ -223,6 +223,67 @@ pub fn changed(c: &ops::Changed) -> String {
     out
 }
 
+/// The audit logs, one line per entry then its changes, oldest first per device.
+pub fn audit(logs: &[pb::AuditLog]) -> String {
+    let mut out = String::new();
+    if logs.iter().all(|l| l.entries.is_empty()) {
+        return "no audited change\n".into();
+    }
+    for l in logs.iter().filter(|l| !l.entries.is_empty()) {
+        let _ = writeln!(out, "device {}", l.device_id);
+        for e in &l.entries {
+            let who = match (e.verified, e.role.as_str()) {
+                (true, "") => e.operator.clone(),
+                (true, r) => format!("{} ({r})", e.operator),
+                (false, "") => format!("{} (unverified)", e.operator),
+                (false, r) => format!("{} ({r}, unverified)", e.operator),
+            };
+            let result = if e.accepted {
+                "accepted".to_string()
+            } else {
+                format!("REFUSED: {}", e.reason)
+            };
+            let _ = writeln!(
+                out,
+                "  {} {who} {} on {}: {result}",
+                utc(e.unix_ns),
+                e.action,
+                e.member
+            );
+            for c in &e.changes {
+                let _ = writeln!(out, "      {}: {} -> {}", c.what, c.old, c.new);
+            }
+            if !e.accepted && !e.asked.is_empty() {
+                let _ = writeln!(out, "      asked: {}", e.asked);
+            }
+        }
+    }
+    out
+}
+
+/// Unix ns as `YYYY-MM-DD hh:mm:ss.mmm UTC` (civil calendar, no time zone database).
+fn utc(unix_ns: u64) -> String {
+    let secs = unix_ns / 1_000_000_000;
+    let ms = (unix_ns / 1_000_000) % 1000;
+    let (days, rem) = (secs / 86_400, secs % 86_400);
+    // Howard Hinnant's days-to-civil.
+    let z = days as i64 + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!(
+        "{y:04}-{m:02}-{d:02} {:02}:{:02}:{:02}.{ms:03} UTC",
+        rem / 3600,
+        (rem / 60) % 60,
+        rem % 60
+    )
+}
+
 pub fn config(c: &pb::DeviceConfig) -> String {
     let mut out = String::new();
     let _ = writeln!(out, "device {}", c.device_id);
@@ -430,6 +491,62 @@ pub fn set_fields() -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn audit_entries_read_well() {
+        // 2026-11-26 17:30:05.250 UTC.
+        assert_eq!(
+            utc(1_795_714_205_250_000_000),
+            "2026-11-26 17:30:05.250 UTC"
+        );
+        assert_eq!(utc(0), "1970-01-01 00:00:00.000 UTC");
+        let e = |accepted: bool, verified: bool| pb::AuditEntry {
+            unix_ns: 1_795_714_205_250_000_000,
+            member: "c-1".into(),
+            device_id: "aero-1".into(),
+            operator: "alice".into(),
+            verified,
+            role: "operator".into(),
+            action: "configuration".into(),
+            changes: vec![pb::AuditChange {
+                what: "channel 1 kp".into(),
+                old: "400".into(),
+                new: "450".into(),
+            }],
+            asked: if accepted {
+                String::new()
+            } else {
+                "updates: kp 1e308".into()
+            },
+            accepted,
+            reason: if accepted {
+                String::new()
+            } else {
+                "kp: at most 4e4".into()
+            },
+            ..Default::default()
+        };
+        let text = audit(&[pb::AuditLog {
+            device_id: "aero-1".into(),
+            entries: vec![e(true, true), e(false, false)],
+            ..Default::default()
+        }]);
+        assert!(
+            text.contains(
+                "2026-11-26 17:30:05.250 UTC alice (operator) configuration on c-1: accepted"
+            ),
+            "{text}"
+        );
+        assert!(text.contains("channel 1 kp: 400 -> 450"), "{text}");
+        assert!(
+            text.contains(
+                "alice (operator, unverified) configuration on c-1: REFUSED: kp: at most 4e4"
+            ),
+            "{text}"
+        );
+        assert!(text.contains("asked: updates: kp 1e308"), "{text}");
+        assert_eq!(audit(&[]), "no audited change\n");
+    }
 
     #[test]
     fn config_and_status_read_well() {

@@ -120,6 +120,9 @@ fn run(args: RunArgs) -> Result<u8> {
         Some(p) => (AgentFile::load(p)?, p.clone()),
         None => (AgentFile::default(), PathBuf::from("(flags)")),
     };
+    if let (Some(m), Some(p)) = (&mut file.metrics, &args.config) {
+        m.resolve(p.parent().unwrap_or(std::path::Path::new(".")));
+    }
     if let Some(d) = args.device {
         file.device = Some(d);
     }
@@ -205,7 +208,10 @@ fn run(args: RunArgs) -> Result<u8> {
 }
 
 fn gateway(args: GatewayArgs) -> Result<u8> {
-    let g = crate::gateway::GatewayFile::load(&args.config)?;
+    let mut g = crate::gateway::GatewayFile::load(&args.config)?;
+    if let Some(m) = &mut g.metrics {
+        m.resolve(args.config.parent().unwrap_or(std::path::Path::new(".")));
+    }
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?;

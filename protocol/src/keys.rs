@@ -8,6 +8,8 @@
 //! | `mfc/v1/device/{id}/status` | queryable on the controller | [`DeviceStatus`](crate::pb::DeviceStatus) |
 //! | `mfc/v1/device/{id}/reference` | operator → controller, pub/sub or query | [`ReferenceUpdate`](crate::pb::ReferenceUpdate), steer the reference live (a query is answered with a [`ConfigReply`](crate::pb::ConfigReply)) |
 //! | `mfc/v1/device/{id}/envelope` | queryable on the controller | read (empty query) or change the safety envelope ([`EnvelopeRequest`](crate::pb::EnvelopeRequest) → [`ConfigReply`](crate::pb::ConfigReply)) |
+//! | `mfc/v1/device/{id}/audit` | queryable on the controller | [`AuditLog`](crate::pb::AuditLog): the device's latest audited changes |
+//! | `mfc/v1/device/{id}/{leaf}/by/{operator}` | operator → controller | any of the five requests above, naming the operator who makes it ([`by`]); a deployment's access control lets an operator's certificate use its own name only |
 //! | `mfc/v1/service/{controller}/status` | queryable on the controller | [`ServiceStatus`](crate::pb::ServiceStatus) |
 //! | `mfc/v1/group/{group}/heartbeat` | active controller → its group | [`Heartbeat`](crate::pb::Heartbeat), hot standby |
 //! | `mfc/v1/alive/controller/{controller}` | liveliness token | a controller is up |
@@ -203,7 +205,44 @@ pub fn gateway_key(key: &str) -> Option<(&str, Option<u32>)> {
 /// queryable per leaf, not one on `device/*/*`: a deployment's access control (mfc-deploy)
 /// lets a service declare exactly these, so a wider declaration would be refused by the
 /// router and the service would answer nothing.
-pub const QUERIED_LEAVES: [&str; 4] = ["config", "status", "envelope", "reference"];
+pub const QUERIED_LEAVES: [&str; 5] = ["config", "status", "envelope", "reference", "audit"];
+
+/// `mfc/v1/device/{id}/audit`.
+pub fn audit(id: &str) -> String {
+    format!("{PREFIX}/device/{id}/audit")
+}
+
+/// A request key naming its operator: `{key}/by/{operator}`. Services declare each
+/// queried leaf as `…/{leaf}/**` ([`served`]) so that both shapes reach them.
+pub fn by(key: &str, operator: &str) -> String {
+    format!("{key}/by/{operator}")
+}
+
+/// The key expression a service declares for a request key `key` (e.g.
+/// `mfc/v1/device/*/config`): the key itself and every `…/by/{operator}` below it.
+pub fn served(key: &str) -> String {
+    format!("{key}/**")
+}
+
+/// The leaf of a request on a device's key and the operator it names:
+/// `mfc/v1/[shard/{s}/]device/{id}/{leaf}[/by/{operator}]`, where the shard and id may
+/// be wildcards (a status query over many devices). `None` for any other shape, an
+/// operator that is not a valid id included.
+pub fn request_parts(key: &str) -> Option<(&str, Option<&str>)> {
+    let mut rest = key.strip_prefix(PREFIX)?;
+    if let Some(r) = rest.strip_prefix("/shard/") {
+        rest = &r[r.find('/')?..];
+    }
+    let rest = rest.strip_prefix("/device/")?;
+    let (_id, tail) = rest.split_once('/')?;
+    match tail.split_once('/') {
+        None => Some((tail, None)),
+        Some((leaf, by)) => {
+            let op = by.strip_prefix("by/")?;
+            Some((leaf, Some(check_id(op).ok()?)))
+        }
+    }
+}
 
 /// Every device's `leaf` key (`sample`, `config`, ...): `mfc/v1/device/*/{leaf}`.
 pub fn all_devices(leaf: &str) -> String {
@@ -254,6 +293,25 @@ mod tests {
             gateway_key(&g),
             Some(("cell-3", Some(crate::shard_of("cell-3"))))
         );
+        // Requests name their operator after the leaf.
+        let k = by(&config("aero-1"), "alice");
+        assert_eq!(k, "mfc/v1/device/aero-1/config/by/alice");
+        assert_eq!(device_of(&k), Some("aero-1"));
+        assert_eq!(request_parts(&k), Some(("config", Some("alice"))));
+        assert_eq!(request_parts(&config("aero-1")), Some(("config", None)));
+        assert_eq!(
+            request_parts("mfc/v1/shard/*/device/*/status/by/bob"),
+            Some(("status", Some("bob")))
+        );
+        for bad in [
+            "mfc/v1/device/aero-1/config/by/a*",
+            "mfc/v1/device/aero-1/config/by",
+            "mfc/v1/device/aero-1/config/as/alice",
+            "mfc/v1/device/aero-1/config/by/alice/x",
+            "mfc/v1/device/aero-1/config/**",
+        ] {
+            assert_eq!(request_parts(bad), None, "{bad}");
+        }
         assert_eq!(member_of(&fleet_member("main", "c-2")), Some("c-2"));
         assert_eq!(member_of(&fleet_handover("main", "c-2", 7)), Some("c-2"));
         assert_eq!(last_shard(&fleet_handover("main", "c-2", 7)), Some(7));

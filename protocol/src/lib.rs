@@ -147,7 +147,8 @@ versioned!(
     Heartbeat,
     SampleBatch,
     CommandBatch,
-    Event
+    Event,
+    AuditLog
 );
 
 /// Decode a versioned message; never panics, whatever the bytes.

@@ -11,8 +11,9 @@
 
 pub mod prom;
 pub mod record;
+mod tls;
 
-pub use prom::{serve_metrics, Metrics, MetricsError, MetricsSpec};
+pub use prom::{serve_metrics, Metrics, MetricsError, MetricsSpec, MetricsTls};
 pub use record::{
     read_recording, topic_name, RecordError, RecordSpec, RecordSummary, Recorded, Recording,
     RecordingContents, Topic,

@@ -31,6 +31,41 @@ pub struct MetricsSpec {
     /// series only: each device costs about 60 series.
     #[serde(default = "yes")]
     pub per_device: bool,
+    /// Serve over TLS, to scrapers holding a client certificate of `client_ca_file` only
+    /// (absent: plain HTTP, meant for loopback; the log warns when it is not). The names
+    /// are those of Prometheus exporter-toolkit's `tls_server_config`, with its
+    /// `client_auth_type` fixed at `RequireAndVerifyClientCert`.
+    #[serde(default)]
+    pub tls: Option<MetricsTls>,
+}
+
+/// The endpoint's TLS: its certificate and key, and the CA its scrapers' client
+/// certificates must chain to. Relative paths are resolved against the directory of the
+/// file that holds them ([`MetricsSpec::resolve`]).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MetricsTls {
+    /// The endpoint's certificate chain (PEM).
+    pub cert_file: std::path::PathBuf,
+    /// Its private key (PEM).
+    pub key_file: std::path::PathBuf,
+    /// The CA (PEM) of the scrapers' client certificates: a scrape without one of its
+    /// certificates fails the handshake.
+    pub client_ca_file: std::path::PathBuf,
+}
+
+impl MetricsSpec {
+    /// Make the TLS files' relative paths relative to `dir` (the directory of the
+    /// configuration file that names them).
+    pub fn resolve(&mut self, dir: &std::path::Path) {
+        if let Some(t) = &mut self.tls {
+            for p in [&mut t.cert_file, &mut t.key_file, &mut t.client_ca_file] {
+                if p.is_relative() {
+                    *p = dir.join(&*p);
+                }
+            }
+        }
+    }
 }
 
 fn default_listen() -> String {
@@ -46,6 +81,7 @@ impl Default for MetricsSpec {
         Self {
             listen: default_listen(),
             per_device: true,
+            tls: None,
         }
     }
 }
@@ -64,6 +100,9 @@ pub enum MetricsError {
         /// The system's reason.
         source: std::io::Error,
     },
+    /// A TLS file cannot be read or used.
+    #[error("metrics.tls: {0}")]
+    Tls(String),
 }
 
 /// Round-trip buckets (s): 100 µs to 1 s, denser where a 10 ms loop lives.
@@ -189,15 +228,27 @@ pub async fn serve_metrics(
             }
         }),
     );
-    let fut = async move {
-        if let Err(e) = axum::serve(listener, app)
-            .with_graceful_shutdown(shutdown)
-            .await
-        {
-            tracing::warn!("metrics endpoint stopped: {e}");
+    let fut: Pin<Box<dyn Future<Output = ()> + Send>> = match &spec.tls {
+        Some(tls) => {
+            let acceptor = crate::tls::acceptor(tls).map_err(MetricsError::Tls)?;
+            tracing::info!(addr = %local, "metrics endpoint: GET /metrics over TLS, client certificates required");
+            Box::pin(crate::tls::serve(listener, acceptor, app, shutdown))
+        }
+        None => {
+            if !local.ip().is_loopback() {
+                tracing::warn!(addr = %local, "metrics endpoint: plain HTTP on a non-loopback address; anyone who reaches it reads every device's figures (set metrics.tls)");
+            }
+            tracing::info!(addr = %local, "metrics endpoint: GET /metrics");
+            Box::pin(async move {
+                if let Err(e) = axum::serve(listener, app)
+                    .with_graceful_shutdown(shutdown)
+                    .await
+                {
+                    tracing::warn!("metrics endpoint stopped: {e}");
+                }
+            })
         }
     };
-    tracing::info!(addr = %local, "metrics endpoint: GET /metrics");
     Ok((local, fut))
 }
 

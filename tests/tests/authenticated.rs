@@ -79,6 +79,7 @@ async fn ask_beside_the_forger(asker: &zenoh::Session, secret: &protocol::auth::
     let operator = ops::Operator {
         session: asker.clone(),
         key: Some(secret.operator()),
+        name: None,
     };
     for _ in 0..QUERIES {
         let st = ops::device_status(&operator, "aero-1", Duration::from_secs(2))

@@ -370,5 +370,23 @@ async fn a_change_is_acknowledged_once_the_standby_holds_it_and_outlives_the_own
         after.config, acked.config,
         "the survivor's configuration is the one acknowledged last"
     );
+    // The history went with the changes: the survivor answers the audit query with the
+    // owner's three decisions, in order, each with its old and new gain (the one the
+    // standby missed came with the next change it held).
+    let log: pb::AuditLog = query(&s, keys::audit(&dev), None).await.unwrap();
+    let kp: Vec<(&str, &str, &str)> = log
+        .entries
+        .iter()
+        .filter(|e| e.member == own.id && e.operator == "anonymous" && !e.verified)
+        .flat_map(|e| e.changes.iter().filter(|c| c.what == "channel 0 kp"))
+        .map(|c| (c.old.as_str(), c.new.as_str(), ""))
+        .map(|(o, n, _)| (o, n, ""))
+        .collect();
+    assert_eq!(
+        kp.iter().map(|(_, n, _)| *n).collect::<Vec<_>>(),
+        ["6.5", "7", "7.5"],
+        "{log:?}"
+    );
+    assert_eq!(kp[1].0, "6.5");
     let _ = s.close().await;
 }

@@ -281,6 +281,7 @@ async fn metrics_match_the_status_and_a_recording_decodes_and_replays() {
     config.metrics = Some(telemetry::MetricsSpec {
         listen: "127.0.0.1:0".into(),
         per_device: true,
+        tls: None,
     });
     config.record = Some(RecordSpec::at(dir.join("service.mcap")));
     let service = ServiceHandle::start(config, None).await.unwrap();

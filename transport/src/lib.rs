@@ -106,6 +106,15 @@ impl ZenohArgs {
     }
 
     /// Build the zenoh configuration: the file (or zenoh's defaults), then the flags.
+    /// The name the zenoh configuration file gives its client (`metadata.name`, which
+    /// `mfc-deploy` writes: the certificate's common name), if any.
+    pub fn config_name(&self) -> Option<String> {
+        let path = self.zenoh_config.as_ref()?;
+        let config = Config::from_file(path).ok()?;
+        let v: serde_json::Value = serde_json::from_str(&config.get_json("metadata").ok()?).ok()?;
+        v.get("name")?.as_str().map(str::to_string)
+    }
+
     pub fn to_config(&self) -> Result<Config, TransportError> {
         let mut config = match &self.zenoh_config {
             Some(path) => Config::from_file(path)

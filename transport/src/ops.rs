@@ -61,6 +61,11 @@ pub trait Asker {
     fn session(&self) -> &Session;
     /// The key replies must be sealed with, if any.
     fn key(&self) -> Option<&protocol::auth::Key>;
+    /// The operator's name, put in every request key on a device
+    /// (`…/{leaf}/by/{name}`, [`keys::by`]); `None` asks as nobody.
+    fn name(&self) -> Option<&str> {
+        None
+    }
 }
 
 impl Asker for Session {
@@ -72,12 +77,32 @@ impl Asker for Session {
     }
 }
 
-/// A session and the operators' key: replies are checked ([`Asker`]).
+/// A session, the operators' key and the operator's name: replies are checked, requests
+/// name who makes them ([`Asker`]).
 pub struct Operator {
     /// The session queries go through.
     pub session: Session,
     /// The operators' key (`None`: replies are taken unchecked).
     pub key: Option<protocol::auth::Key>,
+    /// Who asks ([`default_name`]: under a deployment the name of the operator's
+    /// certificate, which the router's access control holds it to). `None`:
+    /// requests name nobody, which a service with an access section refuses.
+    pub name: Option<String>,
+}
+
+/// Who an operator's tool asks as when not told: the name its zenoh configuration gives
+/// it (`metadata.name`, written by `mfc-deploy`: the certificate's), else the local user.
+pub fn default_name(zenoh: &crate::ZenohArgs) -> Option<String> {
+    zenoh.config_name().or_else(local_user)
+}
+
+/// The local user's name as an operator's (from `USER` or `LOGNAME`), if it is a valid
+/// key chunk. Without a deployment nothing proves it: services record it as unverified.
+pub fn local_user() -> Option<String> {
+    ["USER", "LOGNAME"]
+        .iter()
+        .filter_map(|v| std::env::var(v).ok())
+        .find(|n| keys::check_id(n).is_ok())
 }
 
 impl Asker for Operator {
@@ -86,6 +111,9 @@ impl Asker for Operator {
     }
     fn key(&self) -> Option<&protocol::auth::Key> {
         self.key.as_ref()
+    }
+    fn name(&self) -> Option<&str> {
+        self.name.as_deref()
     }
 }
 
@@ -101,6 +129,15 @@ async fn replies<M: protocol::Versioned>(
     payload: Option<Vec<u8>>,
     timeout: Duration,
 ) -> Result<Vec<Result<M, String>>, OpError> {
+    // A request on a device's key names its operator; the reply comes back on that key.
+    let named;
+    let key = match asker.name() {
+        Some(n) if keys::request_parts(key).is_some() => {
+            named = keys::by(key, n);
+            named.as_str()
+        }
+        _ => key,
+    };
     let what = format!("query {key}");
     let mut get = asker
         .session()
@@ -251,6 +288,27 @@ pub async fn config(
     check(id)?;
     let reply: pb::ConfigReply = one(session, &keys::config(id), None, timeout).await?;
     accepted(&keys::config(id), reply)
+}
+
+/// A device's latest audit entries (`Some(id)`), or those of every device the asker may
+/// see, one log per device, sorted by device.
+pub async fn audit(
+    asker: &impl Asker,
+    id: Option<&str>,
+    timeout: Duration,
+) -> Result<Vec<pb::AuditLog>, OpError> {
+    if let Some(id) = id {
+        check(id)?;
+        return Ok(vec![one(asker, &keys::audit(id), None, timeout).await?]);
+    }
+    let mut logs: Vec<pb::AuditLog> = replies(asker, &keys::audit("*"), None, timeout)
+        .await?
+        .into_iter()
+        .filter_map(Result::ok)
+        .collect();
+    logs.sort_by(|a, b| a.device_id.cmp(&b.device_id));
+    logs.dedup_by(|a, b| a.device_id == b.device_id);
+    Ok(logs)
 }
 
 /// A partial change of one channel: only the fields of `update` that are set change.

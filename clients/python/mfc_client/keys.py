@@ -55,6 +55,18 @@ def status(device: str) -> str:
     return f"{PREFIX}/device/{check_id(device)}/status"
 
 
+def audit(device: str) -> str:
+    """``mfc/v1/device/{id}/audit``: queryable, an AuditLog (the device's latest changes)."""
+    return f"{PREFIX}/device/{check_id(device)}/audit"
+
+
+def by(key: str, operator: str) -> str:
+    """``{key}/by/{operator}``: a request on a device's key naming its operator. Under a
+    deployment the router lets an operator's certificate use its own name only; a service
+    with an access section refuses requests that name nobody."""
+    return f"{key}/by/{check_id(operator)}"
+
+
 def service_status(controller: str = "*") -> str:
     """``mfc/v1/service/{controller}/status``; ``*`` asks every service (one reply each)."""
     if controller != "*":

@@ -106,12 +106,20 @@ class Operator:
     """Requests to the controllers reachable through ``session``.
 
     Every method waits at most ``timeout`` seconds for an answer. If several controllers
-    serve a device (hot standby), the first answer is taken.
+    serve a device (hot standby), the first answer is taken. ``operator`` names who asks
+    in every request on a device (``.../by/{operator}``): under a deployment, the common
+    name of the operator's certificate; ``None`` asks as nobody, which a service with an
+    access section refuses (an open one records it as ``anonymous``).
     """
 
-    def __init__(self, session: zenoh.Session, timeout: float = 5.0) -> None:
+    def __init__(self, session: zenoh.Session, timeout: float = 5.0, operator: str | None = None) -> None:
         self.session = session
         self.timeout = timeout
+        self.operator = keys.check_id(operator) if operator is not None else None
+
+    def _named(self, key: str) -> str:
+        """``key``, naming the operator if there is one."""
+        return key if self.operator is None else keys.by(key, self.operator)
 
     # ---- plumbing ----------------------------------------------------------------------
 
@@ -168,13 +176,13 @@ class Operator:
 
     def config(self, device: str) -> pb.DeviceConfig:
         """The device's whole configuration in force (laws, output maps, reference, envelope)."""
-        return self._config_reply(keys.config(device), None, "reading the configuration").config
+        return self._config_reply(self._named(keys.config(device)), None, "reading the configuration").config
 
     def configure(self, device: str, request: pb.ConfigRequest) -> pb.DeviceConfig:
         """Send a ConfigRequest (its version is set here); the configuration after it."""
         request.version = PROTOCOL_VERSION
         return self._config_reply(
-            keys.config(device), request.SerializeToString(), "configuration change"
+            self._named(keys.config(device)), request.SerializeToString(), "configuration change"
         ).config
 
     def update(self, device: str, channel: int, **fields: float | pb.Intelligent | pb.Pid | pb.Adrc) -> pb.DeviceConfig:
@@ -235,7 +243,7 @@ class Operator:
         """Replace the reference (one list of pieces per channel, see
         :mod:`mfc_client.reference`), answered: raises :class:`Refused` with the reason."""
         u = pb.ReferenceUpdate(version=PROTOCOL_VERSION, reference=make_reference(channels, start_time))
-        return self._config_reply(keys.reference(device), u.SerializeToString(), "reference").config
+        return self._config_reply(self._named(keys.reference(device)), u.SerializeToString(), "reference").config
 
     def publish_reference(
         self, device: str, channels: Sequence[Sequence[pb.Piece]], start_time: float = 0.0
@@ -243,13 +251,13 @@ class Operator:
         """The same, published and not answered (a refusal only shows in the device's status
         as ``references_refused`` and ``last_error``): for steering at a high rate."""
         u = pb.ReferenceUpdate(version=PROTOCOL_VERSION, reference=make_reference(channels, start_time))
-        self.session.put(keys.reference(device), u.SerializeToString())
+        self.session.put(self._named(keys.reference(device)), u.SerializeToString())
 
     # ---- envelope ----------------------------------------------------------------------
 
     def envelope(self, device: str) -> pb.Envelope:
         """The device's safety envelope in force."""
-        return self._config_reply(keys.envelope(device), None, "reading the envelope").config.envelope
+        return self._config_reply(self._named(keys.envelope(device)), None, "reading the envelope").config.envelope
 
     def change_envelope(
         self,
@@ -266,15 +274,21 @@ class Operator:
         for c in channels:
             req.envelope.channels.append(c if isinstance(c, pb.ChannelLimits) else limits(*c))
         return self._config_reply(
-            keys.envelope(device), req.SerializeToString(), "envelope change"
+            self._named(keys.envelope(device)), req.SerializeToString(), "envelope change"
         ).config.envelope
 
     # ---- status ------------------------------------------------------------------------
 
     def status(self, device: str) -> pb.DeviceStatus:
         """The device's counters and state; :class:`ErrorReply` if no controller serves it."""
-        key = keys.status(device)
+        key = self._named(keys.status(device))
         return _decode(pb.DeviceStatus, self._ask(key, None), key)
+
+    def audit(self, device: str) -> list[pb.AuditEntry]:
+        """The device's latest audited changes (at most 64), oldest first: who, when, what
+        moved from what to what, accepted or refused and why."""
+        key = self._named(keys.audit(device))
+        return list(_decode(pb.AuditLog, self._ask(key, None), key).entries)
 
     def service(self, controller: str) -> pb.ServiceStatus:
         """One service's status."""

@@ -437,6 +437,16 @@ class Conformance:
         self.r.check("control carries on after the change (bumpless, no warm-up)",
                      cmd is not None and cmd.mode == pb.MODE_CONTROL,
                      mode_name(cmd.mode) if cmd else "no answer")
+        # A named operator's change is on the record under its name (unverified: this
+        # service has no access section), with the old and new gain.
+        named = mc.Operator(self.op.session, timeout=WAIT, operator="pyop")
+        named.update(DEVICE, 0, kp=3.75)
+        last = named.audit(DEVICE)[-1]
+        moved = [(c.what, c.old, c.new) for c in last.changes]
+        self.r.check("a named change is audited: operator, unverified, old and new gain",
+                     last.operator == "pyop" and not last.verified and last.accepted
+                     and ("channel 0 kp", "3.5", "3.75") in moved,
+                     f"{last}")
 
     def law_only_change(self, n: int = 60) -> None:
         cfg = self.op.set_channels(DEVICE, [pb.Pid(kp=1e6), pb.Pid(kp=1e6)])

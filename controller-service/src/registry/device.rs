@@ -212,6 +212,9 @@ pub(super) struct Device {
     /// were answered REJECTED (at most [`REJECTED_KEPT`]): they arrived, so the gap they
     /// leave before the next good sample is not counted as lost.
     pub(super) rejected_seqs: VecDeque<u64>,
+    /// Its latest audited decisions, oldest first (at most `audit::KEPT`), handed over
+    /// with its state so that the member taking it over keeps its history.
+    pub(super) audit: VecDeque<pb::AuditEntry>,
     /// Runs that ended, newest last, at most `RETIRED_RUNS`.
     pub(super) retired: VecDeque<u64>,
     /// Samples received since the run in force started, refused ones included: a sample of
@@ -445,6 +448,7 @@ impl Device {
             reference_start: 0.0,
             run_id: None,
             rejected_seqs: VecDeque::new(),
+            audit: VecDeque::new(),
             retired: VecDeque::with_capacity(RETIRED_RUNS),
             run_samples: 0,
             last_seq: None,
@@ -639,6 +643,42 @@ impl Device {
             reference: Some(reference_to_pb(&self.reference, self.reference_start)),
             envelope: Some(self.limits_pb()),
         }
+    }
+
+    /// Every setting an operator may change, by name ("channel 0 kp", "channel 1
+    /// envelope", "channel 0 reference"), as text: an audit entry lists those a change
+    /// moved (`crate::audit::diff`).
+    pub(super) fn settings(&self) -> std::collections::BTreeMap<String, String> {
+        use mfc::params::{names, param, Readable};
+        let mut out = std::collections::BTreeMap::new();
+        for (i, c) in self.configs.iter().enumerate() {
+            let kind = c.law.kind();
+            out.insert(format!("channel {i} law"), kind.name().to_string());
+            for p in names().filter_map(param).filter(|p| p.applies_to(kind)) {
+                if let Ok(v) = p.get(c) {
+                    out.insert(format!("channel {i} {}", p.name), Readable(v).to_string());
+                }
+            }
+            if let Some(l) = self.envelope.get(i) {
+                let rate = l
+                    .rate_limit
+                    .map_or("none".into(), |r| Readable(r).to_string());
+                let text = format!(
+                    "[{}, {}], rate limit {rate}",
+                    Readable(l.min),
+                    Readable(l.max)
+                );
+                out.insert(format!("channel {i} envelope"), text);
+            }
+            if let Some(r) = self.reference.get(i) {
+                out.insert(format!("channel {i} reference"), format!("{r:?}"));
+            }
+        }
+        out.insert(
+            "reference start".into(),
+            Readable(self.reference_start).to_string(),
+        );
+        out
     }
 
     pub(super) fn status_pb(&self, id: &str) -> pb::DeviceStatus {

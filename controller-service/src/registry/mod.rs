@@ -259,6 +259,11 @@ pub struct Registry {
     requests_refused: u64,
     /// Samples in gateway batches whose device id is not an id.
     bad_device_ids: u64,
+    /// Operators' changes decided and recorded in the audit trail: accepted, refused, and
+    /// refusals whose entry found the audit file's queue full (kept in memory only).
+    changes_accepted: u64,
+    changes_refused: u64,
+    audit_unwritten: u64,
 }
 
 impl Registry {
@@ -291,12 +296,20 @@ impl Registry {
             rejected: 0,
             requests_refused: 0,
             bad_device_ids: 0,
+            changes_accepted: 0,
+            changes_refused: 0,
+            audit_unwritten: 0,
         })
     }
 
     /// The snapshot settings, if any.
     pub fn snapshot_spec(&self) -> Option<&crate::config::SnapshotSpec> {
         self.config.snapshots.as_ref()
+    }
+
+    /// The file's access section, if any (`crate::access`).
+    pub fn access_spec(&self) -> Option<&crate::access::AccessSpec> {
+        self.config.access.as_ref()
     }
 
     /// The fleet settings, if any.
@@ -350,6 +363,22 @@ impl Registry {
     /// Count a refused request that never reached a device (undecodable, bad key).
     pub fn note_request_refused(&mut self) {
         self.requests_refused += 1;
+    }
+
+    /// Count an operator's change decided and recorded (`changes_accepted` or
+    /// `changes_refused` in the service status).
+    pub fn note_audited(&mut self, accepted: bool) {
+        if accepted {
+            self.changes_accepted += 1;
+        } else {
+            self.changes_refused += 1;
+        }
+    }
+
+    /// Count an audit entry that the file's queue had no room for (a refusal's: a change
+    /// is refused before it is applied unrecorded).
+    pub fn note_audit_unwritten(&mut self) {
+        self.audit_unwritten += 1;
     }
 
     /// Count a sample in a gateway batch whose device id is not a valid id (nothing to
@@ -607,6 +636,9 @@ impl Registry {
             device_table_full: self.device_table_full,
             requests_refused: self.requests_refused,
             bad_device_ids: self.bad_device_ids,
+            changes_accepted: self.changes_accepted,
+            changes_refused: self.changes_refused,
+            audit_unwritten: self.audit_unwritten,
             ..Default::default()
         }
     }

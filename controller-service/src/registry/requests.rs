@@ -15,6 +15,58 @@ impl Registry {
         self.devices.get(id).map(|d| d.envelope.to_vec())
     }
 
+    /// Every setting of a device an operator may change, as text by name, if served
+    /// (an audit entry's old and new values: `crate::audit::diff`).
+    pub fn settings_of(&self, id: &str) -> Option<std::collections::BTreeMap<String, String>> {
+        self.devices.get(id).map(|d| d.settings())
+    }
+
+    /// Keep an audit entry with its device (dropped if the device is not served).
+    pub fn audit(&mut self, entry: pb::AuditEntry) {
+        if let Some(d) = self.devices.get_mut(entry.device_id.as_str()) {
+            crate::audit::push(&mut d.audit, entry);
+        }
+    }
+
+    /// A device's latest audit entries, oldest first, if served.
+    pub fn audit_of(&self, id: &str) -> Option<pb::AuditLog> {
+        self.devices.get(id).map(|d| pb::AuditLog {
+            version: PROTOCOL_VERSION,
+            device_id: id.into(),
+            entries: d.audit.iter().cloned().collect(),
+        })
+    }
+
+    /// Refuse a request on `id` before it is looked at (who asks may not make it, the
+    /// audit trail is full): counted, kept as the device's last error, and the reply
+    /// carries the configuration in force.
+    pub fn refuse_request(&mut self, id: &str, why: String) -> pb::ConfigReply {
+        let why = capped(why);
+        self.requests_refused += 1;
+        let config = self.devices.get_mut(id).map(|d| {
+            d.last_error.clone_from(&why);
+            d.config_pb(id)
+        });
+        refused(why, config)
+    }
+
+    /// Whether an envelope request would widen the envelope of `id` on some channel (an
+    /// admin's change); false if it does not apply (it is then refused for its own
+    /// reason).
+    pub fn widens(&self, id: &str, req: &pb::EnvelopeRequest) -> bool {
+        let Some(d) = self.devices.get(id) else {
+            return false;
+        };
+        let asked = req.envelope.clone().unwrap_or_default().channels;
+        asked
+            .iter()
+            .enumerate()
+            .any(|(i, l)| match (limits_from_pb(l, i), d.envelope.get(i)) {
+                (Ok(l), Some(now)) => now.is_widened_by(&l),
+                _ => false,
+            })
+    }
+
     /// The configuration of a device, if served.
     pub fn config_of(&self, id: &str) -> Option<pb::DeviceConfig> {
         self.devices.get(id).map(|d| d.config_pb(id))

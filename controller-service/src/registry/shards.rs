@@ -3,7 +3,7 @@
 //! files themselves are [`crate::snapshot`]'s.
 
 use mfc::{ChannelConfig, ChannelOutput, MimoController, Reference};
-use protocol::printable;
+use protocol::{pb, printable};
 
 use super::device::{Device, DeviceKey};
 use super::Registry;
@@ -19,6 +19,9 @@ pub struct Restored {
     pub same: usize,
     /// Devices refused: their id (printable) and why (an older configuration among them).
     pub refused: Vec<(String, String)>,
+    /// Audit entries handed with the devices that this member did not have yet, for its
+    /// own audit file.
+    pub audit: Vec<pb::AuditEntry>,
 }
 
 /// Fleet support ([`crate::fleet`]): which shard each device lives in, and the state of a
@@ -120,6 +123,14 @@ impl Registry {
                 },
             }
             if let Some(d) = self.devices.get_mut(id) {
+                if let Ok(log) = protocol::decode::<pb::AuditLog>(&h.audit) {
+                    let handed: Vec<_> = log
+                        .entries
+                        .into_iter()
+                        .filter(|e| e.device_id == id)
+                        .collect();
+                    out.audit.extend(crate::audit::merge(&mut d.audit, &handed));
+                }
                 d.version = d.version.max(h.config_version);
                 if let Some(k) = h.holds.filter(|k| *k >= heard) {
                     d.claimer.caught_up(k);
@@ -265,6 +276,11 @@ impl Registry {
             config_version: d.version,
             holds: (d.claimer.holder == crate::lease::Holder::Me).then(|| d.lease_key()),
             heard: d.lease_key(),
+            audit: protocol::encode(&pb::AuditLog {
+                version: protocol::PROTOCOL_VERSION,
+                device_id: id.into(),
+                entries: d.audit.iter().cloned().collect(),
+            }),
         })
     }
 

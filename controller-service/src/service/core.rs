@@ -96,12 +96,20 @@ pub(super) struct Core {
     sends: Vec<bool>,
     /// The fleet's keys, to seal commands (`None`: open).
     keys: Option<Arc<Keyring>>,
+    /// Who may change what, and the audit trail every decision goes to.
+    pub(super) gate: super::operators::Gate,
 }
 
 impl Core {
-    pub(super) fn new(registry: Registry, watch: Watch, keys: Option<Arc<Keyring>>) -> Self {
+    pub(super) fn new(
+        registry: Registry,
+        watch: Watch,
+        keys: Option<Arc<Keyring>>,
+        gate: super::operators::Gate,
+    ) -> Self {
         Self {
             keys,
+            gate,
             registry,
             watch,
             warn: Warnings::default(),

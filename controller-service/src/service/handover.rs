@@ -268,6 +268,13 @@ impl Worker {
         } else {
             c.registry.restore_shard(st)
         };
+        // The entries handed with the devices that this member did not have go to its
+        // own audit file: its history of a device survives the member it came from.
+        if let Some(t) = &c.gate.trail {
+            for e in &r.audit {
+                t.append(e.clone());
+            }
+        }
         let mut ib = lock(&self.shared.inbox);
         for d in &st.devices {
             if c.registry.serves(&d.snapshot.id) {

@@ -33,8 +33,9 @@ pub(super) enum Msg {
         /// Why, already cut to printable length.
         reason: String,
     },
-    /// A live reference update (put): the device id from its key, and the payload.
-    Reference(String, Vec<u8>),
+    /// A live reference update (put): the device id from its key, the payload, and the
+    /// operator the key names (`…/reference/by/{operator}`), if any.
+    Reference(String, Vec<u8>, Option<String>),
     /// A config query: a read without payload, a change with one.
     Config(Query),
     /// An envelope query: a read without payload, a change with one.
@@ -43,6 +44,8 @@ pub(super) enum Msg {
     ReferenceQuery(Query),
     /// A device status query; a wildcard key gets one reply per device.
     Status(Query),
+    /// A device's audit trail; a wildcard key gets one reply per device.
+    Audit(Query),
     /// A service status query, answered with the hot-standby state and the drops.
     ServiceStatus(Query),
     /// An operator's query whose payload is over [`MAX_PAYLOAD`], on a device's key
@@ -280,7 +283,10 @@ impl Intake {
         if !drops.fits(s.payload().len()) {
             return;
         }
-        let Some(dev) = keys::device_of(s.key_expr().as_str()) else {
+        let key = s.key_expr().as_str();
+        let (Some(dev), Some(("reference", who))) =
+            (keys::device_of(key), keys::request_parts(key))
+        else {
             Drops::count(&drops.bad_key);
             return;
         };
@@ -290,6 +296,7 @@ impl Intake {
         self.queue(Msg::Reference(
             dev.to_string(),
             s.payload().to_bytes().into_owned(),
+            who.map(str::to_string),
         ));
     }
 
@@ -300,11 +307,12 @@ impl Intake {
         if !drops.query_fits(&q) {
             return self.queue(Msg::TooLarge { q, device: true });
         }
-        let msg = match q.key_expr().as_str().rsplit('/').next() {
+        let msg = match keys::request_parts(q.key_expr().as_str()).map(|(leaf, _)| leaf) {
             Some("config") => Msg::Config(q),
             Some("envelope") => Msg::Envelope(q),
             Some("reference") => Msg::ReferenceQuery(q),
             Some("status") => Msg::Status(q),
+            Some("audit") => Msg::Audit(q),
             _ => {
                 Drops::count(&drops.bad_key);
                 return;

@@ -37,14 +37,17 @@ mod hold;
 mod intake;
 mod keyring;
 mod log;
+mod operators;
 mod requests;
 mod routes;
+mod trail;
 mod worker;
 
 use std::sync::{Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
 
 pub use log::Throttle;
+pub use trail::{AuditTrail, TrailStats};
 
 use crate::observe::Observers;
 use crate::Registry;

@@ -12,7 +12,9 @@ use super::core::Core;
 use super::hold::{self, HoldJob};
 use super::lock;
 use super::log::throttled;
+use super::operators::{reply_key, Asked};
 use super::worker::Worker;
+use crate::access::Action;
 use crate::lease::Holder;
 use crate::snapshot::encode_shard;
 use crate::Registry;
@@ -33,7 +35,7 @@ impl Worker {
     /// A live reference update (put). A put reaches every service, and every fleet
     /// member: one that does not serve the device, or does not step its shard, lets it
     /// pass, uncounted, as it does a request for a device served elsewhere.
-    pub(super) fn handle_reference_put(&mut self, dev: &str, bytes: &[u8]) {
+    pub(super) fn handle_reference_put(&mut self, dev: &str, bytes: &[u8], who: Option<&str>) {
         let home = lock(&self.shared.core).registry.home_of(dev);
         let stepped = match (&self.member, home) {
             (_, None) => false,
@@ -49,20 +51,29 @@ impl Worker {
         };
         let reply = {
             let mut c = lock(&self.shared.core);
-            let Core {
-                registry, watch, ..
-            } = &mut *c;
-            let reply = registry.set_reference(dev, &u);
-            if reply.accepted {
-                watch.changed(
-                    registry,
-                    dev,
-                    Topic::ReferenceUpdate,
-                    bytes,
-                    "reference changed",
-                );
-            }
-            reply
+            let asked = Asked {
+                dev,
+                who,
+                action: Action::Change,
+                what: "reference",
+                asked: &u,
+            };
+            c.decide(asked, |core| {
+                let Core {
+                    registry, watch, ..
+                } = core;
+                let reply = registry.set_reference(dev, &u);
+                if reply.accepted {
+                    watch.changed(
+                        registry,
+                        dev,
+                        Topic::ReferenceUpdate,
+                        bytes,
+                        "reference changed",
+                    );
+                }
+                reply
+            })
         };
         if !reply.accepted {
             self.refused(dev, "reference", &reply.reason);
@@ -74,6 +85,7 @@ impl Worker {
         self.change_query(
             q,
             "configuration",
+            |_, _, _: &pb::ConfigRequest| Action::Change,
             |core, dev, req: &pb::ConfigRequest, bytes| {
                 let r = core.registry.configure(dev, req);
                 if r.accepted {
@@ -95,7 +107,14 @@ impl Worker {
 
     /// An envelope query: a read, or a change (narrowing; widening where the file allows).
     pub(super) async fn handle_envelope(&mut self, q: Query) {
-        self.change_query(q, "envelope change", |core, dev, req: &pb::EnvelopeRequest, bytes| {
+        let action = |r: &Registry, dev: &str, req: &pb::EnvelopeRequest| {
+            if r.widens(dev, req) {
+                Action::Widen
+            } else {
+                Action::Change
+            }
+        };
+        self.change_query(q, "envelope", action, |core, dev, req: &pb::EnvelopeRequest, bytes| {
             let before = core.registry.envelope_of(dev);
             let r = core.registry.change_envelope(dev, req);
             if !r.accepted {
@@ -130,6 +149,7 @@ impl Worker {
         self.change_query(
             q,
             "reference",
+            |_, _, _: &pb::ReferenceUpdate| Action::Change,
             |core, dev, u: &pb::ReferenceUpdate, bytes| {
                 let r = core.registry.set_reference(dev, u);
                 if r.accepted {
@@ -152,22 +172,42 @@ impl Worker {
     /// applied by `apply` with the core held. A refusal is logged and replied to at once;
     /// an accepted change is acknowledged once the member's partners hold it
     /// ([`super::hold`]).
-    async fn change_query<R: Versioned>(
+    ///
+    /// Who asks (the operator its key names) must be allowed to read, or to make the
+    /// change `action_of` says it is; every change is decided through the audit trail
+    /// ([`Core::decide`]).
+    async fn change_query<R: Versioned + std::fmt::Debug>(
         &mut self,
         q: Query,
-        what: &str,
+        what: &'static str,
+        action_of: impl FnOnce(&Registry, &str, &R) -> Action,
         apply: impl FnOnce(&mut Core, &str, &R, &[u8]) -> pb::ConfigReply,
     ) {
         let Some(dev) = self.served(&q).await else {
             return;
         };
+        let Some(who) = self.named(&q).await else {
+            return;
+        };
         let body = q.payload().map(|p| p.to_bytes().into_owned());
+        if body.is_none() && !self.may_read(&q, who.as_deref(), &dev).await {
+            return;
+        }
         let (mut reply, hold) = {
             let mut c = lock(&self.shared.core);
             let reply = match &body {
                 None => read_config(&c.registry, &dev),
                 Some(bytes) => match decode::<R>(bytes) {
-                    Ok(r) => apply(&mut c, &dev, &r, bytes),
+                    Ok(r) => {
+                        let asked = Asked {
+                            dev: &dev,
+                            who: who.as_deref(),
+                            action: action_of(&c.registry, &dev, &r),
+                            what,
+                            asked: &r,
+                        };
+                        c.decide(asked, |core| apply(core, &dev, &r, bytes))
+                    }
                     Err(e) => undecodable_request(&mut c.registry, &dev, e),
                 },
             };
@@ -243,7 +283,7 @@ impl Worker {
     /// A key that names no single device (a wildcard, a bad id) is counted as refused; a
     /// device served elsewhere is not, since with several services that is every other
     /// service's normal answer.
-    async fn served(&self, q: &Query) -> Option<String> {
+    pub(super) async fn served(&self, q: &Query) -> Option<String> {
         let why = {
             let mut c = lock(&self.shared.core);
             let registry = &mut c.registry;
@@ -278,14 +318,35 @@ impl Worker {
     /// A device status query; a wildcard key gets one reply per device answered here,
     /// each on its own key.
     pub(super) async fn handle_status(&mut self, q: Query) {
+        let Some(who) = self.named(&q).await else {
+            return;
+        };
         if q.key_expr().as_str().contains('*') {
-            for (key, bytes) in self.statuses_matching(&q) {
+            let statuses = self.matching(&q, who.as_deref(), "status", |r, d| {
+                r.device_status(d).map(|s| encode(&s))
+            });
+            for (key, bytes) in statuses {
                 let bytes = self.sealed_reply(&key, None, bytes);
                 let _ = q.reply(key, bytes).await;
             }
             return;
         }
         let reply = match keys::device_of(q.key_expr().as_str()) {
+            Some(d)
+                if !lock(&self.shared.core)
+                    .gate
+                    .access
+                    .may_see(who.as_deref(), d) =>
+            {
+                let why = lock(&self.shared.core)
+                    .gate
+                    .access
+                    .check(who.as_deref(), d, Action::Read)
+                    .err()
+                    .map(|(_, why)| why)
+                    .unwrap_or_default();
+                Some(Err(why))
+            }
             Some(d) => {
                 let c = lock(&self.shared.core);
                 if self.member.is_some() && !self.answers_for(&c.registry, d) {
@@ -331,7 +392,7 @@ impl Worker {
 
     /// An error reply to an operator's query, sealed when the service has keys (bound to
     /// the key expression and the request, as a good reply is).
-    async fn reply_error(&self, q: &Query, why: &str) {
+    pub(super) async fn reply_error(&self, q: &Query, why: &str) {
         let bytes = match &self.shared.keys {
             Some(k) => {
                 let request = q
@@ -368,9 +429,16 @@ impl Worker {
         }
     }
 
-    /// The statuses a wildcard status query asks for, each with the key it goes on (the
-    /// shard's key if the query was on shard keys).
-    fn statuses_matching(&self, q: &Query) -> Vec<(String, Vec<u8>)> {
+    /// What a wildcard query on `leaf` asks for (`what` of each device), for the devices
+    /// answered here that `who` may see, each with the key it goes on (the shard's key if
+    /// the query was on shard keys, naming the asker as the query did).
+    pub(super) fn matching(
+        &self,
+        q: &Query,
+        who: Option<&str>,
+        leaf: &str,
+        what: impl Fn(&Registry, &str) -> Option<Vec<u8>>,
+    ) -> Vec<(String, Vec<u8>)> {
         let sharded = q
             .key_expr()
             .as_str()
@@ -379,18 +447,16 @@ impl Worker {
         let registry = &c.registry;
         registry
             .device_ids()
-            .filter(|d| self.answers_for(registry, d))
+            .filter(|d| self.answers_for(registry, d) && c.gate.access.may_see(who, d))
             .filter_map(|d| {
-                let key = match (sharded, registry.home_of(d)) {
-                    (true, Some(h)) => format!("{}/shard/{h}/device/{d}/status", keys::PREFIX),
-                    _ => keys::status(d),
-                };
+                let home = registry.home_of(d).filter(|_| sharded);
+                let key = reply_key(home, d, leaf, who);
                 let wanted = zenoh::key_expr::KeyExpr::try_from(key.clone())
                     .is_ok_and(|k| q.key_expr().intersects(&k));
                 wanted
-                    .then(|| registry.device_status(d))
+                    .then(|| what(registry, d))
                     .flatten()
-                    .map(|s| (key, encode(&s)))
+                    .map(|b| (key, b))
             })
             .collect()
     }
@@ -407,7 +473,12 @@ impl Worker {
     /// A good reply's bytes, sealed for the operators when this member has keys: bound to
     /// the key it goes out on and to the query's payload (`protocol::auth::reply_context`).
     /// Error replies stay plain text: a client shows one only when no good reply came.
-    fn sealed_reply(&self, key: &str, request: Option<&[u8]>, bytes: Vec<u8>) -> Vec<u8> {
+    pub(super) fn sealed_reply(
+        &self,
+        key: &str,
+        request: Option<&[u8]>,
+        bytes: Vec<u8>,
+    ) -> Vec<u8> {
         match &self.shared.keys {
             Some(k) => k.seal_reply(key, request.unwrap_or_default(), bytes),
             None => bytes,

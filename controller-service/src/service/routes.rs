@@ -75,7 +75,7 @@ impl Routes {
             _references: subscribe(
                 session,
                 intake,
-                keys::all_devices("reference"),
+                keys::served(&keys::all_devices("reference")),
                 Kind::Reference,
             )
             .await?,
@@ -144,7 +144,8 @@ async fn device_queries(
         .map_err(declare_err(format!("device queryable on {key}")))
 }
 
-/// One device queryable per queried leaf (`keys::QUERIED_LEAVES`), each on `key(leaf)`:
+/// One device queryable per queried leaf (`keys::QUERIED_LEAVES`), each on `key(leaf)`
+/// and the operators' keys below it (`keys::served`):
 /// never one over every leaf, so that the deployment's access control can let a service
 /// serve those leaves and nothing else (no `…/device/*/*`).
 async fn leaf_queries(
@@ -154,7 +155,7 @@ async fn leaf_queries(
 ) -> Result<Vec<Queryable<()>>, ServiceError> {
     let mut queryables = Vec::with_capacity(keys::QUERIED_LEAVES.len());
     for leaf in keys::QUERIED_LEAVES {
-        queryables.push(device_queries(session, intake, key(leaf)).await?);
+        queryables.push(device_queries(session, intake, keys::served(&key(leaf))).await?);
     }
     Ok(queryables)
 }

@@ -109,12 +109,13 @@ impl Worker {
         let (hb_tx, hb_rx) = mpsc::channel::<Vec<u8>>(HEARTBEATS);
         let templates = registry.template_patterns();
         let keys = Keyring::of(&registry);
+        let gate = super::operators::Gate::of(&registry, observers.audit.clone());
         let mut inbox = Inbox::<pb::Sample>::new(OTHERS);
         for d in registry.device_ids() {
             inbox.serve(d);
         }
         let shared = Arc::new(Shared {
-            core: std::sync::Mutex::new(Core::new(registry, watch, keys.clone())),
+            core: std::sync::Mutex::new(Core::new(registry, watch, keys.clone(), gate)),
             inbox: std::sync::Mutex::new(inbox),
             gateways: std::sync::Mutex::new(Inbox::new(GATEWAYS_PENDING)),
             // Nothing answered until the roles are known (`sync_masks` below).
@@ -225,11 +226,14 @@ impl Worker {
                 sample,
                 reason,
             } => self.handle_refused(&dev, &sample, reason).await,
-            Msg::Reference(dev, bytes) => self.handle_reference_put(&dev, &bytes),
+            Msg::Reference(dev, bytes, who) => {
+                self.handle_reference_put(&dev, &bytes, who.as_deref())
+            }
             Msg::Config(q) => self.handle_config(q).await,
             Msg::Envelope(q) => self.handle_envelope(q).await,
             Msg::ReferenceQuery(q) => self.handle_reference_query(q).await,
             Msg::Status(q) => self.handle_status(q).await,
+            Msg::Audit(q) => self.handle_audit(q).await,
             Msg::ServiceStatus(q) => self.handle_service_status(q).await,
             Msg::TooLarge { q, device } => self.handle_too_large(q, device).await,
             Msg::Member(m, alive) => self.handle_member(&m, alive).await,
@@ -374,6 +378,11 @@ impl Worker {
         };
         let [oversized, bad_key, queue_full, undecodable, unknown, forged] = shared.drops.counts();
         s.forged = forged;
+        if let Some(t) = &core.gate.trail {
+            use std::sync::atomic::Ordering::Relaxed;
+            s.audit_written = t.stats.written.load(Relaxed);
+            s.audit_errors = t.stats.errors.load(Relaxed);
+        }
         s.authenticated = shared.keys.is_some();
         s.superseded_batches = superseded_batches;
         s.unknown_samples += unknown;

@@ -1,0 +1,232 @@
+//! The audit trail's rules, without I/O: what an entry says (IEC 62443-4-2 CR 2.8: when,
+//! where, who, what, with what result), how a change's old and new values are found, how
+//! the entries a partner hands over join a device's own, and the file's line format. The
+//! file itself (append-only, fsynced, rotated) is written by `service::audit`.
+//!
+//! Every decision on an operator's change is an entry, accepted or refused: a change of
+//! laws, gains, maps or reference, an envelope change. Reads are not. A device keeps its
+//! latest [`KEPT`] entries in memory and hands them over with its state, so the member
+//! that takes a device over (a standby holding a change, a takeover, a shard handover)
+//! answers `mfcctl audit` with the history of the member before it.
+
+use std::collections::{BTreeMap, VecDeque};
+
+use protocol::pb;
+
+/// Entries a device keeps and hands over (the file keeps every one).
+pub const KEPT: usize = 64;
+
+/// Longest `asked` kept (characters): a refused request is recorded abridged.
+const ASKED_LEN: usize = 400;
+
+/// The settings that changed between two views of a device ([`crate::Registry::settings_of`]),
+/// in the views' order; a setting present on one side only shows `""` on the other.
+pub fn diff(
+    before: &BTreeMap<String, String>,
+    after: &BTreeMap<String, String>,
+) -> Vec<pb::AuditChange> {
+    let mut keys: Vec<&String> = before.keys().chain(after.keys()).collect();
+    keys.sort();
+    keys.dedup();
+    keys.into_iter()
+        .filter_map(|k| {
+            let (old, new) = (before.get(k), after.get(k));
+            (old != new).then(|| pb::AuditChange {
+                what: k.clone(),
+                old: old.cloned().unwrap_or_default(),
+                new: new.cloned().unwrap_or_default(),
+            })
+        })
+        .collect()
+}
+
+/// A refused request as the entry records it: at most [`ASKED_LEN`] characters (then
+/// `…`), control characters escaped.
+pub fn abridged(asked: &str) -> String {
+    let mut out = String::new();
+    for (i, c) in asked.chars().enumerate() {
+        if i == ASKED_LEN {
+            out.push('…');
+            break;
+        }
+        if c.is_control() {
+            out.extend(c.escape_debug());
+        } else {
+            out.push(c);
+        }
+    }
+    out
+}
+
+/// Add `entry` to a device's latest entries, dropping the oldest beyond [`KEPT`].
+pub fn push(tail: &mut VecDeque<pb::AuditEntry>, entry: pb::AuditEntry) {
+    if tail.len() == KEPT {
+        tail.pop_front();
+    }
+    tail.push_back(entry);
+}
+
+/// Join the entries a partner handed over to a device's own: those not already there
+/// (by member and number) are added, the whole kept in time order and at most [`KEPT`].
+/// Returns the ones added, for this member's file. At most [`KEPT`] are looked at: a
+/// hostile state cannot make the tail grow.
+pub fn merge(
+    tail: &mut VecDeque<pb::AuditEntry>,
+    handed: &[pb::AuditEntry],
+) -> Vec<pb::AuditEntry> {
+    let new: Vec<pb::AuditEntry> = handed
+        .iter()
+        .rev()
+        .take(KEPT)
+        .filter(|e| !tail.iter().any(|t| t.member == e.member && t.n == e.n))
+        .cloned()
+        .collect();
+    if new.is_empty() {
+        return new;
+    }
+    let mut all: Vec<pb::AuditEntry> = tail.drain(..).chain(new.iter().cloned()).collect();
+    all.sort_by(|a, b| (a.unix_ns, &a.member, a.n).cmp(&(b.unix_ns, &b.member, b.n)));
+    let skip = all.len().saturating_sub(KEPT);
+    tail.extend(all.into_iter().skip(skip));
+    let mut new = new;
+    new.reverse();
+    new
+}
+
+/// The next entry number of a member: after `last`, and at least the time (ns), so that
+/// numbers never repeat across the member's restarts (given a clock that does not go back
+/// by more than the restart takes).
+pub fn next_number(last: u64, unix_ns: u64) -> u64 {
+    unix_ns.max(last + 1)
+}
+
+/// One line of the audit file (JSON, without its newline).
+pub fn to_line(e: &pb::AuditEntry) -> String {
+    let changes: Vec<serde_json::Value> = e
+        .changes
+        .iter()
+        .map(|c| serde_json::json!({ "what": c.what, "old": c.old, "new": c.new }))
+        .collect();
+    serde_json::json!({
+        "unix_ns": e.unix_ns,
+        "member": e.member,
+        "n": e.n,
+        "device": e.device_id,
+        "operator": e.operator,
+        "verified": e.verified,
+        "role": e.role,
+        "action": e.action,
+        "changes": changes,
+        "asked": e.asked,
+        "accepted": e.accepted,
+        "reason": e.reason,
+    })
+    .to_string()
+}
+
+/// An entry from one line of the audit file (`None` if the line is not one).
+pub fn from_line(line: &str) -> Option<pb::AuditEntry> {
+    let v: serde_json::Value = serde_json::from_str(line).ok()?;
+    let s = |k: &str| v.get(k).and_then(|x| x.as_str()).map(str::to_string);
+    let changes = v
+        .get("changes")?
+        .as_array()?
+        .iter()
+        .map(|c| {
+            let f = |k: &str| c.get(k).and_then(|x| x.as_str()).map(str::to_string);
+            Some(pb::AuditChange {
+                what: f("what")?,
+                old: f("old")?,
+                new: f("new")?,
+            })
+        })
+        .collect::<Option<Vec<_>>>()?;
+    Some(pb::AuditEntry {
+        unix_ns: v.get("unix_ns")?.as_u64()?,
+        member: s("member")?,
+        n: v.get("n")?.as_u64()?,
+        device_id: s("device")?,
+        operator: s("operator")?,
+        verified: v.get("verified")?.as_bool()?,
+        role: s("role")?,
+        action: s("action")?,
+        changes,
+        asked: s("asked")?,
+        accepted: v.get("accepted")?.as_bool()?,
+        reason: s("reason")?,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn entry(member: &str, n: u64) -> pb::AuditEntry {
+        pb::AuditEntry {
+            unix_ns: n,
+            member: member.into(),
+            n,
+            device_id: "aero-1".into(),
+            operator: "alice".into(),
+            verified: true,
+            role: "operator".into(),
+            action: "configuration".into(),
+            changes: vec![pb::AuditChange {
+                what: "channel 0 kp".into(),
+                old: "2".into(),
+                new: "3\"\n".into(),
+            }],
+            asked: String::new(),
+            accepted: true,
+            reason: String::new(),
+        }
+    }
+
+    #[test]
+    fn a_diff_names_what_moved_only() {
+        let m = |kv: &[(&str, &str)]| -> BTreeMap<String, String> {
+            kv.iter()
+                .map(|(k, v)| (k.to_string(), v.to_string()))
+                .collect()
+        };
+        let d = diff(
+            &m(&[("a", "1"), ("b", "2"), ("gone", "x")]),
+            &m(&[("a", "1"), ("b", "5"), ("new", "y")]),
+        );
+        let got: Vec<_> = d.iter().map(|c| (&*c.what, &*c.old, &*c.new)).collect();
+        assert_eq!(got, [("b", "2", "5"), ("gone", "x", ""), ("new", "", "y")]);
+    }
+
+    #[test]
+    fn handed_entries_join_once_in_time_order_and_bounded() {
+        let mut tail: VecDeque<_> = [entry("c-1", 10), entry("c-1", 30)].into();
+        let added = merge(
+            &mut tail,
+            &[entry("c-1", 10), entry("c-2", 20), entry("c-1", 30)],
+        );
+        assert_eq!(added.len(), 1);
+        assert_eq!(added[0].member, "c-2");
+        let order: Vec<u64> = tail.iter().map(|e| e.n).collect();
+        assert_eq!(order, [10, 20, 30]);
+        assert!(merge(&mut tail, &[entry("c-2", 20)]).is_empty());
+        let flood: Vec<_> = (100..1000).map(|n| entry("x", n)).collect();
+        let added = merge(&mut tail, &flood);
+        assert_eq!(added.len(), KEPT);
+        assert_eq!(tail.len(), KEPT);
+        assert_eq!(tail.back().unwrap().n, 999);
+    }
+
+    #[test]
+    fn lines_read_back_and_garbage_is_no_entry() {
+        let e = entry("c-1", 7);
+        assert_eq!(from_line(&to_line(&e)), Some(e));
+        for bad in ["", "{}", "not json", r#"{"unix_ns": -1}"#] {
+            assert_eq!(from_line(bad), None, "{bad}");
+        }
+        assert_eq!(next_number(5, 3), 6);
+        assert_eq!(next_number(5, 100), 100);
+        let long = "x".repeat(1000);
+        assert_eq!(abridged(&long).chars().count(), ASKED_LEN + 1);
+        assert_eq!(abridged("a\u{7}b"), "a\\u{7}b");
+    }
+}

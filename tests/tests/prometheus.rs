@@ -1,0 +1,184 @@
+//! A real Prometheus server (Debian's `prometheus`) scrapes the service's metrics endpoint
+//! over TLS with a client certificate from the deployment's PKI (`mfc-deploy generate`):
+//! that scrape is up and brings the service's series in; scrapes without a certificate,
+//! with another fleet's, or over plain HTTP are refused and down. `.ci/run` installs the
+//! package; without it this test fails and says how to install it.
+
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+use system_tests::{scratch_dir, SERIAL};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+struct Reaped(Child);
+impl Drop for Reaped {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// A fleet's PKI in `dir`: a CA, a server certificate for 127.0.0.1 (the router's role)
+/// and a client certificate (an operator's).
+fn pki(dir: &std::path::Path) {
+    let inv = mfc_deploy::Inventory::parse(
+        "services = [\"svc\"]\noperators = [\"scraper\"]\n[router]\nhosts = [\"127.0.0.1\"]\n",
+    )
+    .unwrap();
+    mfc_deploy::generate(&inv, dir, &[], time::OffsetDateTime::now_utc()).unwrap();
+}
+
+/// `GET path` on Prometheus's HTTP API; the JSON body.
+async fn api(port: u16, path: &str) -> Option<serde_json::Value> {
+    let mut s = tokio::net::TcpStream::connect(("127.0.0.1", port))
+        .await
+        .ok()?;
+    let req = format!("GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n");
+    s.write_all(req.as_bytes()).await.ok()?;
+    let mut buf = Vec::new();
+    s.read_to_end(&mut buf).await.ok()?;
+    let text = String::from_utf8(buf).ok()?;
+    let body = text.split_once("\r\n\r\n")?.1;
+    // Prometheus answers small bodies whole; a chunked one starts with its size line.
+    let json = &body[body.find('{')?..=body.rfind('}')?];
+    serde_json::from_str(json).ok()
+}
+
+/// Every target's job, health and last error, once each has been scraped.
+async fn targets(port: u16) -> Vec<(String, String, String)> {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+    loop {
+        if let Some(v) = api(port, "/api/v1/targets").await {
+            let active = v["data"]["activeTargets"]
+                .as_array()
+                .cloned()
+                .unwrap_or_default();
+            let got: Vec<(String, String, String)> = active
+                .iter()
+                .map(|t| {
+                    let s = |k: &str| t[k].as_str().unwrap_or_default().to_string();
+                    (
+                        t["labels"]["job"].as_str().unwrap_or_default().to_string(),
+                        s("health"),
+                        s("lastError"),
+                    )
+                })
+                .collect();
+            if got.len() == 4 && got.iter().all(|(_, h, _)| h != "unknown") {
+                return got;
+            }
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "Prometheus never scraped every target"
+        );
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn prometheus_scrapes_over_tls_with_a_client_certificate_only() {
+    let _s = SERIAL.lock().await;
+    let prometheus = std::env::var("MFC_PROMETHEUS").unwrap_or_else(|_| "prometheus".into());
+    let version = Command::new(&prometheus).arg("--version").output();
+    assert!(
+        version.is_ok_and(|o| o.status.success()),
+        "no `{prometheus}`: this test needs a real Prometheus server (apt-get install prometheus, as `.ci/run` does; or set MFC_PROMETHEUS)"
+    );
+    let dir = scratch_dir("prometheus");
+    let (ours, theirs) = (dir.join("ours"), dir.join("theirs"));
+    pki(&ours);
+    pki(&theirs);
+
+    // The service, its endpoint over TLS: the router-role certificate, scrapers' client
+    // certificates of our CA required.
+    let port = transport::free_local_port().unwrap();
+    let mut config = mfc_lab::harness::service_config(
+        &plant::scenario::load_scenario("2").unwrap(),
+        &plant::scenario::shipped_controller("ipd").unwrap(),
+        &["aero-1".to_string()],
+    );
+    config.metrics = Some(telemetry::MetricsSpec {
+        listen: format!("127.0.0.1:{port}"),
+        per_device: true,
+        tls: Some(telemetry::MetricsTls {
+            cert_file: ours.join("router/router.pem"),
+            key_file: ours.join("router/router.key"),
+            client_ca_file: ours.join("ca/ca.pem"),
+        }),
+    });
+    let service = mfc_lab::harness::ServiceHandle::start(config, None)
+        .await
+        .unwrap();
+
+    // Prometheus with four jobs on the same endpoint: with our client certificate,
+    // without one, with another fleet's, and over plain HTTP.
+    let target = format!("[\"127.0.0.1:{port}\"]");
+    let job = |name: &str, scheme: &str, tls: &str| {
+        format!("  - job_name: {name}\n    scheme: {scheme}\n{tls}    static_configs:\n      - targets: {target}\n")
+    };
+    let ca = ours.join("ca/ca.pem").display().to_string();
+    let cert = |d: &std::path::Path| {
+        format!(
+            "    tls_config:\n      ca_file: {ca}\n      cert_file: {}\n      key_file: {}\n",
+            d.join("operators/scraper/scraper.pem").display(),
+            d.join("operators/scraper/scraper.key").display()
+        )
+    };
+    let yml = format!(
+        "global:\n  scrape_interval: 1s\n  scrape_timeout: 900ms\nscrape_configs:\n{}{}{}{}",
+        job("with-cert", "https", &cert(&ours)),
+        job(
+            "no-cert",
+            "https",
+            &format!("    tls_config:\n      ca_file: {ca}\n")
+        ),
+        job("other-fleet", "https", &cert(&theirs)),
+        job("plain", "http", ""),
+    );
+    std::fs::write(dir.join("prometheus.yml"), yml).unwrap();
+    let web = transport::free_local_port().unwrap();
+    let _prom = Command::new(&prometheus)
+        .arg(format!(
+            "--config.file={}",
+            dir.join("prometheus.yml").display()
+        ))
+        .arg(format!(
+            "--storage.tsdb.path={}",
+            dir.join("data").display()
+        ))
+        .arg(format!("--web.listen-address=127.0.0.1:{web}"))
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(dir.join("prometheus.log")).unwrap())
+        .spawn()
+        .map(Reaped)
+        .unwrap();
+
+    let got = targets(web).await;
+    let health = |job: &str| got.iter().find(|(j, _, _)| j == job).cloned().unwrap();
+    let (_, h, e) = health("with-cert");
+    assert_eq!(h, "up", "the scrape with our client certificate: {e}");
+    for job in ["no-cert", "other-fleet", "plain"] {
+        let (_, h, e) = health(job);
+        assert_eq!(h, "down", "{job} must be refused");
+        assert!(!e.is_empty(), "{job}: down without a reason");
+    }
+    // The series came in through the TLS scrape: the service's device count, from the
+    // job with the certificate only.
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+    let series = loop {
+        let v = api(web, "/api/v1/query?query=mfc_service_devices").await;
+        let r = v
+            .as_ref()
+            .and_then(|v| v["data"]["result"].as_array().cloned())
+            .unwrap_or_default();
+        if !r.is_empty() || tokio::time::Instant::now() > deadline {
+            break r;
+        }
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    };
+    assert_eq!(series.len(), 1, "{series:?}");
+    assert_eq!(series[0]["metric"]["job"], "with-cert");
+    assert_eq!(series[0]["value"][1], "1", "one device served: {series:?}");
+    service.stop().await.unwrap();
+}
