@@ -148,6 +148,7 @@ pub fn router(console: Arc<Console>, guard_: Guard) -> Router {
         .route("/api/devices", get(devices))
         .route("/api/devices/{id}", get(detail))
         .route("/api/devices/{id}/series", get(series))
+        .route("/api/devices/{id}/audit", get(audit))
         .route("/api/devices/{id}/gains", post(gains))
         .route("/api/devices/{id}/reference", post(reference))
         .with_state(console)
@@ -248,6 +249,22 @@ async fn detail(State(c): State<Arc<Console>>, Path(id): Path<String>) -> Respon
         c.config_wanted.notify_one();
     }
     Json(out).into_response()
+}
+
+/// `GET /api/devices/{id}/audit`: the device's latest audited changes, from the service
+/// that answers for it (asked as the console's operator: a service with access rules
+/// answers only for the devices that operator may see).
+async fn audit(State(c): State<Arc<Console>>, Path(id): Path<String>) -> Response {
+    if c.fleet().device(&id).is_none() {
+        return not_found(&id);
+    }
+    match transport::ops::audit(&c.operator, Some(&id), c.timeout()).await {
+        Ok(logs) => {
+            let entries: Vec<pb::AuditEntry> = logs.into_iter().flat_map(|l| l.entries).collect();
+            Json(json!({ "entries": entries })).into_response()
+        }
+        Err(e) => op_failed(e),
+    }
 }
 
 #[derive(Deserialize)]

@@ -107,6 +107,11 @@ try {
     return td && td.textContent === '12';
   }, null, { timeout: LONG });
   stage('gain', { result: gain, at: since() });
+  // The accepted change is in the console's audit view: who, and the gain's old and new value.
+  await page.waitForFunction(() => [...document.querySelectorAll('#audit tr[data-state="accepted"]')]
+    .some((tr) => tr.textContent.includes('channel 1 kp: 9 → 12')), null, { timeout: LONG });
+  const audited = await page.textContent('#audit tr[data-state="accepted"]');
+  stage('audit', { row: audited, at: since() });
   await page.screenshot({ path: path.join(shots, 'console-gain.png'), fullPage: true });
 
   // A limit outside the envelope: refused, with the reason, and nothing sent.

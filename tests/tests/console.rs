@@ -202,6 +202,7 @@ async fn run_browser(
             "plots",
             "appeared",
             "gain",
+            "audit",
             "envelope-refused",
             "reference",
             "gone",
@@ -226,7 +227,14 @@ fn judge_page(stages: &[(String, serde_json::Value)]) {
     );
     assert!(t2 >= t1 + 1.0, "{plots}");
     // A few periods of warm-up and losses aside.
-    let counters = &stages[7].1["counters"];
+    // The accepted gain in the audit view: who (the console's operator, unverified: the
+    // service has no access section) and what moved.
+    let row = stages[4].1["row"].as_str().unwrap_or_default();
+    assert!(
+        row.contains("channel 1 kp: 9 → 12") && row.contains("unverified"),
+        "{row}"
+    );
+    let counters = &stages[8].1["counters"];
     for k in [
         "bad_id",
         "bad_values",

@@ -153,9 +153,16 @@ fn expect_refusal(got: Option<String>, says: &str) {
 }
 
 /// Every request the test makes, in order; the entries must say exactly this.
-async fn make_requests(s: &Session) {
-    // Accepted: an operator's gain on its own device.
+async fn make_requests(s: &Session, dir: &std::path::Path) {
+    // Accepted: an operator's gain on its own device; its entry is fsynced before the
+    // reply comes, so the file holds it the moment the operator is told.
     assert_eq!(set(s, Some("alice"), "aero-1", "kp=5").await, None);
+    let file = std::fs::read_to_string(dir.join("audit/c-ops.jsonl")).unwrap_or_default();
+    assert!(
+        file.lines()
+            .any(|l| l.contains("\"operator\":\"alice\"") && l.contains("channel 0 kp")),
+        "acknowledged before it was on the record: {file:?}"
+    );
     // Refused, each with its reason.
     expect_refusal(
         set(s, Some("vera"), "aero-1", "kp=6").await,
@@ -278,7 +285,7 @@ async fn operators_act_by_role_and_every_decision_is_on_the_record() {
 
     reads_by_role(&s).await;
 
-    make_requests(&s).await;
+    make_requests(&s, &dir).await;
     let expected: [(&str, bool, &str); 10] = [
         ("alice", true, "configuration"),
         ("vera", false, "configuration"),

@@ -162,6 +162,7 @@ impl Worker {
                         state,
                         partners,
                         devices: devs.iter().map(|d| d.to_string()).collect(),
+                        written: None,
                     })
                 })
                 .collect()

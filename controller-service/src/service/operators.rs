@@ -19,6 +19,8 @@ pub(super) struct Gate {
     /// The member whose decisions these are, and its last entry number.
     member: String,
     last_n: u64,
+    /// Resolves once the last decision's entry is on disk ([`Gate::written`]).
+    written: Option<tokio::sync::oneshot::Receiver<()>>,
 }
 
 impl Gate {
@@ -42,7 +44,15 @@ impl Gate {
             trail,
             member: registry.controller_id().to_string(),
             last_n: 0,
+            written: None,
         }
+    }
+
+    /// What resolves once the entry of the decision just made is written and fsynced
+    /// (`None` without an audit file): the reply to the change waits for it, so that an
+    /// acknowledged change is on the record.
+    pub(super) fn written(&mut self) -> Option<tokio::sync::oneshot::Receiver<()>> {
+        self.written.take()
     }
 }
 
@@ -106,7 +116,7 @@ impl Core {
         actor: &Actor,
         reply: &pb::ConfigReply,
         changes: Vec<pb::AuditChange>,
-        permit: Option<tokio::sync::mpsc::OwnedPermit<pb::AuditEntry>>,
+        permit: Option<tokio::sync::mpsc::OwnedPermit<super::trail::Pending>>,
     ) {
         let unix_ns = protocol::unix_ns();
         let n = crate::audit::next_number(self.gate.last_n, unix_ns);
@@ -130,8 +140,11 @@ impl Core {
             reason: reply.reason.clone(),
         };
         self.registry.note_audited(reply.accepted);
+        self.gate.written = None;
         if let Some(p) = permit {
-            p.send(entry.clone());
+            let (tx, rx) = tokio::sync::oneshot::channel();
+            self.gate.written = Some(rx);
+            p.send((entry.clone(), Some(tx)));
         } else if self.gate.trail.is_some() {
             // A refusal that found the queue full: kept with the device, not in the file.
             self.registry.note_audit_unwritten();

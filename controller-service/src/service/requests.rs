@@ -58,7 +58,7 @@ impl Worker {
                 what: "reference",
                 asked: &u,
             };
-            c.decide(asked, |core| {
+            let reply = c.decide(asked, |core| {
                 let Core {
                     registry, watch, ..
                 } = core;
@@ -73,7 +73,10 @@ impl Worker {
                     );
                 }
                 reply
-            })
+            });
+            // A put is not answered: nothing waits for its entry.
+            drop(c.gate.written());
+            reply
         };
         if !reply.accepted {
             self.refused(dev, "reference", &reply.reason);
@@ -193,7 +196,7 @@ impl Worker {
         if body.is_none() && !self.may_read(&q, who.as_deref(), &dev).await {
             return;
         }
-        let (mut reply, hold) = {
+        let (mut reply, hold, written) = {
             let mut c = lock(&self.shared.core);
             let reply = match &body {
                 None => read_config(&c.registry, &dev),
@@ -214,7 +217,8 @@ impl Worker {
             // The state to hold is taken with the change, under the same lock: what the
             // partners hold is exactly what is in force here.
             let hold = (reply.accepted && body.is_some()).then(|| self.to_hold(&c.registry, &dev));
-            (reply, hold)
+            let written = body.as_ref().and_then(|_| c.gate.written());
+            (reply, hold, written)
         };
         if !reply.accepted {
             self.refused(&dev, what, &reply.reason);
@@ -228,6 +232,7 @@ impl Worker {
                     state,
                     partners,
                     devices: Vec::new(),
+                    written,
                 };
                 if let Err(e) = m.holds.try_send(job) {
                     let Some((q, request, mut reply)) = e.into_inner().answer else {
@@ -248,7 +253,7 @@ impl Worker {
             None => {}
         }
         let bytes = self.sealed_reply(q.key_expr().as_str(), body.as_deref(), encode(&reply));
-        let _ = q.reply(q.key_expr().clone(), bytes).await;
+        reply_once_written(q, bytes, written).await;
     }
 
     /// Who must hold an accepted change to `dev` before it is acknowledged.
@@ -482,6 +487,26 @@ impl Worker {
         match &self.shared.keys {
             Some(k) => k.seal_reply(key, request.unwrap_or_default(), bytes),
             None => bytes,
+        }
+    }
+}
+
+/// Send `bytes` to `q` once `written` resolves (the decision's audit entry is fsynced), at
+/// once without it; the worker does not wait for the disk.
+async fn reply_once_written(
+    q: Query,
+    bytes: Vec<u8>,
+    written: Option<tokio::sync::oneshot::Receiver<()>>,
+) {
+    match written {
+        None => {
+            let _ = q.reply(q.key_expr().clone(), bytes).await;
+        }
+        Some(w) => {
+            tokio::spawn(async move {
+                let _ = w.await;
+                let _ = q.reply(q.key_expr().clone(), bytes).await;
+            });
         }
     }
 }

@@ -12,12 +12,16 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
 use protocol::pb;
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, oneshot};
 
 use crate::config::AuditSpec;
 
 /// Entries waiting for the writer at most; beyond, changes are refused until it caught up.
 pub const WAITING: usize = 4096;
+
+/// What the writer is handed: an entry, and who waits for it to be on disk (the reply to
+/// the change it records).
+pub type Pending = (pb::AuditEntry, Option<oneshot::Sender<()>>);
 
 /// What the writer did, for the status and the metrics.
 #[derive(Debug, Default)]
@@ -31,7 +35,7 @@ pub struct TrailStats {
 /// A handle on the process's audit file (cheap to clone: one per worker).
 #[derive(Clone)]
 pub struct AuditTrail {
-    tx: mpsc::Sender<pb::AuditEntry>,
+    tx: mpsc::Sender<Pending>,
     /// The writer's counts.
     pub stats: Arc<TrailStats>,
     path: PathBuf,
@@ -74,14 +78,14 @@ impl AuditTrail {
 
     /// A place in the writer's queue, taken before the change it will record is applied;
     /// `None` if the queue is full.
-    pub fn reserve(&self) -> Option<mpsc::OwnedPermit<pb::AuditEntry>> {
+    pub fn reserve(&self) -> Option<mpsc::OwnedPermit<Pending>> {
         self.tx.clone().try_reserve_owned().ok()
     }
 
     /// Hand over entries a partner held (no reservation: they were decided elsewhere; one
     /// that does not fit is counted as an error).
     pub fn append(&self, entry: pb::AuditEntry) {
-        if self.tx.try_send(entry).is_err() {
+        if self.tx.try_send((entry, None)).is_err() {
             self.stats.errors.fetch_add(1, Ordering::Relaxed);
         }
     }
@@ -116,9 +120,15 @@ struct Writer {
 }
 
 impl Writer {
-    fn run(mut self, mut rx: mpsc::Receiver<pb::AuditEntry>) {
-        while let Some(entry) = rx.blocking_recv() {
-            match self.write(&entry) {
+    fn run(mut self, mut rx: mpsc::Receiver<Pending>) {
+        while let Some((entry, waiting)) = rx.blocking_recv() {
+            let written = self.write(&entry);
+            // The reply goes either way: a failed write is counted and logged, and the
+            // change it records is in force.
+            if let Some(w) = waiting {
+                let _ = w.send(());
+            }
+            match written {
                 Ok(()) => {
                     self.stats.written.fetch_add(1, Ordering::Relaxed);
                 }
@@ -209,7 +219,7 @@ mod tests {
             let (trail, earlier) = AuditTrail::open(&spec).unwrap();
             assert!(earlier.is_empty());
             for n in 0..200 {
-                trail.reserve().expect("room").send(entry(n));
+                trail.reserve().expect("room").send((entry(n), None));
             }
             while trail.stats.written.load(Ordering::Relaxed) < 200 {
                 tokio::task::yield_now().await;

@@ -12,6 +12,7 @@ const WINDOW_S = 20;          // seconds of plant time shown
 const LIST_MS = 500;          // device list refresh
 const SERIES_MS = 250;        // plot refresh
 const DETAIL_MS = 1000;       // status and configuration refresh
+const AUDIT_MS = 3000;        // the audit trail's refresh (and after every change sent)
 const COLORS = ['#2f6fdb', '#e07b00', '#1a9e5a', '#8e44ad', '#c0392b', '#16a2b8'];
 
 const state = {
@@ -74,7 +75,9 @@ function select(id) {
   $('ref-result').textContent = '';
   $('ref-result').dataset.state = 'idle';
   for (const li of $('devices').children) li.classList.toggle('selected', li.dataset.device === id);
+  $('audit').replaceChildren();
   refreshDetail();
+  refreshAudit();
 }
 
 async function refreshList() {
@@ -420,6 +423,37 @@ function updateGainCurrent() {
   }
 }
 
+// ---- the audit trail -----------------------------------------------------------------
+
+function auditWho(e) {
+  const notes = [e.role, e.verified ? '' : 'unverified'].filter(Boolean);
+  return notes.length ? `${e.operator} (${notes.join(', ')})` : e.operator;
+}
+
+async function refreshAudit() {
+  const id = state.selected;
+  if (!id) return;
+  let r;
+  try { r = await api(`api/devices/${encodeURIComponent(id)}/audit`); } catch (_) { return; }
+  if (id !== state.selected) return;
+  $('audit-error').textContent = r.ok ? '' : (r.body.reason || r.body.error || `HTTP ${r.status}`);
+  if (!r.ok) return;
+  const head = el('tr');
+  head.append(el('th', {}, 'when (UTC)'), el('th', {}, 'who'), el('th', {}, 'what'),
+              el('th', {}, 'changes'), el('th', {}, 'result'));
+  const entries = (r.body.entries || []).slice().reverse();
+  const trs = entries.map((e) => {
+    const tr = el('tr', { 'data-state': e.accepted ? 'accepted' : 'refused', 'data-operator': e.operator });
+    const when = new Date(e.unix_ns / 1e6).toISOString().replace('T', ' ').replace('Z', '');
+    const changes = (e.changes || []).map((c) => `${c.what}: ${c.old} → ${c.new}`).join('; ');
+    tr.append(el('td', {}, when), el('td', {}, auditWho(e)), el('td', {}, e.action),
+              el('td', {}, changes || (e.asked ? `asked: ${e.asked}` : '–')),
+              el('td', {}, e.accepted ? 'accepted' : `refused: ${e.reason}`));
+    return tr;
+  });
+  $('audit').replaceChildren(head, ...(trs.length ? trs : [el('tr', {}, '')]));
+}
+
 function showResult(p, r, what) {
   if (r.ok && r.body.accepted) {
     p.dataset.state = 'accepted';
@@ -460,6 +494,7 @@ async function submitGains(ev) {
     for (const input of $('gain-fields').querySelectorAll('input[data-field]')) input.value = '';
     refreshDetail();
   }
+  refreshAudit();
 }
 
 async function submitReference(ev) {
@@ -483,6 +518,7 @@ async function submitReference(ev) {
     });
   } catch (e) { r = { ok: false, status: 0, body: { reason: String(e) } }; }
   showResult(p, r, `reference ${values.map(fmt).join(', ')}`);
+  refreshAudit();
 }
 
 // ---- start ---------------------------------------------------------------------------
@@ -505,4 +541,5 @@ window.addEventListener('DOMContentLoaded', () => {
   every(LIST_MS, refreshList);
   every(SERIES_MS, refreshSeries);
   every(DETAIL_MS, refreshDetail);
+  every(AUDIT_MS, refreshAudit);
 });
