@@ -190,14 +190,8 @@ impl Worker {
             return;
         };
         if q.key_expr().as_str().contains('*') {
-            let logs = self.matching(&q, who.as_deref(), "audit", |r, d| {
-                r.audit_of(d).map(|l| protocol::encode(&l))
-            });
-            for (key, bytes) in logs {
-                let bytes = self.sealed_reply(&key, None, bytes);
-                let _ = q.reply(key, bytes).await;
-            }
-            return;
+            let log = |r: &crate::Registry, d: &str| r.audit_of(d).map(|l| protocol::encode(&l));
+            return self.reply_matching(&q, who.as_deref(), "audit", log).await;
         }
         let Some(dev) = self.served(&q).await else {
             return;

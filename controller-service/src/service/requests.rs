@@ -320,63 +320,36 @@ impl Worker {
         None
     }
 
-    /// A device status query; a wildcard key gets one reply per device answered here,
-    /// each on its own key.
+    /// A device status query; a wildcard key gets one reply per device answered here
+    /// that the asker may see, each on its own key.
     pub(super) async fn handle_status(&mut self, q: Query) {
         let Some(who) = self.named(&q).await else {
             return;
         };
         if q.key_expr().as_str().contains('*') {
-            let statuses = self.matching(&q, who.as_deref(), "status", |r, d| {
-                r.device_status(d).map(|s| encode(&s))
-            });
-            for (key, bytes) in statuses {
-                let bytes = self.sealed_reply(&key, None, bytes);
-                let _ = q.reply(key, bytes).await;
-            }
-            return;
+            let status = |r: &Registry, d: &str| r.device_status(d).map(|s| encode(&s));
+            return self
+                .reply_matching(&q, who.as_deref(), "status", status)
+                .await;
         }
-        let reply = match keys::device_of(q.key_expr().as_str()) {
-            Some(d)
-                if !lock(&self.shared.core)
-                    .gate
-                    .access
-                    .may_see(who.as_deref(), d) =>
-            {
-                let why = lock(&self.shared.core)
-                    .gate
-                    .access
-                    .check(who.as_deref(), d, Action::Read)
-                    .err()
-                    .map(|(_, why)| why)
-                    .unwrap_or_default();
-                Some(Err(why))
-            }
-            Some(d) => {
-                let c = lock(&self.shared.core);
-                if self.member.is_some() && !self.answers_for(&c.registry, d) {
-                    // Another member's device: its owner answers, the others stay silent.
-                    None
-                } else {
-                    Some(
-                        c.registry
-                            .device_status(d)
-                            .map(|s| encode(&s))
-                            .ok_or_else(|| {
-                                format!("controller {} does not serve device \"{d}\"", self.id)
-                            }),
-                    )
-                }
-            }
-            None => Some(Err("not the key of one device".to_string())),
+        let Some(d) = keys::device_of(q.key_expr().as_str()) else {
+            return self.reply_error(&q, "not the key of one device").await;
         };
-        match reply {
-            Some(Ok(bytes)) => {
-                let bytes = self.sealed_reply(q.key_expr().as_str(), None, bytes);
-                let _ = q.reply(q.key_expr().clone(), bytes).await;
+        let status = {
+            let c = lock(&self.shared.core);
+            if self.member.is_some() && !self.answers_for(&c.registry, d) {
+                // Another member's device: its owner answers, the others stay silent.
+                return;
             }
-            Some(Err(why)) => self.reply_error(&q, &why).await,
-            None => {}
+            c.registry.device_status(d)
+        };
+        let Some(status) = status else {
+            let why = format!("controller {} does not serve device \"{d}\"", self.id);
+            return self.reply_error(&q, &why).await;
+        };
+        if self.may_read(&q, who.as_deref(), d).await {
+            let bytes = self.sealed_reply(q.key_expr().as_str(), None, encode(&status));
+            let _ = q.reply(q.key_expr().clone(), bytes).await;
         }
     }
 
@@ -434,10 +407,25 @@ impl Worker {
         }
     }
 
+    /// Reply to a wildcard query on `leaf` with `what` of each device it asks for
+    /// ([`Worker::matching`]), each sealed on its own key.
+    pub(super) async fn reply_matching(
+        &self,
+        q: &Query,
+        who: Option<&str>,
+        leaf: &str,
+        what: impl Fn(&Registry, &str) -> Option<Vec<u8>>,
+    ) {
+        for (key, bytes) in self.matching(q, who, leaf, what) {
+            let bytes = self.sealed_reply(&key, None, bytes);
+            let _ = q.reply(key, bytes).await;
+        }
+    }
+
     /// What a wildcard query on `leaf` asks for (`what` of each device), for the devices
     /// answered here that `who` may see, each with the key it goes on (the shard's key if
     /// the query was on shard keys, naming the asker as the query did).
-    pub(super) fn matching(
+    fn matching(
         &self,
         q: &Query,
         who: Option<&str>,
