@@ -1,8 +1,9 @@
 //! A real Prometheus server (Debian's `prometheus`) scrapes the service's metrics endpoint
 //! over TLS with a client certificate from the deployment's PKI (`mfc-deploy generate`):
 //! that scrape is up and brings the service's series in; scrapes without a certificate,
-//! with another fleet's, or over plain HTTP are refused and down. `.ci/run` installs the
-//! package; without it this test fails and says how to install it.
+//! with another fleet's, or over plain HTTP are refused and down. Without `prometheus` on
+//! the PATH the test installs Debian's package itself when it runs as root (as the browser
+//! test installs chromium), and otherwise fails saying how to install it.
 
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
@@ -76,15 +77,42 @@ async fn targets(port: u16) -> Vec<(String, String, String)> {
     }
 }
 
+fn is_root() -> bool {
+    Command::new("id")
+        .arg("-u")
+        .output()
+        .is_ok_and(|o| o.stdout.trim_ascii() == b"0")
+}
+
+/// The Prometheus server to run (`MFC_PROMETHEUS`, default `prometheus`), installed from
+/// Debian when missing and root; the test fails if there is none.
+fn prometheus_binary() -> String {
+    let prometheus = std::env::var("MFC_PROMETHEUS").unwrap_or_else(|_| "prometheus".into());
+    let runs = || {
+        Command::new(&prometheus)
+            .arg("--version")
+            .output()
+            .is_ok_and(|o| o.status.success())
+    };
+    if !runs() && prometheus == "prometheus" && is_root() {
+        let log = std::env::temp_dir().join("mfc-apt-prometheus.log");
+        let install = format!(
+            "{{ apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends prometheus; }} >{} 2>&1",
+            log.display()
+        );
+        let _ = Command::new("sh").args(["-c", &install]).status();
+    }
+    assert!(
+        runs(),
+        "no `{prometheus}`: this test needs a real Prometheus server (as root it installs Debian's, logging to $TMPDIR/mfc-apt-prometheus.log; otherwise apt-get install prometheus, or set MFC_PROMETHEUS)"
+    );
+    prometheus
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn prometheus_scrapes_over_tls_with_a_client_certificate_only() {
     let _s = SERIAL.lock().await;
-    let prometheus = std::env::var("MFC_PROMETHEUS").unwrap_or_else(|_| "prometheus".into());
-    let version = Command::new(&prometheus).arg("--version").output();
-    assert!(
-        version.is_ok_and(|o| o.status.success()),
-        "no `{prometheus}`: this test needs a real Prometheus server (apt-get install prometheus, as `.ci/run` does; or set MFC_PROMETHEUS)"
-    );
+    let prometheus = prometheus_binary();
     let dir = scratch_dir("prometheus");
     let (ours, theirs) = (dir.join("ours"), dir.join("theirs"));
     pki(&ours);
