@@ -12,49 +12,7 @@
 
 use serde::{Deserialize, Serialize};
 
-/// What an operator may do.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Role {
-    /// Reads configurations, statuses, envelopes and the audit trail.
-    Viewer,
-    /// Also changes laws, gains, output maps and references, and narrows envelopes.
-    Operator,
-    /// Also widens envelopes (only where the file sets `allow_remote_widening`).
-    Admin,
-}
-
-impl Role {
-    /// Its name, as in the file.
-    pub fn name(self) -> &'static str {
-        match self {
-            Role::Viewer => "viewer",
-            Role::Operator => "operator",
-            Role::Admin => "admin",
-        }
-    }
-}
-
-/// What a request does, by the least role it needs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Action {
-    /// A read: a configuration, an envelope, a status, the audit trail.
-    Read,
-    /// A change of laws, gains, maps or reference, or an envelope narrowed.
-    Change,
-    /// An envelope widened.
-    Widen,
-}
-
-impl Action {
-    fn needs(self) -> Role {
-        match self {
-            Action::Read => Role::Viewer,
-            Action::Change => Role::Operator,
-            Action::Widen => Role::Admin,
-        }
-    }
-}
+pub use protocol::roles::{Action, Role};
 
 /// One operator in the file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

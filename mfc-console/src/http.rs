@@ -16,8 +16,10 @@
 //! must name an allowed `Host` (a rebound DNS name is refused), and a `POST` must be
 //! `Content-Type: application/json` (which a cross-site form cannot send without a CORS
 //! preflight the console never grants) from the console's own origin (`Origin`,
-//! `Sec-Fetch-Site`). Bodies are bounded ([`MAX_BODY`]). There is no login: the console
-//! listens on loopback by default; exposing it needs a proxy that authenticates.
+//! `Sec-Fetch-Site`). Bodies are bounded ([`MAX_BODY`]). Who may use it is
+//! [`crate::sessions`]'s: with `[login]`, a person with a session or a client certificate,
+//! and changes only by those whose role may change; without, the console answers on
+//! loopback only, as its own operator.
 
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -29,14 +31,16 @@ use axum::http::{header, HeaderMap, HeaderValue, Method, StatusCode};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
-use axum::{Json, Router};
+use axum::{Extension, Json, Router};
 use protocol::{keys, pb};
 use serde::{Deserialize, Serialize};
 use serde_json::json;
 use transport::ops::{self, OpError};
 
 use crate::fleet::{self, mode_of, ChannelView};
+use crate::login::Identity;
 use crate::net::Console;
+use crate::sessions::{self, Doors};
 
 /// Largest request body (bytes): a change is a few hundred bytes.
 pub const MAX_BODY: usize = 16 * 1024;
@@ -54,12 +58,15 @@ const CSP: &str = "default-src 'none'; script-src 'self'; style-src 'self'; img-
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Guard {
     hosts: Vec<String>,
+    /// `http://` or `https://`: the origin a change must come from.
+    scheme: &'static str,
 }
 
 impl Guard {
     /// The names of `listen` (the bound address), `localhost:PORT` on loopback or on an
-    /// unspecified address, and `extra` (from the settings).
-    pub fn new(listen: SocketAddr, extra: &[String]) -> Self {
+    /// unspecified address, and `extra` (from the settings); `https`: the page is served
+    /// over HTTPS, so its origin is `https://…`.
+    pub fn new(listen: SocketAddr, extra: &[String], https: bool) -> Self {
         let port = listen.port();
         let mut hosts = vec![listen.to_string()];
         let ip = listen.ip();
@@ -74,7 +81,8 @@ impl Guard {
         }
         hosts.sort();
         hosts.dedup();
-        Self { hosts }
+        let scheme = if https { "https://" } else { "http://" };
+        Self { hosts, scheme }
     }
 
     /// The accepted `Host` values.
@@ -109,7 +117,7 @@ impl Guard {
         }
         if let Some(origin) = text(header::ORIGIN) {
             let ok = origin
-                .strip_prefix("http://")
+                .strip_prefix(self.scheme)
                 .is_some_and(|o| self.hosts.iter().any(|h| h == o));
             if !ok {
                 return forbidden(format!("origin {origin:?} may not change anything here"));
@@ -139,8 +147,14 @@ async fn guard(State(g): State<Arc<Guard>>, req: Request, next: Next) -> Respons
     }
 }
 
-/// The routes, with the guard and the body limit.
-pub fn router(console: Arc<Console>, guard_: Guard) -> Router {
+/// The routes, with the guard (first), then who asks ([`sessions::identify`]), and the
+/// body limit.
+pub fn router(console: Arc<Console>, guard_: Guard, doors: Arc<Doors>) -> Router {
+    let login = Router::new()
+        .route("/api/me", get(sessions::me))
+        .route("/api/login", post(sessions::login))
+        .route("/api/logout", post(sessions::logout))
+        .with_state(doors.clone());
     Router::new()
         .route("/", get(page))
         .route("/console.js", get(script))
@@ -152,7 +166,9 @@ pub fn router(console: Arc<Console>, guard_: Guard) -> Router {
         .route("/api/devices/{id}/gains", post(gains))
         .route("/api/devices/{id}/reference", post(reference))
         .with_state(console)
+        .merge(login)
         .layer(DefaultBodyLimit::max(MAX_BODY))
+        .layer(middleware::from_fn_with_state(doors, sessions::identify))
         .layer(middleware::from_fn_with_state(Arc::new(guard_), guard))
 }
 
@@ -254,11 +270,16 @@ async fn detail(State(c): State<Arc<Console>>, Path(id): Path<String>) -> Respon
 /// `GET /api/devices/{id}/audit`: the device's latest audited changes, from the service
 /// that answers for it (asked as the console's operator: a service with access rules
 /// answers only for the devices that operator may see).
-async fn audit(State(c): State<Arc<Console>>, Path(id): Path<String>) -> Response {
+async fn audit(
+    State(c): State<Arc<Console>>,
+    Extension(who): Extension<Identity>,
+    Path(id): Path<String>,
+) -> Response {
     if c.fleet().device(&id).is_none() {
         return not_found(&id);
     }
-    match transport::ops::audit(&c.operator, Some(&id), c.timeout()).await {
+    let op = c.operator.as_named(&who.name);
+    match transport::ops::audit(&op, Some(&id), c.timeout()).await {
         Ok(logs) => {
             let entries: Vec<pb::AuditEntry> = logs.into_iter().flat_map(|l| l.entries).collect();
             Json(json!({ "entries": entries })).into_response()
@@ -323,9 +344,14 @@ struct GainChange {
 
 async fn gains(
     State(c): State<Arc<Console>>,
+    Extension(who): Extension<Identity>,
     Path(id): Path<String>,
     b: Result<Json<GainChange>, JsonRejection>,
 ) -> Response {
+    if let Err(r) = sessions::may_change(&who) {
+        return r;
+    }
+    let op = c.operator.as_named(&who.name);
     let change = match body(b) {
         Ok(x) => x,
         Err((status, reason)) => return refused(status, "console", reason),
@@ -346,7 +372,7 @@ async fn gains(
         Err(e) => return op_failed(e),
     };
     // The configuration in force now (not the page's copy): the envelope to check against.
-    let config = match ops::config(&c.operator, &id, c.timeout()).await {
+    let config = match ops::config(&op, &id, c.timeout()).await {
         Ok(x) => x,
         Err(e) => return op_failed(e),
     };
@@ -356,11 +382,12 @@ async fn gains(
         return refused(StatusCode::UNPROCESSABLE_ENTITY, "console", reason);
     }
     tracing::info!(
+        user = %who.name,
         "change of {id} channel {}: {}",
         change.channel,
         assignments.join(" ")
     );
-    match ops::update(&c.operator, &id, update, c.timeout()).await {
+    match ops::update(&op, &id, update, c.timeout()).await {
         Ok(ops::Changed { config, held_by }) => {
             let views = fleet::channel_views(&config);
             c.fleet().apply_config(&id, config, c.now());
@@ -383,9 +410,14 @@ struct ReferenceChange {
 
 async fn reference(
     State(c): State<Arc<Console>>,
+    Extension(who): Extension<Identity>,
     Path(id): Path<String>,
     b: Result<Json<ReferenceChange>, JsonRejection>,
 ) -> Response {
+    if let Err(r) = sessions::may_change(&who) {
+        return r;
+    }
+    let op = c.operator.as_named(&who.name);
     let change = match body(b) {
         Ok(x) => x,
         Err((status, reason)) => return refused(status, "console", reason),
@@ -393,7 +425,7 @@ async fn reference(
     if let Err(e) = keys::check_id(&id) {
         return refused(StatusCode::BAD_REQUEST, "console", e.to_string());
     }
-    let config = match ops::config(&c.operator, &id, c.timeout()).await {
+    let config = match ops::config(&op, &id, c.timeout()).await {
         Ok(x) => x,
         Err(e) => return op_failed(e),
     };
@@ -405,9 +437,9 @@ async fn reference(
         .iter()
         .map(|&value| vec![mfc::trajectory::Piece::Constant { value }])
         .collect();
-    tracing::info!("reference of {id}: constant {:?}", change.values);
+    tracing::info!(user = %who.name, "reference of {id}: constant {:?}", change.values);
     let r = protocol::convert::reference_to_pb(&pieces, 0.0);
-    match ops::set_reference(&c.operator, &id, r, c.timeout()).await {
+    match ops::set_reference(&op, &id, r, c.timeout()).await {
         Ok(ops::Changed { config, held_by }) => {
             c.fleet().apply_config(&id, config, c.now());
             Json(json!({ "accepted": true, "values": change.values, "held_by": held_by }))
@@ -434,6 +466,7 @@ mod tests {
         let g = Guard::new(
             "127.0.0.1:8080".parse().unwrap(),
             &["Console.lan:8080".into()],
+            false,
         );
         assert!(g.hosts().contains(&"localhost:8080".to_string()));
         assert!(g.hosts().contains(&"console.lan:8080".to_string()));

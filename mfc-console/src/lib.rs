@@ -13,6 +13,7 @@
 //!   and of a change against the envelope. Pure, unit-tested with plain values.
 //! * [`net`]: the Zenoh wiring that feeds it (liveliness, samples, commands, polls).
 //! * [`http`]: the page and its JSON API, with the guard against cross-site requests.
+//! * [`login`]: who may use it (users, roles, sessions, wrong-password locks). Pure.
 //! * [`settings`]: the optional settings file.
 //! * [`cli`]: the command line (the binary is a one-line `main`).
 //!
@@ -22,7 +23,9 @@
 pub mod cli;
 pub mod fleet;
 pub mod http;
+pub mod login;
 pub mod net;
+pub mod sessions;
 pub mod settings;
 
 /// Why the console cannot run.

@@ -10,6 +10,9 @@
 //! config_period_ms = 2000  # how often the configuration of a device being read is asked for
 //! query_timeout_ms = 2000  # how long a query waits for answers
 //! allowed_hosts = []       # more `Host` names the page may be reached by (e.g. "console.lan:8080")
+//!
+//! [login]                  # who may use the console; see `crate::login` (default: nobody
+//!                          # logs in, loopback only, everyone acts as the console's operator)
 //! ```
 
 use std::path::Path;
@@ -17,6 +20,7 @@ use std::path::Path;
 use serde::Deserialize;
 
 use crate::fleet::ViewBounds;
+use crate::login::LoginSpec;
 
 /// The settings.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -39,6 +43,9 @@ pub struct Settings {
     /// `localhost:PORT`). Requests naming any other host are refused: a page of another
     /// site cannot reach the console by rebinding a name to 127.0.0.1.
     pub allowed_hosts: Vec<String>,
+    /// Logins, sessions and HTTPS ([`LoginSpec`]). Without it the console answers on
+    /// loopback only, and whoever reaches it acts as the console's operator.
+    pub login: Option<LoginSpec>,
 }
 
 impl Default for Settings {
@@ -52,6 +59,7 @@ impl Default for Settings {
             config_period_ms: 2000,
             query_timeout_ms: 2000,
             allowed_hosts: vec![],
+            login: None,
         }
     }
 }
@@ -84,10 +92,14 @@ impl Settings {
             path: path.display().to_string(),
             source,
         })?;
-        Self::parse(&text).map_err(|reason| SettingsError::Invalid {
+        let mut s = Self::parse(&text).map_err(|reason| SettingsError::Invalid {
             path: path.display().to_string(),
             reason,
-        })
+        })?;
+        if let Some(l) = &mut s.login {
+            l.resolve(path.parent().unwrap_or(Path::new(".")));
+        }
+        Ok(s)
     }
 
     /// Parse and check settings from TOML text.
@@ -122,6 +134,9 @@ impl Settings {
             if !(50..=600_000).contains(&v) {
                 return Err(format!("{name} {v} must be 50..=600000"));
             }
+        }
+        if let Some(l) = &self.login {
+            l.check().map_err(|e| format!("[login]: {e}"))?;
         }
         Ok(())
     }

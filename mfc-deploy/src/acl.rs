@@ -84,6 +84,20 @@ pub fn access_control(inv: &Inventory) -> Value {
             ids.extend(acl.add(operator_own_rules(&o.name, o.role != "viewer")));
             acl.policy_of(format!("operator-{}", o.name), vec![o.name.clone()], ids);
         }
+        // A console: what any operator may, its own name (a viewer's: its polls), and
+        // each of its people's names as they may use them (the rules added above).
+        for c in &inv.consoles {
+            let mut ids = shared.clone();
+            ids.extend(acl.add(operator_own_rules(&c.name, false)));
+            for p in &c.people {
+                let steer = inv
+                    .operators
+                    .iter()
+                    .any(|o| &o.name == p && o.role != "viewer");
+                ids.extend(own_rule_ids(p, steer));
+            }
+            acl.policy_of(format!("console-{}", c.name), vec![c.name.clone()], ids);
+        }
     }
     json!({
         "enabled": true,
@@ -440,23 +454,35 @@ fn operator_rules(keys: &SharedKeys) -> Vec<Value> {
 /// certificate cannot ask as another operator, nor as nobody: the name a service reads
 /// in a request's key is the certificate's.
 fn operator_own_rules(name: &str, steer: bool) -> Vec<Value> {
+    let ids = own_rule_ids(name, steer);
     let own = |key: String| protocol::keys::by(&key, name);
     let mut asked: Vec<String> = QUERIED.iter().map(|l| own(dev("*", l))).collect();
     asked.extend(QUERIED.iter().map(|l| own(sdev("*", l))));
-    let r = |n: &str| format!("operator-{name}-{n}");
     let mut rules = vec![
-        rule(r("query"), &["ingress"], &["query"], asked.clone()),
-        rule(r("replies"), &["egress"], &["reply"], asked),
+        rule(ids[0].clone(), &["ingress"], &["query"], asked.clone()),
+        rule(ids[1].clone(), &["egress"], &["reply"], asked),
     ];
     if steer {
         rules.push(rule(
-            r("steer"),
+            ids[2].clone(),
             &["ingress"],
             &["put"],
             vec![own(dev("*", "reference"))],
         ));
     }
     rules
+}
+
+/// The ids of [`operator_own_rules`]`(name, steer)`: query, replies, and steer if it may.
+fn own_rule_ids(name: &str, steer: bool) -> Vec<String> {
+    let mut ids = vec![
+        format!("operator-{name}-query"),
+        format!("operator-{name}-replies"),
+    ];
+    if steer {
+        ids.push(format!("operator-{name}-steer"));
+    }
+    ids
 }
 
 #[cfg(test)]
@@ -855,6 +881,46 @@ mod tests {
         assert!(!ok("alice", "ingress", "put", &reference("vera")));
         assert!(!ok("alice", "ingress", "put", &dev("aero-1", "reference")));
         assert!(ok("ctl", "egress", "put", &reference("alice")));
+    }
+
+    #[test]
+    fn a_console_asks_for_its_people_only_as_each_may() {
+        let inv = Inventory::parse(
+            "services = [\"ctl\"]\ndevices = [\"aero-1\"]\noperators = [\"alice\", \"bob\", { name = \"vera\", role = \"viewer\" }]\nconsoles = [{ name = \"desk\", hosts = [\"10.0.0.9\"], people = [\"alice\", \"vera\"] }]\n[router]\nhosts = [\"10.0.0.1\"]\n",
+        )
+        .unwrap();
+        let acl = access_control(&inv);
+        let ok = |flow: &str, msg: &str, key: &str| allowed(&acl, "desk", flow, msg, key);
+        let by = |key: String, who: &str| protocol::keys::by(&key, who);
+        for leaf in QUERIED {
+            let key = dev("aero-1", leaf);
+            // Its own name (its polls) and its people's; nobody else's, nor nobody's.
+            for who in ["desk", "alice", "vera"] {
+                assert!(
+                    ok("ingress", "query", &by(key.clone(), who)),
+                    "{leaf} {who}"
+                );
+                assert!(ok("egress", "reply", &by(key.clone(), who)), "{leaf} {who}");
+            }
+            assert!(!ok("ingress", "query", &by(key.clone(), "bob")), "{leaf}");
+            assert!(!ok("ingress", "query", &key), "{leaf}");
+        }
+        // References: for alice (an operator), not for vera (a viewer) nor as itself.
+        let reference = |who: &str| by(dev("aero-1", "reference"), who);
+        assert!(ok("ingress", "put", &reference("alice")));
+        assert!(!ok("ingress", "put", &reference("vera")));
+        assert!(!ok("ingress", "put", &reference("desk")));
+        assert!(!ok("ingress", "put", &reference("bob")));
+        // Like any operator, never a command.
+        assert!(!ok("ingress", "put", &dev("aero-1", "command")));
+        // alice's own certificate is unchanged: her name only.
+        assert!(!allowed(
+            &acl,
+            "alice",
+            "ingress",
+            "query",
+            &by(dev("aero-1", "config"), "desk")
+        ));
     }
 
     #[test]

@@ -54,6 +54,26 @@ pub struct Inventory {
     /// only.
     #[serde(default)]
     pub gateways: Vec<Gateway>,
+    /// Browser consoles (`mfc-console`) that act for people: each gets a zenoh
+    /// certificate, an HTTPS certificate for its `hosts` and a settings file whose
+    /// `[login]` lists its `people`; the router lets it ask under their names (and its
+    /// own, for its polls), and the console holds each person to a login.
+    #[serde(default)]
+    pub consoles: Vec<ConsoleGrant>,
+}
+
+/// A browser console and the operators it may act for.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ConsoleGrant {
+    /// The common name of its certificates; its own requests (its polls) name it, a viewer.
+    pub name: String,
+    /// Names and addresses people's browsers reach it by: its HTTPS certificate's
+    /// subjectAltName.
+    pub hosts: Vec<String>,
+    /// Operators (from `operators`) who may log in to it, each with the role and devices
+    /// the inventory gives them.
+    pub people: Vec<String>,
 }
 
 /// An operator: who (its certificate's common name), its role and its devices.
@@ -70,7 +90,7 @@ pub struct OperatorGrant {
 }
 
 /// The roles an operator may have (the services' `access::Role`).
-pub const ROLES: [&str; 3] = ["viewer", "operator", "admin"];
+pub const ROLES: [&str; 3] = protocol::roles::Role::NAMES;
 
 impl<'de> Deserialize<'de> for OperatorGrant {
     /// A bare name, or a table with `name`, `role` and `devices` (unknown fields refused).
@@ -216,6 +236,8 @@ pub enum IdentityKind {
     Operator,
     /// A gateway (one agent process hosting many plants).
     Gateway,
+    /// A browser console acting for people.
+    Console,
 }
 
 impl IdentityKind {
@@ -227,6 +249,7 @@ impl IdentityKind {
             IdentityKind::Device => "devices",
             IdentityKind::Operator => "operators",
             IdentityKind::Gateway => "gateways",
+            IdentityKind::Console => "consoles",
         }
     }
 }
@@ -278,7 +301,17 @@ impl Inventory {
                 .iter()
                 .map(|g| (IdentityKind::Gateway, g.id.clone())),
         );
+        v.extend(
+            self.consoles
+                .iter()
+                .map(|c| (IdentityKind::Console, c.name.clone())),
+        );
         v
+    }
+
+    /// The console of this name.
+    pub fn console(&self, name: &str) -> Option<&ConsoleGrant> {
+        self.consoles.iter().find(|c| c.name == name)
     }
 
     /// The endpoint clients dial: `{protocol}/{first host}:{port}` (IPv6 in brackets).
@@ -330,10 +363,24 @@ impl Inventory {
                 "router.hosts is empty: name at least one address or DNS name clients dial".into(),
             );
         }
-        for h in &self.router.hosts {
-            if h.parse::<IpAddr>().is_err() && !is_dns_name(h) {
+        let consoles = self
+            .consoles
+            .iter()
+            .map(|c| (format!("console {:?}", c.name), &c.hosts));
+        for (who, hosts) in
+            std::iter::once(("router".to_string(), &self.router.hosts)).chain(consoles)
+        {
+            if hosts.is_empty() {
                 return bad(format!(
-                    "router host {h:?} is neither an IP address nor a DNS name"
+                    "{who}: hosts is empty: name an address or DNS name it is reached by"
+                ));
+            }
+            if let Some(h) = hosts
+                .iter()
+                .find(|h| h.parse::<IpAddr>().is_err() && !is_dns_name(h))
+            {
+                return bad(format!(
+                    "{who} host {h:?} is neither an IP address nor a DNS name"
                 ));
             }
         }
@@ -374,6 +421,7 @@ impl Inventory {
             }
         }
         self.check_operators()?;
+        self.check_consoles()?;
         self.check_hosted(&self.devices.iter().cloned().collect())
     }
 
@@ -400,6 +448,54 @@ impl Inventory {
         Ok(())
     }
 
+    /// Every console acts for at least one listed operator, each named once.
+    fn check_consoles(&self) -> Result<(), DeployError> {
+        for c in &self.consoles {
+            let bad = |m: String| Err(DeployError::Inventory(format!("console {:?}: {m}", c.name)));
+            if c.people.is_empty() {
+                return bad("people is empty: nobody could log in".into());
+            }
+            let mut seen = BTreeSet::new();
+            for p in &c.people {
+                if !self.operators.iter().any(|o| &o.name == p) {
+                    return bad(format!("{p:?} is not one of the operators"));
+                }
+                if !seen.insert(p) {
+                    return bad(format!("{p:?} is listed twice"));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The settings file of console `name` (`mfc-console --config`): its people as
+    /// `[login]` users with the inventory's roles (certificate logins; a password is one
+    /// `password_hash` line each), HTTPS with its certificate, and the CA of people's
+    /// certificates.
+    pub fn console_settings(&self, name: &str) -> String {
+        let mut out = format!(
+            "# Generated by `mfc-deploy generate` for console {name:?}: `mfc-console --config` this\n# file. Edit the inventory's consoles and operators, not the users here; a person who\n# logs in with a password gets `password_hash = \"…\"` (mfc-console --hash-password).\n\n[login]\n"
+        );
+        let people = self
+            .console(name)
+            .map(|c| c.people.as_slice())
+            .unwrap_or_default();
+        for p in people {
+            let role = self
+                .operators
+                .iter()
+                .find(|o| &o.name == p)
+                .map_or("viewer", |o| o.role.as_str());
+            out.push_str(&format!(
+                "\n[[login.users]]\nname = {p:?}\nrole = {role:?}\n"
+            ));
+        }
+        out.push_str(&format!(
+            "\n[login.https]\ncert_file = \"{name}.https.pem\"\nkey_file = \"{name}.https.key\"\nclient_ca_file = \"ca.pem\"\n"
+        ));
+        out
+    }
+
     /// The `[access]` section (and the audit file) of service `s`'s configuration: the
     /// operators, their roles and devices, and `verified = true`, which the router's
     /// access control makes true (each certificate may use its own name only).
@@ -414,6 +510,12 @@ impl Inventory {
                 o.name,
                 o.role,
                 devices.join(", ")
+            ));
+        }
+        for c in &self.consoles {
+            out.push_str(&format!(
+                "\n# Console {0:?}'s own requests (its polls); its people ask under their names.\n[[access.operators]]\nname = {0:?}\nrole = \"viewer\"\ndevices = [\"*\"]\n",
+                c.name
             ));
         }
         out

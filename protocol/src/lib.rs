@@ -9,6 +9,7 @@
 pub mod auth;
 pub mod convert;
 pub mod keys;
+pub mod roles;
 
 /// Generated protobuf types (package `mfc.v1`).
 #[allow(missing_docs, clippy::all)]

@@ -11,7 +11,6 @@
 
 pub mod prom;
 pub mod record;
-mod tls;
 
 pub use prom::{serve_metrics, Metrics, MetricsError, MetricsSpec, MetricsTls};
 pub use record::{

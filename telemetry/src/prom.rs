@@ -230,9 +230,22 @@ pub async fn serve_metrics(
     );
     let fut: Pin<Box<dyn Future<Output = ()> + Send>> = match &spec.tls {
         Some(tls) => {
-            let acceptor = crate::tls::acceptor(tls).map_err(MetricsError::Tls)?;
+            let files = transport::https::TlsFiles {
+                cert_file: tls.cert_file.clone(),
+                key_file: tls.key_file.clone(),
+                client_ca_file: Some(tls.client_ca_file.clone()),
+            };
+            let acceptor =
+                transport::https::acceptor(&files, transport::https::ClientCerts::Required)
+                    .map_err(|e| MetricsError::Tls(e.to_string()))?;
             tracing::info!(addr = %local, "metrics endpoint: GET /metrics over TLS, client certificates required");
-            Box::pin(crate::tls::serve(listener, acceptor, app, shutdown))
+            Box::pin(transport::https::serve(
+                listener,
+                acceptor,
+                app,
+                shutdown,
+                "metrics endpoint",
+            ))
         }
         None => {
             if !local.ip().is_loopback() {

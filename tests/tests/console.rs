@@ -69,9 +69,13 @@ fn law_kp(c: &pb::ChannelConfig) -> Option<f64> {
     }
 }
 
-/// The console, as a process, with the operator's flags, connected to `ep`; its HTTP
-/// port once it listens.
-async fn start_console(ep: &str, scratch: &std::path::Path) -> (tokio::process::Child, u16) {
+/// The console, as a process, with the operator's flags and `extra`, connected to `ep`;
+/// its HTTP port once it listens.
+async fn start_console(
+    ep: &str,
+    scratch: &std::path::Path,
+    extra: &[&str],
+) -> (tokio::process::Child, u16) {
     let port = transport::free_local_port().unwrap();
     let log = std::fs::File::create(scratch.join("console.log")).unwrap();
     let mut console = tokio::process::Command::new(env!("CARGO_BIN_EXE_console-under-test"))
@@ -84,6 +88,7 @@ async fn start_console(ep: &str, scratch: &std::path::Path) -> (tokio::process::
             "--listen-http",
             &format!("127.0.0.1:{port}"),
         ])
+        .args(extra)
         .stdout(Stdio::null())
         .stderr(log)
         .kill_on_drop(true)
@@ -99,7 +104,7 @@ async fn start_console(ep: &str, scratch: &std::path::Path) -> (tokio::process::
 }
 
 /// Wait until the service has served `dev` for a while.
-async fn served_for_a_while(operator: &zenoh::Session, dev: &str) {
+async fn served_for_a_while(operator: &impl ops::Asker, dev: &str) {
     let end = Instant::now() + Duration::from_secs(60);
     loop {
         let st = ops::device_status(operator, dev, Duration::from_secs(2)).await;
@@ -119,34 +124,32 @@ struct BrowserRun {
     secs: f64,
 }
 
-/// Drive the page with `tests/browser/console.mjs` in Chromium, starting `late` once the
-/// page has loaded; fail unless the script ends well within [`SCRIPT_DEADLINE`].
-async fn run_browser(
-    port: u16,
+/// Run `tests/browser/{script}` in Chromium with `vars` (besides the tools' and the
+/// profile's); `on_stage` sees each stage as it comes. Fails unless the script ends well
+/// within [`SCRIPT_DEADLINE`] having passed exactly `want` stages; its stages.
+async fn drive(
+    script: &str,
+    vars: &[(&str, String)],
     (scratch, shots): (&std::path::Path, &std::path::Path),
-    ep: &str,
-    late: &mfc_lab::harness::PlantSpec,
-) -> BrowserRun {
+    want: &[&str],
+    mut on_stage: impl FnMut(&str),
+) -> Vec<(String, serde_json::Value)> {
     let tools = browser_tools();
-    let (node, prefix, chromium) = (&tools["node"], &tools["prefix"], &tools["chromium"]);
-    let profile = scratch.join("chromium-profile");
+    let profile = scratch.join(format!("chromium-profile-{script}"));
     std::fs::create_dir_all(&profile).unwrap();
-    let started = Instant::now();
-    let mut script = tokio::process::Command::new(node)
-        .arg(workspace_root().join("tests/browser/console.mjs"))
-        .env("MFC_CONSOLE_URL", format!("http://127.0.0.1:{port}/"))
-        .env("MFC_NODE_PREFIX", prefix)
-        .env("MFC_CHROMIUM", chromium)
-        .env("MFC_CONSOLE_DEVICE", "aero-1")
-        .env("MFC_CONSOLE_LATE_DEVICE", "aero-2")
+    let mut child = tokio::process::Command::new(&tools["node"])
+        .arg(workspace_root().join("tests/browser").join(script))
+        .env("MFC_NODE_PREFIX", &tools["prefix"])
+        .env("MFC_CHROMIUM", &tools["chromium"])
         .env("MFC_CONSOLE_SCREENSHOTS", shots)
         .env("MFC_CONSOLE_PROFILE", &profile)
+        .envs(vars.iter().map(|(k, v)| (k, v)))
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .kill_on_drop(true)
         .spawn()
-        .expect("running node on tests/browser/console.mjs");
-    let stderr = script.stderr.take().unwrap();
+        .unwrap_or_else(|e| panic!("running node on tests/browser/{script}: {e}"));
+    let stderr = child.stderr.take().unwrap();
     let errors = tokio::spawn(async move {
         let mut text = String::new();
         let mut lines = BufReader::new(stderr).lines();
@@ -156,9 +159,8 @@ async fn run_browser(
         }
         text
     });
-    let mut lines = BufReader::new(script.stdout.take().unwrap()).lines();
+    let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
     let mut stages: Vec<(String, serde_json::Value)> = Vec::new();
-    let mut late_plant = None;
     let read = tokio::time::timeout(SCRIPT_DEADLINE, async {
         while let Ok(Some(line)) = lines.next_line().await {
             eprintln!("browser: {line}");
@@ -166,13 +168,7 @@ async fn run_browser(
                 continue;
             };
             let (name, data) = rest.split_once(' ').unwrap_or((rest, "{}"));
-            if name == "loaded" && late_plant.is_none() {
-                late_plant = Some(tokio::spawn(run_plant(
-                    vec![ep.to_string()],
-                    late.clone(),
-                    true,
-                )));
-            }
+            on_stage(name);
             stages.push((
                 name.to_string(),
                 serde_json::from_str(data).unwrap_or_default(),
@@ -180,36 +176,61 @@ async fn run_browser(
         }
     })
     .await;
-    let status = tokio::time::timeout(Duration::from_secs(30), script.wait()).await;
+    let status = tokio::time::timeout(Duration::from_secs(30), child.wait()).await;
     let stderr = errors.await.unwrap_or_default();
     let names: Vec<&str> = stages.iter().map(|(n, _)| n.as_str()).collect();
     assert!(
         read.is_ok(),
-        "the browser script did not end within {SCRIPT_DEADLINE:?}; stages {names:?}\n{stderr}"
+        "{script} did not end within {SCRIPT_DEADLINE:?}; stages {names:?}\n{stderr}"
     );
     let ok = matches!(&status, Ok(Ok(st)) if st.success());
     assert!(
         ok,
-        "the browser script failed ({status:?}) after stages {names:?}:\n{stderr}\n(screenshots \
-         in {}, the console's log in {})",
+        "{script} failed ({status:?}) after stages {names:?}:\n{stderr}\n(screenshots in {}, \
+         the console's log in {})",
         shots.display(),
         scratch.join("console.log").display()
     );
-    assert_eq!(
-        names,
-        [
-            "loaded",
-            "plots",
-            "appeared",
-            "gain",
-            "audit",
-            "envelope-refused",
-            "reference",
-            "gone",
-            "done"
-        ],
-        "{stderr}"
-    );
+    assert_eq!(names, want, "{stderr}");
+    stages
+}
+
+/// Drive the page with `tests/browser/console.mjs` in Chromium, starting `late` once the
+/// page has loaded; fail unless the script ends well within [`SCRIPT_DEADLINE`].
+async fn run_browser(
+    port: u16,
+    dirs: (&std::path::Path, &std::path::Path),
+    ep: &str,
+    late: &mfc_lab::harness::PlantSpec,
+) -> BrowserRun {
+    let started = Instant::now();
+    let mut late_plant = None;
+    let vars = [
+        ("MFC_CONSOLE_URL", format!("http://127.0.0.1:{port}/")),
+        ("MFC_CONSOLE_DEVICE", "aero-1".into()),
+        ("MFC_CONSOLE_LATE_DEVICE", "aero-2".into()),
+    ];
+    let want = [
+        "loaded",
+        "plots",
+        "appeared",
+        "gain",
+        "audit",
+        "envelope-refused",
+        "reference",
+        "gone",
+        "done",
+    ];
+    let stages = drive("console.mjs", &vars, dirs, &want, |name| {
+        if name == "loaded" && late_plant.is_none() {
+            late_plant = Some(tokio::spawn(run_plant(
+                vec![ep.to_string()],
+                late.clone(),
+                true,
+            )));
+        }
+    })
+    .await;
     BrowserRun {
         stages,
         late_plant,
@@ -309,7 +330,7 @@ async fn the_console_shows_live_devices_and_changes_one_gain() {
     let mut late = s.clone();
     late.duration = 15.0;
     let late = served_plant(&late, &c, "aero-2");
-    let (mut console, port) = start_console(&ep, &scratch).await;
+    let (mut console, port) = start_console(&ep, &scratch, &[]).await;
 
     // What the service holds before the page changes anything.
     let operator = service.client().await.unwrap();
@@ -346,5 +367,329 @@ async fn the_console_shows_live_devices_and_changes_one_gain() {
         let _ = p.await;
     }
     let _ = operator.close().await;
+    service.stop().await.unwrap();
+}
+
+// ---- the console with logins -------------------------------------------------------------
+
+/// One HTTPS request to the console on `port`, checking its certificate against `ca`,
+/// with the client certificate `client` (`(cert, key)`) if any; the status, the head
+/// (lowercase) and the JSON body, or why the connection failed.
+async fn https(
+    port: u16,
+    ca: &std::path::Path,
+    client: Option<(&std::path::Path, &std::path::Path)>,
+    (method, path, body): (&str, &str, Option<&str>),
+) -> Result<(u16, String, serde_json::Value), String> {
+    use rustls::pki_types::ServerName;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let pem = |p: &std::path::Path| std::fs::read(p).unwrap();
+    let mut roots = rustls::RootCertStore::empty();
+    for c in rustls_pemfile::certs(&mut &pem(ca)[..]) {
+        roots.add(c.unwrap()).unwrap();
+    }
+    let provider = std::sync::Arc::new(rustls::crypto::ring::default_provider());
+    let builder = rustls::ClientConfig::builder_with_provider(provider)
+        .with_safe_default_protocol_versions()
+        .unwrap()
+        .with_root_certificates(roots);
+    let config = match client {
+        Some((cert, key)) => {
+            let certs = rustls_pemfile::certs(&mut &pem(cert)[..])
+                .collect::<Result<Vec<_>, _>>()
+                .unwrap();
+            let key = rustls_pemfile::private_key(&mut &pem(key)[..])
+                .unwrap()
+                .unwrap();
+            builder.with_client_auth_cert(certs, key).unwrap()
+        }
+        None => builder.with_no_client_auth(),
+    };
+    let tcp = tokio::net::TcpStream::connect(("127.0.0.1", port))
+        .await
+        .map_err(|e| e.to_string())?;
+    let name = ServerName::IpAddress(std::net::IpAddr::from([127, 0, 0, 1]).into());
+    let mut tls = tokio_rustls::TlsConnector::from(std::sync::Arc::new(config))
+        .connect(name, tcp)
+        .await
+        .map_err(|e| format!("handshake: {e}"))?;
+    let body = body.unwrap_or("");
+    let req = format!(
+        "{method} {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\n\
+         Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        body.len()
+    );
+    tls.write_all(req.as_bytes())
+        .await
+        .map_err(|e| e.to_string())?;
+    let mut buf = Vec::new();
+    // TLS 1.3 reports a refused client certificate on the first read.
+    let read = tls.read_to_end(&mut buf).await;
+    if buf.is_empty() {
+        return Err(format!("no answer: {read:?}"));
+    }
+    let text = String::from_utf8_lossy(&buf);
+    let status = text
+        .split(' ')
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(0);
+    let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
+    let json = serde_json::from_str(body).unwrap_or_default();
+    Ok((status, head.to_ascii_lowercase(), json))
+}
+
+/// The console's settings as `mfc-deploy` wrote them for console `desk` (its people alice,
+/// an operator, and vera, a viewer, who log in with their certificates; HTTPS with its
+/// certificate for 127.0.0.1), with a password hash added for each, as the file says to.
+fn login_settings(pki: &std::path::Path, alice_hash: &str) -> std::path::PathBuf {
+    let path = pki.join("consoles/desk/desk.console.toml");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let vera = mfc_console::cli::hash_password("vera-sees-only").unwrap();
+    let mut out = String::new();
+    for line in text.lines() {
+        out.push_str(line);
+        out.push('\n');
+        for (who, hash) in [("alice", alice_hash), ("vera", vera.as_str())] {
+            if line == format!("name = \"{who}\"") {
+                out.push_str(&format!("password_hash = \"{hash}\"\n"));
+            }
+        }
+    }
+    let hashes = out
+        .lines()
+        .filter(|l| l.starts_with("password_hash = "))
+        .count();
+    assert_eq!(hashes, 2, "{out}");
+    std::fs::write(&path, out).unwrap();
+    path
+}
+
+/// `mfc-console --hash-password`, the way an operator makes a user's hash.
+fn hash_with_the_binary(password: &str) -> String {
+    use std::io::Write;
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_console-under-test"))
+        .arg("--hash-password")
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    writeln!(child.stdin.take().unwrap(), "{password}").unwrap();
+    let out = child.wait_with_output().unwrap();
+    assert!(out.status.success());
+    let hash = String::from_utf8(out.stdout).unwrap().trim().to_string();
+    assert!(hash.starts_with("$argon2id$"), "{hash}");
+    assert!(mfc_console::cli::verify_password(&hash, password));
+    assert!(!mfc_console::cli::verify_password(&hash, "another"));
+    hash
+}
+
+/// Who may read and change on the service in the login test: the console's people, the
+/// console's own polls, and the test's judge.
+const LOGIN_ACCESS: &str = r#"
+verified = false
+operators = [
+  { name = "alice", role = "operator" },
+  { name = "vera", role = "viewer" },
+  { name = "desk", role = "viewer" },
+  { name = "judge", role = "viewer" },
+]
+"#;
+
+/// What plain HTTPS clients (no browser) get from the console with logins, after the
+/// browser's part: each is held to who its certificate or password says it is.
+async fn https_clients_are_held_to_who_they_are(
+    port: u16,
+    pki: &std::path::Path,
+    theirs: &std::path::Path,
+) {
+    let ca = pki.join("ca/ca.pem");
+    let cert = |dir: &std::path::Path, n: &str| {
+        let d = dir.join(format!("operators/{n}/{n}"));
+        (d.with_extension("pem"), d.with_extension("key"))
+    };
+    let ask = |client: Option<(std::path::PathBuf, std::path::PathBuf)>,
+               req: (&'static str, &'static str, Option<&'static str>)| {
+        let ca = ca.clone();
+        async move {
+            https(
+                port,
+                &ca,
+                client.as_ref().map(|(c, k)| (c.as_path(), k.as_path())),
+                req,
+            )
+            .await
+        }
+    };
+    let get = |p| ("GET", p, None);
+    // Nobody: the page (it holds the login form), and no API.
+    assert_eq!(ask(None, get("/")).await.unwrap().0, 200);
+    for p in ["/api/devices", "/api/me", "/api/devices/aero-1/audit"] {
+        let (s, _, b) = ask(None, get(p)).await.unwrap();
+        assert_eq!(s, 401, "{p}: {b}");
+    }
+    // alice's certificate: she is alice, an operator, by certificate.
+    let (s, _, b) = ask(Some(cert(pki, "alice")), get("/api/me")).await.unwrap();
+    assert_eq!(
+        (s, &b["name"], &b["role"], &b["proof"]),
+        (
+            200,
+            &"alice".into(),
+            &"operator".into(),
+            &"certificate".into()
+        ),
+        "{b}"
+    );
+    // vera's: her change is refused before it reaches the service.
+    let change = (
+        "POST",
+        "/api/devices/aero-1/gains",
+        Some(r#"{"channel": 1, "fields": {"kp": 11}}"#),
+    );
+    let (s, _, b) = ask(Some(cert(pki, "vera")), change).await.unwrap();
+    assert_eq!(s, 403, "{b}");
+    assert!(
+        b["reason"].as_str().unwrap_or_default().contains("viewer"),
+        "{b}"
+    );
+    // alice of another CA: no connection at all.
+    let r = ask(Some(cert(theirs, "alice")), get("/api/me")).await;
+    assert!(r.is_err(), "a certificate of another CA was taken: {r:?}");
+    // A password login gives a cookie no script reads, no other site sends, only over TLS.
+    let login = (
+        "POST",
+        "/api/login",
+        Some(r#"{"name": "alice", "password": "alice-changes-gains"}"#),
+    );
+    let (s, head, b) = ask(None, login).await.unwrap();
+    assert_eq!(s, 200, "{b}");
+    let cookie = head
+        .lines()
+        .find(|l| l.starts_with("set-cookie:"))
+        .unwrap_or_default();
+    for attr in [
+        "mfc_session=",
+        "httponly",
+        "samesite=strict",
+        "secure",
+        "path=/",
+    ] {
+        assert!(cookie.contains(attr), "{attr} not in {cookie:?}");
+    }
+    // Guessing vera's password: after five wrong ones her name is locked, and even the
+    // right one is refused until the lock ends.
+    for guess in ["a", "b", "c", "d", "e"] {
+        let body: &'static str =
+            Box::leak(format!(r#"{{"name": "vera", "password": "{guess}"}}"#).into_boxed_str());
+        let (s, _, b) = ask(None, ("POST", "/api/login", Some(body))).await.unwrap();
+        assert_eq!(s, 401, "{b}");
+    }
+    let right = (
+        "POST",
+        "/api/login",
+        Some(r#"{"name": "vera", "password": "vera-sees-only"}"#),
+    );
+    let (s, head, b) = ask(None, right).await.unwrap();
+    assert_eq!(s, 429, "{b}");
+    assert!(head.contains("retry-after: 30"), "{head}");
+}
+
+/// The service's record after the browser's part: alice's change, accepted, under her
+/// name, and nothing from vera (the console refused her before the service saw anything).
+async fn judge_login_audit(judge: &ops::Operator) {
+    let logs = ops::audit(judge, Some("aero-1"), Duration::from_secs(3))
+        .await
+        .unwrap();
+    let entries: Vec<&pb::AuditEntry> = logs.iter().flat_map(|l| &l.entries).collect();
+    assert_eq!(entries.len(), 1, "{entries:?}");
+    let e = entries[0];
+    assert_eq!(
+        (e.operator.as_str(), e.role.as_str(), e.accepted),
+        ("alice", "operator", true),
+        "{e:?}"
+    );
+    let kp: Vec<_> = e
+        .changes
+        .iter()
+        .map(|c| (c.what.as_str(), c.old.as_str(), c.new.as_str()))
+        .collect();
+    assert_eq!(kp, [("channel 1 kp", "9", "12")], "{e:?}");
+}
+
+/// A fleet's PKI and bundles in `dir` (`mfc-deploy`'s): its CA, the operators' and, with
+/// `console`, the bundle of console `desk` reached at 127.0.0.1, for alice and vera.
+fn login_pki(dir: &std::path::Path, operators: &str, console: bool) {
+    let desk = "consoles = [{ name = \"desk\", hosts = [\"127.0.0.1\"], people = [\"alice\", \"vera\"] }]\n";
+    let inv = mfc_deploy::Inventory::parse(&format!(
+        "services = [\"svc\"]\noperators = [{operators}]\n{}[router]\nhosts = [\"127.0.0.1\"]\n",
+        if console { desk } else { "" }
+    ))
+    .unwrap();
+    mfc_deploy::generate(&inv, dir, &[], time::OffsetDateTime::now_utc()).unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn the_console_with_logins_refuses_strangers_and_viewers() {
+    let _s = SERIAL.lock().await;
+    let scratch = scratch_dir("console-login");
+    let shots = match std::env::var("MFC_CONSOLE_SCREENSHOTS") {
+        Ok(d) if !d.is_empty() => workspace_root().join(d),
+        _ => scratch.join("screenshots"),
+    };
+    std::fs::create_dir_all(&shots).unwrap();
+    let (pki, theirs) = (scratch.join("pki"), scratch.join("theirs"));
+    login_pki(
+        &pki,
+        "\"alice\", { name = \"vera\", role = \"viewer\" }",
+        true,
+    );
+    login_pki(&theirs, "\"alice\"", false);
+
+    let mut s = load_scenario("1").unwrap();
+    s.duration = 180.0;
+    let c = shipped_controller("ipd").unwrap();
+    let mut cfg = service_config(&s, &c, &["aero-1".to_string()]);
+    cfg.access = Some(toml::from_str(LOGIN_ACCESS).unwrap());
+    let service = ServiceHandle::start(cfg, None).await.unwrap();
+    let ep = service.endpoint.clone();
+    let plant = tokio::spawn(run_plant(
+        vec![ep.clone()],
+        served_plant(&s, &c, "aero-1"),
+        true,
+    ));
+    let settings = login_settings(&pki, &hash_with_the_binary("alice-changes-gains"));
+    let args = ["--config", settings.to_str().unwrap(), "--operator", "desk"];
+    let (mut console, port) = start_console(&ep, &scratch, &args).await;
+    let judge = ops::Operator {
+        session: service.client().await.unwrap(),
+        key: None,
+        name: Some("judge".into()),
+    };
+    served_for_a_while(&judge, "aero-1").await;
+    let before = ops::config(&judge, "aero-1", Duration::from_secs(3))
+        .await
+        .unwrap();
+    assert_eq!(law_kp(&before.channels[1]), Some(9.0), "{before:?}");
+
+    let vars = [
+        ("MFC_CONSOLE_URL", format!("https://127.0.0.1:{port}/")),
+        ("MFC_CONSOLE_DEVICE", "aero-1".into()),
+        ("MFC_LOGIN_OPERATOR", "alice:alice-changes-gains".into()),
+        ("MFC_LOGIN_VIEWER", "vera:vera-sees-only".into()),
+    ];
+    let want = ["refused", "wrong", "viewer", "out", "operator", "done"];
+    let stages = drive("login.mjs", &vars, (&scratch, &shots), &want, |_| {}).await;
+    let who = stages[2].1["who"].as_str().unwrap_or_default();
+    assert!(who.contains("vera") && who.contains("viewer"), "{who}");
+    let after = ops::config(&judge, "aero-1", Duration::from_secs(3))
+        .await
+        .unwrap();
+    assert_eq!(law_kp(&after.channels[1]), Some(12.0), "{after:?}");
+    judge_login_audit(&judge).await;
+    https_clients_are_held_to_who_they_are(port, &pki, &theirs).await;
+
+    let _ = console.kill().await;
+    plant.abort();
+    let _ = judge.session.close().await;
     service.stop().await.unwrap();
 }

@@ -9,6 +9,7 @@
 //! [`ops`] holds what an operator asks of the controllers (status, configuration, gain and
 //! reference changes), shared by `mfcctl` and the browser console.
 
+pub mod https;
 pub mod ops;
 
 use std::path::PathBuf;

@@ -79,6 +79,7 @@ impl Asker for Session {
 
 /// A session, the operators' key and the operator's name: replies are checked, requests
 /// name who makes them ([`Asker`]).
+#[derive(Clone)]
 pub struct Operator {
     /// The session queries go through.
     pub session: Session,
@@ -103,6 +104,17 @@ pub fn local_user() -> Option<String> {
         .iter()
         .filter_map(|v| std::env::var(v).ok())
         .find(|n| keys::check_id(n).is_ok())
+}
+
+impl Operator {
+    /// The same session and key, asking as `name` (a console acting for the person
+    /// logged in).
+    pub fn as_named(&self, name: &str) -> Operator {
+        Operator {
+            name: Some(name.to_string()),
+            ..self.clone()
+        }
+    }
 }
 
 impl Asker for Operator {

@@ -21,6 +21,7 @@ const state = {
   next: 0,
   points: [],
   detail: null,
+  me: null,         // who the console acts for: {name, role, proof}, or null (log in)
   shape: '',        // the configuration's shape the forms were built for
   refFilled: false,
 };
@@ -55,7 +56,68 @@ async function api(path, options) {
   const r = await fetch(path, Object.assign({ cache: 'no-store' }, options || {}));
   let body = {};
   try { body = await r.json(); } catch (_) { /* not JSON */ }
+  // A session that ended (idle, too old, logged out elsewhere): back to the login form.
+  if (r.status === 401 && state.me) showLogin();
   return { ok: r.ok, status: r.status, body };
+}
+
+// ---- who is here -----------------------------------------------------------------------
+
+function showLogin() {
+  state.me = null;
+  $('main').hidden = true;
+  $('login').hidden = false;
+  $('who').textContent = '';
+  $('logout').hidden = true;
+}
+
+function showMe(me) {
+  state.me = me;
+  $('login').hidden = true;
+  $('main').hidden = false;
+  const how = me.proof === 'open' ? 'no login: loopback only' : `by ${me.proof}`;
+  $('who').textContent = `${me.name} · ${me.role} · ${how}`;
+  $('who').dataset.role = me.role;
+  $('logout').hidden = me.proof !== 'password';
+  const viewer = me.role === 'viewer';
+  for (const id of ['gain-apply', 'ref-apply']) $(id).disabled = viewer;
+  for (const p of document.querySelectorAll('.viewer-note')) p.hidden = !viewer;
+}
+
+async function checkMe() {
+  let r;
+  try { r = await api('api/me'); } catch (_) { return false; }
+  if (r.ok) { showMe(r.body); return true; }
+  showLogin();
+  return false;
+}
+
+async function submitLogin(ev) {
+  ev.preventDefault();
+  const p = $('login-result');
+  p.dataset.state = 'pending';
+  p.textContent = 'checking…';
+  let r;
+  try {
+    r = await api('api/login', {
+      method: 'POST', headers: { 'Content-Type': 'application/json' },
+      body: JSON.stringify({ name: $('login-name').value.trim(), password: $('login-password').value }),
+    });
+  } catch (e) { r = { ok: false, status: 0, body: { reason: String(e) } }; }
+  $('login-password').value = '';
+  if (r.ok) {
+    p.dataset.state = 'accepted';
+    p.textContent = '';
+    showMe(r.body);
+  } else {
+    p.dataset.state = 'refused';
+    p.textContent = r.body.reason || `failed (HTTP ${r.status})`;
+  }
+}
+
+async function logout() {
+  try { await api('api/logout', { method: 'POST', headers: { 'Content-Type': 'application/json' }, body: '{}' }); } catch (_) { /* gone anyway */ }
+  showLogin();
 }
 
 // ---- the device list -----------------------------------------------------------------
@@ -81,6 +143,7 @@ function select(id) {
 }
 
 async function refreshList() {
+  if (!state.me) return;
   let r;
   try { r = await api('api/devices'); } catch (e) {
     $('link').dataset.state = 'down';
@@ -123,7 +186,7 @@ async function refreshList() {
 
 async function refreshSeries() {
   const id = state.selected;
-  if (!id) return;
+  if (!id || !state.me) return;
   for (let round = 0; round < 5; round++) {
     let r;
     try { r = await api(`api/devices/${encodeURIComponent(id)}/series?since=${state.next}`); } catch (_) { return; }
@@ -296,7 +359,7 @@ function limitsText(l) {
 
 async function refreshDetail() {
   const id = state.selected;
-  if (!id) return;
+  if (!id || !state.me) return;
   let r;
   try { r = await api(`api/devices/${encodeURIComponent(id)}`); } catch (_) { return; }
   if (id !== state.selected) return;
@@ -432,7 +495,7 @@ function auditWho(e) {
 
 async function refreshAudit() {
   const id = state.selected;
-  if (!id) return;
+  if (!id || !state.me) return;
   let r;
   try { r = await api(`api/devices/${encodeURIComponent(id)}/audit`); } catch (_) { return; }
   if (id !== state.selected) return;
@@ -534,7 +597,10 @@ function every(ms, f) {
   setInterval(tick, ms);
 }
 
-window.addEventListener('DOMContentLoaded', () => {
+window.addEventListener('DOMContentLoaded', async () => {
+  $('login-form').addEventListener('submit', submitLogin);
+  $('logout').addEventListener('click', logout);
+  await checkMe();
   $('gain-form').addEventListener('submit', submitGains);
   $('ref-form').addEventListener('submit', submitReference);
   $('gain-channel').addEventListener('change', buildGainFields);
