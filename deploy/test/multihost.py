@@ -342,6 +342,62 @@ def audit_checks(env, alpha, results):
           f"file {on_file[-3:]} vs reply {served[-3:]}")
 
 
+# The shared console of the guide (`desk`, on the operator's host).
+DESK = "https://10.77.0.21:8443"
+
+
+def desk(env, path, cert=None, body=None):
+    """curl on the operator's host to the shared console, checking its certificate with
+    the fleet's CA: (HTTP status, JSON body or None); status 0 if no HTTP answer."""
+    cmd = "curl -sS -o - -w '\\n%{http_code}' --cacert /etc/mfc/ca.pem "
+    if cert:
+        cmd += f"--cert /etc/mfc/{cert}.pem --key /etc/mfc/{cert}.key "
+    if body is not None:
+        cmd += f"-H 'Content-Type: application/json' --data '{json.dumps(body)}' "
+    r = env.run("operator", cmd + DESK + path, timeout=30)
+    text, _, code = r.stdout.rpartition("\n")
+    try:
+        return int(code), (json.loads(text) if text.strip() else None)
+    except ValueError:
+        return 0, r.stderr.strip()[-200:]
+
+
+def console_checks(env, alpha, results):
+    """Phase 2: the shared console acts for the person its HTTPS client certificate names
+    (alice's change is audited under her name), refuses nobody and viewers, and its own
+    certificate may ask as its people only."""
+    st, body = desk(env, "/api/devices")
+    check(st == 401, "the shared console refuses its API to nobody (401)", f"{st} {body}")
+    st, me = desk(env, "/api/me", cert="alice")
+    check(st == 200 and me and (me.get("name"), me.get("role"), me.get("proof")) == ("alice", "operator", "certificate"),
+          "alice's certificate logs her in to the shared console", f"{st} {me}")
+    new = alpha * 1.001
+    change = {"channel": 0, "fields": {"alpha": new}}
+    st, body = desk(env, "/api/devices/aero-2/gains", cert="vera", body=change)
+    check(st == 403 and "viewer" in str(body), "vera (a viewer) cannot change through the console (403)",
+          f"{st} {body}")
+    st, body = desk(env, "/api/devices/aero-2/gains", cert="alice", body=change)
+    check(st == 200 and body and body.get("accepted"), "alice changes aero-2's alpha through the console",
+          f"{st} {body}")
+    entries, err = audit_of(env, "vera", "aero-2")
+    last = entries[-1] if entries else {}
+    moved = [c for c in last.get("changes", []) if c["what"] == "channel 0 alpha"]
+    check(last.get("operator") == "alice" and last.get("verified") and last.get("accepted")
+          and moved and abs(float(moved[0]["new"]) - new) <= 1e-9 * abs(new),
+          "the console's change is audited under alice's name (verified), not the console's",
+          json.dumps(last)[-400:] if last else str(err))
+    results["console_change"] = last
+    as_who = lambda who: env.run("operator", f"mfcctl --zenoh-config /etc/mfc/desk.json5 --key-file "
+                                 f"/etc/mfc/desk.auth --operator {who} --timeout-ms 1500 config aero-2", timeout=30)
+    r = as_who("alice")
+    check(r.returncode == 0, "the console's certificate may ask as alice (one of its people)",
+          r.stderr.strip()[-200:])
+    r = as_who("mallory")
+    check(r.returncode != 0 and "no answer" in r.stderr,
+          "the console's certificate cannot ask as anyone else: the router drops it",
+          f"exit {r.returncode}: {r.stderr.strip()[-200:]}")
+
+
 def devices_up(env):
     d, err = mfcctl(env, "devices")
     if d is None:
@@ -436,7 +492,7 @@ def main():
     v = sh([args.zenohd, "--version"], check_rc=False).stdout
     if "1.10.2" not in v:
         skip(f"{args.zenohd} is not zenohd 1.10.2, the pinned version: {v.strip()[:80]}")
-    for b in ["controller-service", "plant-agent", "mfcctl", "mfc-deploy", "mfc-lab", "zenoh-probe"]:
+    for b in ["controller-service", "plant-agent", "mfcctl", "mfc-deploy", "mfc-lab", "zenoh-probe", "mfc-console"]:
         if not (Path(args.bin_dir) / b).is_file():
             sys.exit(f"multihost: {b} is not in {args.bin_dir}: cargo build --workspace --bins")
     r = sh(["ip", "netns", "add", "mfc-probe-ns"], check_rc=False)
@@ -637,6 +693,7 @@ def run_test(env, args):
               "the service's configuration shows the new alpha", f"{got} vs {new}")
         results["alpha_change"] = {"from": alpha, "to": new}
         audit_checks(env, new, results)
+        console_checks(env, new, results)
 
     attacks(env)
 

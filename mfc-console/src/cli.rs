@@ -23,10 +23,12 @@ use std::sync::Arc;
 use clap::Parser;
 
 use crate::http::{router, Guard};
+use crate::login::HttpsSpec;
 use crate::net::{wire, Console};
 use crate::sessions::Doors;
 use crate::settings::Settings;
 use crate::ConsoleError;
+use transport::https::TlsAcceptor;
 
 /// The operator's live console: devices, live plots, status, gains and references, in a
 /// browser.
@@ -149,6 +151,37 @@ where
     }
 }
 
+/// The page's HTTPS (`[login.https]`) and its acceptor, if any; refused off loopback
+/// without it.
+fn https_of(
+    settings: &Settings,
+    addr: SocketAddr,
+) -> Result<(Option<HttpsSpec>, Option<TlsAcceptor>), ConsoleError> {
+    let https = settings.login.as_ref().and_then(|l| l.https.clone());
+    if !addr.ip().is_loopback() && https.is_none() {
+        return Err(ConsoleError::Usage(format!(
+            "listening on {addr}: off loopback the console needs [login] with [login.https] in \
+             --config (without, anyone who reaches the port would act as its operator)"
+        )));
+    }
+    if addr.ip().is_unspecified() && settings.allowed_hosts.is_empty() {
+        tracing::warn!(
+            "listening on {addr}: only localhost names are accepted as Host; name the others in allowed_hosts"
+        );
+    }
+    let Some(h) = &https else {
+        return Ok((None, None));
+    };
+    let files = transport::https::TlsFiles {
+        cert_file: h.cert_file.clone(),
+        key_file: h.key_file.clone(),
+        client_ca_file: h.client_ca_file.clone(),
+    };
+    let a = transport::https::acceptor(&files, transport::https::ClientCerts::Optional)
+        .map_err(|e| ConsoleError::Usage(format!("[login.https]: {e}")))?;
+    Ok((https, Some(a)))
+}
+
 /// Run the console until `stop` completes.
 pub async fn run(
     cli: ConsoleCli,
@@ -169,31 +202,7 @@ pub async fn run(
         addr: cli.listen_http,
         source,
     })?;
-    let https = settings.login.as_ref().and_then(|l| l.https.clone());
-    if !addr.ip().is_loopback() && https.is_none() {
-        return Err(ConsoleError::Usage(format!(
-            "listening on {addr}: off loopback the console needs [login] with [login.https] in \
-             --config (without, anyone who reaches the port would act as its operator)"
-        )));
-    }
-    if addr.ip().is_unspecified() && settings.allowed_hosts.is_empty() {
-        tracing::warn!(
-            "listening on {addr}: only localhost names are accepted as Host; name the others in allowed_hosts"
-        );
-    }
-    let acceptor = match &https {
-        Some(h) => {
-            let files = transport::https::TlsFiles {
-                cert_file: h.cert_file.clone(),
-                key_file: h.key_file.clone(),
-                client_ca_file: h.client_ca_file.clone(),
-            };
-            let a = transport::https::acceptor(&files, transport::https::ClientCerts::Optional)
-                .map_err(|e| ConsoleError::Usage(format!("[login.https]: {e}")))?;
-            Some(a)
-        }
-        None => None,
-    };
+    let (https, acceptor) = https_of(&settings, addr)?;
     // No message larger than what the console reads is reassembled (see transport).
     let session = cli
         .zenoh

@@ -348,8 +348,8 @@ async fn gains(
     Path(id): Path<String>,
     b: Result<Json<GainChange>, JsonRejection>,
 ) -> Response {
-    if let Err(r) = sessions::may_change(&who) {
-        return r;
+    if let Err((status, reason)) = sessions::may_change(&who) {
+        return refused(status, "console", reason);
     }
     let op = c.operator.as_named(&who.name);
     let change = match body(b) {
@@ -414,8 +414,8 @@ async fn reference(
     Path(id): Path<String>,
     b: Result<Json<ReferenceChange>, JsonRejection>,
 ) -> Response {
-    if let Err(r) = sessions::may_change(&who) {
-        return r;
+    if let Err((status, reason)) = sessions::may_change(&who) {
+        return refused(status, "console", reason);
     }
     let op = c.operator.as_named(&who.name);
     let change = match body(b) {
@@ -516,6 +516,31 @@ mod tests {
             .check(
                 &post,
                 &headers(&[own, json, ("sec-fetch-site", "cross-site")])
+            )
+            .is_err());
+    }
+
+    #[test]
+    fn over_https_a_change_comes_from_the_https_origin_only() {
+        let g = Guard::new("10.0.0.5:8443".parse().unwrap(), &[], true);
+        assert_eq!(
+            g.hosts(),
+            ["10.0.0.5:8443"],
+            "no localhost names off loopback"
+        );
+        let post = Method::POST;
+        let own = ("host", "10.0.0.5:8443");
+        let json = ("content-type", "application/json");
+        assert!(g
+            .check(
+                &post,
+                &headers(&[own, json, ("origin", "https://10.0.0.5:8443")])
+            )
+            .is_ok());
+        assert!(g
+            .check(
+                &post,
+                &headers(&[own, json, ("origin", "http://10.0.0.5:8443")])
             )
             .is_err());
     }

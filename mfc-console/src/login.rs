@@ -397,7 +397,7 @@ mod tests {
         assert_eq!(s.user("alice").unwrap().role, Role::Operator);
         let bad = |t: &str| spec(t).unwrap_err();
         assert!(bad("users = []").contains("no users"));
-        assert!(bad(&format!("{ok}{}", ok.replace("alice", "alice"))).contains("twice"));
+        assert!(bad(&format!("{ok}{ok}")).contains("twice"));
         assert!(bad(&ok.replace("operator", "root")).contains("unknown variant"));
         assert!(bad(&ok.replace("\"alice\"", "\"al ice\"")).contains("al ice"));
         assert!(bad(&ok.replace(&h, "hunter2")).contains("password_hash"));

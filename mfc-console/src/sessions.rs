@@ -158,13 +158,13 @@ pub async fn identify(State(d): State<Arc<Doors>>, mut req: Request, next: Next)
     }
 }
 
-/// Whether `who` may change anything; if not, the refusal.
-pub fn may_change(who: &Identity) -> Result<(), Response> {
+/// Whether `who` may change anything; if not, the status and the reason.
+pub fn may_change(who: &Identity) -> Result<(), (StatusCode, String)> {
     if who.role.may(crate::login::Action::Change) {
         return Ok(());
     }
     tracing::warn!(user = %who.name, "refused a change: a {}", who.role.name());
-    Err(refusal(
+    Err((
         StatusCode::FORBIDDEN,
         format!(
             "{} is a {} here: viewers see, operators change",
@@ -192,7 +192,7 @@ pub async fn me(State(d): State<Arc<Doors>>, who: Option<Extension<Identity>>) -
 /// `POST /api/login`.
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct Credentials {
+pub struct PasswordLogin {
     name: String,
     password: String,
 }
@@ -201,7 +201,7 @@ pub struct Credentials {
 /// fresh session.
 pub async fn login(
     State(d): State<Arc<Doors>>,
-    b: Result<Json<Credentials>, JsonRejection>,
+    b: Result<Json<PasswordLogin>, JsonRejection>,
 ) -> Response {
     let Some(spec) = &d.spec else {
         return refusal(
@@ -282,4 +282,93 @@ pub async fn logout(State(d): State<Arc<Doors>>, headers: HeaderMap) -> Response
     r.headers_mut()
         .insert(header::SET_COOKIE, d.set_cookie("", Some(0)));
     r
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::login::UserSpec;
+
+    fn spec() -> LoginSpec {
+        let user = |name: &str, role, password_hash: Option<String>| UserSpec {
+            name: name.into(),
+            role,
+            password_hash,
+        };
+        LoginSpec {
+            users: vec![
+                user(
+                    "alice",
+                    Role::Operator,
+                    Some(crate::cli::hash_password("pw").unwrap()),
+                ),
+                user("vera", Role::Viewer, None),
+            ],
+            idle_minutes: 30.0,
+            max_hours: 12.0,
+            max_sessions: 4,
+            https: None,
+        }
+    }
+
+    fn cookie_header(token: &str) -> HeaderMap {
+        let mut h = HeaderMap::new();
+        h.insert(
+            header::COOKIE,
+            HeaderValue::from_str(&format!("a=b; {COOKIE}={token}")).unwrap(),
+        );
+        h
+    }
+
+    #[test]
+    fn a_request_is_made_by_its_session_or_its_certificate_or_nobody() {
+        let d = Doors::new(Some(spec()), "desk".into(), true);
+        let none = HeaderMap::new();
+        assert_eq!(d.who(&none, None), None);
+        assert_eq!(d.who(&none, Some(&PeerName(None))), None);
+        // A certificate of a user: that user, with the role the settings give.
+        let vera = d.who(&none, Some(&PeerName(Some("vera".into())))).unwrap();
+        assert_eq!((vera.role, vera.proof), (Role::Viewer, Proof::Certificate));
+        assert!(may_change(&vera).is_err());
+        // A certificate of the CA but of nobody listed: nobody.
+        assert_eq!(d.who(&none, Some(&PeerName(Some("mallory".into())))), None);
+        // A session: its person, whatever the certificate says.
+        let alice = Identity {
+            name: "alice".into(),
+            role: Role::Operator,
+            proof: Proof::Password,
+        };
+        d.sessions().open("t0k3n".into(), alice.clone(), d.now());
+        assert_eq!(
+            d.who(
+                &cookie_header("t0k3n"),
+                Some(&PeerName(Some("vera".into())))
+            ),
+            Some(alice.clone())
+        );
+        assert!(may_change(&alice).is_ok());
+        assert_eq!(d.who(&cookie_header("forged"), None), None);
+        // Its cookie: not for scripts, not for other sites, only over TLS.
+        let c = d.set_cookie("t0k3n", None);
+        assert_eq!(
+            c.to_str().unwrap(),
+            "mfc_session=t0k3n; Path=/; HttpOnly; SameSite=Strict; Secure"
+        );
+    }
+
+    #[test]
+    fn without_login_everyone_is_the_consoles_operator() {
+        let d = Doors::new(None, "alice".into(), false);
+        let who = d.who(&HeaderMap::new(), None).unwrap();
+        assert_eq!(
+            (who.name.as_str(), who.role, who.proof),
+            ("alice", Role::Operator, Proof::Open)
+        );
+        assert!(!d.closed());
+        assert!(!d
+            .set_cookie("x", Some(0))
+            .to_str()
+            .unwrap()
+            .contains("Secure"));
+    }
 }

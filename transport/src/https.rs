@@ -11,7 +11,8 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use rustls::pki_types::{CertificateDer, PrivateKeyDer};
-use tokio_rustls::TlsAcceptor;
+/// What [`acceptor`] makes and [`serve`] takes.
+pub use tokio_rustls::TlsAcceptor;
 
 /// Why TLS cannot be set up: the file and what is wrong with it.
 #[derive(Debug, thiserror::Error)]
