@@ -16,6 +16,10 @@ use protocol::pb;
 /// Entries a device keeps and hands over (the file keeps every one).
 pub const KEPT: usize = 64;
 
+/// Of those, refusals kept at most: an operator who floods refused requests (a viewer
+/// trying changes, say) pushes out older refusals, never the changes that were made.
+pub const REFUSALS_KEPT: usize = KEPT / 2;
+
 /// Longest `asked` kept (characters): a refused request is recorded abridged.
 const ASKED_LEN: usize = 400;
 
@@ -58,12 +62,33 @@ pub fn abridged(asked: &str) -> String {
     out
 }
 
-/// Add `entry` to a device's latest entries, dropping the oldest beyond [`KEPT`].
+/// Add `entry` to a device's latest entries, dropping the oldest beyond [`KEPT`] (and the
+/// oldest refusals beyond [`REFUSALS_KEPT`]).
 pub fn push(tail: &mut VecDeque<pb::AuditEntry>, entry: pb::AuditEntry) {
-    if tail.len() == KEPT {
-        tail.pop_front();
-    }
     tail.push_back(entry);
+    trim(tail);
+}
+
+/// Keep the newest entries: at most [`KEPT`], of which at most [`REFUSALS_KEPT`] refused.
+fn trim(tail: &mut VecDeque<pb::AuditEntry>) {
+    let refused = tail.iter().filter(|e| !e.accepted).count();
+    if tail.len() <= KEPT && refused <= REFUSALS_KEPT {
+        return;
+    }
+    let (mut kept, mut refusals) = (VecDeque::with_capacity(KEPT), 0);
+    while let Some(e) = tail.pop_back() {
+        if kept.len() == KEPT {
+            break;
+        }
+        if !e.accepted {
+            if refusals == REFUSALS_KEPT {
+                continue;
+            }
+            refusals += 1;
+        }
+        kept.push_front(e);
+    }
+    *tail = kept;
 }
 
 /// Join the entries a partner handed over to a device's own: those not already there
@@ -86,8 +111,8 @@ pub fn merge(
     }
     let mut all: Vec<pb::AuditEntry> = tail.drain(..).chain(new.iter().cloned()).collect();
     all.sort_by(|a, b| (a.unix_ns, &a.member, a.n).cmp(&(b.unix_ns, &b.member, b.n)));
-    let skip = all.len().saturating_sub(KEPT);
-    tail.extend(all.into_iter().skip(skip));
+    tail.extend(all);
+    trim(tail);
     let mut new = new;
     new.reverse();
     new
@@ -214,6 +239,36 @@ mod tests {
         assert_eq!(added.len(), KEPT);
         assert_eq!(tail.len(), KEPT);
         assert_eq!(tail.back().unwrap().n, 999);
+    }
+
+    #[test]
+    fn a_flood_of_refusals_never_pushes_out_the_changes_made() {
+        let mut tail = VecDeque::new();
+        for n in 0..10 {
+            push(&mut tail, entry("c-1", n));
+        }
+        let refusal = |n| pb::AuditEntry {
+            accepted: false,
+            ..entry("c-1", n)
+        };
+        for n in 10..1000 {
+            push(&mut tail, refusal(n));
+        }
+        assert_eq!(tail.len(), 10 + REFUSALS_KEPT);
+        let made: Vec<u64> = tail.iter().filter(|e| e.accepted).map(|e| e.n).collect();
+        assert_eq!(made, (0..10).collect::<Vec<_>>());
+        assert_eq!(tail.back().unwrap().n, 999, "the newest refusals stay");
+        // Changes made later still push out the oldest of all.
+        for n in 1000..1100 {
+            push(&mut tail, entry("c-1", n));
+        }
+        assert_eq!(tail.len(), KEPT);
+        assert!(tail.iter().all(|e| e.accepted && e.n >= 1036));
+        // A partner's flood of refusals handed over is held to the same bound.
+        let flood: Vec<_> = (2000..2100).map(refusal).collect();
+        merge(&mut tail, &flood);
+        assert_eq!(tail.iter().filter(|e| !e.accepted).count(), REFUSALS_KEPT);
+        assert_eq!(tail.len(), KEPT);
     }
 
     #[test]

@@ -60,6 +60,35 @@ enum Command {
     Netsim(NetsimArgs),
     /// Print a controller-service configuration that serves these devices on a scenario.
     ServiceConfig(ServiceConfigArgs),
+    /// The robustness benchmark: every controller, untouched, on a seeded family of
+    /// variations of the AERO (slower rotors, added mass, springs, damping, noise, motor
+    /// gains, encoders), each against its own nominal run: a table and a heat map.
+    Robust(RobustArgs),
+}
+
+#[derive(clap::Args)]
+struct RobustArgs {
+    /// Scenario (its plant must be the AERO simulator): a file or a shipped one.
+    #[arg(long, default_value = "2")]
+    scenario: String,
+    /// Controllers, comma-separated (shipped names or files). Default: every shipped one.
+    #[arg(long, value_delimiter = ',')]
+    controllers: Vec<String>,
+    /// Random combinations of every factor, after the one-factor variations.
+    #[arg(long, default_value_t = 8)]
+    random: usize,
+    /// Seed of the random combinations.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Controllers the others must not lose to on any variation.
+    #[arg(long, value_delimiter = ',', default_value = "pid,adrc")]
+    baselines: Vec<String>,
+    /// Threads (default: the machine's cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Output directory (robust.md, robust.json, robust-heatmap.svg).
+    #[arg(long, default_value = "out/robust")]
+    out: PathBuf,
 }
 
 #[derive(clap::Args)]
@@ -339,7 +368,73 @@ fn real_main() -> Result<()> {
         },
         Command::Netsim(args) => netsim(&args),
         Command::ServiceConfig(args) => print_service_config(&args),
+        Command::Robust(args) => robust(&args),
     }
+}
+
+/// `robust`: the family run, judged, written.
+fn robust(args: &RobustArgs) -> Result<()> {
+    use crate::robust::{family, heat_map, judge, markdown, run};
+    let scenario = load_scenario(&args.scenario)?;
+    let names: Vec<String> = if args.controllers.is_empty() {
+        plant::scenario::SHIPPED_CONTROLLERS
+            .iter()
+            .map(|(n, _)| n.to_string())
+            .collect()
+    } else {
+        args.controllers.clone()
+    };
+    let sets = names
+        .iter()
+        .map(|n| {
+            let c = load_controller(n)?;
+            scenario.check_controller(&c)?;
+            Ok(c)
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let variations = family(args.seed, args.random);
+    let threads = args.threads.unwrap_or_else(|| {
+        std::thread::available_parallelism().map_or(1, std::num::NonZeroUsize::get)
+    });
+    eprintln!(
+        "robust: {} controllers x {} variations of scenario {} on {threads} threads",
+        sets.len(),
+        variations.len(),
+        scenario.name
+    );
+    let started = std::time::Instant::now();
+    let cells = run(&scenario, &sets, &variations, threads)?;
+    let baselines: Vec<&str> = args.baselines.iter().map(String::as_str).collect();
+    let verdicts = judge(&cells, &baselines);
+    let title = format!(
+        "{}: RMS over each controller's nominal RMS (seed {}, {} random)",
+        scenario.name, args.seed, args.random
+    );
+    let md = format!(
+        "# Robustness: {title}\n\n{}",
+        markdown(&verdicts, &cells, &variations)
+    );
+    std::fs::create_dir_all(&args.out)?;
+    std::fs::write(args.out.join("robust.md"), &md)?;
+    std::fs::write(
+        args.out.join("robust.json"),
+        serde_json::to_string_pretty(&serde_json::json!({
+            "scenario": scenario.name, "seed": args.seed, "variations": variations,
+            "cells": cells, "verdicts": verdicts,
+        }))?,
+    )?;
+    std::fs::write(
+        args.out.join("robust-heatmap.svg"),
+        heat_map(&title, &scenario.names(), (&verdicts, &cells), &variations),
+    )?;
+    println!("{md}");
+    eprintln!(
+        "robust: {} runs in {:.1} s; {}",
+        cells.len(),
+        started.elapsed().as_secs_f64(),
+        args.out.display()
+    );
+    Ok(())
 }
 
 /// `sim`: one scenario offline, its record written.

@@ -4,6 +4,7 @@
 //!   simulator or a driver process), no network, no real time;
 //! * [`tune`]: a fair tuner (the same search and budget for every controller kind);
 //! * [`compare`]: every controller on every scenario, as a table;
+//! * [`robust`]: every controller, untouched, on a seeded family of variations of the AERO;
 //! * [`netsim`]: the networked loop in lockstep, the service's and the agent's own rules
 //!   over a seeded model of the link;
 //! * [`harness`]: a controller service and N plants in-process over Zenoh on loopback, the
@@ -25,4 +26,5 @@ pub mod demo;
 pub mod harness;
 pub mod netsim;
 pub mod offline;
+pub mod robust;
 pub mod tune;

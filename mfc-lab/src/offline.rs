@@ -32,6 +32,9 @@ pub enum RunError {
     /// The plant could not be started or failed during the run.
     #[error("plant: {0}")]
     Plant(#[from] PlantError),
+    /// A benchmark ([`crate::robust`]) cannot vary this plant, or one of its runs failed.
+    #[error("{0}")]
+    Bench(String),
     /// A networked run in lockstep ([`crate::netsim`]) could not be set up or went wrong.
     #[error("network simulation: {reason}")]
     Link {
