@@ -245,6 +245,41 @@ pub fn hold_flips(r: &[f64], v: &[f64], settle: usize, h: f64) -> f64 {
     }
 }
 
+/// What one run measured, per channel (see [`Cell`]).
+#[derive(Debug, Clone)]
+struct Measured {
+    rms: Vec<f64>,
+    saturated: Vec<f64>,
+    chatter: Vec<f64>,
+    hold_flips: Vec<f64>,
+    safe: bool,
+}
+
+/// `controller` on `scenario` with its AERO's parameters `params`.
+fn measure(
+    scenario: &Scenario,
+    params: AeroParams,
+    controller: &ControllerSet,
+) -> Result<Measured, RunError> {
+    let mut s = scenario.clone();
+    s.plant = PlantSource::Aero(params);
+    let sim = simulate(&s, controller, true)?;
+    let m = &sim.summary.channels;
+    let settle = (1.0 / s.period).round() as usize;
+    Ok(Measured {
+        rms: m.iter().map(|x| x.rms).collect(),
+        saturated: m.iter().map(|x| x.saturated_fraction).collect(),
+        chatter: m.iter().map(|x| x.control_variation).collect(),
+        hold_flips: sim
+            .record
+            .traces
+            .iter()
+            .map(|tr| hold_flips(&tr.y_ref, &tr.v, settle, s.period))
+            .collect(),
+        safe: sim.summary.completed && sim.summary.limit_hits == 0,
+    })
+}
+
 /// Run every controller on every variation of `scenario`'s AERO; the cells, nominal first
 /// per controller. Runs are spread over `threads` threads; the result does not depend on
 /// how many.
@@ -265,38 +300,12 @@ pub fn run(
         .collect();
     let next = std::sync::atomic::AtomicUsize::new(0);
     let results = std::sync::Mutex::new(BTreeMap::new());
-    let one =
-        |c: usize, v: usize| -> Result<(Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>, bool), RunError> {
-            let mut s = scenario.clone();
-            s.plant = PlantSource::Aero(variations[v].params(base));
-            let sim = simulate(&s, &controllers[c], true)?;
-            let m = &sim.summary.channels;
-            let flips = (0..s.channels.len())
-                .map(|i| {
-                    let tr = &sim.record.traces[i];
-                    hold_flips(
-                        &tr.y_ref,
-                        &tr.v,
-                        (1.0 / s.period).round() as usize,
-                        s.period,
-                    )
-                })
-                .collect();
-            let safe = sim.summary.completed && sim.summary.limit_hits == 0;
-            Ok((
-                m.iter().map(|x| x.rms).collect(),
-                m.iter().map(|x| x.saturated_fraction).collect(),
-                m.iter().map(|x| x.control_variation).collect(),
-                flips,
-                safe,
-            ))
-        };
     std::thread::scope(|scope| {
         for _ in 0..threads.max(1) {
             scope.spawn(|| loop {
                 let j = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                 let Some(&(c, v)) = jobs.get(j) else { break };
-                let r = one(c, v);
+                let r = measure(scenario, variations[v].params(base), &controllers[c]);
                 results
                     .lock()
                     .unwrap_or_else(|e| e.into_inner())
@@ -304,32 +313,32 @@ pub fn run(
             });
         }
     });
-    let results = results.into_inner().unwrap_or_else(|e| e.into_inner());
+    let mut results = results.into_inner().unwrap_or_else(|e| e.into_inner());
     let mut cells = Vec::with_capacity(jobs.len());
-    for c in 0..controllers.len() {
+    for (c, controller) in controllers.iter().enumerate() {
         let mut nominal: Option<Vec<f64>> = None;
-        for v in 0..variations.len() {
-            let (rms, saturated, chatter, hold_flips, safe) = match results.get(&(c, v)) {
-                Some(Ok(x)) => x.clone(),
+        for (v, variation) in variations.iter().enumerate() {
+            let m = match results.remove(&(c, v)) {
+                Some(Ok(m)) => m,
                 Some(Err(e)) => {
                     return Err(RunError::Bench(format!(
                         "{} on {}: {e}",
-                        controllers[c].name, variations[v].name
+                        controller.name, variation.name
                     )))
                 }
                 None => return Err(RunError::Bench("a run did not finish".into())),
             };
-            let base = nominal.get_or_insert_with(|| rms.clone());
-            let ratio = rms.iter().zip(base.iter()).map(|(r, b)| r / b).collect();
+            let base = nominal.get_or_insert_with(|| m.rms.clone());
+            let ratio = m.rms.iter().zip(base.iter()).map(|(r, b)| r / b).collect();
             cells.push(Cell {
-                controller: controllers[c].name.clone(),
-                variation: variations[v].name.clone(),
-                rms,
+                controller: controller.name.clone(),
+                variation: variation.name.clone(),
+                rms: m.rms,
                 ratio,
-                saturated,
-                chatter,
-                hold_flips,
-                safe,
+                saturated: m.saturated,
+                chatter: m.chatter,
+                hold_flips: m.hold_flips,
+                safe: m.safe,
             });
         }
     }
