@@ -402,8 +402,16 @@ async fn a_gateway_agent_serves_its_plants_in_one_batch_per_period() {
                 .iter()
                 .find(|d| d.device_id == r.device_id)
                 .unwrap();
-            // Every sample reached the service under its own device, in a batch.
-            assert_eq!(dev.samples, k.periods, "{dev:?}");
+            // Every sample is accounted for under its own device: taken, or counted lost
+            // (control traffic is published with `Drop`: on a starved machine a batch may
+            // be dropped, and the service sees the gap).
+            assert_eq!(dev.samples + dev.lost, k.periods, "{dev:?}");
+            if dev.lost > 0 {
+                eprintln!(
+                    "attempt {attempt}: {}: {} of {} samples lost on the way",
+                    r.device_id, dev.lost, k.periods
+                );
+            }
             assert_eq!((dev.rejected, dev.stale, dev.duplicates), (0, 0, 0));
             let held = (k.holding_periods + k.local_periods) as f64 / k.periods as f64;
             if held > system_tests::max_held_fraction() {
