@@ -68,10 +68,12 @@ enum Command {
 
 #[derive(clap::Args)]
 struct RobustArgs {
-    /// Scenario (its plant must be the AERO simulator): a file or a shipped one.
+    /// Scenario: a shipped AERO one or a file (the AERO simulator, or the heater's or the
+    /// DC motor's driver).
     #[arg(long, default_value = "2")]
     scenario: String,
-    /// Controllers, comma-separated (shipped names or files). Default: every shipped one.
+    /// Controllers, comma-separated (shipped names or files). Default: every shipped AERO
+    /// one; a driver plant's must be named.
     #[arg(long, value_delimiter = ',')]
     controllers: Vec<String>,
     /// Random combinations of every factor, after the one-factor variations.
@@ -374,15 +376,26 @@ fn real_main() -> Result<()> {
 
 /// `robust`: the family run, judged, written.
 fn robust(args: &RobustArgs) -> Result<()> {
-    use crate::robust::{family, heat_map, judge, markdown, run};
+    use crate::robust::{driver_factors, driver_family, family, heat_map, judge, markdown, run};
+    use plant::scenario::PlantSource;
     let scenario = load_scenario(&args.scenario)?;
-    let names: Vec<String> = if args.controllers.is_empty() {
-        plant::scenario::SHIPPED_CONTROLLERS
+    let variations = match &scenario.plant {
+        PlantSource::Aero(_) => family(args.seed, args.random),
+        PlantSource::Driver(cmd) => match driver_factors(&cmd.argv) {
+            Some(table) => driver_family(table, args.seed, args.random),
+            None => bail!(
+                "no family for the driver {:?}: robust varies the AERO simulator, heater.py and dc_motor.py",
+                cmd.argv
+            ),
+        },
+    };
+    let names: Vec<String> = match (&scenario.plant, args.controllers.is_empty()) {
+        (_, false) => args.controllers.clone(),
+        (PlantSource::Aero(_), true) => SHIPPED_CONTROLLERS
             .iter()
             .map(|(n, _)| n.to_string())
-            .collect()
-    } else {
-        args.controllers.clone()
+            .collect(),
+        (_, true) => bail!("a driver plant's controllers are files: name them with --controllers"),
     };
     let sets = names
         .iter()
@@ -392,7 +405,6 @@ fn robust(args: &RobustArgs) -> Result<()> {
             Ok(c)
         })
         .collect::<Result<Vec<_>>>()?;
-    let variations = family(args.seed, args.random);
     let threads = args.threads.unwrap_or_else(|| {
         std::thread::available_parallelism().map_or(1, std::num::NonZeroUsize::get)
     });

@@ -19,9 +19,14 @@
 //! | `motor` | x0.5 .. x2 | `kpp`, `kyy`, `kpy`, `kyp` |
 //! | `encoder` | /1 .. /8 | `pitch_counts`, `yaw_counts` divided |
 //!
-//! No I/O here: [`family`] and [`judge`] are plain functions of their inputs, and the
-//! runs are [`crate::offline::simulate`] (lockstep, no clock), so a seed gives the same
-//! table on every machine.
+//! The example plants behind drivers are varied through their command lines
+//! ([`driver_factors`]): the heater's gain, time constant and dead time, the DC motor's
+//! friction, backlash and inertia, each x0.5 to x2 of the scenario's value (or the driver's
+//! default where the scenario gives none).
+//!
+//! No I/O here but the runs: [`family`] and [`judge`] are plain functions of their inputs,
+//! and the runs are [`crate::offline::simulate`] (lockstep, no clock), so a seed gives the
+//! same table on every machine.
 
 use std::collections::BTreeMap;
 
@@ -140,8 +145,124 @@ impl Factor {
 pub struct Variation {
     /// `nominal`, one factor (`rotorx4`), or `random-N`.
     pub name: String,
-    /// The factors moved, and where to.
+    /// The AERO's factors moved, and where to.
     pub factors: Vec<(Factor, f64)>,
+    /// A driver plant's factors ([`DriverFactor::name`]) and their multipliers.
+    pub scales: Vec<(&'static str, f64)>,
+}
+
+/// A factor of a plant behind a driver: the flags it scales (with the driver's defaults,
+/// used where the scenario gives no value) and its range of multipliers.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DriverFactor {
+    /// Its name in tables.
+    pub name: &'static str,
+    /// Flags and their defaults.
+    pub flags: &'static [(&'static str, f64)],
+    /// Multipliers: (low, high).
+    pub range: (f64, f64),
+}
+
+/// The heater (`plants/heater/heater.py`): static gain, time constant, dead time.
+pub const HEATER: [DriverFactor; 3] = [
+    DriverFactor {
+        name: "gain",
+        flags: &[("--gain", 2.5)],
+        range: (0.5, 2.0),
+    },
+    DriverFactor {
+        name: "tau",
+        flags: &[("--tau", 20.0)],
+        range: (0.5, 2.0),
+    },
+    DriverFactor {
+        name: "deadtime",
+        flags: &[("--dead-time", 2.0)],
+        range: (0.5, 2.0),
+    },
+];
+
+/// The DC motor (`plants/dc-motor/dc_motor.py`): friction (motor and load), backlash,
+/// inertia (motor and load).
+pub const MOTOR: [DriverFactor; 3] = [
+    DriverFactor {
+        name: "friction",
+        flags: &[("--coulomb", 0.01), ("--load-coulomb", 0.002)],
+        range: (0.5, 2.0),
+    },
+    DriverFactor {
+        name: "backlash",
+        flags: &[("--backlash", 0.01)],
+        range: (0.5, 2.0),
+    },
+    DriverFactor {
+        name: "inertia",
+        flags: &[("--inertia", 2e-5), ("--load-inertia", 1e-4)],
+        range: (0.5, 2.0),
+    },
+];
+
+/// The factors of the driver `argv` runs, if the benchmark knows it (by its script's
+/// file name).
+pub fn driver_factors(argv: &[String]) -> Option<&'static [DriverFactor]> {
+    argv.iter().find_map(|a| {
+        let file = std::path::Path::new(a).file_name()?.to_str()?;
+        match file {
+            "heater.py" => Some(&HEATER[..]),
+            "dc_motor.py" => Some(&MOTOR[..]),
+            _ => None,
+        }
+    })
+}
+
+/// `argv` with each factor of `scales` applied: every flag it names set to its value in
+/// `argv` (or its default) times the multiplier.
+pub fn driver_argv(argv: &[String], table: &[DriverFactor], scales: &[(&str, f64)]) -> Vec<String> {
+    let mut out = argv.to_vec();
+    for &(name, x) in scales {
+        let Some(f) = table.iter().find(|f| f.name == name) else {
+            continue;
+        };
+        for &(flag, default) in f.flags {
+            match out.iter().position(|a| a == flag) {
+                Some(i) if i + 1 < out.len() => {
+                    let v: f64 = out[i + 1].parse().unwrap_or(default);
+                    out[i + 1] = format!("{}", v * x);
+                }
+                _ => out.extend([flag.to_string(), format!("{}", default * x)]),
+            }
+        }
+    }
+    out
+}
+
+/// A driver plant's family: nominal, each factor alone at each end, then `random`
+/// combinations (log-uniform multipliers) drawn with `seed`.
+pub fn driver_family(table: &[DriverFactor], seed: u64, random: usize) -> Vec<Variation> {
+    let one = |name: String, scales| Variation {
+        name,
+        factors: vec![],
+        scales,
+    };
+    let mut v = vec![one("nominal".into(), vec![])];
+    for f in table {
+        for x in [f.range.0, f.range.1] {
+            v.push(one(format!("{}x{x}", f.name), vec![(f.name, x)]));
+        }
+    }
+    let mut rng = Xoshiro256StarStar::seed_from_u64(seed);
+    for i in 0..random {
+        let scales = table
+            .iter()
+            .map(|f| {
+                let u = (rng.next_u64() >> 11) as f64 / (1u64 << 53) as f64;
+                let x = (f.range.0.ln() + u * (f.range.1.ln() - f.range.0.ln())).exp();
+                (f.name, (x * 1000.0).round() / 1000.0)
+            })
+            .collect();
+        v.push(one(format!("random-{}", i + 1), scales));
+    }
+    v
 }
 
 impl Variation {
@@ -164,6 +285,7 @@ pub fn family(seed: u64, random: usize) -> Vec<Variation> {
     let mut v = vec![Variation {
         name: "nominal".into(),
         factors: vec![],
+        scales: vec![],
     }];
     for f in Factor::ALL {
         let (lo, nominal, hi) = f.range();
@@ -171,6 +293,7 @@ pub fn family(seed: u64, random: usize) -> Vec<Variation> {
             v.push(Variation {
                 name: f.label(x),
                 factors: vec![(f, x)],
+                scales: vec![],
             });
         }
     }
@@ -193,6 +316,7 @@ pub fn family(seed: u64, random: usize) -> Vec<Variation> {
         v.push(Variation {
             name: format!("random-{}", i + 1),
             factors,
+            scales: vec![],
         });
     }
     v
@@ -255,14 +379,14 @@ struct Measured {
     safe: bool,
 }
 
-/// `controller` on `scenario` with its AERO's parameters `params`.
+/// `controller` on `scenario` with `plant` instead of its own.
 fn measure(
     scenario: &Scenario,
-    params: AeroParams,
+    plant: PlantSource,
     controller: &ControllerSet,
 ) -> Result<Measured, RunError> {
     let mut s = scenario.clone();
-    s.plant = PlantSource::Aero(params);
+    s.plant = plant;
     let sim = simulate(&s, controller, true)?;
     let m = &sim.summary.channels;
     let settle = (1.0 / s.period).round() as usize;
@@ -280,21 +404,37 @@ fn measure(
     })
 }
 
-/// Run every controller on every variation of `scenario`'s AERO; the cells, nominal first
-/// per controller. Runs are spread over `threads` threads; the result does not depend on
-/// how many.
+/// `scenario`'s plant as `v` varies it.
+fn varied(scenario: &Scenario, v: &Variation) -> Result<PlantSource, RunError> {
+    match &scenario.plant {
+        PlantSource::Aero(base) => Ok(PlantSource::Aero(v.params(base))),
+        PlantSource::Driver(cmd) => {
+            let table = driver_factors(&cmd.argv).ok_or_else(|| {
+                RunError::Bench(format!(
+                    "no family for the driver {:?}: the benchmark varies the AERO simulator, heater.py and dc_motor.py",
+                    cmd.argv
+                ))
+            })?;
+            let mut cmd = cmd.clone();
+            cmd.argv = driver_argv(&cmd.argv, table, &v.scales);
+            Ok(PlantSource::Driver(cmd))
+        }
+    }
+}
+
+/// Run every controller on every variation of `scenario`'s plant; the cells, nominal
+/// first per controller. Runs are spread over `threads` threads; the result does not
+/// depend on how many.
 pub fn run(
     scenario: &Scenario,
     controllers: &[ControllerSet],
     variations: &[Variation],
     threads: usize,
 ) -> Result<Vec<Cell>, RunError> {
-    let PlantSource::Aero(base) = &scenario.plant else {
-        return Err(RunError::Bench(
-            "the robustness benchmark varies the AERO simulator: this scenario's plant is a driver"
-                .into(),
-        ));
-    };
+    let plants = variations
+        .iter()
+        .map(|v| varied(scenario, v))
+        .collect::<Result<Vec<_>, _>>()?;
     let jobs: Vec<(usize, usize)> = (0..controllers.len())
         .flat_map(|c| (0..variations.len()).map(move |v| (c, v)))
         .collect();
@@ -305,7 +445,7 @@ pub fn run(
             scope.spawn(|| loop {
                 let j = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                 let Some(&(c, v)) = jobs.get(j) else { break };
-                let r = measure(scenario, variations[v].params(base), &controllers[c]);
+                let r = measure(scenario, plants[v].clone(), &controllers[c]);
                 results
                     .lock()
                     .unwrap_or_else(|e| e.into_inner())
@@ -347,7 +487,7 @@ pub fn run(
 
 /// One controller over the whole family.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct Verdict {
+pub struct RobustVerdict {
     /// The controller set's name.
     pub controller: String,
     /// Nominal RMS per channel.
@@ -386,7 +526,7 @@ fn max_of(x: &[f64]) -> f64 {
 
 /// Each controller's verdict over the family; `baselines` (e.g. `pid`, `adrc`) are what
 /// the others must not lose to on any variation.
-pub fn judge(cells: &[Cell], baselines: &[&str]) -> Vec<Verdict> {
+pub fn judge(cells: &[Cell], baselines: &[&str]) -> Vec<RobustVerdict> {
     let mut names: Vec<&str> = Vec::new();
     for c in cells {
         if !names.contains(&c.controller.as_str()) {
@@ -424,7 +564,7 @@ pub fn judge(cells: &[Cell], baselines: &[&str]) -> Vec<Verdict> {
                     .map(|c| c.variation.clone())
                     .collect()
             };
-            Verdict {
+            RobustVerdict {
                 controller: name.to_string(),
                 nominal_rms: mine.first().map(|c| c.rms.clone()).unwrap_or_default(),
                 worst,
@@ -443,7 +583,7 @@ pub fn judge(cells: &[Cell], baselines: &[&str]) -> Vec<Verdict> {
 }
 
 /// The verdicts as a Markdown table, then every cell's worst-channel ratio.
-pub fn markdown(verdicts: &[Verdict], cells: &[Cell], variations: &[Variation]) -> String {
+pub fn markdown(verdicts: &[RobustVerdict], cells: &[Cell], variations: &[Variation]) -> String {
     let mut s = String::from(
         "| controller | nominal RMS per channel | worst ratio (where) | median ratio | worst chatter V (where) | hold flips/s (median) | unsafe runs | lost to PID/ADRC on |\n|---|---|---|---|---|---|---|---|\n",
     );
@@ -500,7 +640,7 @@ pub fn markdown(verdicts: &[Verdict], cells: &[Cell], variations: &[Variation]) 
 pub fn heat_map(
     title: &str,
     channels: &[String],
-    (verdicts, cells): (&[Verdict], &[Cell]),
+    (verdicts, cells): (&[RobustVerdict], &[Cell]),
     variations: &[Variation],
 ) -> String {
     let (left, top, w, h) = (190.0, 150.0, 46.0, 24.0);
@@ -614,6 +754,7 @@ mod tests {
                 (Factor::Encoder, 8.0),
                 (Factor::Noise, 2.0),
             ],
+            scales: vec![],
         }
         .params(&base);
         assert_eq!(p.rotor_time_constant, base.rotor_time_constant * 4.0);
@@ -624,6 +765,48 @@ mod tests {
                 < 1e-12
         );
         assert!(p.validate().is_ok());
+    }
+
+    #[test]
+    fn a_driver_plant_is_varied_through_its_command_line() {
+        let argv: Vec<String> = ["python3", "../heater.py", "--seed", "2", "--gain", "2.0"]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        let table = driver_factors(&argv).unwrap();
+        assert_eq!(table[0].name, "gain");
+        // The scenario's own gain is scaled; the dead time, absent, from its default.
+        let out = driver_argv(&argv, table, &[("gain", 0.5), ("deadtime", 2.0)]);
+        assert_eq!(
+            out[..6],
+            ["python3", "../heater.py", "--seed", "2", "--gain", "1"]
+        );
+        assert_eq!(out[6..], ["--dead-time", "4"]);
+        assert_eq!(driver_argv(&argv, table, &[]), argv);
+        assert!(driver_factors(&["python3".into(), "other.py".into()]).is_none());
+        let motor = driver_factors(&["x/dc_motor.py".into()]).unwrap();
+        let out = driver_argv(&["dc_motor.py".into()], motor, &[("inertia", 2.0)]);
+        assert_eq!(
+            out[1..],
+            ["--inertia", "0.00004", "--load-inertia", "0.0002"]
+        );
+        let f = driver_family(&HEATER, 3, 2);
+        let names: Vec<&str> = f.iter().map(|v| v.name.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "nominal",
+                "gainx0.5",
+                "gainx2",
+                "taux0.5",
+                "taux2",
+                "deadtimex0.5",
+                "deadtimex2",
+                "random-1",
+                "random-2"
+            ]
+        );
+        assert_eq!(driver_family(&HEATER, 3, 2), f);
     }
 
     #[test]
