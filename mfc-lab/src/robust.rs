@@ -30,10 +30,9 @@
 
 use std::collections::BTreeMap;
 
+use aero_sim::rng::Rng;
 use aero_sim::AeroParams;
 use plant::scenario::{ControllerSet, PlantSource, Scenario};
-use rand_xoshiro::rand_core::{Rng as _, SeedableRng};
-use rand_xoshiro::Xoshiro256StarStar;
 use serde::Serialize;
 
 use crate::offline::{simulate, RunError};
@@ -250,15 +249,11 @@ pub fn driver_family(table: &[DriverFactor], seed: u64, random: usize) -> Vec<Va
             v.push(one(format!("{}x{x}", f.name), vec![(f.name, x)]));
         }
     }
-    let mut rng = Xoshiro256StarStar::seed_from_u64(seed);
+    let mut rng = Rng::new(seed);
     for i in 0..random {
         let scales = table
             .iter()
-            .map(|f| {
-                let u = (rng.next_u64() >> 11) as f64 / (1u64 << 53) as f64;
-                let x = (f.range.0.ln() + u * (f.range.1.ln() - f.range.0.ln())).exp();
-                (f.name, (x * 1000.0).round() / 1000.0)
-            })
+            .map(|f| (f.name, draw(&mut rng, f.range.0, f.range.1)))
             .collect();
         v.push(one(format!("random-{}", i + 1), scales));
     }
@@ -297,20 +292,13 @@ pub fn family(seed: u64, random: usize) -> Vec<Variation> {
             });
         }
     }
-    let mut rng = Xoshiro256StarStar::seed_from_u64(seed);
+    let mut rng = Rng::new(seed);
     for i in 0..random {
         let factors = Factor::ALL
             .iter()
             .map(|&f| {
                 let (lo, _, hi) = f.range();
-                let u = (rng.next_u64() >> 11) as f64 / (1u64 << 53) as f64;
-                // Log-uniform where the range is a ratio, uniform where it starts at 0.
-                let x = if lo > 0.0 {
-                    (lo.ln() + u * (hi.ln() - lo.ln())).exp()
-                } else {
-                    lo + u * (hi - lo)
-                };
-                (f, (x * 1000.0).round() / 1000.0)
+                (f, draw(&mut rng, lo, hi))
             })
             .collect();
         v.push(Variation {
@@ -320,6 +308,18 @@ pub fn family(seed: u64, random: usize) -> Vec<Variation> {
         });
     }
     v
+}
+
+/// A value in [lo, hi], to 3 decimals: log-uniform where the range is a ratio, uniform
+/// where it starts at 0.
+fn draw(rng: &mut Rng, lo: f64, hi: f64) -> f64 {
+    let u = rng.uniform();
+    let x = if lo > 0.0 {
+        (lo.ln() + u * (hi.ln() - lo.ln())).exp()
+    } else {
+        lo + u * (hi - lo)
+    };
+    (x * 1000.0).round() / 1000.0
 }
 
 /// One controller on one variation.

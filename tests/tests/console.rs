@@ -579,9 +579,10 @@ async fn https_clients_are_held_to_who_they_are(
     // Guessing vera's password: after five wrong ones her name is locked, and even the
     // right one is refused until the lock ends.
     for guess in ["a", "b", "c", "d", "e"] {
-        let body: &'static str =
-            Box::leak(format!(r#"{{"name": "vera", "password": "{guess}"}}"#).into_boxed_str());
-        let (s, _, b) = ask(None, ("POST", "/api/login", Some(body))).await.unwrap();
+        let body = format!(r#"{{"name": "vera", "password": "{guess}"}}"#);
+        let (s, _, b) = https(port, &ca, None, ("POST", "/api/login", Some(&body)))
+            .await
+            .unwrap();
         assert_eq!(s, 401, "{b}");
     }
     let right = (
