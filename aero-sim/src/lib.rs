@@ -291,6 +291,9 @@ pub struct AeroSim {
     /// Last yaw reading (time, quantised angle) and the rate derived from it (rad/s).
     last_yaw: Option<(f64, f64)>,
     last_rate: f64,
+    /// The same from the true yaw, for [`AeroSim::truth`].
+    last_true_yaw: f64,
+    last_true_rate: f64,
     /// Arrivals of the pitch arm at its stop.
     stop_hits: usize,
     /// Whether the arm is at its stop now, so that resting there counts as one hit.
@@ -321,6 +324,8 @@ impl AeroSim {
             rng: Rng::new(seed),
             last_yaw: None,
             last_rate: 0.0,
+            last_true_yaw: 0.0,
+            last_true_rate: 0.0,
             stop_hits: 0,
             at_stop: false,
         })
@@ -372,11 +377,24 @@ impl AeroSim {
             Some((t0, _)) if self.t <= t0 => {}
             Some((t0, y0)) => {
                 self.last_rate = (yaw - y0) / (self.t - t0);
+                self.last_true_rate = (self.x.yaw - self.last_true_yaw) / (self.t - t0);
                 self.last_yaw = Some((self.t, yaw));
+                self.last_true_yaw = self.x.yaw;
             }
-            None => self.last_yaw = Some((self.t, yaw)),
+            None => {
+                self.last_yaw = Some((self.t, yaw));
+                self.last_true_yaw = self.x.yaw;
+            }
         }
         [self.last_rate / 1000.0, pitch]
+    }
+
+    /// What the last [`AeroSim::measure`] would have read with perfect sensors: the true
+    /// pitch, and the true yaw's rate over the same interval (rad/ms). A benchmark judges
+    /// what the plant did on this, so that a noisier or coarser sensor is not scored as
+    /// tracking error the controller could never remove.
+    pub fn truth(&self) -> [f64; 2] {
+        [self.last_true_rate / 1000.0, self.x.pitch]
     }
 
     /// Apply the channel outputs `v` from now on (saturated at ±max_voltage, a non-finite

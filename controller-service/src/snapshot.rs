@@ -12,12 +12,13 @@ use mfc::trajectory::Piece;
 
 /// Bumped whenever the layout changes; a file of another version is refused and its
 /// device starts from the configuration (and a handed state of another version is not
-/// restored). 7: a handed device carries its latest audit entries. 6: a handed device carries its configuration's version and whether the
-/// sender holds its lease. 2: the estimators' rings span their window
-/// only (files of 1 would be read with the wrong layout). 4: the intelligent laws'
-/// `hold_estimate_filter` and `hold_after`, and the time their reference has rested.
-/// 5: an intelligent controller keeps its estimate's trend, for predictions.
-pub const SNAPSHOT_VERSION: u32 = 7;
+/// restored). 2: the estimators' rings span their window only (files of 1 would be read
+/// with the wrong layout). 4: the intelligent laws' `hold_estimate_filter` and
+/// `hold_after`, and the time their reference has rested. 5: an intelligent controller
+/// keeps its estimate's trend, for predictions. 6: a handed device carries its
+/// configuration's version and whether the sender holds its lease. 7: a handed device
+/// carries its latest audit entries. 8: the estimators' `first_window`.
+pub const SNAPSHOT_VERSION: u32 = 8;
 
 /// What a device snapshot holds.
 #[derive(Debug, Clone, Encode, Decode)]

@@ -85,6 +85,17 @@ struct RobustArgs {
     /// Controllers the others must not lose to on any variation.
     #[arg(long, value_delimiter = ',', default_value = "pid,adrc")]
     baselines: Vec<String>,
+    /// AERO factors to vary, comma-separated (rotor, mass, spring, damping, noise, motor,
+    /// encoder). Default: all.
+    #[arg(long, value_delimiter = ',')]
+    factors: Vec<String>,
+    /// Controllers held to the bars: exit status 1 if one's worst RMS ratio exceeds
+    /// --bound, a baseline does better on some variation, or a run is unsafe.
+    #[arg(long, value_delimiter = ',')]
+    check: Vec<String>,
+    /// The largest RMS over nominal that --check accepts.
+    #[arg(long, default_value_t = 2.0)]
+    bound: f64,
     /// Threads (default: the machine's cores).
     #[arg(long)]
     threads: Option<usize>,
@@ -376,11 +387,26 @@ fn real_main() -> Result<()> {
 
 /// `robust`: the family run, judged, written.
 fn robust(args: &RobustArgs) -> Result<()> {
-    use crate::robust::{driver_factors, driver_family, family, heat_map, judge, markdown, run};
+    use crate::robust::{
+        check, driver_factors, driver_family, family_of, heat_map, judge, markdown, run, Factor,
+    };
     use plant::scenario::PlantSource;
     let scenario = load_scenario(&args.scenario)?;
+    let factors = if args.factors.is_empty() {
+        Factor::ALL.to_vec()
+    } else {
+        let parse = |n: &String| {
+            Factor::parse(n).with_context(|| {
+                format!("no factor `{n}`: rotor, mass, spring, damping, noise, motor, encoder")
+            })
+        };
+        args.factors.iter().map(parse).collect::<Result<Vec<_>>>()?
+    };
     let variations = match &scenario.plant {
-        PlantSource::Aero(_) => family(args.seed, args.random),
+        PlantSource::Aero(_) => family_of(&factors, args.seed, args.random),
+        PlantSource::Driver(_) if !args.factors.is_empty() => {
+            bail!("--factors names the AERO's factors; a driver plant's family is fixed")
+        }
         PlantSource::Driver(cmd) => match driver_factors(&cmd.argv) {
             Some(table) => driver_family(table, args.seed, args.random),
             None => bail!(
@@ -446,6 +472,18 @@ fn robust(args: &RobustArgs) -> Result<()> {
         started.elapsed().as_secs_f64(),
         args.out.display()
     );
+    let held: Vec<&str> = args.check.iter().map(String::as_str).collect();
+    let failures = check(&verdicts, &held, args.bound);
+    if !failures.is_empty() {
+        bail!("the bars are broken:\n  {}", failures.join("\n  "));
+    }
+    if !held.is_empty() {
+        eprintln!(
+            "robust: {} hold the bars ({}x, no baseline better, safe)",
+            held.join(", "),
+            args.bound
+        );
+    }
     Ok(())
 }
 

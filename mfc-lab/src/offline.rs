@@ -50,8 +50,12 @@ pub struct OfflineSummary {
     pub scenario: String,
     /// Controller name.
     pub controller: String,
-    /// Per channel.
+    /// Per channel, on the measured outputs (what a rig would show).
     pub channels: Vec<ChannelMetrics>,
+    /// The same on the plant's true outputs, where it can tell (the AERO simulator): free
+    /// of the sensors' noise and quantisation, what the benchmarks judge.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub truth: Option<Vec<ChannelMetrics>>,
     /// Times the plant hit a mechanical limit (the AERO's pitch stop): a safety excursion.
     pub limit_hits: usize,
     /// Whether the run went to the end (a controller error stops it).
@@ -85,6 +89,8 @@ pub fn simulate(
     let h = scenario.period;
     let steps = scenario.steps();
     let mut acc = vec![Accumulator::default(); n];
+    let mut acc_true = vec![Accumulator::default(); n];
+    let mut has_truth = true;
     let mut periods = RunRecord::new(
         scenario.names(),
         scenario.channels.iter().map(|c| c.unit.clone()).collect(),
@@ -113,8 +119,14 @@ pub fn simulate(
             // The plant limited the input: keep the estimator honest.
             let _ = mimo.report_applied(&applied);
         }
+        let truth = plant.truth().filter(|x| x.len() == n);
+        has_truth &= truth.is_some();
         for (i, c) in scenario.channels.iter().enumerate() {
-            acc[i].add(y[i] - refs[i].y, h, applied[i], c.saturated(applied[i]));
+            let saturated = c.saturated(applied[i]);
+            acc[i].add(y[i] - refs[i].y, h, applied[i], saturated);
+            if let Some(x) = &truth {
+                acc_true[i].add(x[i] - refs[i].y, h, applied[i], saturated);
+            }
         }
         if record {
             let y_ref: Vec<f64> = refs.iter().map(|r| r.y).collect();
@@ -138,6 +150,7 @@ pub fn simulate(
         scenario: scenario.name.clone(),
         controller: controller.name.clone(),
         channels: finish(&acc, scenario),
+        truth: has_truth.then(|| finish(&acc_true, scenario)),
         limit_hits,
         completed: !failed,
     };

@@ -51,6 +51,15 @@ fn quantisation_aware(mut law: LawConfig) -> LawConfig {
     law
 }
 
+/// Estimates from 5 intervals on while the window fills, rather than hold 0 V for a
+/// window (`plants/aero/controllers/ipd.toml`: the arm sags under the mass meanwhile).
+fn started_early(mut law: LawConfig) -> LawConfig {
+    if let LawConfig::Intelligent { estimator, .. } = &mut law {
+        estimator.first_window = 5;
+    }
+    law
+}
+
 /// The untuned starting point of a kind on the AERO.
 pub fn starting_point(kind: &str) -> Option<ControllerSet> {
     use ControllerKind::*;
@@ -71,14 +80,22 @@ pub fn starting_point(kind: &str) -> Option<ControllerSet> {
         // the observer and the estimate filter as `plants/aero/controllers/ipd.toml`
         // explains. Azimuth: the paper's iP.
         "ipd" => vec![
-            intelligent(P, Order::One, 0.001, 0.5, 0.0, 0.0, 10),
-            quantisation_aware(intelligent(PD, Order::Two, 0.2, 9.0, 0.0, 3.0, 20)),
+            started_early(intelligent(P, Order::One, 0.001, 0.5, 0.0, 0.0, 10)),
+            started_early(quantisation_aware(intelligent(
+                PD,
+                Order::Two,
+                0.2,
+                9.0,
+                0.0,
+                3.0,
+                20,
+            ))),
         ],
         // The same as first shipped: alpha by the magnitude rule for the step map (0.1),
         // y' from the derivative filter, F_est unfiltered.
         "ipd-plain" => vec![
-            intelligent(P, Order::One, 0.001, 0.5, 0.0, 0.0, 10),
-            intelligent(PD, Order::Two, 0.1, 9.0, 0.0, 3.0, 20),
+            started_early(intelligent(P, Order::One, 0.001, 0.5, 0.0, 0.0, 10)),
+            started_early(intelligent(PD, Order::Two, 0.1, 9.0, 0.0, 3.0, 20)),
         ],
         // From the linear model (default mixing): azimuth DC gain |Kyp|/Dy/1000 = 1.2e-4
         // (rad/ms)/V, time constant 1 s; pitch DC gain Kpy/Ksp = 0.056 rad/V, natural

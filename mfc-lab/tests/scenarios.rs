@@ -74,11 +74,10 @@ fn rms_from(r: &plant::record::RunRecord, ch: usize, from: f64) -> f64 {
 }
 
 /// The paper's claim, on the simulator: adding the 4 g mass without retuning does not
-/// deteriorate iP tracking (RMS of scenarios 3 and 4 within 10 % of 1 and 2), once the
-/// controller controls. In the first 0.2 s its estimation window fills and it holds 0 V:
-/// with the mass the pitch falls meanwhile, whatever the law, and that drop (an RMS of
-/// about 1e-2 rad over the first second, the same for every iPD) is not tracking. The
-/// whole-run ratios, drop included, are in `docs/results.md`.
+/// deteriorate iPD tracking: RMS of scenarios 3 and 4 within 10 % of 1 and 2 over the
+/// whole run, the start included. Holding 0 V while the estimation window fills (0.2 s)
+/// let the pitch fall 15 mrad under the mass, 1.22 times scenario 1's RMS; the shipped
+/// `ipd` estimates from `first_window` intervals on instead (`mfc::EstimatorConfig`).
 #[test]
 fn mass_does_not_deteriorate_mfc_tracking() {
     let c = shipped_controller("ipd").unwrap();
@@ -86,7 +85,7 @@ fn mass_does_not_deteriorate_mfc_tracking() {
         let a = simulate(&load_scenario(nominal).unwrap(), &c, true).unwrap();
         let b = simulate(&load_scenario(mass).unwrap(), &c, true).unwrap();
         for ch in 0..2 {
-            let ratio = rms_from(&b.record, ch, 1.0) / rms_from(&a.record, ch, 1.0);
+            let ratio = rms_from(&b.record, ch, 0.0) / rms_from(&a.record, ch, 0.0);
             assert!(
                 ratio < 1.10,
                 "scenario {mass} vs {nominal}, channel {ch}: ratio {ratio}"

@@ -87,6 +87,15 @@ pub struct EstimatorConfig {
     /// zero-order-hold assumption across the gap is no longer credible. Default: infinite
     /// (never restart), which keeps the estimator exact for the ultra-local model.
     pub max_interval: f64,
+    /// While the window fills (at start, after a gap, after a restart), answer from this
+    /// many intervals on, over the samples there are, instead of not at all. Default 0:
+    /// no answer before `window` intervals, so the controller holds its start value for a
+    /// whole window; a plant that moves meanwhile (an arm sagging under a load) goes
+    /// uncorrected. A shorter window's estimate is noisier (for n = 2 the noise gain grows
+    /// as the window's inverse square), which the `estimate_filter` of an intelligent
+    /// controller smooths. At least the order's minimal kernel (1 interval for n = 1, 2
+    /// for n = 2), at most `window`; the algebraic and closed-loop forms only.
+    pub first_window: usize,
 }
 
 impl Default for EstimatorConfig {
@@ -95,6 +104,7 @@ impl Default for EstimatorConfig {
             kind: EstimatorKind::Algebraic,
             window: 10,
             max_interval: f64::INFINITY,
+            first_window: 0,
         }
     }
 }
@@ -113,6 +123,13 @@ impl EstimatorConfig {
         match self.kind {
             EstimatorKind::LowPass { time_constant } => {
                 positive("time_constant", time_constant)?;
+                if self.first_window != 0 {
+                    return Err(MfcError::InvalidParameter {
+                        name: "first_window",
+                        value: self.first_window as f64,
+                        reason: "the low-pass form answers after its minimal kernel already",
+                    });
+                }
                 if capacity < min {
                     return Err(MfcError::WindowTooLong { len: min, capacity });
                 }
@@ -135,9 +152,25 @@ impl EstimatorConfig {
                         capacity,
                     });
                 }
-                Ok(())
+                self.validate_first_window(min)
             }
         }
+    }
+
+    fn validate_first_window(&self, min: usize) -> Result<()> {
+        let w = self.first_window;
+        if w == 0 || (min..=self.window).contains(&w) {
+            return Ok(());
+        }
+        Err(MfcError::InvalidParameter {
+            name: "first_window",
+            value: w as f64,
+            reason: if w < min {
+                "must be 0 (off) or at least the order's minimal kernel (1 interval for n = 1, 2 for n = 2)"
+            } else {
+                "must be at most `window`"
+            },
+        })
     }
 
     /// Intervals the window holds for this configuration.
@@ -536,10 +569,14 @@ impl<const CAP: usize> Estimator<CAP> {
     ///
     /// `Err(NotReady)` until the window is full (`window` intervals; the minimal
     /// `order.min_intervals()` for the low-pass form), so the noise gain is always the
-    /// configured one.
+    /// configured one; with `first_window`, from that many intervals on, over the window
+    /// there is.
     pub fn estimate(&self, order: Order) -> Result<LinearEstimate> {
         let need = match self.config.kind {
             EstimatorKind::LowPass { .. } => order.min_intervals(),
+            _ if self.config.first_window > 0 => {
+                self.config.first_window.max(order.min_intervals())
+            }
             _ => self.config.window,
         };
         if self.len < need {

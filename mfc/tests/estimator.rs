@@ -259,3 +259,79 @@ fn trapezoid_rule_is_biased_exact_weights_are_not() {
         eprintln!("n={n}: exact weights {exact:.6}, trapezoid {trap:.6}, truth {f}");
     }
 }
+
+/// With `first_window`, the estimator answers from that many intervals on while its window
+/// fills, over the samples it has, and the answer is exact for a constant F there too; after
+/// a gap restarts the window, the same again. Without it, nothing before the window is full.
+#[test]
+fn first_window_answers_early_and_exactly() {
+    for (n, order) in [(1u8, Order::One), (2, Order::Two)] {
+        let (f, alpha, h) = (-3.5, 0.4, 0.01);
+        let t: Vec<f64> = (0..40).map(|k| f64::from(k) * h).collect();
+        let inputs: Vec<f64> = (0..40).map(|k| f64::from(k % 7) - 3.0).collect();
+        let data = ultra_local(n, f, alpha, &t, &inputs, 0.2, -0.5);
+        let cfg = EstimatorConfig {
+            window: 20,
+            first_window: 4,
+            ..EstimatorConfig::default()
+        };
+        let mut early: Estimator = Estimator::new(cfg, order).unwrap();
+        let mut late: Estimator = Estimator::new(
+            EstimatorConfig {
+                first_window: 0,
+                ..cfg
+            },
+            order,
+        )
+        .unwrap();
+        for (k, &(t, y, u)) in data.iter().enumerate() {
+            early.push(t, y, u).unwrap();
+            late.push(t, y, u).unwrap();
+            // k intervals after sample k.
+            match early.estimate(order) {
+                Ok(e) => {
+                    assert!(k >= 4, "{order:?}: an answer after {k} intervals");
+                    let got = e.at(alpha);
+                    assert!(
+                        (got - f).abs() < 1e-6 * (1.0 + f.abs()),
+                        "{order:?} k={k}: {got}"
+                    );
+                }
+                Err(MfcError::NotReady { .. }) => assert!(k < 4, "{order:?}: none after {k}"),
+                Err(e) => panic!("{e}"),
+            }
+            assert_eq!(late.estimate(order).is_ok(), k >= 20, "{order:?} k={k}");
+        }
+    }
+}
+
+/// `first_window` is checked: at least the order's minimal kernel, at most the window, and
+/// not with the low-pass form (which answers after its minimal kernel anyway).
+#[test]
+fn first_window_is_checked() {
+    let cfg = |first_window, kind| EstimatorConfig {
+        kind,
+        window: 10,
+        first_window,
+        ..EstimatorConfig::default()
+    };
+    let alg = EstimatorKind::Algebraic;
+    let lp = EstimatorKind::LowPass {
+        time_constant: 0.05,
+    };
+    for (c, order, ok) in [
+        (cfg(0, alg), Order::Two, true),
+        (cfg(2, alg), Order::Two, true),
+        (cfg(1, alg), Order::One, true),
+        (cfg(10, alg), Order::Two, true),
+        (cfg(1, alg), Order::Two, false),
+        (cfg(11, alg), Order::One, false),
+        (cfg(3, lp), Order::One, false),
+    ] {
+        let got = Estimator::<64>::new(c, order);
+        assert_eq!(got.is_ok(), ok, "{c:?} {order:?}");
+        if let Err(e) = got {
+            assert!(e.to_string().contains("first_window"), "{e}");
+        }
+    }
+}

@@ -51,4 +51,7 @@ impl Plant for AeroPlant {
     fn limit_hits(&self) -> usize {
         self.sim.stop_hits()
     }
+    fn truth(&self) -> Option<Vec<f64>> {
+        Some(self.sim.truth().to_vec())
+    }
 }

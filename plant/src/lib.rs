@@ -92,6 +92,12 @@ pub trait Plant: Send {
     fn limit_hits(&self) -> usize {
         0
     }
+    /// The true outputs at the last [`Plant::read`], free of the sensors' noise and
+    /// quantisation, where the plant can tell (a simulator); `None` for a real plant or a
+    /// driver. Benchmarks judge what the plant did on it.
+    fn truth(&self) -> Option<Vec<f64>> {
+        None
+    }
 }
 
 /// Open the plant a scenario names: the AERO simulator with `seed`, or its driver process.

@@ -82,6 +82,7 @@ pub fn channel_to_pb(c: &ChannelConfig) -> pb::ChannelConfig {
                 } else {
                     0.0
                 },
+                first_window: u32::try_from(estimator.first_window).unwrap_or(u32::MAX),
             }),
         }),
         LawConfig::Pid { params } => Law::Pid(pb::Pid {
@@ -167,6 +168,7 @@ pub fn channel_from_pb(c: &pb::ChannelConfig) -> Result<ChannelConfig, ConvertEr
                     } else {
                         e.max_interval
                     },
+                    first_window: e.first_window as usize,
                 },
             }
         }
