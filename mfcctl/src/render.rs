@@ -182,7 +182,10 @@ fn law(c: &pb::ChannelConfig) -> String {
                         .to_lowercase()
                 })
                 .unwrap_or_else(|_| format!("kind {}", i.kind));
-            let window = i.estimator.map_or(0, |e| e.window);
+            let window = match i.estimator {
+                Some(e) if e.first_window > 0 => format!("{}, first {}", e.window, e.first_window),
+                e => e.map_or(0, |e| e.window).to_string(),
+            };
             format!(
                 "i{} order {} alpha {} kp {} ki {} kd {} (window {window})",
                 kind.trim_start_matches('i'),

@@ -311,7 +311,7 @@ pub const SHIPPED_SCENARIOS: [(&str, &str, &str); 5] = [
 ];
 
 /// The shipped AERO controller sets: (name, text).
-pub const SHIPPED_CONTROLLERS: [(&str, &str); 8] = [
+pub const SHIPPED_CONTROLLERS: [(&str, &str); 10] = [
     ("ip", include_str!("../../plants/aero/controllers/ip.toml")),
     (
         "ipi",
@@ -332,6 +332,14 @@ pub const SHIPPED_CONTROLLERS: [(&str, &str); 8] = [
     (
         "ipd-tuned",
         include_str!("../../plants/aero/controllers/ipd-tuned.toml"),
+    ),
+    (
+        "ipd-fast",
+        include_str!("../../plants/aero/controllers/ipd-fast.toml"),
+    ),
+    (
+        "ipd-lag",
+        include_str!("../../plants/aero/controllers/ipd-lag.toml"),
     ),
     (
         "pid",
