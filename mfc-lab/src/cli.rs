@@ -64,6 +64,50 @@ enum Command {
     /// variations of the AERO (slower rotors, added mass, springs, damping, noise, motor
     /// gains, encoders), each against its own nominal run: a table and a heat map.
     Robust(RobustArgs),
+    /// Commissioning offline: from a controller whose alpha is wrong (--alpha-scale), find
+    /// alpha and the order of every intelligent channel from the plant's response to a
+    /// bounded square wave, then run the scenario with what was found, against --compare
+    Commission(CommissionArgs),
+}
+
+#[derive(clap::Args)]
+struct CommissionArgs {
+    /// Scenario: a shipped AERO one or a file (any plant).
+    #[arg(long, default_value = "2")]
+    scenario: String,
+    /// Controller to commission (default: the scenario's).
+    #[arg(long)]
+    controller: Option<String>,
+    /// Multiply every intelligent channel's alpha by this first (a deliberately wrong start).
+    #[arg(long, default_value_t = 1.0)]
+    alpha_scale: f64,
+    /// Square-wave half height per channel, in the law's units (one value: every channel).
+    #[arg(long, value_delimiter = ',', required = true)]
+    amplitude: Vec<f64>,
+    /// Square-wave period per channel (s).
+    #[arg(long, value_delimiter = ',', required = true)]
+    period: Vec<f64>,
+    /// Largest |y - y0| allowed per channel; beyond it the run aborts.
+    #[arg(long, value_delimiter = ',', required = true)]
+    max_deviation: Vec<f64>,
+    /// Periods of the square wave.
+    #[arg(long, default_value_t = 4)]
+    cycles: u32,
+    /// The estimator's window per channel, in intervals (default: the channel's own). A
+    /// plant with a dead time needs a window longer than it: each estimate after a switch
+    /// must see the response.
+    #[arg(long, value_delimiter = ',')]
+    window: Vec<usize>,
+    /// Let each run choose the model's order (the better fit); by default it keeps the
+    /// order of the law in force and reports the other's fit.
+    #[arg(long)]
+    choose_order: bool,
+    /// Controllers whose RMS on the scenario the commissioned one is compared with.
+    #[arg(long, value_delimiter = ',')]
+    compare: Vec<String>,
+    /// Output directory (commission.md, the commissioned controller as a file).
+    #[arg(long, default_value = "out/commission")]
+    out: PathBuf,
 }
 
 #[derive(clap::Args)]
@@ -382,6 +426,7 @@ fn real_main() -> Result<()> {
         Command::Netsim(args) => netsim(&args),
         Command::ServiceConfig(args) => print_service_config(&args),
         Command::Robust(args) => robust(&args),
+        Command::Commission(args) => commission_command(&args),
     }
 }
 
@@ -484,6 +529,83 @@ fn robust(args: &RobustArgs) -> Result<()> {
             args.bound
         );
     }
+    Ok(())
+}
+
+/// One value per channel, or one for all.
+fn per_channel<T: Copy>(what: &str, v: &[T], n: usize) -> Result<Vec<T>> {
+    match v.len() {
+        1 => Ok(vec![v[0]; n]),
+        k if k == n => Ok(v.to_vec()),
+        k => bail!("--{what}: {k} values for {n} channels (give one, or one per channel)"),
+    }
+}
+
+/// `commission`: the wrong start, the runs, the scenario with what they found.
+fn commission_command(args: &CommissionArgs) -> Result<()> {
+    use crate::commission::{commission_all, report, scale_alpha};
+    let (scenario, set) = scenario_and_controller(&args.scenario, args.controller.as_deref())?;
+    let n = scenario.channels.len();
+    let (amp, period, dev) = (
+        per_channel("amplitude", &args.amplitude, n)?,
+        per_channel("period", &args.period, n)?,
+        per_channel("max-deviation", &args.max_deviation, n)?,
+    );
+    let windows = if args.window.is_empty() {
+        vec![]
+    } else {
+        per_channel("window", &args.window, n)?
+    };
+    let specs: Vec<mfc::CommissionSpec> = (0..n)
+        .map(|i| mfc::CommissionSpec {
+            amplitude: amp[i],
+            period: period[i],
+            cycles: args.cycles,
+            max_deviation: dev[i],
+            window: match (windows.get(i), set.channels[i]) {
+                (Some(w), _) => *w,
+                (None, mfc::LawConfig::Intelligent { estimator, .. }) => estimator.window.max(2),
+                _ => 20,
+            },
+            order: match set.channels[i] {
+                mfc::LawConfig::Intelligent { params, .. } if !args.choose_order => {
+                    Some(params.order)
+                }
+                _ => None,
+            },
+        })
+        .collect();
+    let wrong = scale_alpha(&set, args.alpha_scale);
+    let (found, runs) = commission_all(&scenario, &wrong, &specs)?;
+    let mut rms = Vec::new();
+    let mut sets = vec![wrong, found.clone()];
+    for c in &args.compare {
+        sets.push(load_controller(c)?);
+    }
+    for s in &sets {
+        let sim = simulate(&scenario, s, false)?;
+        rms.push((
+            s.name.clone(),
+            sim.summary.channels.iter().map(|c| c.rms).collect(),
+        ));
+    }
+    let md = format!(
+        "# Commissioning `{}` on {} (alpha x{})\n\n{}",
+        set.name,
+        scenario.name,
+        args.alpha_scale,
+        report(&runs, &rms, &scenario.names())
+    );
+    std::fs::create_dir_all(&args.out)?;
+    std::fs::write(args.out.join("commission.md"), &md)?;
+    let file = args.out.join(format!("{}.toml", found.name));
+    std::fs::write(&file, toml::to_string_pretty(&found)?)?;
+    println!("{md}");
+    eprintln!(
+        "commission: wrote {} and {}",
+        args.out.join("commission.md").display(),
+        file.display()
+    );
     Ok(())
 }
 

@@ -4,6 +4,7 @@
 //!   simulator or a driver process), no network, no real time;
 //! * [`tune`]: a fair tuner (the same search and budget for every controller kind);
 //! * [`compare`]: every controller on every scenario, as a table;
+//! * [`commission`]: `α` and the order found from a plant's response, offline;
 //! * [`robust`]: every controller, untouched, on a seeded family of variations of the AERO;
 //! * [`netsim`]: the networked loop in lockstep, the service's and the agent's own rules
 //!   over a seeded model of the link;
@@ -21,6 +22,7 @@
 
 pub mod campaign;
 pub mod cli;
+pub mod commission;
 pub mod compare;
 pub mod demo;
 pub mod harness;

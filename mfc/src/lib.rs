@@ -82,6 +82,7 @@ extern crate alloc;
 
 pub mod adrc;
 pub mod channel;
+pub mod commission;
 pub mod error;
 pub mod estimator;
 pub mod filter;
@@ -97,6 +98,10 @@ pub mod trajectory;
 
 pub use adrc::{Adrc, AdrcParams};
 pub use channel::{Channel, ChannelConfig, ChannelOutput, LawConfig};
+pub use commission::{
+    gains_for, CommissionAbort, CommissionFinding, CommissionFit, CommissionSpec, CommissionStep,
+    Commissioning,
+};
 pub use error::{MfcError, Result};
 pub use estimator::{Estimator, EstimatorConfig, EstimatorKind, LinearEstimate, DEFAULT_CAPACITY};
 pub use intelligent::{IntelligentController, IntelligentOutput, IntelligentParams, Trend};
