@@ -17,7 +17,8 @@ use mfc::trajectory::Piece;
 /// `hold_after`, and the time their reference has rested. 5: an intelligent controller
 /// keeps its estimate's trend, for predictions. 6: a handed device carries its
 /// configuration's version and whether the sender holds its lease. 7: a handed device
-/// carries its latest audit entries. 8: the estimators' `first_window`.
+/// carries its latest audit entries. 8: the estimators' `first_window`, the intelligent
+/// laws' `hold_band` and the sign they hold.
 pub const SNAPSHOT_VERSION: u32 = 8;
 
 /// What a device snapshot holds.

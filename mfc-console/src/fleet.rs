@@ -1305,7 +1305,8 @@ mod tests {
                 "derivative_observer",
                 "estimate_filter",
                 "hold_estimate_filter",
-                "hold_after"
+                "hold_after",
+                "hold_band"
             ]
         );
         assert_eq!(

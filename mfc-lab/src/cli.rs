@@ -154,7 +154,8 @@ struct SimArgs {
     #[arg(long, default_value = "2")]
     scenario: String,
     /// Controller: a controller file (as written by `tune`) or a shipped AERO name (ip,
-    /// ipi, ipd, ipd-hold, ipd-plain, ipd-tuned, ipd-fast, ipd-lag, pid, adrc). Default: the scenario's.
+    /// ipi, ipd, ipd-hold, ipd-plain, ipd-tuned, ipd-fast, ipd-lag, ipd-quiet, pid,
+    /// adrc). Default: the scenario's.
     #[arg(long)]
     controller: Option<String>,
     /// Output directory.

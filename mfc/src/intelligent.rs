@@ -39,6 +39,14 @@
 //!   disturbance a coupled plant's `F` most needs to follow. [`crate::MimoController`]
 //!   applies that rule; a channel stepped on its own sees only its own reference.
 //!
+//! * `hold_band = b` (in units of `u`): once the plant holds (the rule above), the command
+//!   may change sign only beyond `±b`; a reversal inside the band gives 0 instead. Where a
+//!   hold needs about 0 V the law's output dithers around zero at every encoder count, and
+//!   through the dead-zone compensation each sign change is a swing of several volts and a
+//!   motor reversing; inside the band the actuator rests instead. The price is a
+//!   tolerance: an error whose correction needs less than `b` in the reversing direction
+//!   waits until it needs more (`docs/results-aero.md`, "A hold band").
+//!
 //! # Predictions (packetized horizons, delay compensation)
 //! [`crate::Channel::plan`] runs the ultra-local model forward from the controller's state.
 //! With `trend = 0`, `F` is held at the filtered `F_est`: an estimate that already lags
@@ -119,6 +127,9 @@ pub struct IntelligentParams {
     /// How long (s) the reference must have been at rest before `hold_estimate_filter`
     /// takes over from `estimate_filter`. Default: 1.
     pub hold_after: f64,
+    /// While holding (as for `hold_estimate_filter`), the command may change sign only
+    /// beyond this magnitude, in units of `u` (module documentation). Default 0: off.
+    pub hold_band: f64,
     /// Time constant (s) with which the offset left by a parameter change fades.
     /// Default: 0.2.
     pub bumpless_time_constant: f64,
@@ -138,6 +149,7 @@ impl Default for IntelligentParams {
             estimate_filter: 0.0,
             hold_estimate_filter: 0.0,
             hold_after: 1.0,
+            hold_band: 0.0,
             bumpless_time_constant: 0.2,
         }
     }
@@ -155,6 +167,7 @@ impl IntelligentParams {
         non_negative("estimate_filter", self.estimate_filter)?;
         non_negative("hold_estimate_filter", self.hold_estimate_filter)?;
         non_negative("hold_after", self.hold_after)?;
+        non_negative("hold_band", self.hold_band)?;
         if self.derivative_observer > 0.0 && self.order == Order::One {
             return Err(MfcError::InvalidParameter {
                 name: "derivative_observer",
@@ -233,6 +246,8 @@ pub struct IntelligentController<const CAP: usize = DEFAULT_CAPACITY> {
     /// and the filtered one (both parts of the linear form), the filter's lag, for
     /// predictions (module documentation).
     pub(crate) trend: Option<LinearEstimate>,
+    /// The sign of the last nonzero output, for `hold_band`.
+    pub(crate) sign: f64,
     pub(crate) estimator: Estimator<CAP>,
 }
 
@@ -257,6 +272,7 @@ impl<const CAP: usize> IntelligentController<CAP> {
             estimate: None,
             rest: None,
             trend: None,
+            sign: 0.0,
         })
     }
 
@@ -391,6 +407,7 @@ impl<const CAP: usize> IntelligentController<CAP> {
                 (p.law(f, r, e, de, self.integral) + self.bump, Some(f))
             }
         };
+        let u = self.hold_hysteresis(u);
         self.last_u = u;
         self.applied = u;
         Ok(IntelligentOutput { u, f_est, error: e })
@@ -501,6 +518,19 @@ impl<const CAP: usize> IntelligentController<CAP> {
 
     /// Every reference of the plant has rested for `hold_after` (the rule of
     /// `hold_estimate_filter` and of [`Trend::at_rest`]).
+    /// `hold_band`: at rest, a reversal of the command's sign inside the band gives 0.
+    fn hold_hysteresis(&mut self, u: f64) -> f64 {
+        let band = self.params.hold_band;
+        let reversal = self.sign != 0.0 && u != 0.0 && u.signum() != self.sign;
+        if band > 0.0 && reversal && u.abs() < band && self.resting() {
+            return 0.0;
+        }
+        if u != 0.0 {
+            self.sign = u.signum();
+        }
+        u
+    }
+
     fn resting(&self) -> bool {
         matches!(self.rest, Some((held, _)) if held >= self.params.hold_after)
     }

@@ -272,7 +272,7 @@ macro_rules! shared {
 
 /// Every tunable parameter: the laws' (intelligent, then PID, then ADRC), then the output
 /// map's. The protocol's `ChannelUpdate` has one optional field per entry, of the same name.
-pub static PARAMS: [Param; 18] = [
+pub static PARAMS: [Param; 19] = [
     Param {
         name: "kp",
         scope: Scope::Laws(I_PID),
@@ -344,6 +344,14 @@ pub static PARAMS: [Param; 18] = [
         meaning: "how long the reference rests before hold_estimate_filter applies",
         bounds: TIME,
         slot: |c| intelligent(c).map(|p| &mut p.hold_after),
+    },
+    Param {
+        name: "hold_band",
+        scope: Scope::Laws(I),
+        unit: "u",
+        meaning: "while holding, the command changes sign only beyond +-hold_band (0: off)",
+        bounds: OFFSET,
+        slot: |c| intelligent(c).map(|p| &mut p.hold_band),
     },
     Param {
         name: "b0",

@@ -62,7 +62,8 @@ snapshot_struct!(IntelligentController {
     observer,
     estimate,
     rest,
-    trend
+    trend,
+    sign
 });
 snapshot_struct!(MimoController { channels });
 

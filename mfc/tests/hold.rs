@@ -216,3 +216,72 @@ fn bad_hold_parameters_are_refused() {
         }
     }
 }
+
+/// `hold_band`: once the reference has rested for `hold_after`, a command that would
+/// reverse the sign of the last nonzero one inside `±hold_band` gives 0; beyond the band,
+/// or while the reference moves, the law's own output passes. The same measurements go to
+/// a controller with the band and one without, so the difference is the band alone.
+#[test]
+fn a_hold_band_stops_reversals_inside_it_only_at_rest() {
+    let make = |band: f64| {
+        IntelligentController::<64>::new(
+            IntelligentParams {
+                kind: ControllerKind::P,
+                order: Order::One,
+                alpha: 1.0,
+                kp: 1.0,
+                hold_after: 0.5,
+                hold_band: band,
+                ..IntelligentParams::default()
+            },
+            EstimatorConfig {
+                window: 2,
+                ..EstimatorConfig::default()
+            },
+        )
+        .unwrap()
+    };
+    let (mut with, mut without) = (make(0.3), make(0.0));
+    let rest = Reference {
+        y: 0.0,
+        dy: 0.0,
+        ddy: 0.0,
+    };
+    let moving = Reference {
+        y: 0.0,
+        dy: 1e-3,
+        ddy: 0.0,
+    };
+    // y dithers by +-0.1 around the reference: u = -(F + e) reverses at every sample, with
+    // |u| small. Both are told the same applied input (the one without the band's), so
+    // their estimates stay equal and only the band tells them apart.
+    let mut zeros_at_rest = 0;
+    let mut applied = 0.0;
+    for k in 0..200 {
+        let t = f64::from(k) * H;
+        let y = if k % 2 == 0 { 0.1 } else { -0.1 };
+        let r = if t < 1.0 { moving } else { rest };
+        with.set_applied(applied).unwrap();
+        without.set_applied(applied).unwrap();
+        let a = with.step(t, y, &r).unwrap().u;
+        let b = without.step(t, y, &r).unwrap().u;
+        applied = b;
+        if t < 1.45 {
+            assert_eq!(a, b, "t = {t}: the band acts only at rest");
+        } else if t < 1.55 {
+            // Where the rest reaches hold_after, to rounding.
+        } else if b.abs() < 0.3 {
+            // A reversal inside the band is 0; the same sign as the last nonzero passes.
+            assert!(a == 0.0 || a == b, "t = {t}: {a} against {b}");
+            zeros_at_rest += usize::from(a == 0.0 && b != 0.0);
+        } else {
+            assert_eq!(a, b, "t = {t}: beyond the band the law's output passes");
+        }
+    }
+    assert!(zeros_at_rest > 10, "the band never acted ({zeros_at_rest})");
+    let bad = IntelligentParams {
+        hold_band: -1.0,
+        ..IntelligentParams::default()
+    };
+    assert!(bad.validate().is_err());
+}

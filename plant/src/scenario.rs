@@ -311,7 +311,7 @@ pub const SHIPPED_SCENARIOS: [(&str, &str, &str); 5] = [
 ];
 
 /// The shipped AERO controller sets: (name, text).
-pub const SHIPPED_CONTROLLERS: [(&str, &str); 10] = [
+pub const SHIPPED_CONTROLLERS: [(&str, &str); 11] = [
     ("ip", include_str!("../../plants/aero/controllers/ip.toml")),
     (
         "ipi",
@@ -340,6 +340,10 @@ pub const SHIPPED_CONTROLLERS: [(&str, &str); 10] = [
     (
         "ipd-lag",
         include_str!("../../plants/aero/controllers/ipd-lag.toml"),
+    ),
+    (
+        "ipd-quiet",
+        include_str!("../../plants/aero/controllers/ipd-quiet.toml"),
     ),
     (
         "pid",

@@ -66,6 +66,7 @@ pub fn channel_to_pb(c: &ChannelConfig) -> pb::ChannelConfig {
             estimate_filter: params.estimate_filter,
             hold_estimate_filter: params.hold_estimate_filter,
             hold_after: Some(params.hold_after),
+            hold_band: params.hold_band,
             estimator: Some(pb::Estimator {
                 kind: match estimator.kind {
                     EstimatorKind::Algebraic => pb::estimator::Kind::Algebraic,
@@ -159,6 +160,7 @@ pub fn channel_from_pb(c: &pb::ChannelConfig) -> Result<ChannelConfig, ConvertEr
                     hold_after: i
                         .hold_after
                         .unwrap_or(IntelligentParams::default().hold_after),
+                    hold_band: i.hold_band,
                 },
                 estimator: EstimatorConfig {
                     kind: est_kind,
@@ -223,6 +225,7 @@ pub fn update_field<'a>(u: &'a mut pb::ChannelUpdate, name: &str) -> Option<&'a 
         "estimate_filter" => &mut u.estimate_filter,
         "hold_estimate_filter" => &mut u.hold_estimate_filter,
         "hold_after" => &mut u.hold_after,
+        "hold_band" => &mut u.hold_band,
         "b0" => &mut u.b0,
         "wc" => &mut u.wc,
         "wo" => &mut u.wo,
