@@ -546,6 +546,19 @@ fn per_channel<T: Copy>(what: &str, v: &[T], n: usize) -> Result<Vec<T>> {
 fn commission_command(args: &CommissionArgs) -> Result<()> {
     use crate::commission::{commission_all, report, scale_alpha};
     let (scenario, set) = scenario_and_controller(&args.scenario, args.controller.as_deref())?;
+    if !(args.alpha_scale.is_finite() && args.alpha_scale != 0.0) {
+        bail!("--alpha-scale must be finite and non-zero (it multiplies alpha)");
+    }
+    if !set
+        .channels
+        .iter()
+        .any(|l| matches!(l, mfc::LawConfig::Intelligent { .. }))
+    {
+        bail!(
+            "`{}` has no intelligent channel: nothing to commission",
+            set.name
+        );
+    }
     let n = scenario.channels.len();
     let (amp, period, dev) = (
         per_channel("amplitude", &args.amplitude, n)?,
@@ -576,6 +589,10 @@ fn commission_command(args: &CommissionArgs) -> Result<()> {
             },
         })
         .collect();
+    for (i, s) in specs.iter().enumerate() {
+        s.validate(mfc::DEFAULT_CAPACITY)
+            .with_context(|| format!("channel {i} ({})", scenario.channels[i].name))?;
+    }
     let wrong = scale_alpha(&set, args.alpha_scale);
     let (found, runs) = commission_all(&scenario, &wrong, &specs)?;
     let mut rms = Vec::new();

@@ -164,9 +164,9 @@ pub fn commission_all(
     let mut current = set.clone();
     let mut runs = Vec::new();
     let mut retry = Vec::new();
-    let channels = (0..specs.len().min(set.channels.len()))
-        .filter(|&i| matches!(set.channels[i], LawConfig::Intelligent { .. }));
-    let channels: Vec<usize> = channels.collect();
+    let channels: Vec<usize> = (0..specs.len().min(set.channels.len()))
+        .filter(|&i| matches!(set.channels[i], LawConfig::Intelligent { .. }))
+        .collect();
     for &i in &channels {
         let r = commission_channel(scenario, &current, i, specs[i])?;
         adopt(&mut current, &r);

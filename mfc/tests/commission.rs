@@ -8,7 +8,7 @@ use mfc::{
 /// integrated in 20 sub-steps per period, sampled every `h`.
 struct Plant {
     second: bool,
-    p: [f64; 3],
+    p: [f64; 2],
     b: f64,
     d: f64,
     y: f64,
@@ -16,6 +16,30 @@ struct Plant {
 }
 
 impl Plant {
+    /// `y' = -a y + b u + d`, at rest at 0.
+    fn first(a: f64, b: f64, d: f64) -> Self {
+        Self {
+            second: false,
+            p: [a, 0.0],
+            b,
+            d,
+            y: 0.0,
+            dy: 0.0,
+        }
+    }
+
+    /// `y'' = -k y - c y' + b u + d`, at rest at 0.
+    fn second(k: f64, c: f64, b: f64, d: f64) -> Self {
+        Self {
+            second: true,
+            p: [k, c],
+            b,
+            d,
+            y: 0.0,
+            dy: 0.0,
+        }
+    }
+
     fn advance(&mut self, u: f64, h: f64) {
         let dt = h / 20.0;
         for _ in 0..20 {
@@ -51,14 +75,7 @@ fn commission(plant: &mut Plant, spec: CommissionSpec, u0: f64, h: f64) -> (Comm
 #[test]
 fn a_first_order_plant_gives_order_one_and_its_gain() {
     for b in [0.05, 2.0, -3.0] {
-        let mut p = Plant {
-            second: false,
-            p: [0.5, 0.0, 0.0],
-            b,
-            d: 0.3,
-            y: 0.0,
-            dy: 0.0,
-        };
+        let mut p = Plant::first(0.5, b, 0.3);
         let spec = CommissionSpec {
             amplitude: 0.2 / b.abs(),
             period: 2.0,
@@ -86,14 +103,7 @@ fn a_first_order_plant_gives_order_one_and_its_gain() {
 #[test]
 fn a_lightly_damped_second_order_plant_gives_order_two_and_its_gain() {
     let b = 0.4;
-    let mut p = Plant {
-        second: true,
-        p: [1.7, 0.3, 0.0],
-        b,
-        d: -0.2,
-        y: 0.0,
-        dy: 0.0,
-    };
+    let mut p = Plant::second(1.7, 0.3, b, -0.2);
     let spec = CommissionSpec {
         amplitude: 0.5,
         period: 1.0,
@@ -109,14 +119,7 @@ fn a_lightly_damped_second_order_plant_gives_order_two_and_its_gain() {
     assert_eq!(f.best.order, Order::Two, "{f:?}");
     assert!((f.best.alpha / b - 1.0).abs() < 0.1, "{f:?}");
     // Asked for order one, it answers for order one (worse, but what was asked).
-    let mut p = Plant {
-        second: true,
-        p: [1.7, 0.3, 0.0],
-        b,
-        d: -0.2,
-        y: 0.0,
-        dy: 0.0,
-    };
+    let mut p = Plant::second(1.7, 0.3, b, -0.2);
     let (step, _) = commission(
         &mut p,
         CommissionSpec {
@@ -136,14 +139,7 @@ fn a_lightly_damped_second_order_plant_gives_order_two_and_its_gain() {
 #[test]
 fn leaving_the_allowed_deviation_aborts_at_once() {
     // An integrator with a large gain: the square wave walks it off.
-    let mut p = Plant {
-        second: false,
-        p: [0.0, 0.0, 0.0],
-        b: 50.0,
-        d: 1.0,
-        y: 0.0,
-        dy: 0.0,
-    };
+    let mut p = Plant::first(0.0, 50.0, 1.0);
     let spec = CommissionSpec {
         amplitude: 1.0,
         period: 4.0,
@@ -169,14 +165,7 @@ fn leaving_the_allowed_deviation_aborts_at_once() {
 #[test]
 fn data_that_cannot_give_alpha_are_refused() {
     // Switching faster than a window.
-    let mut p = Plant {
-        second: false,
-        p: [0.5, 0.0, 0.0],
-        b: 1.0,
-        d: 0.0,
-        y: 0.0,
-        dy: 0.0,
-    };
+    let mut p = Plant::first(0.5, 1.0, 0.0);
     let fast = CommissionSpec {
         period: 0.1,
         window: 10,
@@ -189,14 +178,7 @@ fn data_that_cannot_give_alpha_are_refused() {
         "{step:?}"
     );
     // A plant that ignores its input.
-    let mut p = Plant {
-        second: false,
-        p: [0.5, 0.0, 0.0],
-        b: 0.0,
-        d: 0.4,
-        y: 0.0,
-        dy: 0.0,
-    };
+    let mut p = Plant::first(0.5, 0.0, 0.4);
     let spec = CommissionSpec {
         max_deviation: 10.0,
         window: 10,
