@@ -201,7 +201,10 @@ impl Play {
                     }
                 }
             }
-            Topic::ConfigRequest | Topic::ReferenceUpdate | Topic::EnvelopeRequest => {
+            Topic::ConfigRequest
+            | Topic::ReferenceUpdate
+            | Topic::EnvelopeRequest
+            | Topic::CommissionRequest => {
                 let registry = &mut self.registry;
                 let reply = match m.topic {
                     Topic::ConfigRequest => {
@@ -209,6 +212,8 @@ impl Play {
                     }
                     Topic::ReferenceUpdate => decode::<pb::ReferenceUpdate>(&m.data)
                         .map(|r| registry.set_reference(dev, &r)),
+                    Topic::CommissionRequest => decode::<pb::CommissionRequest>(&m.data)
+                        .map(|r| registry.commission(dev, &r, "replay")),
                     _ => decode::<pb::EnvelopeRequest>(&m.data)
                         .map(|r| registry.change_envelope(dev, &r)),
                 };

@@ -165,6 +165,7 @@ pub fn router(console: Arc<Console>, guard_: Guard, doors: Arc<Doors>) -> Router
         .route("/api/devices/{id}/audit", get(audit))
         .route("/api/devices/{id}/gains", post(gains))
         .route("/api/devices/{id}/reference", post(reference))
+        .route("/api/devices/{id}/commission", post(commission))
         .with_state(console)
         .merge(login)
         .layer(DefaultBodyLimit::max(MAX_BODY))
@@ -444,6 +445,84 @@ async fn reference(
             c.fleet().apply_config(&id, config, c.now());
             Json(json!({ "accepted": true, "values": change.values, "held_by": held_by }))
                 .into_response()
+        }
+        Err(e) => op_failed(e),
+    }
+}
+
+/// `POST /api/devices/{id}/commission`: `start` (with the excitation), `confirm` or
+/// `abort` a commissioning run (`CommissionRequest` in the `.proto`); the answer carries
+/// the run's state as the device's status then says.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct CommissionChange {
+    action: String,
+    channel: u32,
+    #[serde(default)]
+    amplitude: f64,
+    #[serde(default)]
+    max_deviation: f64,
+    #[serde(default)]
+    period: f64,
+    #[serde(default)]
+    cycles: u32,
+}
+
+impl CommissionChange {
+    fn request(&self) -> Result<pb::CommissionRequest, String> {
+        use pb::CommissionAction as A;
+        let action = match self.action.as_str() {
+            "start" => A::CommissionStart,
+            "confirm" => A::CommissionConfirm,
+            "abort" => A::CommissionAbort,
+            a => {
+                return Err(format!(
+                    "action {:?}: start, confirm or abort",
+                    protocol::printable(a)
+                ))
+            }
+        };
+        Ok(pb::CommissionRequest {
+            action: action as i32,
+            channel: self.channel,
+            amplitude: self.amplitude,
+            max_deviation: self.max_deviation,
+            period: self.period,
+            cycles: self.cycles,
+            reason: "console".into(),
+            ..Default::default()
+        })
+    }
+}
+
+async fn commission(
+    State(c): State<Arc<Console>>,
+    Extension(who): Extension<Identity>,
+    Path(id): Path<String>,
+    b: Result<Json<CommissionChange>, JsonRejection>,
+) -> Response {
+    if let Err((status, reason)) = sessions::may_change(&who) {
+        return refused(status, "console", reason);
+    }
+    let op = c.operator.as_named(&who.name);
+    let change = match body(b) {
+        Ok(x) => x,
+        Err((status, reason)) => return refused(status, "console", reason),
+    };
+    if let Err(e) = keys::check_id(&id) {
+        return refused(StatusCode::BAD_REQUEST, "console", e.to_string());
+    }
+    let req = match change.request() {
+        Ok(r) => r,
+        Err(reason) => return refused(StatusCode::BAD_REQUEST, "console", reason),
+    };
+    tracing::info!(user = %who.name, "commissioning of {id} channel {}: {}", change.channel, change.action);
+    match ops::commission(&op, &id, req, c.timeout()).await {
+        Ok(ops::Changed { config, held_by }) => {
+            c.fleet().apply_config(&id, config, c.now());
+            let status = ops::device_status(&op, &id, c.timeout()).await.ok();
+            let run = status.and_then(|s| s.commission);
+            Json(json!({ "accepted": true, "commission": run, "held_by": held_by })).into_response()
         }
         Err(e) => op_failed(e),
     }

@@ -31,7 +31,7 @@ use crate::inventory::Inventory;
 const P: &str = protocol::keys::PREFIX;
 
 /// The `device/*/…` keys a service serves as queryables and an operator queries.
-const QUERIED: [&str; 5] = protocol::keys::QUERIED_LEAVES;
+const QUERIED: [&str; 6] = protocol::keys::QUERIED_LEAVES;
 
 fn dev(id: &str, leaf: &str) -> String {
     format!("{P}/device/{id}/{leaf}")

@@ -105,6 +105,16 @@ struct CommissionArgs {
     /// Controllers whose RMS on the scenario the commissioned one is compared with.
     #[arg(long, value_delimiter = ',')]
     compare: Vec<String>,
+    /// Commission on the running plant through the controller service instead (an
+    /// in-process service and the plant behind its agent, in real time over Zenoh, each
+    /// channel started, followed and confirmed as `mfcctl commission` does); the
+    /// comparison is offline as without it.
+    #[arg(long)]
+    live: bool,
+    /// With --live: the channels to commission, in this order (default: every
+    /// intelligent one, in index order).
+    #[arg(long, value_delimiter = ',', requires = "live")]
+    channels: Vec<usize>,
     /// Output directory (commission.md, the commissioned controller as a file).
     #[arg(long, default_value = "out/commission")]
     out: PathBuf,
@@ -594,7 +604,19 @@ fn commission_command(args: &CommissionArgs) -> Result<()> {
             .with_context(|| format!("channel {i} ({})", scenario.channels[i].name))?;
     }
     let wrong = scale_alpha(&set, args.alpha_scale);
-    let (found, runs) = commission_all(&scenario, &wrong, &specs)?;
+    let (found, runs) = if args.live {
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .enable_all()
+            .build()?;
+        runtime.block_on(crate::commission::commission_live(
+            &scenario,
+            &wrong,
+            &specs,
+            &args.channels,
+        ))?
+    } else {
+        commission_all(&scenario, &wrong, &specs)?
+    };
     let mut rms = Vec::new();
     let mut sets = vec![wrong, found.clone()];
     for c in &args.compare {
@@ -608,10 +630,11 @@ fn commission_command(args: &CommissionArgs) -> Result<()> {
         ));
     }
     let md = format!(
-        "# Commissioning `{}` on {} (alpha x{})\n\n{}",
+        "# Commissioning `{}` on {} (alpha x{}{})\n\n{}",
         set.name,
         scenario.name,
         args.alpha_scale,
+        if args.live { ", live" } else { "" },
         report(&runs, &rms, &scenario.names())
     );
     std::fs::create_dir_all(&args.out)?;

@@ -211,6 +211,27 @@ impl<const CAP: usize> Channel<CAP> {
 
     /// One step: compute `u`, map it to `v`, and remember that `v` is being applied.
     pub fn step(&mut self, t: f64, y: f64, r: &Reference) -> Result<ChannelOutput> {
+        self.step_with(t, y, r, None)
+    }
+
+    /// One step whose input is `u` instead of the law's (commissioning's excitation):
+    /// the law still steps on the sample, so that its estimator and its memory follow
+    /// the plant, then `u` goes through the output map (compensation, range, rate limit)
+    /// in place of the law's value and is remembered as what is applied. A law stepped
+    /// this way and then left to itself starts from what the plant got, with a warm
+    /// window: the return is bumpless. A non-finite `u` is refused before anything moves.
+    pub fn step_input(&mut self, t: f64, y: f64, r: &Reference, u: f64) -> Result<ChannelOutput> {
+        finite("input", u)?;
+        self.step_with(t, y, r, Some(u))
+    }
+
+    fn step_with(
+        &mut self,
+        t: f64,
+        y: f64,
+        r: &Reference,
+        input: Option<f64>,
+    ) -> Result<ChannelOutput> {
         self.check(t, y, r)?;
         let (u, f_est, error, warming_up) = match &mut self.law {
             Law::Intelligent(c) => {
@@ -224,7 +245,7 @@ impl<const CAP: usize> Channel<CAP> {
             }
         };
         // A non-finite u can only come from extreme (finite) data; never send it.
-        let u = if u.is_nan() { 0.0 } else { u };
+        let u = input.unwrap_or(if u.is_nan() { 0.0 } else { u });
         let v = self.map.apply(t, u.clamp(-f64::MAX, f64::MAX))?;
         self.law.set_applied(self.map.inverse(v))?;
         self.last_t = Some(t);

@@ -35,9 +35,11 @@
 //!
 //! No clock, no I/O: the time is in the samples, as everywhere in this crate.
 
+use crate::channel::LawConfig;
 use crate::error::{finite, positive, MfcError, Result};
 use crate::estimator::{Estimator, EstimatorConfig, LinearEstimate, DEFAULT_CAPACITY};
-use crate::Order;
+use crate::intelligent::IntelligentParams;
+use crate::{ControllerKind, Order};
 
 /// What the operator sets for a commissioning run.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -343,5 +345,60 @@ pub fn gains_for(order: Order, bandwidth: f64, damping: f64) -> Result<[f64; 3]>
     Ok(match order {
         Order::One => [bandwidth, 0.0, 0.0],
         Order::Two => [bandwidth * bandwidth, 0.0, 2.0 * damping * bandwidth],
+    })
+}
+
+/// The law a finding gives a channel whose law is `before` (an intelligent one; `None`
+/// for any other): `α` and the order found; the gains from `dynamics` (`(ω, ζ)`, see
+/// [`gains_for`]) if asked, otherwise the ones `before` has when the order is the same and
+/// the ones that keep its error dynamics when it changes (order 1: `ω = kp`; order 2: `ω
+/// = √kp`, `ζ = kd / 2ω`). Every other parameter as it was. `None` also if the gains
+/// asked for are not positive.
+pub fn commissioned_law(
+    before: &LawConfig,
+    f: &CommissionFinding,
+    dynamics: Option<(f64, f64)>,
+) -> Option<LawConfig> {
+    let LawConfig::Intelligent { params, estimator } = *before else {
+        return None;
+    };
+    let best = f.best;
+    if best.order == params.order && dynamics.is_none() {
+        return Some(LawConfig::Intelligent {
+            params: IntelligentParams {
+                alpha: best.alpha,
+                ..params
+            },
+            estimator,
+        });
+    }
+    let (omega, zeta) = dynamics.unwrap_or(match params.order {
+        Order::One => (params.kp, 0.7),
+        Order::Two => {
+            let w = libm::sqrt(params.kp);
+            (w, if w > 0.0 { params.kd / (2.0 * w) } else { 0.7 })
+        }
+    });
+    let [kp, ki, kd] = gains_for(best.order, omega, zeta.max(0.1)).ok()?;
+    let kind = match best.order {
+        Order::One => ControllerKind::P,
+        Order::Two => ControllerKind::PD,
+    };
+    Some(LawConfig::Intelligent {
+        params: IntelligentParams {
+            kind,
+            order: best.order,
+            alpha: best.alpha,
+            kp,
+            ki,
+            kd,
+            derivative_observer: if best.order == Order::One {
+                0.0
+            } else {
+                params.derivative_observer
+            },
+            ..params
+        },
+        estimator,
     })
 }

@@ -99,8 +99,8 @@ pub mod trajectory;
 pub use adrc::{Adrc, AdrcParams};
 pub use channel::{Channel, ChannelConfig, ChannelOutput, LawConfig};
 pub use commission::{
-    gains_for, CommissionAbort, CommissionFinding, CommissionFit, CommissionSpec, CommissionStep,
-    Commissioning,
+    commissioned_law, gains_for, CommissionAbort, CommissionFinding, CommissionFit, CommissionSpec,
+    CommissionStep, Commissioning,
 };
 pub use error::{MfcError, Result};
 pub use estimator::{Estimator, EstimatorConfig, EstimatorKind, LinearEstimate, DEFAULT_CAPACITY};

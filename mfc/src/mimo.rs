@@ -76,10 +76,45 @@ impl<const CAP: usize> MimoController<CAP> {
         r: &[Reference],
         out: &mut [ChannelOutput],
     ) -> Result<()> {
+        self.step_with(t, y, r, out, None)
+    }
+
+    /// [`MimoController::step`] with channel `input.0` given the input `input.1` in place
+    /// of its law's ([`Channel::step_input`]): commissioning excites one channel while
+    /// the others keep their laws.
+    pub fn step_input(
+        &mut self,
+        t: f64,
+        y: &[f64],
+        r: &[Reference],
+        out: &mut [ChannelOutput],
+        input: (usize, f64),
+    ) -> Result<()> {
+        if input.0 >= self.channels.len() {
+            return Err(MfcError::DimensionMismatch {
+                expected: self.channels.len(),
+                got: input.0 + 1,
+            });
+        }
+        crate::error::finite("input", input.1)?;
+        self.step_with(t, y, r, out, Some(input))
+    }
+
+    fn step_with(
+        &mut self,
+        t: f64,
+        y: &[f64],
+        r: &[Reference],
+        out: &mut [ChannelOutput],
+        input: Option<(usize, f64)>,
+    ) -> Result<()> {
         self.check(t, y, r)?;
         self.dims(out.len())?;
-        for (((c, y), r), o) in self.channels.iter_mut().zip(y).zip(r).zip(out) {
-            *o = c.step(t, *y, r)?;
+        for (i, (((c, y), r), o)) in self.channels.iter_mut().zip(y).zip(r).zip(out).enumerate() {
+            *o = match input {
+                Some((k, u)) if k == i => c.step_input(t, *y, r, u)?,
+                _ => c.step(t, *y, r)?,
+            };
         }
         // A hold (`hold_estimate_filter`) waits for every reference: the coupling a
         // moving or stepped channel brings is a disturbance the others' F must follow at

@@ -181,3 +181,54 @@ fn first_output_after_change_is_the_old_one() {
     // ... and the difference then fades: 1 s later b runs on its own gains.
     assert_eq!(b.config().law, to.law);
 }
+
+/// A channel given its input from outside (`step_input`, commissioning's excitation):
+/// the output map applies to that input, the law's estimator sees it as applied (on `y'
+/// = 2 u`, an iP with the true `α` estimates `F` = 0 although its own `u` was never
+/// sent), a non-finite input moves nothing, and the law takes over bumplessly.
+#[test]
+fn an_input_from_outside_is_what_the_law_sees_applied() {
+    let config = ChannelConfig {
+        law: LawConfig::intelligent(ControllerKind::P, Order::One, 2.0, [1.0, 0.0, 0.0], 10),
+        output: OutputMapConfig {
+            min: -1.0,
+            max: 1.0,
+            ..OutputMapConfig::default()
+        },
+    };
+    let mut ch: Channel = Channel::new(&config).unwrap();
+    let r = Reference {
+        y: 0.3,
+        dy: 0.0,
+        ddy: 0.0,
+    };
+    let (mut y, mut last) = (0.0, None);
+    for k in 0..40 {
+        let t = k as f64 * H;
+        let u = if k % 20 < 10 { 0.5 } else { 3.0 };
+        let o = ch.step_input(t, y, &r, u).unwrap();
+        assert_eq!((o.u, o.v), (u, u.min(1.0)), "sample {k}");
+        y += 2.0 * o.v * H;
+        last = o.f_est;
+    }
+    let f = last.expect("an estimate after a window");
+    assert!(
+        f.abs() < 1e-9,
+        "F_est {f}: the law took its own u for applied"
+    );
+    let before = ch.clone();
+    assert!(ch.step_input(0.4, y, &r, f64::NAN).is_err());
+    assert_eq!(
+        format!("{before:?}"),
+        format!("{ch:?}"),
+        "a refused input moved nothing"
+    );
+    // The law commands again: e = y - 0.3, u = -(F + kp e) / alpha, no jump beyond that.
+    let o = ch.step(0.4, y, &r).unwrap();
+    let expected = -(0.0 + (y - 0.3)) / 2.0;
+    assert!(
+        (o.u - expected).abs() < 1e-6,
+        "u {} expected {expected}",
+        o.u
+    );
+}

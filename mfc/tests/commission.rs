@@ -1,7 +1,8 @@
 //! Commissioning finds `α` and the order from a plant's own response to a square wave.
 
 use mfc::{
-    gains_for, CommissionAbort, CommissionSpec, CommissionStep, Commissioning, MfcError, Order,
+    commissioned_law, gains_for, CommissionAbort, CommissionFinding, CommissionFit, CommissionSpec,
+    CommissionStep, Commissioning, ControllerKind, LawConfig, MfcError, Order, PidParams,
 };
 
 /// A plant `y'' = -k y - c y' + b u + d` (second order) or `y' = -a y + b u + d` (first),
@@ -242,4 +243,56 @@ fn gains_give_the_error_dynamics_asked_for() {
     assert_eq!(gains_for(Order::Two, 3.0, 0.5).unwrap(), [9.0, 0.0, 3.0]);
     assert!(gains_for(Order::Two, 0.0, 0.5).is_err());
     assert!(gains_for(Order::Two, 1.0, f64::NAN).is_err());
+}
+
+fn finding(order: Order, alpha: f64) -> CommissionFinding {
+    let best = CommissionFit {
+        order,
+        alpha,
+        explained: 0.9,
+    };
+    CommissionFinding {
+        best,
+        fits: [Some(best), None],
+        samples: 100,
+    }
+}
+
+#[test]
+fn the_law_keeps_its_error_dynamics() {
+    let ipd = LawConfig::intelligent(ControllerKind::PD, Order::Two, 0.2, [9.0, 0.0, 3.0], 20);
+    let same = commissioned_law(&ipd, &finding(Order::Two, 0.35), None).unwrap();
+    let LawConfig::Intelligent { params, .. } = same else {
+        unreachable!()
+    };
+    assert_eq!((params.alpha, params.kp, params.kd), (0.35, 9.0, 3.0));
+    // Order 2 -> 1: e' + 3 e = 0, an iP.
+    let one = commissioned_law(&ipd, &finding(Order::One, 1.5), None).unwrap();
+    let LawConfig::Intelligent { params, .. } = one else {
+        unreachable!()
+    };
+    assert_eq!(
+        (params.kind, params.order, params.kp, params.kd),
+        (ControllerKind::P, Order::One, 3.0, 0.0)
+    );
+    // Order 1 -> 2: damping 0.7 around the same bandwidth.
+    let ip = LawConfig::intelligent(ControllerKind::P, Order::One, 1.0, [2.0, 0.0, 0.0], 10);
+    let two = commissioned_law(&ip, &finding(Order::Two, 0.5), None).unwrap();
+    let LawConfig::Intelligent { params, .. } = two else {
+        unreachable!()
+    };
+    assert_eq!(params.kp, 4.0);
+    assert!((params.kd - 2.8).abs() < 1e-12);
+    assert!(params.validate().is_ok());
+    let pid = LawConfig::Pid {
+        params: PidParams::default(),
+    };
+    // Requested error dynamics win over the law's: e'' + 2 0.5 5 e' + 25 e = 0.
+    let asked = commissioned_law(&ipd, &finding(Order::Two, 0.35), Some((5.0, 0.5))).unwrap();
+    let LawConfig::Intelligent { params, .. } = asked else {
+        unreachable!()
+    };
+    assert_eq!((params.alpha, params.kp, params.kd), (0.35, 25.0, 5.0));
+    assert!(commissioned_law(&ipd, &finding(Order::Two, 0.35), Some((-1.0, 0.5))).is_none());
+    assert!(commissioned_law(&pid, &finding(Order::One, 1.0), None).is_none());
 }

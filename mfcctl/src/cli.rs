@@ -13,6 +13,7 @@
 //! mfcctl reference aero-1 --file steps.toml          # pieces start now on the plant's clock
 //! mfcctl envelope aero-1 --channel 1 --min -12 --max 12 --reason "commissioning"
 //! mfcctl audit aero-1                                # who changed what, and the result
+//! mfcctl commission aero-1 --channel 1 --amplitude 0.5 --max-deviation 0.2
 //! ```
 //!
 //! Every request on a device names its operator (`--operator`, by default the local
@@ -132,12 +133,63 @@ pub enum Command {
         #[arg(long)]
         reason: String,
     },
+    /// Find alpha (and the model's order) of one channel on the live plant: a square wave
+    /// of +-amplitude around the input it holds, aborted at once if the output moves more
+    /// than --max-deviation; shows what it found and the law it proposes, and puts it in
+    /// force when you confirm (docs/commissioning.md).
+    Commission(CommissionArgs),
     /// The audit trail: who changed what on a device (or on every device you may see),
     /// old and new values, accepted or refused and why; the latest 64 per device.
     Audit {
         /// Device id (none: every device).
         device: Option<String>,
     },
+}
+
+/// `mfcctl commission`'s arguments.
+#[derive(Debug, clap::Args)]
+pub struct CommissionArgs {
+    /// Device id.
+    pub device: String,
+    /// Channel index (0-based); its law must be intelligent.
+    #[arg(long)]
+    pub channel: u32,
+    /// The square wave's half height, in the law's units (before the output map).
+    #[arg(long, required_unless_present_any = ["confirm", "abort"])]
+    pub amplitude: Option<f64>,
+    /// The largest change of the output accepted; beyond it the run aborts.
+    #[arg(long, required_unless_present_any = ["confirm", "abort"])]
+    pub max_deviation: Option<f64>,
+    /// The square wave's period (s); each half must hold the estimator's window.
+    #[arg(long, default_value_t = 2.0)]
+    pub period: f64,
+    /// How many periods.
+    #[arg(long, default_value_t = 4)]
+    pub cycles: u32,
+    /// The estimator's window (intervals).
+    #[arg(long, default_value_t = 20)]
+    pub window: u32,
+    /// Fit this order only (1 or 2); default both, the better kept.
+    #[arg(long)]
+    pub order: Option<u32>,
+    /// The error dynamics the proposed gains give (rad/s); default: the law's own.
+    #[arg(long, requires = "damping")]
+    pub bandwidth: Option<f64>,
+    /// ... and their damping.
+    #[arg(long, requires = "bandwidth")]
+    pub damping: Option<f64>,
+    /// Put the proposal in force without asking.
+    #[arg(long)]
+    pub yes: bool,
+    /// Confirm the proposal of the last run on the channel (no new run).
+    #[arg(long, conflicts_with_all = ["abort", "amplitude", "yes"])]
+    pub confirm: bool,
+    /// Stop the run on the channel, or dismiss its proposal.
+    #[arg(long, conflicts_with_all = ["amplitude", "yes"])]
+    pub abort: bool,
+    /// Why, for the record.
+    #[arg(long, default_value = "")]
+    pub reason: String,
 }
 
 /// Parse `args`, run, print; the process's exit code: 0 done, 1 refused or failed (the
@@ -367,6 +419,7 @@ async fn command(
             let logs = ops::audit(operator, device.as_deref(), timeout).await?;
             out(json, &logs, |l| render::audit(l))?
         }
+        Command::Commission(a) => crate::commission::run(operator, a, json, timeout).await?,
     })
 }
 

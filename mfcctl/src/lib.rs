@@ -8,8 +8,10 @@
 //!   browser console);
 //! * [`render`]: text for people (pure), and the table of tunable parameters as text,
 //!   JSON and Markdown (`mfcctl params`, `docs/parameters.md`);
+//! * [`commission`]: `mfcctl commission`, a run followed to its end;
 //! * [`cli`]: the command line (the binary is a one-line `main`).
 
 pub mod cli;
+pub mod commission;
 pub use transport::ops;
 pub mod render;

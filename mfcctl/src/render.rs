@@ -167,6 +167,57 @@ pub fn status(d: &pb::DeviceStatus) -> String {
     if !d.last_error.is_empty() {
         let _ = writeln!(out, "  last error: {}", d.last_error);
     }
+    if let Some(c) = &d.commission {
+        out += &commission(c);
+    }
+    out
+}
+
+/// A measured value to four significant digits (the law's own values are printed whole).
+fn short(x: f64) -> String {
+    format!("{}", Readable(format!("{x:.4e}").parse().unwrap_or(x)))
+}
+
+/// A commissioning run: where it stands, what it found and what it proposes.
+pub fn commission(c: &pb::CommissionStatus) -> String {
+    use pb::CommissionPhase as P;
+    let mut out = String::new();
+    let phase = match P::try_from(c.phase) {
+        Ok(P::CommissionRunning) => "running",
+        Ok(P::CommissionProposed) => "PROPOSED, waiting for a confirmation",
+        Ok(P::CommissionApplied) => "applied",
+        Ok(P::CommissionAborted) => "ABORTED",
+        _ => "unknown",
+    };
+    let ended = match c.ended_by.as_str() {
+        "" => String::new(),
+        e => format!(", ended by {e}"),
+    };
+    let _ = writeln!(
+        out,
+        "  commissioning channel {}: {phase} (started by {}{ended}); {:.1} of {:.1} s, largest deviation {}; alpha was {}",
+        c.channel,
+        c.started_by,
+        c.elapsed,
+        c.duration,
+        short(c.deviation),
+        Readable(c.alpha_before)
+    );
+    for f in &c.fits {
+        let _ = writeln!(
+            out,
+            "    order {}: alpha {}, explains {:.0} % of F's jumps",
+            f.order,
+            short(f.alpha),
+            100.0 * f.explained
+        );
+    }
+    if let Some(p) = &c.proposed {
+        let _ = writeln!(out, "    proposed: {}", law(p));
+    }
+    if !c.reason.is_empty() {
+        let _ = writeln!(out, "    {}", c.reason);
+    }
     out
 }
 

@@ -205,7 +205,19 @@ pub fn gateway_key(key: &str) -> Option<(&str, Option<u32>)> {
 /// queryable per leaf, not one on `device/*/*`: a deployment's access control (mfc-deploy)
 /// lets a service declare exactly these, so a wider declaration would be refused by the
 /// router and the service would answer nothing.
-pub const QUERIED_LEAVES: [&str; 5] = ["config", "status", "envelope", "reference", "audit"];
+pub const QUERIED_LEAVES: [&str; 6] = [
+    "config",
+    "status",
+    "envelope",
+    "reference",
+    "audit",
+    "commission",
+];
+
+/// `mfc/v1/device/{id}/commission`.
+pub fn commission(id: &str) -> String {
+    format!("{PREFIX}/device/{id}/commission")
+}
 
 /// `mfc/v1/device/{id}/audit`.
 pub fn audit(id: &str) -> String {

@@ -143,6 +143,7 @@ versioned!(
     ConfigReply,
     ReferenceUpdate,
     EnvelopeRequest,
+    CommissionRequest,
     DeviceStatus,
     ServiceStatus,
     Heartbeat,

@@ -84,19 +84,22 @@ pub enum Topic {
     ReferenceUpdate,
     /// An envelope change as asked.
     EnvelopeRequest,
+    /// A commissioning request as asked (start, confirm, abort).
+    CommissionRequest,
     /// Something that happened ([`protocol::pb::Event`]).
     Event,
 }
 
 impl Topic {
     /// Every kind.
-    pub const ALL: [Topic; 7] = [
+    pub const ALL: [Topic; 8] = [
         Topic::Sample,
         Topic::Command,
         Topic::Config,
         Topic::ConfigRequest,
         Topic::ReferenceUpdate,
         Topic::EnvelopeRequest,
+        Topic::CommissionRequest,
         Topic::Event,
     ];
 
@@ -109,6 +112,7 @@ impl Topic {
             Topic::ConfigRequest => "config_request",
             Topic::ReferenceUpdate => "reference_update",
             Topic::EnvelopeRequest => "envelope_request",
+            Topic::CommissionRequest => "commission_request",
             Topic::Event => "event",
         }
     }
@@ -122,6 +126,7 @@ impl Topic {
             Topic::ConfigRequest => "mfc.v1.ConfigRequest",
             Topic::ReferenceUpdate => "mfc.v1.ReferenceUpdate",
             Topic::EnvelopeRequest => "mfc.v1.EnvelopeRequest",
+            Topic::CommissionRequest => "mfc.v1.CommissionRequest",
             Topic::Event => "mfc.v1.Event",
         }
     }

@@ -131,6 +131,31 @@ try {
   if ((await page.getAttribute('#ref-result', 'data-state')) !== 'accepted') throw new Error(`reference: ${ref}`);
   stage('reference', { result: ref, at: since() });
 
+  // Commissioning the pitch (channel 1): +-3 for 4 periods of 1 s, at most 0.2 rad away;
+  // the proposal, then its confirmation.
+  // The pitch settles on its new reference first (the service refuses a run on a loop
+  // still in its transient).
+  await page.waitForTimeout(3000);
+  await page.selectOption('#com-channel', '1');
+  await page.fill('#com-amplitude', '3');
+  await page.fill('#com-deviation', '0.2');
+  await page.fill('#com-period', '1');
+  await page.fill('#com-cycles', '4');
+  await page.click('#com-start');
+  await page.waitForSelector('#com-result[data-state="accepted"], #com-result[data-state="refused"]', { timeout: LONG });
+  const started = await page.textContent('#com-result');
+  if ((await page.getAttribute('#com-result', 'data-state')) !== 'accepted') throw new Error(`commission start: ${started}`);
+  await page.waitForSelector('#com-state[data-phase="proposed"], #com-state[data-phase="aborted"]', { timeout: 2 * LONG });
+  const proposal = await page.textContent('#com-state');
+  if ((await page.getAttribute('#com-state', 'data-phase')) !== 'proposed') throw new Error(`commissioning: ${proposal}`);
+  await page.screenshot({ path: path.join(shots, 'console-commission.png'), fullPage: true });
+  await page.click('#com-confirm');
+  await page.waitForSelector('#com-state[data-phase="applied"]', { timeout: LONG });
+  const applied = await page.textContent('#com-state');
+  await page.waitForFunction(() => [...document.querySelectorAll('#audit tr[data-state="accepted"]')]
+    .some((tr) => tr.textContent.includes('channel 1 alpha:')), null, { timeout: LONG });
+  stage('commission', { proposal, applied, at: since() });
+
   // The late device's plant ends: it stays listed, marked gone.
   await page.waitForSelector(item(late, false), { timeout: 2 * LONG });
   stage('gone', { at: since() });

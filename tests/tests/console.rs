@@ -218,6 +218,7 @@ async fn run_browser(
         "audit",
         "envelope-refused",
         "reference",
+        "commission",
         "gone",
         "done",
     ];
@@ -255,7 +256,7 @@ fn judge_page(stages: &[(String, serde_json::Value)]) {
         row.contains("channel 1 kp: 9 → 12") && row.contains("unverified"),
         "{row}"
     );
-    let counters = &stages[8].1["counters"];
+    let counters = &stages[9].1["counters"];
     for k in [
         "bad_id",
         "bad_values",
@@ -272,11 +273,21 @@ fn judge_page(stages: &[(String, serde_json::Value)]) {
     assert!(samples > 500 && commands * 10 > samples * 8, "{counters}");
 }
 
-/// The service's configuration after the page: kp of channel 1 is 12, and nothing else
-/// changed but the reference the page set (the refused max never reached the service:
-/// the console refused it, so the service counted no refusal).
+/// The service's configuration after the page: kp of channel 1 is 12, its alpha the one
+/// commissioning found, and nothing else changed but the reference the page set (the
+/// refused max never reached the service: the console refused it, so the service counted
+/// no refusal).
 fn judge_change(before: &pb::DeviceConfig, after: &pb::DeviceConfig) {
     assert_eq!(law_kp(&after.channels[1]), Some(12.0), "{after:?}");
+    let alpha = match &after.channels[1].law {
+        Some(pb::channel_config::Law::Intelligent(i)) => i.alpha,
+        other => panic!("{other:?}"),
+    };
+    // The shipped iPD's 0.2; commissioning around the pitch's set point finds 0.15-0.2.
+    assert!(
+        (0.12..0.35).contains(&alpha) && alpha != 0.2,
+        "alpha {alpha}"
+    );
     assert_eq!(after.channels[0], before.channels[0], "channel 0 untouched");
     assert_eq!(
         after.channels[1].output, before.channels[1].output,
@@ -285,8 +296,12 @@ fn judge_change(before: &pb::DeviceConfig, after: &pb::DeviceConfig) {
     let mut expected = before.channels[1];
     if let Some(pb::channel_config::Law::Intelligent(i)) = &mut expected.law {
         i.kp = 12.0;
+        i.alpha = alpha;
     }
-    assert_eq!(after.channels[1], expected, "only kp changed on channel 1");
+    assert_eq!(
+        after.channels[1], expected,
+        "only kp and alpha changed on channel 1"
+    );
     assert_eq!(after.envelope, before.envelope);
     let r = after.reference.clone().unwrap_or_default();
     let constant = |ch: usize| match r.channels.get(ch).and_then(|c| c.pieces.first()) {
@@ -308,7 +323,11 @@ async fn the_console_shows_live_devices_and_changes_one_gain() {
         _ => scratch.join("screenshots"),
     };
     std::fs::create_dir_all(&shots).unwrap();
-    for f in ["console-gain.png", "console-fleet.png"] {
+    for f in [
+        "console-gain.png",
+        "console-fleet.png",
+        "console-commission.png",
+    ] {
         let _ = std::fs::remove_file(shots.join(f));
     }
 
@@ -349,7 +368,11 @@ async fn the_console_shows_live_devices_and_changes_one_gain() {
         refused_after, refused_before,
         "the service saw no refused request"
     );
-    for f in ["console-gain.png", "console-fleet.png"] {
+    for f in [
+        "console-gain.png",
+        "console-fleet.png",
+        "console-commission.png",
+    ] {
         let len = std::fs::metadata(shots.join(f)).map_or(0, |m| m.len());
         assert!(len > 10_000, "screenshot {f}: {len} bytes");
     }

@@ -132,3 +132,110 @@ async fn the_operator_reads_and_changes_a_running_device() {
     );
     service.stop().await.unwrap();
 }
+
+/// `mfcctl commission` on a live AERO whose pitch `α` is ten times too large: the service
+/// excites the pitch, proposes the `α` it found, and puts it in force on `--yes`; the
+/// audit trail names who started and who confirmed, and shows the gain that moved.
+#[tokio::test(flavor = "multi_thread")]
+async fn the_operator_commissions_alpha_on_the_live_plant() {
+    let _s = SERIAL.lock().await;
+    let mut s = load_scenario("1").unwrap();
+    s.duration = 16.0;
+    // A set point at rest, where a user commissions.
+    for c in &mut s.channels {
+        c.reference = vec![mfc::trajectory::Piece::Constant { value: 0.0 }];
+    }
+    let c = mfc_lab::commission::scale_alpha(&shipped_controller("ipd").unwrap(), 10.0);
+    let service = ServiceHandle::start(service_config(&s, &c, &["aero-1".into()]), None)
+        .await
+        .unwrap();
+    let ep = service.endpoint.clone();
+    let plant = tokio::spawn(run_plant(
+        vec![ep.clone()],
+        PlantSpec::new(&s, &c, "aero-1"),
+        true,
+    ));
+    tokio::time::sleep(Duration::from_secs(2)).await;
+
+    // Refused with the service's reason: no amplitude is no run.
+    let e = ctl(
+        &ep,
+        &[
+            "commission",
+            "aero-1",
+            "--channel",
+            "0",
+            "--max-deviation",
+            "0.1",
+        ],
+    )
+    .await
+    .unwrap_err();
+    assert!(e.to_string().contains("--amplitude"), "{e:#}");
+    let run = [
+        "--operator",
+        "alice",
+        "--json",
+        "commission",
+        "aero-1",
+        "--channel",
+        "1",
+        "--amplitude",
+        "3",
+        "--period",
+        "1",
+        "--max-deviation",
+        "0.2",
+        "--yes",
+    ];
+    let json = ctl(&ep, &run).await.unwrap();
+    let v: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let applied = protocol::pb::CommissionPhase::CommissionApplied as i64;
+    assert_eq!(v["phase"].as_i64(), Some(applied), "{json}");
+    assert_eq!(
+        (v["started_by"].as_str(), v["ended_by"].as_str()),
+        (Some("alice"), Some("alice"))
+    );
+    let alpha = v["proposed"]["law"]["Intelligent"]["alpha"]
+        .as_f64()
+        .unwrap();
+    // Live, around the set point, 0.17 (r² 0.83); offline, from rest with the azimuth
+    // still, 0.23-0.24 (docs/results-commission.md); the tuner's is 0.33.
+    assert!((0.12..0.35).contains(&alpha), "{json}");
+    assert!(v["deviation"].as_f64().unwrap() <= 0.2, "{json}");
+    let config = ctl(&ep, &["--json", "config", "aero-1"]).await.unwrap();
+    let config: serde_json::Value = serde_json::from_str(&config).unwrap();
+    assert_eq!(
+        config["channels"][1]["law"]["Intelligent"]["alpha"].as_f64(),
+        Some(alpha)
+    );
+
+    let text = ctl(&ep, &["status", "aero-1"]).await.unwrap();
+    eprintln!("{text}");
+    assert!(
+        text.contains("commissioning channel 1: applied (started by alice, ended by alice)"),
+        "{text}"
+    );
+    let audit = ctl(&ep, &["audit", "aero-1"]).await.unwrap();
+    eprintln!("{audit}");
+    let lines: Vec<&str> = audit.lines().collect();
+    let started = lines
+        .iter()
+        .position(|l| l.contains("alice") && l.contains("commission"));
+    assert!(started.is_some(), "{audit}");
+    assert!(
+        audit.contains("channel 1 alpha"),
+        "the confirmation shows alpha moving: {audit}"
+    );
+    assert!(audit.contains("channel 1 commission"), "{audit}");
+
+    let done = plant.await.unwrap().unwrap();
+    eprintln!("{}", done.report.headline());
+    assert!(done.report.completed());
+    // The pitch holds its set point with the law found: over the last 2 s.
+    let pitch = &done.record.traces[1].y;
+    let tail = &pitch[pitch.len() - 200..];
+    let worst = tail.iter().fold(0.0f64, |m, y| m.max(y.abs()));
+    assert!(worst < 0.05, "pitch over the last 2 s: worst {worst}");
+    service.stop().await.unwrap();
+}

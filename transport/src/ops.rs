@@ -377,6 +377,25 @@ pub async fn change_envelope(
     changed(&keys::envelope(id), reply)
 }
 
+/// A commissioning request (start, confirm, abort; see `CommissionRequest` in the
+/// `.proto`): the reply is the configuration in force afterwards, the run's progress is in
+/// the device's status ([`device_status`], `commission`).
+pub async fn commission(
+    session: &impl Asker,
+    id: &str,
+    request: pb::CommissionRequest,
+    timeout: Duration,
+) -> Result<Changed, OpError> {
+    check(id)?;
+    let req = pb::CommissionRequest {
+        version: PROTOCOL_VERSION,
+        ..request
+    };
+    let reply: pb::ConfigReply =
+        one(session, &keys::commission(id), Some(encode(&req)), timeout).await?;
+    changed(&keys::commission(id), reply)
+}
+
 /// A `FIELD=VALUE` list as a partial change of `channel`: only the named fields are set,
 /// so the service changes those and nothing else. The names are the tunable parameters of
 /// the core's table ([`mfc::params::PARAMS`]), the fields of a [`pb::ChannelUpdate`]

@@ -293,6 +293,9 @@ pub(super) struct Device {
     /// With delay compensation: what the plant will apply in each coming period, as this
     /// device's commands already sent will have it.
     pub(super) schedule: Option<Box<Schedule>>,
+    /// The last commissioning run (`super::commission`), kept until the next starts; not
+    /// in snapshots (a run does not survive its member).
+    pub(super) commission: Option<Box<super::commission::Commission>>,
 }
 
 /// What the plant will apply in each period, as far as the commands already sent decide
@@ -482,6 +485,7 @@ impl Device {
             schedule: prediction
                 .delay_compensation
                 .then(|| Box::new(Schedule::new(n))),
+            commission: None,
         })
     }
 
@@ -507,6 +511,7 @@ impl Device {
         self.last_command = None;
         self.astray = None;
         self.restarts += 1;
+        self.abort_commission("the plant restarted");
         if let Some(s) = &mut self.schedule {
             **s = Schedule::new(s.n);
         }
@@ -673,6 +678,9 @@ impl Device {
             if let Some(r) = self.reference.get(i) {
                 out.insert(format!("channel {i} reference"), format!("{r:?}"));
             }
+            if let Some(c) = self.commission.as_ref().filter(|c| c.channel == i) {
+                out.insert(format!("channel {i} commission"), c.setting());
+            }
         }
         out.insert(
             "reference start".into(),
@@ -716,6 +724,10 @@ impl Device {
             lease_fenced: self.claimer.fenced,
             lease_claims: self.claimer.claims,
             lease_yields: self.claimer.yields,
+            commission: self.commission.as_ref().map(|c| {
+                let output = self.configs.get(c.channel).map(|k| k.output);
+                c.status_pb(output.unwrap_or_default())
+            }),
         }
     }
 
@@ -788,7 +800,7 @@ impl Device {
 
     /// Whether `configs` move no parameter, and `reference` (if any) no piece, out of its
     /// bounds at the device's period as known now (`crate::bounds`).
-    fn check_bounds(
+    pub(super) fn check_bounds(
         &self,
         configs: &[ChannelConfig],
         reference: Option<&[Vec<Piece>]>,

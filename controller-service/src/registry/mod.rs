@@ -7,6 +7,7 @@
 //! * [`device`]: what the service holds for one device;
 //! * [`step`]: rules 2-7 for one sample of a served device;
 //! * [`requests`]: configuration, reference and envelope changes;
+//! * [`commission`]: commissioning runs on the live plant;
 //! * [`shards`]: a shard's state for a fleet handover, snapshots and their restore.
 //!
 //! A sample of device `d` is checked completely before anything about `d` changes (the
@@ -40,6 +41,7 @@
 //!    periods of plant time (the lower median of recent intervals), so a leap of plant
 //!    time cannot open it.
 
+mod commission;
 mod device;
 mod requests;
 mod shards;
@@ -51,6 +53,7 @@ use protocol::{pb, printable, PROTOCOL_VERSION};
 
 use crate::config::ServiceConfig;
 use crate::lease::{LeasePolicy, Seen, Standing};
+pub use commission::{MAX_CYCLES, MAX_PERIOD, MAX_RUNNING};
 use device::{reply, Device, DeviceKey};
 pub use shards::Restored;
 

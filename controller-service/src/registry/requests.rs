@@ -85,12 +85,41 @@ impl Registry {
             Ok((configs, reference))
         });
         let applied = planned.map(|(configs, reference)| {
+            d.abort_commission("the configuration changed");
             d.configs = configs;
             if let Some((pieces, start)) = reference {
                 d.reference = pieces.into();
                 d.reference_start = start;
             }
         });
+        conclude(d, &mut self.requests_refused, id, applied)
+    }
+
+    /// A commissioning request (`super::commission`) from `who`: start a run, confirm
+    /// its proposal, or abort. The reply carries the configuration in force afterwards;
+    /// the run's progress is in the device's status.
+    pub fn commission(
+        &mut self,
+        id: &str,
+        req: &pb::CommissionRequest,
+        who: &str,
+    ) -> pb::ConfigReply {
+        let running = self
+            .devices
+            .values()
+            .filter(|d| d.commission.as_ref().is_some_and(|c| c.running()))
+            .count();
+        let Some(d) = self.devices.get_mut(id) else {
+            self.requests_refused += 1;
+            return refused(format!("unknown device \"{}\"", printable(id)), None);
+        };
+        let channel = req.channel as usize;
+        let applied = match pb::CommissionAction::try_from(req.action) {
+            Ok(pb::CommissionAction::CommissionStart) => d.start_commission(req, who, running),
+            Ok(pb::CommissionAction::CommissionConfirm) => d.confirm_commission(channel, who),
+            Ok(pb::CommissionAction::CommissionAbort) => d.dismiss_commission(channel, who),
+            _ => Err(format!("action {}: START, CONFIRM or ABORT", req.action)),
+        };
         conclude(d, &mut self.requests_refused, id, applied)
     }
 
@@ -154,6 +183,7 @@ impl Registry {
             Ok((limits, configs))
         })();
         let applied = planned.map(|(limits, configs)| {
+            d.abort_commission("the envelope changed");
             d.envelope = limits.into();
             d.configs = configs;
             d.envelope_changes += 1;

@@ -94,6 +94,9 @@ pub(super) fn answer(
         handing.push(via.key_id.to_string());
     }
     decision.stamp(s.run_id, me.1, out);
+    if !decision.sends() {
+        d.abort_commission("this member no longer commands the plant");
+    }
     Some(decision.sends())
 }
 
@@ -352,10 +355,18 @@ fn take_in(d: &mut Device, s: &pb::Sample, fresh: Option<MimoController>) -> Pac
 /// Step the controllers, then rule 6: the last check before anything leaves. A
 /// non-finite command is refused; one outside the envelope is clipped and counted.
 fn bounded_command(d: &mut Device, s: &pb::Sample, pace: &Pace) -> Result<PerChannel<f64>, String> {
-    // Not refused here: the same inputs passed `check` in rule 5.
-    d.mimo
-        .step(s.plant_time, &s.outputs, &d.refs, &mut d.outputs)
-        .map_err(|e| e.to_string())?;
+    // Not refused here: the same inputs passed `check` in rule 5 (and a commissioning
+    // run's input is finite).
+    let input = d.commission_input(s);
+    match input {
+        Some(input) => d
+            .mimo
+            .step_input(s.plant_time, &s.outputs, &d.refs, &mut d.outputs, input),
+        None => d
+            .mimo
+            .step(s.plant_time, &s.outputs, &d.refs, &mut d.outputs),
+    }
+    .map_err(|e| e.to_string())?;
     if let Some(bad) = d.outputs.iter().find(|o| !o.v.is_finite()) {
         return Err(format!(
             "the controller produced a non-finite command ({:?}): check the gains",
@@ -381,6 +392,9 @@ fn bounded_command(d: &mut Device, s: &pb::Sample, pace: &Pace) -> Result<PerCha
     if clipped {
         d.clamped += 1;
     }
+    if let (Some((i, _)), Some(c)) = (input, d.commission.as_mut()) {
+        c.sent(d.mimo.channels()[i].output_map().inverse(v[i]));
+    }
     Ok(v)
 }
 
@@ -400,7 +414,10 @@ fn keep_answer(
     }
     let control = !d.outputs.iter().any(|o| o.warming_up);
     let buffer = d.last_command.take().map(|a| a.horizon).unwrap_or_default();
-    let horizon = if control {
+    // A commissioning run's square wave is not predicted: a plant that misses a sample
+    // holds its level.
+    let commissioning = d.commission.as_ref().is_some_and(|c| c.running());
+    let horizon = if control && !commissioning {
         predict(d, s, &v, period, buffer)
     } else {
         Vec::new()

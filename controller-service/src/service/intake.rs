@@ -46,6 +46,8 @@ pub(super) enum Msg {
     Status(Query),
     /// A device's audit trail; a wildcard key gets one reply per device.
     Audit(Query),
+    /// A commissioning request: a read without payload, a start, confirm or abort.
+    Commission(Query),
     /// A service status query, answered with the hot-standby state and the drops.
     ServiceStatus(Query),
     /// An operator's query whose payload is over [`MAX_PAYLOAD`], on a device's key
@@ -313,6 +315,7 @@ impl Intake {
             Some("reference") => Msg::ReferenceQuery(q),
             Some("status") => Msg::Status(q),
             Some("audit") => Msg::Audit(q),
+            Some("commission") => Msg::Commission(q),
             _ => {
                 Drops::count(&drops.bad_key);
                 return;

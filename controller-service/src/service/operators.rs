@@ -75,7 +75,7 @@ impl Core {
     pub(super) fn decide(
         &mut self,
         a: Asked<'_>,
-        apply: impl FnOnce(&mut Core) -> pb::ConfigReply,
+        apply: impl FnOnce(&mut Core, &Actor) -> pb::ConfigReply,
     ) -> pb::ConfigReply {
         let actor = match self.gate.access.check(a.who, a.dev, a.action) {
             Ok(actor) => actor,
@@ -101,7 +101,7 @@ impl Core {
             None => None,
         };
         let before = self.registry.settings_of(a.dev).unwrap_or_default();
-        let reply = apply(self);
+        let reply = apply(self, &actor);
         let changes = match (reply.accepted, self.registry.settings_of(a.dev)) {
             (true, Some(after)) => crate::audit::diff(&before, &after),
             _ => Vec::new(),

@@ -58,7 +58,7 @@ impl Worker {
                 what: "reference",
                 asked: &u,
             };
-            let reply = c.decide(asked, |core| {
+            let reply = c.decide(asked, |core, _| {
                 let Core {
                     registry, watch, ..
                 } = core;
@@ -89,7 +89,7 @@ impl Worker {
             q,
             "configuration",
             |_, _, _: &pb::ConfigRequest| Action::Change,
-            |core, dev, req: &pb::ConfigRequest, bytes| {
+            |core, (dev, _), req: &pb::ConfigRequest, bytes| {
                 let r = core.registry.configure(dev, req);
                 if r.accepted {
                     let warn = &mut core.warn;
@@ -117,7 +117,7 @@ impl Worker {
                 Action::Change
             }
         };
-        self.change_query(q, "envelope", action, |core, dev, req: &pb::EnvelopeRequest, bytes| {
+        self.change_query(q, "envelope", action, |core, (dev, _), req: &pb::EnvelopeRequest, bytes| {
             let before = core.registry.envelope_of(dev);
             let r = core.registry.change_envelope(dev, req);
             if !r.accepted {
@@ -153,7 +153,7 @@ impl Worker {
             q,
             "reference",
             |_, _, _: &pb::ReferenceUpdate| Action::Change,
-            |core, dev, u: &pb::ReferenceUpdate, bytes| {
+            |core, (dev, _), u: &pb::ReferenceUpdate, bytes| {
                 let r = core.registry.set_reference(dev, u);
                 if r.accepted {
                     core.watch.changed(
@@ -162,6 +162,33 @@ impl Worker {
                         Topic::ReferenceUpdate,
                         bytes,
                         "reference changed",
+                    );
+                }
+                r
+            },
+        )
+        .await;
+    }
+
+    /// A commissioning query (`crate::registry` decides): a start, a confirmation (the
+    /// proposed law put in force like a configuration change) or an abort.
+    pub(super) async fn handle_commission(&mut self, q: Query) {
+        self.change_query(
+            q,
+            "commission",
+            |_, _, _: &pb::CommissionRequest| Action::Change,
+            |core, (dev, who), req: &pb::CommissionRequest, bytes| {
+                let r = core.registry.commission(dev, req, who);
+                if r.accepted {
+                    let action = pb::CommissionAction::try_from(req.action)
+                        .map_or("?", |a| a.as_str_name());
+                    tracing::info!(device = %dev, by = %printable(who), channel = req.channel, action, "commissioning");
+                    core.watch.changed(
+                        &core.registry,
+                        dev,
+                        Topic::CommissionRequest,
+                        bytes,
+                        "commissioning",
                     );
                 }
                 r
@@ -184,7 +211,7 @@ impl Worker {
         q: Query,
         what: &'static str,
         action_of: impl FnOnce(&Registry, &str, &R) -> Action,
-        apply: impl FnOnce(&mut Core, &str, &R, &[u8]) -> pb::ConfigReply,
+        apply: impl FnOnce(&mut Core, (&str, &str), &R, &[u8]) -> pb::ConfigReply,
     ) {
         let Some(dev) = self.served(&q).await else {
             return;
@@ -209,7 +236,9 @@ impl Worker {
                             what,
                             asked: &r,
                         };
-                        c.decide(asked, |core| apply(core, &dev, &r, bytes))
+                        c.decide(asked, |core, actor| {
+                            apply(core, (&dev, &actor.name), &r, bytes)
+                        })
                     }
                     Err(e) => undecodable_request(&mut c.registry, &dev, e),
                 },

@@ -234,6 +234,7 @@ impl Worker {
             Msg::ReferenceQuery(q) => self.handle_reference_query(q).await,
             Msg::Status(q) => self.handle_status(q).await,
             Msg::Audit(q) => self.handle_audit(q).await,
+            Msg::Commission(q) => self.handle_commission(q).await,
             Msg::ServiceStatus(q) => self.handle_service_status(q).await,
             Msg::TooLarge { q, device } => self.handle_too_large(q, device).await,
             Msg::Member(m, alive) => self.handle_member(&m, alive).await,

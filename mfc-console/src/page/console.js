@@ -80,7 +80,7 @@ function showMe(me) {
   $('who').dataset.role = me.role;
   $('logout').hidden = me.proof !== 'password';
   const viewer = me.role === 'viewer';
-  for (const id of ['gain-apply', 'ref-apply']) $(id).disabled = viewer;
+  for (const id of ['gain-apply', 'ref-apply', 'com-start', 'com-confirm', 'com-abort']) $(id).disabled = viewer;
   for (const p of document.querySelectorAll('.viewer-note')) p.hidden = !viewer;
 }
 
@@ -397,6 +397,7 @@ async function refreshDetail() {
       ['last error', s.last_error || '–'],
       ['status age', `${fmt(d.status_age)} s`],
     ].map(([k, v]) => [k, String(v)]));
+    showCommission(s.commission);
   } else {
     rows($('status'), [['status', d.served_by ? 'waiting for the service' : 'no controller serves it']]);
   }
@@ -440,6 +441,7 @@ function buildForms(cfg) {
     state.refFilled = false;
   }
   updateGainCurrent();
+  fillCommissionChannels(cfg.length);
   const now = state.detail.reference_now || [];
   if (!state.refFilled && now.length === cfg.length) {
     now.forEach((v, i) => { $(`ref-${i}`).value = String(Number(v.toPrecision(6))); });
@@ -584,6 +586,59 @@ async function submitReference(ev) {
   refreshAudit();
 }
 
+// ---- commissioning -------------------------------------------------------------------
+
+const PHASES = { 1: 'running', 2: 'proposed', 3: 'applied', 4: 'aborted' };
+
+/// The device's last commissioning run, from its status (or a request's answer).
+function showCommission(c) {
+  const p = $('com-state');
+  if (!c) {
+    p.dataset.phase = 'none';
+    p.textContent = 'no run';
+    return;
+  }
+  const phase = PHASES[c.phase] || 'unknown';
+  p.dataset.phase = phase;
+  const fits = (c.fits || []).map((f) => `order ${f.order}: alpha ${fmt(f.alpha)} (explains ${Math.round(100 * f.explained)} %)`);
+  const parts = [`channel ${c.channel}: ${phase}`, `started by ${c.started_by}`,
+    `${fmt(c.elapsed)} of ${fmt(c.duration)} s`, `largest deviation ${fmt(c.deviation)}`,
+    `alpha before ${fmt(c.alpha_before)}`, ...fits];
+  if (c.ended_by) parts.push(`ended by ${c.ended_by}`);
+  if (c.reason) parts.push(c.reason);
+  p.textContent = parts.join(' · ');
+}
+
+function fillCommissionChannels(n) {
+  const sel = $('com-channel');
+  if (sel.options.length === n) return;
+  sel.replaceChildren(...Array.from({ length: n }, (_, i) => el('option', { value: String(i) }, String(i))));
+  if (n > 1) sel.value = '1';
+}
+
+async function commission(action) {
+  const id = state.selected;
+  const p = $('com-result');
+  const body = { action, channel: Number($('com-channel').value) || 0 };
+  if (action === 'start') {
+    body.amplitude = Number($('com-amplitude').value);
+    body.max_deviation = Number($('com-deviation').value);
+    body.period = Number($('com-period').value);
+    body.cycles = Number($('com-cycles').value);
+  }
+  p.dataset.state = 'pending';
+  p.textContent = 'sending…';
+  let r;
+  try {
+    r = await api(`api/devices/${encodeURIComponent(id)}/commission`, {
+      method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify(body),
+    });
+  } catch (e) { r = { ok: false, status: 0, body: { reason: String(e) } }; }
+  showResult(p, r, `${action} on channel ${body.channel}`);
+  if (r.ok && r.body.commission) showCommission(r.body.commission);
+  refreshAudit();
+}
+
 // ---- start ---------------------------------------------------------------------------
 
 function every(ms, f) {
@@ -604,6 +659,9 @@ window.addEventListener('DOMContentLoaded', async () => {
   $('gain-form').addEventListener('submit', submitGains);
   $('ref-form').addEventListener('submit', submitReference);
   $('gain-channel').addEventListener('change', buildGainFields);
+  $('com-form').addEventListener('submit', (ev) => { ev.preventDefault(); commission('start'); });
+  $('com-confirm').addEventListener('click', () => commission('confirm'));
+  $('com-abort').addEventListener('click', () => commission('abort'));
   every(LIST_MS, refreshList);
   every(SERIES_MS, refreshSeries);
   every(DETAIL_MS, refreshDetail);

@@ -12,10 +12,13 @@
 //! and the gains are recomputed from the same error dynamics if the order does.
 
 use mfc::{
-    gains_for, CommissionFinding, CommissionSpec, CommissionStep, Commissioning, ControllerKind,
-    IntelligentParams, LawConfig, MimoController, Order, OutputMap, Reference,
+    commissioned_law, CommissionFinding, CommissionSpec, CommissionStep, Commissioning, LawConfig,
+    MimoController, OutputMap, Reference,
 };
 use plant::scenario::{ControllerSet, Scenario};
+
+mod live;
+pub use live::commission_live;
 
 use crate::offline::RunError;
 
@@ -30,54 +33,6 @@ pub struct ChannelCommission {
     pub outcome: Result<CommissionFinding, String>,
     /// Plant time the run took (s).
     pub seconds: f64,
-}
-
-/// The law a finding gives a channel: `α` found; the order found, with the gains that keep
-/// the channel's error dynamics (order 1: `kp = ω`; order 2: `kp = ω²`, `kd = 2ζω`) when it
-/// changes; every other parameter as it was.
-pub fn commissioned_law(before: &LawConfig, f: &CommissionFinding) -> Option<LawConfig> {
-    let LawConfig::Intelligent { params, estimator } = *before else {
-        return None;
-    };
-    let best = f.best;
-    if best.order == params.order {
-        return Some(LawConfig::Intelligent {
-            params: IntelligentParams {
-                alpha: best.alpha,
-                ..params
-            },
-            estimator,
-        });
-    }
-    let (omega, zeta) = match params.order {
-        Order::One => (params.kp, 0.7),
-        Order::Two => {
-            let w = params.kp.sqrt();
-            (w, if w > 0.0 { params.kd / (2.0 * w) } else { 0.7 })
-        }
-    };
-    let [kp, ki, kd] = gains_for(best.order, omega, zeta.max(0.1)).ok()?;
-    let kind = match best.order {
-        Order::One => ControllerKind::P,
-        Order::Two => ControllerKind::PD,
-    };
-    Some(LawConfig::Intelligent {
-        params: IntelligentParams {
-            kind,
-            order: best.order,
-            alpha: best.alpha,
-            kp,
-            ki,
-            kd,
-            derivative_observer: if best.order == Order::One {
-                0.0
-            } else {
-                params.derivative_observer
-            },
-            ..params
-        },
-        estimator,
-    })
 }
 
 /// Commission `channel` of `set` on `scenario`'s plant, from rest.
@@ -188,7 +143,7 @@ pub fn commission_all(
 /// The law a run found, in place of the channel's.
 fn adopt(set: &mut ControllerSet, run: &ChannelCommission) {
     if let Ok(f) = &run.outcome {
-        if let Some(law) = commissioned_law(&set.channels[run.channel], f) {
+        if let Some(law) = commissioned_law(&set.channels[run.channel], f, None) {
             set.channels[run.channel] = law;
         }
     }
@@ -256,55 +211,4 @@ pub fn report(
         md += "\n";
     }
     md
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use mfc::CommissionFit;
-
-    fn finding(order: Order, alpha: f64) -> CommissionFinding {
-        let best = CommissionFit {
-            order,
-            alpha,
-            explained: 0.9,
-        };
-        CommissionFinding {
-            best,
-            fits: [Some(best), None],
-            samples: 100,
-        }
-    }
-
-    #[test]
-    fn the_law_keeps_its_error_dynamics() {
-        let ipd = LawConfig::intelligent(ControllerKind::PD, Order::Two, 0.2, [9.0, 0.0, 3.0], 20);
-        let same = commissioned_law(&ipd, &finding(Order::Two, 0.35)).unwrap();
-        let LawConfig::Intelligent { params, .. } = same else {
-            unreachable!()
-        };
-        assert_eq!((params.alpha, params.kp, params.kd), (0.35, 9.0, 3.0));
-        // Order 2 -> 1: e' + 3 e = 0, an iP.
-        let one = commissioned_law(&ipd, &finding(Order::One, 1.5)).unwrap();
-        let LawConfig::Intelligent { params, .. } = one else {
-            unreachable!()
-        };
-        assert_eq!(
-            (params.kind, params.order, params.kp, params.kd),
-            (ControllerKind::P, Order::One, 3.0, 0.0)
-        );
-        // Order 1 -> 2: damping 0.7 around the same bandwidth.
-        let ip = LawConfig::intelligent(ControllerKind::P, Order::One, 1.0, [2.0, 0.0, 0.0], 10);
-        let two = commissioned_law(&ip, &finding(Order::Two, 0.5)).unwrap();
-        let LawConfig::Intelligent { params, .. } = two else {
-            unreachable!()
-        };
-        assert_eq!(params.kp, 4.0);
-        assert!((params.kd - 2.8).abs() < 1e-12);
-        assert!(params.validate().is_ok());
-        let pid = LawConfig::Pid {
-            params: mfc::PidParams::default(),
-        };
-        assert!(commissioned_law(&pid, &finding(Order::One, 1.0)).is_none());
-    }
 }
