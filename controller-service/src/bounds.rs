@@ -56,6 +56,11 @@ pub struct ChannelBounds {
 }
 
 impl ChannelBounds {
+    /// The range of the channel's measured output from the file, if it sets one.
+    pub fn range(&self) -> Option<(f64, f64)> {
+        self.range
+    }
+
     /// From the file's `bounds` and `range`; `Err` names the field and the reason.
     pub fn from_file(
         bounds: &BTreeMap<String, [f64; 2]>,

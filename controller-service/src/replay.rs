@@ -213,7 +213,7 @@ impl Play {
                     Topic::ReferenceUpdate => decode::<pb::ReferenceUpdate>(&m.data)
                         .map(|r| registry.set_reference(dev, &r)),
                     Topic::CommissionRequest => decode::<pb::CommissionRequest>(&m.data)
-                        .map(|r| registry.commission(dev, &r, "replay")),
+                        .map(|r| registry.commission(dev, &r, "replay", m.log_ns)),
                     _ => decode::<pb::EnvelopeRequest>(&m.data)
                         .map(|r| registry.change_envelope(dev, &r)),
                 };

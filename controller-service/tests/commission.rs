@@ -20,6 +20,24 @@ envelope = { min = -3.0, max = 3.0 }
 [[devices.channels]]
 law = { law = "pid", params = { kp = 1.0 } }
 
+# The same plant behind an actuator with a dead zone of 0.3, which the map compensates:
+# alpha stays 2 in the law's units (a fit in the map's units would find 1.6 times less).
+[[devices]]
+id = "dz"
+[[devices.channels]]
+law = { law = "intelligent", params = { kind = "ipd", order = "two", alpha = 6.0, kp = 4.0, kd = 4.0 }, estimator = { window = 20 } }
+output = { dead_zone = 0.3, smoothing = 0.0, min = -3.0, max = 3.0 }
+reference = [{ kind = "constant", value = 0.2 }]
+
+# A file that bounds alpha to [5, 10]: what commissioning finds (about 2) is refused.
+[[devices]]
+id = "tight"
+[[devices.channels]]
+law = { law = "intelligent", params = { kind = "ipd", order = "two", alpha = 6.0, kp = 4.0, kd = 4.0 }, estimator = { window = 20 } }
+reference = [{ kind = "constant", value = 0.2 }]
+envelope = { min = -3.0, max = 3.0 }
+bounds = { alpha = [5.0, 10.0] }
+
 [[templates]]
 pattern = "sim-$*"
 [[templates.channels]]
@@ -38,7 +56,12 @@ struct Spring {
 }
 
 impl Spring {
-    fn advance(&mut self, u: f64) {
+    fn advance(&mut self, v: f64, dead_zone: f64) {
+        let u = if v.abs() > dead_zone {
+            v - dead_zone * v.signum()
+        } else {
+            0.0
+        };
         let dt = H / 20.0;
         for _ in 0..20 {
             let ddy = -4.0 * self.y - self.dy + B * u;
@@ -55,6 +78,9 @@ struct Rig {
     k: u64,
     run_id: u64,
     flags: u32,
+    /// Whether samples say what the plant applied (the last command's values).
+    says_applied: bool,
+    last_v: Vec<f64>,
     /// Every command's first channel, in order.
     sent: Vec<f64>,
     modes: Vec<i32>,
@@ -68,6 +94,8 @@ impl Rig {
             k: 0,
             run_id: 7,
             flags: 0,
+            says_applied: false,
+            last_v: Vec::new(),
             sent: Vec::new(),
             modes: Vec::new(),
         }
@@ -90,13 +118,20 @@ impl Rig {
                 outputs: vec![self.plant.y; channels],
                 run_id: self.run_id,
                 flags: self.flags,
+                applied: if self.says_applied {
+                    self.last_v.clone()
+                } else {
+                    Vec::new()
+                },
                 ..Default::default()
             };
             let c = answered(r.answer(self.id, &s));
+            self.last_v.clone_from(&c.v);
             let u = c.v.first().copied().unwrap_or(0.0);
             self.sent.push(u);
             self.modes.push(c.mode);
-            self.plant.advance(u);
+            let dead_zone = if self.id == "dz" { 0.3 } else { 0.0 };
+            self.plant.advance(u, dead_zone);
             self.k += 1;
         }
     }
@@ -146,20 +181,31 @@ fn finds_alpha_proposes_and_puts_it_in_force_on_confirmation() {
     let held = *rig.sent.last().unwrap();
     // The law holds 0.2 against the spring: u = 4 * 0.2 / 2.
     assert!((held - 0.4).abs() < 0.05, "{held}");
-    let reply = r.commission("rig", &start(0.5, 0.5), "alice");
+    let reply = r.commission("rig", &start(0.5, 0.5), "alice", 1);
     assert!(reply.accepted, "{}", reply.reason);
-    let from = rig.sent.len();
-    rig.run(&mut r, 8.5);
+    let asked = rig.sent.len();
+    rig.run(&mut r, 10.5);
     let c = status(&r, "rig");
     assert_eq!(
         c.phase,
         pb::CommissionPhase::CommissionProposed as i32,
         "{c:?}"
     );
-    // The excitation is the square wave around the held input, nothing else.
+    // The loop is settled: the excitation begins after a period (2 s) inside the
+    // band, and is the square wave around the held input, nothing else.
+    let on = |v: &f64| (v - held).abs() > 0.45;
+    let from = asked + rig.sent[asked..].iter().position(on).unwrap();
+    assert!(
+        (200..=202).contains(&(from - asked)),
+        "began {} samples after",
+        from - asked
+    );
+    // Around the input held when it began (the law's, a little after the request's).
+    let u0 = rig.sent[from] - 0.5;
+    assert!((u0 - held).abs() < 0.01, "{u0} {held}");
     for (k, v) in rig.sent[from..].iter().enumerate().take(790) {
         assert!(
-            (v - held - 0.5).abs() < 1e-9 || (v - held + 0.5).abs() < 1e-9,
+            ((v - u0).abs() - 0.5).abs() < 1e-9,
             "sample {k} of the run sent {v}"
         );
     }
@@ -179,6 +225,7 @@ fn finds_alpha_proposes_and_puts_it_in_force_on_confirmation() {
         "rig",
         &act(pb::CommissionAction::CommissionConfirm, 0),
         "bob",
+        1,
     );
     assert!(reply.accepted, "{}", reply.reason);
     assert!((alpha_in_force(&r) - best.alpha).abs() < 1e-12);
@@ -188,7 +235,7 @@ fn finds_alpha_proposes_and_puts_it_in_force_on_confirmation() {
     let after = r.settings_of("rig").unwrap();
     assert_ne!(before["channel 0 alpha"], after["channel 0 alpha"]);
     assert!(
-        after["channel 0 commission"].starts_with("applied"),
+        after["channel 0 commission"].starts_with("run 1 applied"),
         "{after:?}"
     );
     // Bumpless, and the law tracks with the alpha found.
@@ -205,6 +252,7 @@ fn finds_alpha_proposes_and_puts_it_in_force_on_confirmation() {
         "rig",
         &act(pb::CommissionAction::CommissionConfirm, 0),
         "bob",
+        1,
     );
     assert!(!again.accepted && again.reason.contains("nothing to confirm"));
 }
@@ -215,9 +263,9 @@ fn the_output_leaving_its_band_aborts_and_the_law_takes_the_plant_back() {
     let mut rig = Rig::new("rig");
     rig.run(&mut r, 5.0);
     // An amplitude the envelope (+-3) clips, and a band the plant soon leaves.
-    assert!(r.commission("rig", &start(5.0, 0.1), "alice").accepted);
+    assert!(r.commission("rig", &start(5.0, 0.1), "alice", 1).accepted);
     let from = rig.sent.len();
-    rig.run(&mut r, 1.0);
+    rig.run(&mut r, 3.0);
     let c = status(&r, "rig");
     assert_eq!(
         c.phase,
@@ -242,14 +290,15 @@ fn the_output_leaving_its_band_aborts_and_the_law_takes_the_plant_back() {
         !r.commission(
             "rig",
             &act(pb::CommissionAction::CommissionConfirm, 0),
-            "bob"
+            "bob",
+            1,
         )
         .accepted
     );
 }
 
 fn refused(r: &mut Registry, req: pb::CommissionRequest, why: &str) {
-    let reply = r.commission("rig", &req, "alice");
+    let reply = r.commission("rig", &req, "alice", 1);
     assert!(!reply.accepted, "accepted: {req:?}");
     assert!(
         reply.reason.contains(why),
@@ -268,8 +317,6 @@ fn refuses_what_it_cannot_do_with_its_reason() {
     let ok = start(0.5, 0.5);
     let bad = [
         (start(0.0, 0.5), "amplitude"),
-        // 1 s in, the output is still 0.12 below its reference.
-        (start(0.5, 0.1), "settled"),
         (start(0.5, f64::NAN), "max_deviation"),
         (start(f64::INFINITY, 0.5), "amplitude"),
         (
@@ -336,16 +383,18 @@ fn refuses_what_it_cannot_do_with_its_reason() {
     }
     let status = r.device_status("rig").unwrap();
     assert!(status.commission.is_none(), "no run after refusals");
-    assert!(!r.commission("nobody", &start(0.5, 0.5), "alice").accepted);
+    assert!(
+        !r.commission("nobody", &start(0.5, 0.5), "alice", 1)
+            .accepted
+    );
 }
 
 #[test]
 fn one_run_per_device_and_an_operator_may_stop_it() {
     let mut r = registry();
     let mut rig = Rig::new("rig");
-    rig.run(&mut r, 1.0);
-    let u0 = *rig.sent.last().unwrap();
-    assert!(r.commission("rig", &start(0.5, 0.5), "alice").accepted);
+    rig.run(&mut r, 5.0);
+    assert!(r.commission("rig", &start(0.5, 0.5), "alice", 1).accepted);
     refused(&mut r, start(0.5, 0.5), "under way");
     refused(
         &mut r,
@@ -357,28 +406,33 @@ fn one_run_per_device_and_an_operator_may_stop_it() {
         act(pb::CommissionAction::CommissionAbort, 1),
         "channel 0, not 1",
     );
-    rig.run(&mut r, 0.5);
+    rig.run(&mut r, 2.6);
     let at = rig.sent.len();
     // An operator's abort: the law commands at once.
     let stop = act(pb::CommissionAction::CommissionAbort, 0);
-    assert!(r.commission("rig", &stop, "carol").accepted);
+    assert!(r.commission("rig", &stop, "carol", 1).accepted);
     let c = status(&r, "rig");
     assert_eq!(c.phase, pb::CommissionPhase::CommissionAborted as i32);
     assert_eq!(
         (c.ended_by.as_str(), c.reason.as_str()),
         ("carol", "stopped by carol")
     );
-    let on_the_wave = |v: f64| ((v - u0).abs() - 0.5).abs() < 1e-9;
-    assert!(rig.sent[at - 50..at].iter().all(|v| on_the_wave(*v)));
+    // 0.6 s into the excitation, its first half: one level, held.
+    let level = rig.sent[at - 1];
+    assert!(rig.sent[at - 50..at].iter().all(|v| *v == level));
     rig.run(&mut r, 0.02);
-    assert!(!on_the_wave(rig.sent[at]), "the law commands again");
+    let (a, b) = (level, level - 1.0);
+    assert!(
+        rig.sent[at] != a && rig.sent[at] != b,
+        "the law commands again"
+    );
 }
 
 #[test]
 fn a_plant_in_trouble_a_restart_a_gap_or_a_change_ends_the_run() {
     let mut r = registry();
     let mut rig = Rig::new("rig");
-    rig.run(&mut r, 1.0);
+    rig.run(&mut r, 5.0);
     let ends = |r: &mut Registry, rig: &mut Rig, why: &str| {
         let c = status(r, "rig");
         assert_eq!(
@@ -387,13 +441,15 @@ fn a_plant_in_trouble_a_restart_a_gap_or_a_change_ends_the_run() {
             "{c:?}"
         );
         assert!(c.reason.contains(why), "{} (wanted {why})", c.reason);
-        rig.run(r, 1.0);
+        rig.run(r, 3.0);
     };
-    assert!(r.commission("rig", &start(0.2, 0.5), "alice").accepted);
-    rig.run(&mut r, 0.5);
-    // Holding a late command's level is no reason to stop.
+    assert!(r.commission("rig", &start(0.2, 0.5), "alice", 1).accepted);
+    rig.run(&mut r, 2.5);
+    // Holding a late command's level, and saying so, is no reason to stop.
     rig.flags = pb::SampleFlags::Holding as u32;
+    rig.says_applied = true;
     rig.run(&mut r, 0.03);
+    rig.says_applied = false;
     let c = status(&r, "rig");
     assert_eq!(
         c.phase,
@@ -405,8 +461,8 @@ fn a_plant_in_trouble_a_restart_a_gap_or_a_change_ends_the_run() {
     rig.flags = 0;
     ends(&mut r, &mut rig, "left control");
 
-    assert!(r.commission("rig", &start(0.2, 0.5), "alice").accepted);
-    rig.run(&mut r, 0.5);
+    assert!(r.commission("rig", &start(0.2, 0.5), "alice", 1).accepted);
+    rig.run(&mut r, 2.5);
     let change = pb::ConfigRequest {
         version: PROTOCOL_VERSION,
         updates: vec![pb::ChannelUpdate {
@@ -419,14 +475,14 @@ fn a_plant_in_trouble_a_restart_a_gap_or_a_change_ends_the_run() {
     assert!(r.configure("rig", &change).accepted);
     ends(&mut r, &mut rig, "configuration changed");
 
-    assert!(r.commission("rig", &start(0.2, 0.5), "alice").accepted);
-    rig.run(&mut r, 0.5);
+    assert!(r.commission("rig", &start(0.2, 0.5), "alice", 1).accepted);
+    rig.run(&mut r, 2.5);
     rig.k += 150;
     rig.run(&mut r, 0.01);
     ends(&mut r, &mut rig, "samples stopped");
 
-    assert!(r.commission("rig", &start(0.2, 0.5), "alice").accepted);
-    rig.run(&mut r, 0.5);
+    assert!(r.commission("rig", &start(0.2, 0.5), "alice", 1).accepted);
+    rig.run(&mut r, 2.5);
     rig.run_id += 1;
     rig.run(&mut r, 0.01);
     let c = status(&r, "rig");
@@ -445,11 +501,11 @@ fn runs_are_bounded_per_service() {
     let mut req = start(0.1, 0.5);
     req.period = 1.0;
     for rig in &rigs[..MAX_RUNNING] {
-        let reply = r.commission(rig.id, &req, "alice");
+        let reply = r.commission(rig.id, &req, "alice", 1);
         assert!(reply.accepted, "{}: {}", rig.id, reply.reason);
     }
     let last = rigs[MAX_RUNNING].id;
-    let reply = r.commission(last, &req, "alice");
+    let reply = r.commission(last, &req, "alice", 1);
     assert!(!reply.accepted && reply.reason.contains("under way on this service"));
     // One ends: room for another.
     let first = rigs[0].id;
@@ -457,11 +513,12 @@ fn runs_are_bounded_per_service() {
         r.commission(
             first,
             &act(pb::CommissionAction::CommissionAbort, 0),
-            "alice"
+            "alice",
+            1,
         )
         .accepted
     );
-    assert!(r.commission(last, &req, "alice").accepted);
+    assert!(r.commission(last, &req, "alice", 1).accepted);
 }
 
 /// Error dynamics asked with the start (`bandwidth`, `damping`) give the proposed gains:
@@ -476,8 +533,8 @@ fn the_proposed_gains_follow_the_error_dynamics_asked_for() {
         damping: 0.8,
         ..start(0.5, 0.5)
     };
-    assert!(r.commission("rig", &req, "alice").accepted);
-    rig.run(&mut r, 8.5);
+    assert!(r.commission("rig", &req, "alice", 1).accepted);
+    rig.run(&mut r, 10.5);
     let c = status(&r, "rig");
     let Some(pb::channel_config::Law::Intelligent(i)) = c.proposed.and_then(|p| p.law) else {
         panic!("no proposal: {}", c.reason);
@@ -485,4 +542,140 @@ fn the_proposed_gains_follow_the_error_dynamics_asked_for() {
     assert_eq!((i.order, i.kp), (2, 9.0));
     assert!((i.kd - 4.8).abs() < 1e-12, "kd {}", i.kd);
     assert!((i.alpha - B).abs() < 0.2 * B, "alpha {}", i.alpha);
+}
+
+fn alpha_of(r: &Registry, id: &str) -> f64 {
+    match &r.config_of(id).unwrap().channels[0].law {
+        Some(pb::channel_config::Law::Intelligent(i)) => i.alpha,
+        other => panic!("{other:?}"),
+    }
+}
+
+/// Run a whole commissioning on `id` from rest: the run's status at its end.
+fn commissioned(r: &mut Registry, rig: &mut Rig) -> pb::CommissionStatus {
+    rig.run(r, 5.0);
+    let reply = r.commission(rig.id, &start(0.5, 0.5), "alice", 1);
+    assert!(reply.accepted, "{}", reply.reason);
+    rig.run(r, 10.5);
+    status(r, rig.id)
+}
+
+#[test]
+fn the_fit_is_in_the_laws_units_through_the_output_map() {
+    let mut r = registry();
+    let mut rig = Rig::new("dz");
+    let c = commissioned(&mut r, &mut rig);
+    assert_eq!(
+        c.phase,
+        pb::CommissionPhase::CommissionProposed as i32,
+        "{c:?}"
+    );
+    let best = c.fits.iter().find(|f| f.order == 2).unwrap();
+    assert!((best.alpha - B).abs() < 0.2 * B, "{c:?}");
+}
+
+#[test]
+fn a_proposal_is_confirmed_only_as_seen_inside_the_files_bounds_and_before_any_change() {
+    // Outside the file's bounds: refused with the bound's reason, nothing changed.
+    let mut r = registry();
+    let mut rig = Rig::new("tight");
+    let c = commissioned(&mut r, &mut rig);
+    let confirm = |run| pb::CommissionRequest {
+        run,
+        ..act(pb::CommissionAction::CommissionConfirm, 0)
+    };
+    let reply = r.commission("tight", &confirm(0), "bob", 1);
+    assert!(
+        !reply.accepted && reply.reason.contains("alpha"),
+        "{}",
+        reply.reason
+    );
+    assert_eq!(alpha_of(&r, "tight"), 6.0);
+    assert_eq!(c.run, 1);
+
+    // Another run than the one seen: refused; the one seen: accepted.
+    let mut rig = Rig::new("rig");
+    let c = commissioned(&mut r, &mut rig);
+    let reply = r.commission("rig", &confirm(c.run + 1), "bob", 1);
+    assert!(
+        !reply.accepted && reply.reason.contains("not the last one"),
+        "{}",
+        reply.reason
+    );
+    assert!(r.commission("rig", &confirm(c.run), "bob", 1).accepted);
+
+    // A change after the proposal dismisses it: it was made for the law before.
+    let c = commissioned(&mut r, &mut rig);
+    assert_eq!(c.run, 2);
+    let change = pb::ConfigRequest {
+        version: PROTOCOL_VERSION,
+        updates: vec![pb::ChannelUpdate {
+            channel: 0,
+            kp: Some(5.0),
+            ..Default::default()
+        }],
+        ..Default::default()
+    };
+    assert!(r.configure("rig", &change).accepted);
+    let c = status(&r, "rig");
+    assert_eq!(
+        c.phase,
+        pb::CommissionPhase::CommissionAborted as i32,
+        "{c:?}"
+    );
+    assert!(c.proposed.is_none(), "a dismissed proposal is not shown");
+    assert!(!r.commission("rig", &confirm(0), "bob", 1).accepted);
+}
+
+#[test]
+fn a_vanished_device_frees_its_slot_and_a_silent_hold_ends_the_run() {
+    let mut r = registry();
+    let mut rig = Rig::new("rig");
+    rig.run(&mut r, 3.0);
+    assert!(r.commission("rig", &start(0.5, 0.5), "alice", 1).accepted);
+    // Heard at 1 ns (the helper's clock); a request SILENT_NS later ends the run.
+    let later = controller_service::registry::SILENT_NS + 2;
+    let probe = act(pb::CommissionAction::CommissionAbort, 0);
+    let _ = r.commission("nobody", &probe, "alice", later);
+    let c = status(&r, "rig");
+    assert!(c.reason.contains("no sample for"), "{c:?}");
+
+    assert!(r.commission("rig", &start(0.5, 0.5), "alice", 1).accepted);
+    rig.flags = pb::SampleFlags::Holding as u32;
+    rig.run(&mut r, 0.01);
+    let c = status(&r, "rig");
+    assert!(c.reason.contains("without saying what it applied"), "{c:?}");
+}
+
+/// A run waits for its loop to settle before it excites the plant, and gives up on one
+/// that does not.
+#[test]
+fn a_run_waits_for_its_loop_to_settle() {
+    let mut r = registry();
+    let mut rig = Rig::new("rig");
+    rig.run(&mut r, 0.4);
+    // 0.4 s in, the output is still far below its reference: the law keeps commanding.
+    assert!(r.commission("rig", &start(0.5, 0.5), "alice", 1).accepted);
+    rig.run(&mut r, 0.5);
+    let c = status(&r, "rig");
+    assert_eq!(c.phase, pb::CommissionPhase::CommissionRunning as i32);
+    assert_eq!(
+        (c.elapsed, c.reason.as_str()),
+        (0.0, "waiting for the loop to settle")
+    );
+    rig.run(&mut r, 5.0);
+    let c = status(&r, "rig");
+    assert!(
+        c.elapsed > 0.5 && c.reason.is_empty(),
+        "the excitation began: {c:?}"
+    );
+
+    // A band the loop never holds: the run ends after 5 periods of waiting.
+    let stop = act(pb::CommissionAction::CommissionAbort, 0);
+    assert!(r.commission("rig", &stop, "alice", 1).accepted);
+    rig.run(&mut r, 3.0);
+    assert!(r.commission("rig", &start(0.5, 1e-9), "alice", 1).accepted);
+    rig.run(&mut r, 10.5);
+    let c = status(&r, "rig");
+    assert!(c.reason.contains("did not settle"), "{c:?}");
 }

@@ -466,6 +466,9 @@ struct CommissionChange {
     period: f64,
     #[serde(default)]
     cycles: u32,
+    /// `confirm`, `abort`: the run the page shows (0: the device's last).
+    #[serde(default)]
+    run: u64,
 }
 
 impl CommissionChange {
@@ -489,6 +492,7 @@ impl CommissionChange {
             max_deviation: self.max_deviation,
             period: self.period,
             cycles: self.cycles,
+            run: self.run,
             reason: "console".into(),
             ..Default::default()
         })

@@ -352,8 +352,9 @@ pub fn gains_for(order: Order, bandwidth: f64, damping: f64) -> Result<[f64; 3]>
 /// for any other): `α` and the order found; the gains from `dynamics` (`(ω, ζ)`, see
 /// [`gains_for`]) if asked, otherwise the ones `before` has when the order is the same and
 /// the ones that keep its error dynamics when it changes (order 1: `ω = kp`; order 2: `ω
-/// = √kp`, `ζ = kd / 2ω`). Every other parameter as it was. `None` also if the gains
-/// asked for are not positive.
+/// = √kp`, `ζ = kd / 2ω`, at least 0.1). New gains make the law an iP or an iPD: no
+/// integral (`ki` 0), since the error dynamics asked for have none. Every other parameter
+/// as it was. `None` if the gains come out not positive.
 pub fn commissioned_law(
     before: &LawConfig,
     f: &CommissionFinding,
@@ -376,10 +377,17 @@ pub fn commissioned_law(
         Order::One => (params.kp, 0.7),
         Order::Two => {
             let w = libm::sqrt(params.kp);
-            (w, if w > 0.0 { params.kd / (2.0 * w) } else { 0.7 })
+            (
+                w,
+                if w > 0.0 {
+                    (params.kd / (2.0 * w)).max(0.1)
+                } else {
+                    0.7
+                },
+            )
         }
     });
-    let [kp, ki, kd] = gains_for(best.order, omega, zeta.max(0.1)).ok()?;
+    let [kp, ki, kd] = gains_for(best.order, omega, zeta).ok()?;
     let kind = match best.order {
         Order::One => ControllerKind::P,
         Order::Two => ControllerKind::PD,

@@ -190,6 +190,10 @@ pub struct CommissionArgs {
     /// Why, for the record.
     #[arg(long, default_value = "")]
     pub reason: String,
+    /// With --confirm or --abort: the run meant, as `mfcctl status` numbers it (default:
+    /// the device's last).
+    #[arg(long, default_value_t = 0)]
+    pub run: u64,
 }
 
 /// Parse `args`, run, print; the process's exit code: 0 done, 1 refused or failed (the

@@ -1,8 +1,9 @@
 //! `mfcctl commission`: start a run on one channel, follow it in the device's status to
 //! its end (progress on stderr), show what it found, and put the proposal in force when
-//! the operator confirms (`--yes`, or `y` at the prompt on a terminal). Ctrl-C while it
-//! runs aborts it: the law in force takes the plant back. `--confirm` and `--abort` act on
-//! the last run without starting one.
+//! the operator confirms (`--yes`, or `y` at the prompt on a terminal), naming the run so
+//! that a run someone else started since is never the one confirmed. Ctrl-C while it
+//! runs, or any error while following it, aborts it: the law in force takes the plant
+//! back. `--confirm` and `--abort` act on a run without starting one.
 
 use std::io::{BufRead, IsTerminal, Write};
 use std::time::{Duration, Instant};
@@ -19,8 +20,10 @@ const POLL: Duration = Duration::from_millis(250);
 /// mfcctl gives up following it (the plant's samples stopped, or its clock is slow).
 const GRACE: Duration = Duration::from_secs(30);
 
-fn request(a: &CommissionArgs, action: pb::CommissionAction) -> pb::CommissionRequest {
+/// The request for `action` on run `run` (0: the device's last).
+fn request(a: &CommissionArgs, action: pb::CommissionAction, run: u64) -> pb::CommissionRequest {
     pb::CommissionRequest {
+        run,
         action: action as i32,
         channel: a.channel,
         amplitude: a.amplitude.unwrap_or(0.0),
@@ -50,12 +53,27 @@ pub async fn run(
         } else {
             A::CommissionAbort
         };
-        ops::commission(operator, &a.device, request(a, action), timeout).await?;
+        ops::commission(operator, &a.device, request(a, action, a.run), timeout).await?;
         let s = ops::device_status(operator, &a.device, timeout).await?;
         return show(json, s.commission.unwrap_or_default());
     }
-    ops::commission(operator, &a.device, request(a, A::CommissionStart), timeout).await?;
-    let end = follow(operator, a, timeout).await?;
+    let start = request(a, A::CommissionStart, 0);
+    ops::commission(operator, &a.device, start, timeout).await?;
+    let mut seen = 0;
+    let end = match follow(operator, a, timeout, &mut seen).await {
+        Ok(end) => end,
+        Err(e) => {
+            // Whatever went wrong here, the run must not go on unwatched.
+            let abort = request(a, A::CommissionAbort, seen);
+            let note = match ops::commission(operator, &a.device, abort, timeout).await {
+                Ok(_) => "the run is aborted",
+                Err(_) => {
+                    "the run could not be aborted: `mfcctl commission DEVICE --channel N --abort`"
+                }
+            };
+            return Err(e.context(note));
+        }
+    };
     let phase = pb::CommissionPhase::try_from(end.phase);
     if phase != Ok(pb::CommissionPhase::CommissionProposed) {
         bail!(
@@ -66,27 +84,26 @@ pub async fn run(
     eprint!("{}", render::commission(&end));
     if !(a.yes || ask("Put the proposed law in force? [y/N] ")) {
         eprintln!(
-            "left as proposed: `mfcctl commission {} --channel {} --confirm` puts it in force, `--abort` dismisses it",
-            a.device, a.channel
+            "left as proposed: `mfcctl commission {} --channel {} --run {} --confirm` puts it in force, `--abort` dismisses it",
+            a.device, a.channel, end.run
         );
         return show(json, end);
     }
-    ops::commission(
-        operator,
-        &a.device,
-        request(a, A::CommissionConfirm),
-        timeout,
-    )
-    .await?;
+    // This run's proposal, not one of a run started since by someone else.
+    let confirm = request(a, A::CommissionConfirm, end.run);
+    ops::commission(operator, &a.device, confirm, timeout).await?;
     let s = ops::device_status(operator, &a.device, timeout).await?;
     show(json, s.commission.unwrap_or_default())
 }
 
-/// Read the status until the run is no longer running; Ctrl-C aborts it.
+/// Read the status until the run is no longer running (`seen`: its number, once read).
+/// Ctrl-C, a status that cannot be read and a run that does not end are errors: the
+/// caller aborts the run.
 async fn follow(
     operator: &ops::Operator,
     a: &CommissionArgs,
     timeout: Duration,
+    seen: &mut u64,
 ) -> Result<pb::CommissionStatus> {
     let started = Instant::now();
     let mut last_shown = Instant::now();
@@ -94,34 +111,36 @@ async fn follow(
     tokio::pin!(ctrl_c);
     loop {
         tokio::select! {
-            _ = &mut ctrl_c => {
-                let abort = request(a, pb::CommissionAction::CommissionAbort);
-                ops::commission(operator, &a.device, abort, timeout).await?;
-                bail!("interrupted: the run is aborted, the law in force commands the plant");
-            }
+            _ = &mut ctrl_c => bail!("interrupted; the law in force commands the plant"),
             _ = tokio::time::sleep(POLL) => {}
         }
         let s = ops::device_status(operator, &a.device, timeout).await?;
         let Some(c) = s.commission.filter(|c| c.channel == a.channel) else {
             bail!("the device's status shows no run on channel {}", a.channel);
         };
+        *seen = c.run;
         if c.phase != pb::CommissionPhase::CommissionRunning as i32 {
             eprintln!();
             return Ok(c);
         }
         if last_shown.elapsed() >= Duration::from_secs(1) {
             last_shown = Instant::now();
-            eprint!(
-                "\r  running: {:.1} of {:.1} s, largest deviation {:.4}   ",
-                c.elapsed, c.duration, c.deviation
-            );
+            if c.reason.is_empty() {
+                eprint!(
+                    "\r  running: {:.1} of {:.1} s, largest deviation {:.4}   ",
+                    c.elapsed, c.duration, c.deviation
+                );
+            } else {
+                eprint!("\r  {}   ", c.reason);
+            }
             let _ = std::io::stderr().flush();
         }
-        if started.elapsed() > Duration::from_secs_f64(c.duration.max(0.0)) + GRACE {
+        // The run may first wait up to 5 periods for its loop to settle.
+        let longest = (c.duration + 5.0 * a.period).max(0.0);
+        if started.elapsed() > Duration::from_secs_f64(longest) + GRACE {
             bail!(
-                "the run has not ended {} s after its duration; it goes on in the service (`mfcctl status {}`, `--abort`)",
-                GRACE.as_secs(),
-                a.device
+                "the run has not ended {} s after its duration",
+                GRACE.as_secs()
             );
         }
     }

@@ -195,7 +195,8 @@ pub fn commission(c: &pb::CommissionStatus) -> String {
     };
     let _ = writeln!(
         out,
-        "  commissioning channel {}: {phase} (started by {}{ended}); {:.1} of {:.1} s, largest deviation {}; alpha was {}",
+        "  commissioning run {} on channel {}: {phase} (started by {}{ended}); {:.1} of {:.1} s, largest deviation {}; alpha was {}",
+        c.run,
         c.channel,
         c.started_by,
         c.elapsed,

@@ -131,14 +131,12 @@ try {
   if ((await page.getAttribute('#ref-result', 'data-state')) !== 'accepted') throw new Error(`reference: ${ref}`);
   stage('reference', { result: ref, at: since() });
 
-  // Commissioning the pitch (channel 1): +-3 for 4 periods of 1 s, at most 0.2 rad away;
-  // the proposal, then its confirmation.
-  // The pitch settles on its new reference first (the service refuses a run on a loop
-  // still in its transient).
-  await page.waitForTimeout(3000);
-  await page.selectOption('#com-channel', '1');
+  // Commissioning the azimuth velocity (channel 0): +-3 for 4 periods of 1 s, at most
+  // 0.003 rad/ms away; the proposal, then its confirmation. (The service waits for the
+  // loop to settle first.)
+  await page.selectOption('#com-channel', '0');
   await page.fill('#com-amplitude', '3');
-  await page.fill('#com-deviation', '0.2');
+  await page.fill('#com-deviation', '0.003');
   await page.fill('#com-period', '1');
   await page.fill('#com-cycles', '4');
   await page.click('#com-start');
@@ -153,7 +151,7 @@ try {
   await page.waitForSelector('#com-state[data-phase="applied"]', { timeout: LONG });
   const applied = await page.textContent('#com-state');
   await page.waitForFunction(() => [...document.querySelectorAll('#audit tr[data-state="accepted"]')]
-    .some((tr) => tr.textContent.includes('channel 1 alpha:')), null, { timeout: LONG });
+    .some((tr) => tr.textContent.includes('channel 0 alpha:')), null, { timeout: LONG });
   stage('commission', { proposal, applied, at: since() });
 
   // The late device's plant ends: it stays listed, marked gone.

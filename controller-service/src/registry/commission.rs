@@ -8,8 +8,9 @@
 //!   device under control (its last answer was CONTROL, this member commands it), one run
 //!   per device and [`MAX_RUNNING`] per service, with the excitation's amplitude and the
 //!   largest deviation of the output both set by the operator and inside [`MAX_CYCLES`]
-//!   and [`MAX_PERIOD`], and with the loop settled (the output within a quarter of that
-//!   deviation of its reference). The run excites around the input the plant holds.
+//!   and [`MAX_PERIOD`]. The run first waits for the loop to settle (the output within a
+//!   quarter of that deviation of its reference for a whole period of the square wave, at
+//!   most [`SETTLE_PERIODS`] periods), then excites around the input the plant holds.
 //! - **While it runs**, the channel's law steps on every sample (its estimator follows
 //!   the plant) but the input sent is the run's; the envelope bounds it like any command,
 //!   the other channels keep their laws, and no horizon is sent (a plant that misses a
@@ -45,18 +46,53 @@ pub const MAX_RUNNING: usize = 16;
 pub const MAX_CYCLES: u32 = 20;
 /// The square wave's period at most (s).
 pub const MAX_PERIOD: f64 = 600.0;
+/// How long a run waits for its loop to settle before it gives up, in periods of its
+/// square wave.
+const SETTLE_PERIODS: f64 = 5.0;
+
+/// A run waiting for its loop to settle: the excitation begins once the output has stayed
+/// within a quarter of `max_deviation` of its reference, and within a band that wide, for
+/// a whole period of the square wave (a run begun in a transient measures the transient,
+/// and soon leaves its band),
+/// around the mean input the law held over that time (one sample's input carries the
+/// law's chatter; a square wave around it would drift the plant away).
+#[derive(Debug, Clone, Copy, Default)]
+struct Settle {
+    /// Plant time of the first sample waited on.
+    began: Option<f64>,
+    /// Since when the output has been inside the band (`None`: it is not), and its
+    /// lowest and highest value since.
+    inside_since: Option<f64>,
+    y_range: (f64, f64),
+    /// The sum and count of the inputs held since then.
+    sum_u: f64,
+    count: u32,
+}
+
+/// The operator's reason kept with a run, at most (bytes).
+const MAX_WHY: usize = 64;
+/// A run whose device has sent nothing for this long (Unix ns, as the service heard it)
+/// is ended when another start needs its slot.
+pub const SILENT_NS: u64 = 10_000_000_000;
 
 /// A device's last commissioning run.
 #[derive(Debug, Clone)]
 pub(super) struct Commission {
+    /// The run's number on its device (1, 2, ...): a confirmation or an abort that names
+    /// one acts on that run only.
+    number: u64,
     pub(super) channel: usize,
-    /// The run, while it runs.
+    /// The run, once the excitation has begun and until it ends.
     run: Option<Box<Commissioning>>,
+    /// Before the excitation: waiting for the loop to settle ([`Settle`]).
+    settle: Option<Settle>,
     spec: CommissionSpec,
     dynamics: Option<(f64, f64)>,
     pub(super) phase: pb::CommissionPhase,
     started_by: String,
     ended_by: String,
+    /// Why, as the operator said (printable, at most [`MAX_WHY`] bytes).
+    why: String,
     /// Plant time of the first sample and of the last one seen (s).
     t0: Option<f64>,
     last_t: f64,
@@ -77,12 +113,67 @@ impl Commission {
         self.phase == pb::CommissionPhase::CommissionRunning
     }
 
+    /// Whether the excitation is on (not waiting for the loop to settle, not ended).
+    pub(super) fn exciting(&self) -> bool {
+        self.run.is_some()
+    }
+
     /// End the run (or dismiss the proposal) without a change.
     pub(super) fn abort(&mut self, by: &str, why: String) {
         self.run = None;
+        self.settle = None;
         self.phase = pb::CommissionPhase::CommissionAborted;
         by.clone_into(&mut self.ended_by);
         self.reason = why;
+    }
+
+    /// While the run waits for its loop to settle: this sample's time, output, tracking
+    /// error and the input the plant holds (the law's units; the excitation is around
+    /// their mean). True while it still waits (the law
+    /// commands); false once the excitation begins here, or if there was nothing to
+    /// wait for. A loop that does not settle within [`SETTLE_PERIODS`] ends the run.
+    pub(super) fn settling(&mut self, t: f64, (y, error): (f64, f64), u_held: f64) -> bool {
+        let Some(w) = self.settle.as_mut() else {
+            return false;
+        };
+        let began = *w.began.get_or_insert(t);
+        // Written so that a NaN error is outside.
+        // Near the reference, and still: a transient passing through the band moves
+        // more than the band is wide while it does.
+        let band = self.spec.max_deviation / 4.0;
+        let (lo, hi) = match w.inside_since {
+            Some(_) => (w.y_range.0.min(y), w.y_range.1.max(y)),
+            None => (y, y),
+        };
+        let inside = error.abs() <= band && hi - lo <= band && u_held.is_finite();
+        if inside {
+            w.inside_since.get_or_insert(t);
+            (w.y_range, w.sum_u, w.count) = ((lo, hi), w.sum_u + u_held, w.count + 1);
+        } else {
+            (w.inside_since, w.sum_u, w.count) = (None, 0.0, 0);
+        }
+        let settled = w.inside_since.is_some_and(|s| t - s >= self.spec.period);
+        let u0 = w.sum_u / f64::from(w.count.max(1));
+        self.last_t = t;
+        if settled {
+            match Commissioning::new(self.spec, u0) {
+                Ok(run) => {
+                    self.run = Some(Box::new(run));
+                    self.settle = None;
+                    self.sent_u = u0;
+                    self.reason.clear();
+                    return false;
+                }
+                Err(e) => self.abort("service", e.to_string()),
+            }
+        } else if t - began > SETTLE_PERIODS * self.spec.period {
+            let waited = t - began;
+            self.abort(
+                "service",
+                format!("the loop did not settle within {waited:.1} s (the output within a quarter of max_deviation of its reference for a period)"),
+            );
+        }
+        true
     }
 
     /// The input for the channel at this sample (its time `t`, the channel's output `y`,
@@ -146,9 +237,13 @@ impl Commission {
             })
             .unwrap_or_default();
         let s = &self.spec;
+        let why = match self.why.as_str() {
+            "" => String::new(),
+            w => format!(", why: {w}"),
+        };
         format!(
-            "{phase} ({by}): +-{} for {} x {} s, max deviation {}{found}",
-            s.amplitude, s.cycles, s.period, s.max_deviation
+            "run {} {phase} ({by}{why}): +-{} for {} x {} s, max deviation {}{found}",
+            self.number, s.amplitude, s.cycles, s.period, s.max_deviation
         )
     }
 
@@ -164,7 +259,12 @@ impl Commission {
                 })
                 .collect()
         });
+        let proposing = matches!(
+            self.phase,
+            pb::CommissionPhase::CommissionProposed | pb::CommissionPhase::CommissionApplied
+        );
         pb::CommissionStatus {
+            run: self.number,
             channel: self.channel as u32,
             phase: self.phase as i32,
             started_by: self.started_by.clone(),
@@ -176,7 +276,7 @@ impl Commission {
             fits,
             proposed: self
                 .proposed
-                .filter(|_| self.finding.is_some())
+                .filter(|_| proposing)
                 .map(|law| channel_to_pb(&mfc::ChannelConfig { law, output })),
             reason: self.reason.clone(),
         }
@@ -239,19 +339,25 @@ fn spec_of(req: &pb::CommissionRequest) -> Result<(CommissionSpec, Option<(f64, 
     Ok((spec, dynamics))
 }
 
+/// What a checked start request gives: the channel, the spec, the error dynamics asked
+/// for, `α` in force and the input held (the law's units).
+struct Start {
+    channel: usize,
+    spec: CommissionSpec,
+    dynamics: Option<(f64, f64)>,
+    alpha: f64,
+    u0: f64,
+}
+
 impl Device {
     /// Start a run on `req.channel` for `who`; why not if refused (nothing changed).
+    /// `running_elsewhere`: the runs under way on the service's other devices.
     pub(super) fn start_commission(
         &mut self,
         req: &pb::CommissionRequest,
         who: &str,
         running_elsewhere: usize,
     ) -> Result<(), String> {
-        let i = req.channel as usize;
-        let n = self.channels();
-        if i >= n {
-            return Err(format!("channel {i}: the device has {n} channels"));
-        }
         if self.commission.as_ref().is_some_and(|c| c.running()) {
             return Err("a run is under way on this device: abort it first".into());
         }
@@ -260,12 +366,81 @@ impl Device {
                 "{MAX_RUNNING} runs are under way on this service already"
             ));
         }
-        let LawConfig::Intelligent { params, .. } = self.configs[i].law else {
+        let st = self.check_start(req)?;
+        let mut why = printable(&req.reason);
+        if why.len() > MAX_WHY {
+            let cut = (0..=MAX_WHY).rev().find(|&k| why.is_char_boundary(k));
+            why.truncate(cut.unwrap_or(0));
+        }
+        self.commission = Some(Box::new(Commission {
+            number: self.commission.as_ref().map_or(1, |c| c.number + 1),
+            channel: st.channel,
+            run: None,
+            settle: Some(Settle::default()),
+            spec: st.spec,
+            dynamics: st.dynamics,
+            phase: pb::CommissionPhase::CommissionRunning,
+            started_by: who.into(),
+            ended_by: String::new(),
+            why,
+            t0: None,
+            last_t: self.last_time,
+            y0: None,
+            deviation: 0.0,
+            alpha_before: st.alpha,
+            finding: None,
+            proposed: None,
+            reason: "waiting for the loop to settle".into(),
+            sent_u: st.u0,
+        }));
+        Ok(())
+    }
+
+    /// Every rule a start must pass that is about the device and the request.
+    fn check_start(&self, req: &pb::CommissionRequest) -> Result<Start, String> {
+        let i = req.channel as usize;
+        let n = self.channels();
+        if i >= n {
+            return Err(format!("channel {i}: the device has {n} channels"));
+        }
+        let law = self.configs[i].law;
+        let LawConfig::Intelligent { params, .. } = law else {
             return Err(format!(
                 "channel {i}: its law is not intelligent, there is no alpha to find"
             ));
         };
         let (spec, dynamics) = spec_of(req)?;
+        if let Some((lo, hi)) = self.bounds[i].range() {
+            if spec.max_deviation > hi - lo {
+                return Err(format!(
+                    "max_deviation {} is wider than the channel's whole range [{lo}, {hi}]",
+                    spec.max_deviation
+                ));
+            }
+        }
+        // Refused up front if an order the run may find gives no law with these gains.
+        let orders = match spec.order {
+            Some(o) => vec![o],
+            None => vec![Order::One, Order::Two],
+        };
+        for order in orders {
+            let fit = mfc::CommissionFit {
+                order,
+                alpha: params.alpha,
+                explained: 1.0,
+            };
+            let probe = CommissionFinding {
+                best: fit,
+                fits: [None, None],
+                samples: 0,
+            };
+            if commissioned_law(&law, &probe, dynamics).is_none() {
+                return Err(format!(
+                    "a finding of order {} would give no law with these gains (kp and kd must be positive, or ask for error dynamics)",
+                    order.n()
+                ));
+            }
+        }
         let under_control = self
             .last_command
             .as_ref()
@@ -273,62 +448,18 @@ impl Device {
         if !under_control {
             return Err("the device is not under control (no CONTROL answer yet, or warming up): start once it is".into());
         }
-        // A run started while the output travels to its reference would measure the
-        // transient and soon leave its band: the loop must have settled first.
-        let error = self.outputs[i].error;
-        // Written so that a NaN error is not settled.
-        let settled = error.abs() <= spec.max_deviation / 4.0;
-        if !settled {
-            return Err(format!(
-                "channel {i} is {error:.4} from its reference, more than a quarter of max_deviation: start once it has settled"
-            ));
-        }
         if matches!(self.claimer.holder, Holder::Other | Holder::Vacant) {
             return Err("this member does not command the plant (another holds its lease)".into());
         }
         let map = self.mimo.channels()[i].output_map();
-        let v0 = self
-            .held
-            .as_ref()
-            .and_then(|h| h.get(i).copied())
-            .unwrap_or(0.0);
-        let u0 = map.inverse(v0);
-        let run = Commissioning::new(spec, u0).map_err(|e| e.to_string())?;
-        let proposed_for =
-            |f: &CommissionFinding| commissioned_law(&self.configs[i].law, f, dynamics);
-        // Checked now so that a request whose gains can give no law is refused up front
-        // (a finding of either order must give one).
-        let probe = CommissionFinding {
-            best: mfc::CommissionFit {
-                order: params.order,
-                alpha: params.alpha,
-                explained: 1.0,
-            },
-            fits: [None, None],
-            samples: 0,
-        };
-        if proposed_for(&probe).is_none() {
-            return Err("no law comes from these gains".into());
-        }
-        self.commission = Some(Box::new(Commission {
+        let v0 = self.held.as_ref().and_then(|h| h.get(i).copied());
+        Ok(Start {
             channel: i,
-            run: Some(Box::new(run)),
             spec,
             dynamics,
-            phase: pb::CommissionPhase::CommissionRunning,
-            started_by: who.into(),
-            ended_by: String::new(),
-            t0: None,
-            last_t: self.last_time,
-            y0: None,
-            deviation: 0.0,
-            alpha_before: params.alpha,
-            finding: None,
-            proposed: None,
-            reason: String::new(),
-            sent_u: u0,
-        }));
-        Ok(())
+            alpha: params.alpha,
+            u0: map.inverse(v0.unwrap_or(0.0)),
+        })
     }
 
     /// The input the run in force asks for channel `c.channel` at sample `s`, with the
@@ -336,16 +467,27 @@ impl Device {
     pub(super) fn commission_input(&mut self, s: &pb::Sample) -> Option<(usize, f64)> {
         let c = self.commission.as_mut().filter(|c| c.running())?;
         let i = c.channel;
-        // A plant that holds (a command came late) keeps the square wave's level and
-        // says what it applied: the data stay good. One on its fallback or stopped does
-        // not apply the run's input at all.
+        // A plant that holds (a command came late) keeps a level it says it applies: the
+        // data stay good. One that holds without saying what, or is on its fallback or
+        // stopped, gives data the fit cannot use.
         let trouble = pb::SampleFlags::Fallback as u32 | pb::SampleFlags::SafeStop as u32;
         if s.flags & trouble != 0 {
             let why = "the plant left control (its fallback, or a safe stop)";
             c.abort("service", why.into());
             return None;
         }
+        if s.flags & pb::SampleFlags::Holding as u32 != 0 && s.applied.is_empty() {
+            let why = "the plant held a late command without saying what it applied";
+            c.abort("service", why.into());
+            return None;
+        }
         let map = self.mimo.channels()[i].output_map();
+        let held = self.held.as_ref().and_then(|h| h.get(i).copied());
+        let error = s.outputs[i] - self.refs[i].y;
+        let y = s.outputs[i];
+        if c.settling(s.plant_time, (y, error), map.inverse(held.unwrap_or(0.0))) {
+            return None;
+        }
         let applied = s.applied.get(i).map(|v| map.inverse(*v));
         let u = c.input(s.plant_time, s.outputs[i], applied);
         if c.phase == pb::CommissionPhase::CommissionProposed {
@@ -358,16 +500,39 @@ impl Device {
         u.map(|u| (i, u))
     }
 
-    /// Abort a run in force for `why` (a restart, a change of configuration, the lease).
+    /// End a run in force, or dismiss a proposal waiting for its confirmation, for `why`
+    /// (a restart, a restore, a change of configuration, envelope or reference, the
+    /// lease): a proposal made for the law before the change must not overwrite it.
     pub(super) fn abort_commission(&mut self, why: &str) {
-        if let Some(c) = self.commission.as_mut().filter(|c| c.running()) {
+        let live = |c: &&mut Box<Commission>| {
+            matches!(
+                c.phase,
+                pb::CommissionPhase::CommissionRunning | pb::CommissionPhase::CommissionProposed
+            )
+        };
+        if let Some(c) = self.commission.as_mut().filter(live) {
             c.abort("service", why.into());
         }
     }
 
-    /// Put the proposal of the run on `channel` in force for `who`.
-    pub(super) fn confirm_commission(&mut self, channel: usize, who: &str) -> Result<(), String> {
-        let c = self.own_run(channel)?;
+    /// End a run whose device has not been heard for `silent_ns` (its slot among
+    /// [`MAX_RUNNING`] is freed); whether it was running.
+    pub(super) fn abort_silent_commission(&mut self, silent_ns: u64) -> bool {
+        let running = self.commission.as_ref().is_some_and(|c| c.running());
+        if running {
+            let s = silent_ns as f64 / 1e9;
+            self.abort_commission(&format!("no sample for {s:.1} s"));
+        }
+        running
+    }
+
+    /// Put the proposal of run `number` (0: the last) on `channel` in force for `who`.
+    pub(super) fn confirm_commission(
+        &mut self,
+        (channel, number): (usize, u64),
+        who: &str,
+    ) -> Result<(), String> {
+        let c = self.own_run(channel, number)?;
         let Some(law) = c
             .proposed
             .filter(|_| c.phase == pb::CommissionPhase::CommissionProposed)
@@ -386,9 +551,13 @@ impl Device {
         Ok(())
     }
 
-    /// Stop the run on `channel`, or dismiss its proposal, for `who`.
-    pub(super) fn dismiss_commission(&mut self, channel: usize, who: &str) -> Result<(), String> {
-        let c = self.own_run(channel)?;
+    /// Stop run `number` (0: the last) on `channel`, or dismiss its proposal, for `who`.
+    pub(super) fn dismiss_commission(
+        &mut self,
+        (channel, number): (usize, u64),
+        who: &str,
+    ) -> Result<(), String> {
+        let c = self.own_run(channel, number)?;
         if !matches!(
             c.phase,
             pb::CommissionPhase::CommissionRunning | pb::CommissionPhase::CommissionProposed
@@ -402,12 +571,16 @@ impl Device {
         Ok(())
     }
 
-    fn own_run(&self, channel: usize) -> Result<&Commission, String> {
+    fn own_run(&self, channel: usize, number: u64) -> Result<&Commission, String> {
         match &self.commission {
             None => Err("no commissioning run on this device".into()),
             Some(c) if c.channel != channel => Err(format!(
                 "the last run is on channel {}, not {channel}",
                 c.channel
+            )),
+            Some(c) if number != 0 && number != c.number => Err(format!(
+                "run {number} is not the last one on this device (run {} is): look again",
+                c.number
             )),
             Some(c) => Ok(c),
         }

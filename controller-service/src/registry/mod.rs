@@ -53,7 +53,7 @@ use protocol::{pb, printable, PROTOCOL_VERSION};
 
 use crate::config::ServiceConfig;
 use crate::lease::{LeasePolicy, Seen, Standing};
-pub use commission::{MAX_CYCLES, MAX_PERIOD, MAX_RUNNING};
+pub use commission::{MAX_CYCLES, MAX_PERIOD, MAX_RUNNING, SILENT_NS};
 use device::{reply, Device, DeviceKey};
 pub use shards::Restored;
 

@@ -98,26 +98,38 @@ impl Registry {
     /// A commissioning request (`super::commission`) from `who`: start a run, confirm
     /// its proposal, or abort. The reply carries the configuration in force afterwards;
     /// the run's progress is in the device's status.
+    ///
+    /// `now_unix_ns` is when the service heard it: a run on a device silent for
+    /// [`super::commission::SILENT_NS`] by then is ended, so that vanished devices do
+    /// not hold the service's slots.
     pub fn commission(
         &mut self,
         id: &str,
         req: &pb::CommissionRequest,
         who: &str,
+        now_unix_ns: u64,
     ) -> pb::ConfigReply {
-        let running = self
-            .devices
-            .values()
-            .filter(|d| d.commission.as_ref().is_some_and(|c| c.running()))
-            .count();
+        let mut running = 0;
+        for d in self.devices.values_mut() {
+            let silent = now_unix_ns.saturating_sub(d.heard_unix_ns);
+            if silent > super::commission::SILENT_NS {
+                d.abort_silent_commission(silent);
+            } else if d.commission.as_ref().is_some_and(|c| c.running()) {
+                running += 1;
+            }
+        }
         let Some(d) = self.devices.get_mut(id) else {
             self.requests_refused += 1;
             return refused(format!("unknown device \"{}\"", printable(id)), None);
         };
-        let channel = req.channel as usize;
+        let run = (req.channel as usize, req.run);
+        let mine = usize::from(d.commission.as_ref().is_some_and(|c| c.running()));
         let applied = match pb::CommissionAction::try_from(req.action) {
-            Ok(pb::CommissionAction::CommissionStart) => d.start_commission(req, who, running),
-            Ok(pb::CommissionAction::CommissionConfirm) => d.confirm_commission(channel, who),
-            Ok(pb::CommissionAction::CommissionAbort) => d.dismiss_commission(channel, who),
+            Ok(pb::CommissionAction::CommissionStart) => {
+                d.start_commission(req, who, running - mine)
+            }
+            Ok(pb::CommissionAction::CommissionConfirm) => d.confirm_commission(run, who),
+            Ok(pb::CommissionAction::CommissionAbort) => d.dismiss_commission(run, who),
             _ => Err(format!("action {}: START, CONFIRM or ABORT", req.action)),
         };
         conclude(d, &mut self.requests_refused, id, applied)

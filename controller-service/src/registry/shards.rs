@@ -365,6 +365,7 @@ impl Registry {
         d.last_command = None;
         d.retired.clear();
         d.restored = true;
+        d.abort_commission("the device's state was restored");
         Ok(())
     }
 }

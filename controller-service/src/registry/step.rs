@@ -416,7 +416,7 @@ fn keep_answer(
     let buffer = d.last_command.take().map(|a| a.horizon).unwrap_or_default();
     // A commissioning run's square wave is not predicted: a plant that misses a sample
     // holds its level.
-    let commissioning = d.commission.as_ref().is_some_and(|c| c.running());
+    let commissioning = d.commission.as_ref().is_some_and(|c| c.exciting());
     let horizon = if control && !commissioning {
         predict(d, s, &v, period, buffer)
     } else {

@@ -178,7 +178,7 @@ impl Worker {
             "commission",
             |_, _, _: &pb::CommissionRequest| Action::Change,
             |core, (dev, who), req: &pb::CommissionRequest, bytes| {
-                let r = core.registry.commission(dev, req, who);
+                let r = core.registry.commission(dev, req, who, protocol::unix_ns());
                 if r.accepted {
                     let action = pb::CommissionAction::try_from(req.action)
                         .map_or("?", |a| a.as_str_name());

@@ -600,10 +600,14 @@ function showCommission(c) {
   }
   const phase = PHASES[c.phase] || 'unknown';
   p.dataset.phase = phase;
+  // A confirmation or an abort names the run shown, never one started since.
+  state.commissionRun = c.run || 0;
   const fits = (c.fits || []).map((f) => `order ${f.order}: alpha ${fmt(f.alpha)} (explains ${Math.round(100 * f.explained)} %)`);
-  const parts = [`channel ${c.channel}: ${phase}`, `started by ${c.started_by}`,
+  const law = c.proposed && c.proposed.law && c.proposed.law.Intelligent;
+  const proposed = law ? [`proposed: alpha ${fmt(law.alpha)}, kp ${fmt(law.kp)}, kd ${fmt(law.kd)}`] : [];
+  const parts = [`run ${c.run} on channel ${c.channel}: ${phase}`, `started by ${c.started_by}`,
     `${fmt(c.elapsed)} of ${fmt(c.duration)} s`, `largest deviation ${fmt(c.deviation)}`,
-    `alpha before ${fmt(c.alpha_before)}`, ...fits];
+    `alpha before ${fmt(c.alpha_before)}`, ...fits, ...proposed];
   if (c.ended_by) parts.push(`ended by ${c.ended_by}`);
   if (c.reason) parts.push(c.reason);
   p.textContent = parts.join(' · ');
@@ -613,13 +617,12 @@ function fillCommissionChannels(n) {
   const sel = $('com-channel');
   if (sel.options.length === n) return;
   sel.replaceChildren(...Array.from({ length: n }, (_, i) => el('option', { value: String(i) }, String(i))));
-  if (n > 1) sel.value = '1';
 }
 
 async function commission(action) {
   const id = state.selected;
   const p = $('com-result');
-  const body = { action, channel: Number($('com-channel').value) || 0 };
+  const body = { action, channel: Number($('com-channel').value) || 0, run: state.commissionRun || 0 };
   if (action === 'start') {
     body.amplitude = Number($('com-amplitude').value);
     body.max_deviation = Number($('com-deviation').value);
