@@ -161,6 +161,19 @@ fn act(action: pb::CommissionAction, channel: u32) -> pb::CommissionRequest {
     }
 }
 
+/// An operator's change of channel 0's kp (to 5).
+fn kp_change() -> pb::ConfigRequest {
+    pb::ConfigRequest {
+        version: PROTOCOL_VERSION,
+        updates: vec![pb::ChannelUpdate {
+            channel: 0,
+            kp: Some(5.0),
+            ..Default::default()
+        }],
+        ..Default::default()
+    }
+}
+
 fn status(r: &Registry, id: &str) -> pb::CommissionStatus {
     r.device_status(id).unwrap().commission.expect("a run")
 }
@@ -463,16 +476,7 @@ fn a_plant_in_trouble_a_restart_a_gap_or_a_change_ends_the_run() {
 
     assert!(r.commission("rig", &start(0.2, 0.5), "alice", 1).accepted);
     rig.run(&mut r, 2.5);
-    let change = pb::ConfigRequest {
-        version: PROTOCOL_VERSION,
-        updates: vec![pb::ChannelUpdate {
-            channel: 0,
-            kp: Some(5.0),
-            ..Default::default()
-        }],
-        ..Default::default()
-    };
-    assert!(r.configure("rig", &change).accepted);
+    assert!(r.configure("rig", &kp_change()).accepted);
     ends(&mut r, &mut rig, "configuration changed");
 
     assert!(r.commission("rig", &start(0.2, 0.5), "alice", 1).accepted);
@@ -607,16 +611,7 @@ fn a_proposal_is_confirmed_only_as_seen_inside_the_files_bounds_and_before_any_c
     // A change after the proposal dismisses it: it was made for the law before.
     let c = commissioned(&mut r, &mut rig);
     assert_eq!(c.run, 2);
-    let change = pb::ConfigRequest {
-        version: PROTOCOL_VERSION,
-        updates: vec![pb::ChannelUpdate {
-            channel: 0,
-            kp: Some(5.0),
-            ..Default::default()
-        }],
-        ..Default::default()
-    };
-    assert!(r.configure("rig", &change).accepted);
+    assert!(r.configure("rig", &kp_change()).accepted);
     let c = status(&r, "rig");
     assert_eq!(
         c.phase,

@@ -335,6 +335,26 @@ fn body<T>(b: Result<Json<T>, JsonRejection>) -> Result<T, (StatusCode, String)>
     b.map(|Json(t)| t).map_err(|e| (e.status(), e.body_text()))
 }
 
+/// What every change starts with: who asks may change (not a viewer), the body decodes,
+/// the id is one; the operator to ask the service as, and the change. Otherwise the
+/// console's refusal.
+fn admitted<T>(
+    c: &Console,
+    who: &Identity,
+    id: &str,
+    b: Result<Json<T>, JsonRejection>,
+) -> Result<(ops::Operator, T), Box<Response>> {
+    let no = |status, reason| Box::new(refused(status, "console", reason));
+    if let Err((status, reason)) = sessions::may_change(who) {
+        return Err(no(status, reason));
+    }
+    let change = body(b).map_err(|(status, reason)| no(status, reason))?;
+    if let Err(e) = keys::check_id(id) {
+        return Err(no(StatusCode::BAD_REQUEST, e.to_string()));
+    }
+    Ok((c.operator.as_named(&who.name), change))
+}
+
 /// `POST /api/devices/{id}/gains`.
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -349,17 +369,10 @@ async fn gains(
     Path(id): Path<String>,
     b: Result<Json<GainChange>, JsonRejection>,
 ) -> Response {
-    if let Err((status, reason)) = sessions::may_change(&who) {
-        return refused(status, "console", reason);
-    }
-    let op = c.operator.as_named(&who.name);
-    let change = match body(b) {
+    let (op, change) = match admitted(&c, &who, &id, b) {
         Ok(x) => x,
-        Err((status, reason)) => return refused(status, "console", reason),
+        Err(refusal) => return *refusal,
     };
-    if let Err(e) = keys::check_id(&id) {
-        return refused(StatusCode::BAD_REQUEST, "console", e.to_string());
-    }
     if change.fields.len() > mfc::params::PARAMS.len() {
         return refused(StatusCode::BAD_REQUEST, "console", "too many fields".into());
     }
@@ -415,17 +428,10 @@ async fn reference(
     Path(id): Path<String>,
     b: Result<Json<ReferenceChange>, JsonRejection>,
 ) -> Response {
-    if let Err((status, reason)) = sessions::may_change(&who) {
-        return refused(status, "console", reason);
-    }
-    let op = c.operator.as_named(&who.name);
-    let change = match body(b) {
+    let (op, change) = match admitted(&c, &who, &id, b) {
         Ok(x) => x,
-        Err((status, reason)) => return refused(status, "console", reason),
+        Err(refusal) => return *refusal,
     };
-    if let Err(e) = keys::check_id(&id) {
-        return refused(StatusCode::BAD_REQUEST, "console", e.to_string());
-    }
     let config = match ops::config(&op, &id, c.timeout()).await {
         Ok(x) => x,
         Err(e) => return op_failed(e),
@@ -505,17 +511,10 @@ async fn commission(
     Path(id): Path<String>,
     b: Result<Json<CommissionChange>, JsonRejection>,
 ) -> Response {
-    if let Err((status, reason)) = sessions::may_change(&who) {
-        return refused(status, "console", reason);
-    }
-    let op = c.operator.as_named(&who.name);
-    let change = match body(b) {
+    let (op, change) = match admitted(&c, &who, &id, b) {
         Ok(x) => x,
-        Err((status, reason)) => return refused(status, "console", reason),
+        Err(refusal) => return *refusal,
     };
-    if let Err(e) = keys::check_id(&id) {
-        return refused(StatusCode::BAD_REQUEST, "console", e.to_string());
-    }
     let req = match change.request() {
         Ok(r) => r,
         Err(reason) => return refused(StatusCode::BAD_REQUEST, "console", reason),

@@ -23,22 +23,35 @@ async fn ctl(endpoint: &str, args: &[&str]) -> anyhow::Result<String> {
     run(MfcctlCli::try_parse_from(argv)?).await
 }
 
+/// A service for `aero-1` on `s` with `c`, and the plant running behind its agent for 2 s.
+async fn serve_aero(
+    s: &plant::scenario::Scenario,
+    c: &plant::scenario::ControllerSet,
+) -> (
+    ServiceHandle,
+    String,
+    tokio::task::JoinHandle<anyhow::Result<plant_agent::agent::AgentRun>>,
+) {
+    let service = ServiceHandle::start(service_config(s, c, &["aero-1".into()]), None)
+        .await
+        .unwrap();
+    let ep = service.endpoint.clone();
+    let plant = tokio::spawn(run_plant(
+        vec![ep.clone()],
+        PlantSpec::new(s, c, "aero-1"),
+        true,
+    ));
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    (service, ep, plant)
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn the_operator_reads_and_changes_a_running_device() {
     let _s = SERIAL.lock().await;
     let mut s = load_scenario("1").unwrap();
     s.duration = 8.0;
     let c = shipped_controller("ipd").unwrap();
-    let service = ServiceHandle::start(service_config(&s, &c, &["aero-1".into()]), None)
-        .await
-        .unwrap();
-    let ep = service.endpoint.clone();
-    let plant = tokio::spawn(run_plant(
-        vec![ep.clone()],
-        PlantSpec::new(&s, &c, "aero-1"),
-        true,
-    ));
-    tokio::time::sleep(Duration::from_secs(2)).await;
+    let (service, ep, plant) = serve_aero(&s, &c).await;
 
     let text = ctl(&ep, &["services"]).await.unwrap();
     assert!(
@@ -146,16 +159,7 @@ async fn the_operator_commissions_alpha_on_the_live_plant() {
         c.reference = vec![mfc::trajectory::Piece::Constant { value: 0.0 }];
     }
     let c = mfc_lab::commission::scale_alpha(&shipped_controller("ipd").unwrap(), 10.0);
-    let service = ServiceHandle::start(service_config(&s, &c, &["aero-1".into()]), None)
-        .await
-        .unwrap();
-    let ep = service.endpoint.clone();
-    let plant = tokio::spawn(run_plant(
-        vec![ep.clone()],
-        PlantSpec::new(&s, &c, "aero-1"),
-        true,
-    ));
-    tokio::time::sleep(Duration::from_secs(2)).await;
+    let (service, ep, plant) = serve_aero(&s, &c).await;
 
     // Refused with the service's reason, nothing started: a zero amplitude, an order the
     // model does not have.

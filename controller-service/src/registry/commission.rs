@@ -232,7 +232,7 @@ impl Commission {
                 format!(
                     ", alpha {:.4e} (order {})",
                     f.best.alpha,
-                    order_number(f.best.order)
+                    u32::from(f.best.order.n())
                 )
             })
             .unwrap_or_default();
@@ -253,7 +253,7 @@ impl Commission {
                 .iter()
                 .flatten()
                 .map(|fit| pb::CommissionFit {
-                    order: order_number(fit.order),
+                    order: u32::from(fit.order.n()),
                     alpha: fit.alpha,
                     explained: fit.explained,
                 })
@@ -281,10 +281,6 @@ impl Commission {
             reason: self.reason.clone(),
         }
     }
-}
-
-fn order_number(o: Order) -> u32 {
-    u32::from(o.n())
 }
 
 /// A start request's specification, checked: every value the operator must set is set,
