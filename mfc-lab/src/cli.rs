@@ -441,13 +441,14 @@ fn real_main() -> Result<()> {
     }
 }
 
-/// `robust`: the family run, judged, written.
-fn robust(args: &RobustArgs) -> Result<()> {
-    use crate::robust::{
-        check, driver_factors, driver_family, family_of, heat_map, judge, markdown, run, Factor,
-    };
+/// The family `robust` runs: the AERO's factors (all, or `--factors`), or a driver plant's
+/// fixed table; a Modbus plant has none.
+fn variations_of(
+    scenario: &plant::scenario::Scenario,
+    args: &RobustArgs,
+) -> Result<Vec<crate::robust::Variation>> {
+    use crate::robust::{driver_factors, driver_family, family_of, Factor};
     use plant::scenario::PlantSource;
-    let scenario = load_scenario(&args.scenario)?;
     let factors = if args.factors.is_empty() {
         Factor::ALL.to_vec()
     } else {
@@ -458,8 +459,12 @@ fn robust(args: &RobustArgs) -> Result<()> {
         };
         args.factors.iter().map(parse).collect::<Result<Vec<_>>>()?
     };
-    let variations = match &scenario.plant {
+    Ok(match &scenario.plant {
         PlantSource::Aero(_) => family_of(&factors, args.seed, args.random),
+        PlantSource::Modbus(m) => bail!(
+            "the plant at {} is a Modbus server: robust varies simulators offline",
+            m.config.address
+        ),
         PlantSource::Driver(_) if !args.factors.is_empty() => {
             bail!("--factors names the AERO's factors; a driver plant's family is fixed")
         }
@@ -470,7 +475,15 @@ fn robust(args: &RobustArgs) -> Result<()> {
                 cmd.argv
             ),
         },
-    };
+    })
+}
+
+/// `robust`: the family run, judged, written.
+fn robust(args: &RobustArgs) -> Result<()> {
+    use crate::robust::{check, heat_map, judge, markdown, run};
+    use plant::scenario::PlantSource;
+    let scenario = load_scenario(&args.scenario)?;
+    let variations = variations_of(&scenario, args)?;
     let names: Vec<String> = match (&scenario.plant, args.controllers.is_empty()) {
         (_, false) => args.controllers.clone(),
         (PlantSource::Aero(_), true) => SHIPPED_CONTROLLERS

@@ -18,20 +18,22 @@ use serde::{Deserialize, Serialize};
 /// Why a run could not be done.
 #[derive(Debug, thiserror::Error)]
 pub enum RunError {
-    /// The controller configuration was refused.
-    #[error("controller `{controller}`: {source}")]
+    /// The controller configuration was refused. (The reason is in the message, not a
+    /// `source`: an error chain printed with `{:#}` would say it twice.)
+    #[error("controller `{controller}`: {reason}")]
     Controller {
         /// Controller name.
         controller: String,
         /// The control core's reason.
-        source: mfc::MfcError,
+        reason: mfc::MfcError,
     },
     /// The controller does not fit the scenario.
     #[error(transparent)]
     Scenario(#[from] plant::scenario::ScenarioError),
-    /// The plant could not be started or failed during the run.
+    /// The plant could not be started or failed during the run (its reason in the
+    /// message, not a `source`, as for `Controller`).
     #[error("plant: {0}")]
-    Plant(#[from] PlantError),
+    Plant(PlantError),
     /// A benchmark ([`crate::robust`]) cannot vary this plant, or one of its runs failed.
     #[error("{0}")]
     Bench(String),
@@ -41,6 +43,12 @@ pub enum RunError {
         /// Why.
         reason: String,
     },
+}
+
+impl From<PlantError> for RunError {
+    fn from(e: PlantError) -> Self {
+        RunError::Plant(e)
+    }
 }
 
 /// OfflineSummary of an offline run, as written to `summary.json`.
@@ -81,9 +89,9 @@ pub fn simulate(
     let n = scenario.channels.len();
     let configs = scenario.channel_configs(controller);
     let mut mimo: MimoController =
-        MimoController::new(&configs).map_err(|source| RunError::Controller {
+        MimoController::new(&configs).map_err(|reason| RunError::Controller {
             controller: controller.name.clone(),
-            source,
+            reason,
         })?;
     let mut plant = plant::open(&scenario.plant, scenario.seed, n)?;
     let h = scenario.period;

@@ -78,6 +78,9 @@ pub struct LoopConfig {
     /// the log says so at start. A gateway's plants have none of their own: the gateway
     /// seals and opens their batches with its key.
     pub auth: Option<protocol::auth::Key>,
+    /// The plant's safe inputs ([`plant::scenario::Scenario::safe_inputs`]): written at
+    /// start and by the safe-stop fallback.
+    pub safe: Vec<f64>,
 }
 
 impl LoopConfig {
@@ -101,6 +104,7 @@ impl LoopConfig {
             observers: LoopObservers::default(),
             precise_wake: true,
             auth: None,
+            safe: scenario.safe_inputs(),
         }
     }
 }
@@ -306,12 +310,12 @@ enum PlantRequest {
 
 type PlantReply = oneshot::Sender<Result<Vec<f64>, PlantError>>;
 
-/// Open the plant `scenario` names (see [`plant::open`]) on a blocking thread:
-/// a driver's `hello` may take seconds (an interpreter, a vendor SDK), and plant I/O never
-/// runs on an async worker.
+/// Open the plant `scenario` names (see [`fieldbus::open`]: a simulator, a driver, or a
+/// server behind an industrial protocol) on a blocking thread: a driver's `hello` or a
+/// server's connection may take seconds, and plant I/O never runs on an async worker.
 pub async fn open_plant(scenario: &Scenario, seed: u64) -> Result<Box<dyn Plant>, PlantError> {
     let (source, n) = (scenario.plant.clone(), scenario.channels.len());
-    tokio::task::spawn_blocking(move || plant::open(&source, seed, n))
+    tokio::task::spawn_blocking(move || fieldbus::open(&source, seed, n))
         .await
         .unwrap_or_else(|e| Err(PlantError::Driver(format!("opening the plant: {e}"))))
 }
@@ -499,11 +503,23 @@ async fn declare_and_run(
         })?;
     let publisher = transport::control_publisher(session, keys::shard_sample(id)).await?;
     let _token = declare_alive(session, id).await?;
-    let initial = plant.write(vec![0.0; n]).await?;
-    let mut supervisor = Supervisor::new(config.safety, &config.local, initial)?;
-    supervisor.grant_leases(run_id);
+    let supervisor = start_supervisor(plant, config, run_id).await?;
     let out = SampleOut::Own(&publisher);
     Ok(periods(plant, config, supervisor, rx, &out, run_id, stop).await)
+}
+
+/// The plant's safe inputs written, and a supervisor that starts from what it applied,
+/// falls back to those inputs and grants run `run_id`'s lease.
+async fn start_supervisor(
+    plant: &PlantThread,
+    config: &LoopConfig,
+    run_id: u64,
+) -> Result<Supervisor, AgentError> {
+    let initial = plant.write(config.safe.clone()).await?;
+    let mut supervisor = Supervisor::new(config.safety, &config.local, initial)?;
+    supervisor.set_safe_inputs(config.safe.clone())?;
+    supervisor.grant_leases(run_id);
+    Ok(supervisor)
 }
 
 /// The checks before a loop starts: channel counts agree, safety settings and id are valid.
@@ -585,9 +601,7 @@ pub async fn run_hosted(
         check_loop(config, n)?;
         // Each hosted plant announces itself as a single rig would.
         let token = declare_alive(session, &config.device_id).await?;
-        let initial = plant.write(vec![0.0; n]).await?;
-        let mut supervisor = Supervisor::new(config.safety, &config.local, initial)?;
-        supervisor.grant_leases(run_id);
+        let supervisor = start_supervisor(&plant, config, run_id).await?;
         Ok((token, supervisor))
     }
     .await;

@@ -39,6 +39,45 @@ enum Command {
     /// loop and safety; their samples go out in one batch per period and their commands
     /// come back in one. Exit status: the worst of the plants' (as for `run`).
     Gateway(GatewayArgs),
+    /// Look into a plant's server to write its map: read a range of a Modbus server's
+    /// registers once and show each as every type a map could read it as.
+    Probe {
+        #[command(subcommand)]
+        what: ProbeCommand,
+    },
+}
+
+#[derive(Subcommand)]
+enum ProbeCommand {
+    /// Read `--count` values of `--kind` from `--start` on a Modbus TCP server.
+    Modbus(ProbeModbusArgs),
+}
+
+#[derive(clap::Args)]
+struct ProbeModbusArgs {
+    /// The server, host:port.
+    address: String,
+    /// Unit id.
+    #[arg(long, default_value_t = 1)]
+    unit: u8,
+    /// Register kind: holding, input, coil or discrete_input.
+    #[arg(long, default_value = "holding", value_parser = parse_kind)]
+    kind: plant::modbus::RegisterKind,
+    /// First address (0-based, as on the wire: a manual's 40001 is holding 0).
+    #[arg(long, default_value_t = 0)]
+    start: u16,
+    /// How many (at most 125 registers, 2000 bits).
+    #[arg(long, default_value_t = 16)]
+    count: u16,
+    /// Longest wait for the connection and the answer (ms).
+    #[arg(long, default_value_t = 2000)]
+    timeout_ms: u64,
+}
+
+fn parse_kind(s: &str) -> Result<plant::modbus::RegisterKind, String> {
+    toml::Value::String(s.to_string())
+        .try_into()
+        .map_err(|_| format!("{s}: holding, input, coil or discrete_input"))
 }
 
 #[derive(clap::Args)]
@@ -105,6 +144,21 @@ pub fn main() -> std::process::ExitCode {
     let result = match Cli::parse().command {
         Command::Run(args) => run(args),
         Command::Gateway(args) => gateway(args),
+        Command::Probe {
+            what: ProbeCommand::Modbus(a),
+        } => fieldbus::probe::modbus(
+            &a.address,
+            a.unit,
+            a.kind,
+            a.start,
+            a.count,
+            std::time::Duration::from_millis(a.timeout_ms),
+        )
+        .map(|table| {
+            print!("{table}");
+            0
+        })
+        .map_err(Into::into),
     };
     match result {
         Ok(code) => std::process::ExitCode::from(code),

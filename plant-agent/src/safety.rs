@@ -200,6 +200,8 @@ pub enum SafetyError {
     },
     /// The initial applied values are NaN or infinite.
     NonFiniteApplied,
+    /// A safe input is NaN or infinite.
+    NonFiniteSafe,
     /// `begin_period` while a period is open (its `end_period` is missing).
     PeriodOpen {
         /// The open period.
@@ -227,6 +229,7 @@ impl fmt::Display for SafetyError {
                 got,
             } => write!(f, "{what} has {got} entries for {expected} channels"),
             SafetyError::NonFiniteApplied => f.write_str("initial applied values must be finite"),
+            SafetyError::NonFiniteSafe => f.write_str("safe inputs must be finite"),
             SafetyError::PeriodOpen { open } => {
                 write!(f, "period {open} is still open: end it before the next one")
             }
@@ -437,6 +440,8 @@ pub struct Supervisor {
     plan: Vec<f64>,
     /// The plant's command lease, once [`Supervisor::grant_leases`] turned it on.
     lease: Option<Lease>,
+    /// What the safe stop applies ([`Supervisor::set_safe_inputs`]).
+    safe: Vec<f64>,
 }
 
 impl Supervisor {
@@ -476,7 +481,25 @@ impl Supervisor {
             last_k: None,
             plan: Vec::new(),
             lease: None,
+            safe: vec![0.0; n],
         })
+    }
+
+    /// The inputs the safe stop applies, one finite value per channel (default: zero;
+    /// a bridge's map may name others, [`plant::scenario::Scenario::safe_inputs`]).
+    pub fn set_safe_inputs(&mut self, safe: Vec<f64>) -> Result<(), SafetyError> {
+        if safe.len() != self.safe.len() {
+            return Err(SafetyError::ChannelMismatch {
+                what: "safe inputs",
+                expected: self.safe.len(),
+                got: safe.len(),
+            });
+        }
+        if !safe.iter().all(|v| v.is_finite()) {
+            return Err(SafetyError::NonFiniteSafe);
+        }
+        self.safe = safe;
+        Ok(())
     }
 
     /// Judge every later command by the plant's command lease of run `run_id` too (see
@@ -569,7 +592,7 @@ impl Supervisor {
                     LoopMode::Local,
                     self.local_out.iter().map(|o| o.v).collect(),
                 ),
-                _ => (LoopMode::SafeStop, vec![0.0; n]),
+                _ => (LoopMode::SafeStop, self.safe.clone()),
             };
             if !self.mode.is_fallback() {
                 bump(&mut self.counters.fallbacks);
@@ -1076,6 +1099,32 @@ mod tests {
         begin(&mut s, 6);
         let (verdict, _) = command(&mut s, 0.1, planned(2, &[1.0], &[7.0, 8.0]));
         assert!(matches!(verdict, Verdict::Apply { ref v, .. } if v == &[8.0]));
+    }
+
+    #[test]
+    fn the_safe_stop_applies_the_plants_own_safe_inputs() {
+        let mut s = sup_n(2, 10, 1, FallbackPolicy::SafeStop);
+        assert!(matches!(
+            s.set_safe_inputs(vec![0.5]),
+            Err(SafetyError::ChannelMismatch {
+                expected: 2,
+                got: 1,
+                ..
+            })
+        ));
+        assert!(matches!(
+            s.set_safe_inputs(vec![0.5, f64::NAN]),
+            Err(SafetyError::NonFiniteSafe)
+        ));
+        s.set_safe_inputs(vec![0.5, -2.0]).unwrap();
+        begin(&mut s, 0);
+        command(&mut s, 0.1, ctl(0, &[1.0, 1.0]));
+        s.end_period().unwrap();
+        begin(&mut s, 1);
+        s.end_period().unwrap();
+        // The controller is silent: the fallback writes the safe inputs, not zeros.
+        assert_eq!(begin(&mut s, 2).write, Some(vec![0.5, -2.0]));
+        assert_eq!(s.mode(), LoopMode::SafeStop);
     }
 
     #[test]

@@ -25,6 +25,7 @@
 pub mod aero;
 pub mod chart;
 pub mod driver;
+pub mod modbus;
 mod mode;
 pub mod progress;
 pub mod record;
@@ -61,6 +62,13 @@ pub enum PlantError {
     /// Simulator parameters.
     #[error(transparent)]
     Params(#[from] aero_sim::ParamError),
+    /// The plant cannot be driven by this program (a Modbus plant offline).
+    #[error("{0}")]
+    Unsupported(String),
+    /// The plant (a server behind an industrial protocol) answered with an error or
+    /// something that cannot be a measurement.
+    #[error("{0}")]
+    Server(String),
     /// The plant has another number of channels than its scenario.
     #[error("the plant has {plant} channel(s), the scenario {scenario}")]
     Channels {
@@ -85,7 +93,8 @@ pub trait Plant: Send {
     fn write(&mut self, v: &[f64]) -> Result<Vec<f64>, PlantError>;
     /// Let `dt` seconds pass (simulators integrate; real plants ignore it: time passes).
     fn advance(&mut self, dt: f64) -> Result<(), PlantError>;
-    /// Apply the safe stop (zero inputs) and release the plant.
+    /// Apply the safe stop (the scenario's safe inputs, [`scenario::Scenario::safe_inputs`]:
+    /// zero, or a bridge's per-channel safe values) and release the plant.
     fn stop(&mut self) -> Result<(), PlantError>;
     /// Times the plant hit a mechanical limit (the AERO's pitch stop): a safety excursion
     /// the tuner penalises. Plants that cannot tell report 0.
@@ -110,6 +119,13 @@ pub fn open(
     let plant: Box<dyn Plant> = match source {
         PlantSource::Aero(params) => Box::new(aero::AeroPlant::new(params.clone(), seed)?),
         PlantSource::Driver(cmd) => Box::new(driver::DriverPlant::start(cmd)?),
+        PlantSource::Modbus(m) => {
+            return Err(PlantError::Unsupported(format!(
+                "the plant at {} is a Modbus server: it runs in real time through plant-agent \
+                 (its bridge), not offline",
+                m.config.address
+            )))
+        }
     };
     if plant.channels() != channels {
         return Err(PlantError::Channels {

@@ -38,6 +38,7 @@ use std::path::{Path, PathBuf};
 use mfc::{ChannelConfig, LawConfig, OutputMapConfig};
 use serde::{Deserialize, Serialize};
 
+use crate::modbus::ModbusConfig;
 use aero_sim::{AeroParams, PAPER_ADDED_MASS};
 use mfc::trajectory::Piece;
 
@@ -104,6 +105,9 @@ pub struct PlantTable {
     /// least 500 ms. The first answer (`hello`) may take up to 10 s (interpreters start
     /// slowly).
     pub timeout_ms: Option<u64>,
+    /// A plant behind a Modbus TCP server (`crate::modbus`): where each channel's values
+    /// sit in its registers. Excludes the AERO fields and a driver.
+    pub modbus: Option<ModbusConfig>,
 }
 
 /// The plant of a loaded scenario.
@@ -113,6 +117,18 @@ pub enum PlantSource {
     Aero(AeroParams),
     /// A plant behind a driver process.
     Driver(DriverCommand),
+    /// A plant behind a Modbus TCP server (checked against the channels' actuator ranges),
+    /// reached in real time through `plant-agent`: there is no offline twin.
+    Modbus(ModbusPlant),
+}
+
+/// A Modbus plant: its map, and the request timeout its period gives.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModbusPlant {
+    /// The map, checked.
+    pub config: ModbusConfig,
+    /// Longest wait for one answer.
+    pub timeout: std::time::Duration,
 }
 
 /// How to start a driver process.
@@ -126,12 +142,25 @@ pub struct DriverCommand {
     pub timeout: std::time::Duration,
 }
 
+impl Scenario {
+    /// The inputs that leave the plant safe, one per channel: what the agent writes at
+    /// start and under its safe-stop fallback, and what the plant's own stop writes. Zero,
+    /// but for a Modbus plant whose map names other values (a valve that must stay half
+    /// open, a heater's idle power).
+    pub fn safe_inputs(&self) -> Vec<f64> {
+        match &self.plant {
+            PlantSource::Modbus(m) => m.config.channels.iter().map(|c| c.safe).collect(),
+            _ => vec![0.0; self.channels.len()],
+        }
+    }
+}
+
 impl PlantSource {
     /// The AERO's parameters, if the plant is the simulator.
     pub fn aero(&self) -> Option<&AeroParams> {
         match self {
             PlantSource::Aero(p) => Some(p),
-            PlantSource::Driver(_) => None,
+            PlantSource::Driver(_) | PlantSource::Modbus(_) => None,
         }
     }
 }
@@ -436,6 +465,16 @@ pub fn from_text(file: &Path, text: &str, dir: Option<&Path>) -> Result<Scenario
     }
     let plant = resolve_plant(file, &raw.plant, dir, raw.period)?;
     let n = raw.channels.len();
+    if let PlantSource::Modbus(m) = &plant {
+        let ranges: Vec<(f64, f64)> = raw
+            .channels
+            .iter()
+            .map(|c| (c.output.min, c.output.max))
+            .collect();
+        m.config
+            .check(&ranges)
+            .map_err(|e| invalid(file, format!("plant.modbus.{}", e.field), e.reason))?;
+    }
     if n == 0 || n > MAX_CHANNELS {
         return Err(invalid(
             file,
@@ -517,6 +556,20 @@ fn resolve_plant(
     dir: Option<&Path>,
     period: f64,
 ) -> Result<PlantSource, ScenarioError> {
+    if let Some(config) = &spec.modbus {
+        let aero = spec.file.is_some() || spec.added_mass || !spec.params.is_empty();
+        if aero || spec.driver.is_some() || spec.timeout_ms.is_some() {
+            return Err(invalid(
+                file,
+                "plant.modbus",
+                "a Modbus plant is its server: drop file, added_mass, params, driver and timeout_ms (the map has its own timeout_ms)",
+            ));
+        }
+        return Ok(PlantSource::Modbus(ModbusPlant {
+            config: config.clone(),
+            timeout: config.timeout(period),
+        }));
+    }
     if let Some(argv) = &spec.driver {
         if spec.file.is_some() || spec.added_mass || !spec.params.is_empty() {
             return Err(invalid(

@@ -45,9 +45,9 @@ pub fn commission_channel(
     scenario.check_controller(set)?;
     let n = scenario.channels.len();
     let configs = scenario.channel_configs(set);
-    let bad = |source| RunError::Controller {
+    let bad = |reason| RunError::Controller {
         controller: set.name.clone(),
-        source,
+        reason,
     };
     let Some(LawConfig::Intelligent { params, .. }) = set.channels.get(channel) else {
         return Err(RunError::Bench(format!(

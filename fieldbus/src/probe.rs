@@ -1,0 +1,215 @@
+//! What a Modbus server holds: a range of registers read once and shown every way a map
+//! could read it, so that a user finds the addresses, types and word order to write in a
+//! plant file.
+
+use std::fmt::Write as _;
+use std::time::Duration;
+
+use plant::modbus::{
+    Point, RegisterKind, ValueType, WordOrder, MAX_BITS_PER_READ, MAX_REGISTERS_PER_READ,
+};
+use tokio_modbus::client::sync::{self, Client};
+use tokio_modbus::{Request, Response, Slave};
+
+/// A probe that could not be done.
+#[derive(Debug, thiserror::Error)]
+pub enum ProbeError {
+    /// No connection, or the link failed.
+    #[error("{address}: {message}")]
+    Link {
+        /// The server.
+        address: String,
+        /// What failed.
+        message: String,
+    },
+    /// The server answered with an exception (an address it does not have, ...).
+    #[error("{address}: {kind:?} {start}..{end}: {message}")]
+    Refused {
+        /// The server.
+        address: String,
+        /// What was asked.
+        kind: RegisterKind,
+        /// First address.
+        start: u16,
+        /// Past the last.
+        end: u32,
+        /// The server's answer.
+        message: String,
+    },
+    /// Nothing to read, or more than one request may carry.
+    #[error("count must be 1 to {0}")]
+    Count(u16),
+}
+
+/// Read `count` values of `kind` from `start` on unit `unit` of `address`, and render
+/// them: for bits one line each; for registers each as int16/uint16 and each pair as
+/// (u)int32 and float32 in both word orders.
+pub fn modbus(
+    address: &str,
+    unit: u8,
+    kind: RegisterKind,
+    start: u16,
+    count: u16,
+    timeout: Duration,
+) -> Result<String, ProbeError> {
+    let words = read_words(address, unit, kind, start, count, timeout)?;
+    Ok(render(kind, start, &words))
+}
+
+/// The value of `point` on unit `unit` of `address` now, as a map would read it (`None`
+/// if it is not a finite number).
+pub fn read_point(
+    address: &str,
+    unit: u8,
+    point: &Point,
+    timeout: Duration,
+) -> Result<Option<f64>, ProbeError> {
+    let words = read_words(
+        address,
+        unit,
+        point.kind,
+        point.address,
+        point.width(),
+        timeout,
+    )?;
+    Ok(point.decode(&words))
+}
+
+fn read_words(
+    address: &str,
+    unit: u8,
+    kind: RegisterKind,
+    start: u16,
+    count: u16,
+    timeout: Duration,
+) -> Result<Vec<u16>, ProbeError> {
+    let max = if kind.is_bit() {
+        MAX_BITS_PER_READ
+    } else {
+        MAX_REGISTERS_PER_READ
+    };
+    if count == 0 || count > max || u32::from(start) + u32::from(count) > 65536 {
+        return Err(ProbeError::Count(max));
+    }
+    let link = |e: &dyn std::fmt::Display| ProbeError::Link {
+        address: address.into(),
+        message: e.to_string(),
+    };
+    let addr = std::net::ToSocketAddrs::to_socket_addrs(address)
+        .map_err(|e| link(&e))?
+        .next()
+        .ok_or_else(|| link(&"no address"))?;
+    let mut ctx = sync::tcp::connect_slave_with_timeout(addr, Slave(unit), Some(timeout))
+        .map_err(|e| link(&e))?;
+    ctx.set_timeout(timeout);
+    let request = match kind {
+        RegisterKind::Coil => Request::ReadCoils(start, count),
+        RegisterKind::DiscreteInput => Request::ReadDiscreteInputs(start, count),
+        RegisterKind::Input => Request::ReadInputRegisters(start, count),
+        RegisterKind::Holding => Request::ReadHoldingRegisters(start, count),
+    };
+    let refused = |message: String| ProbeError::Refused {
+        address: address.into(),
+        kind,
+        start,
+        end: u32::from(start) + u32::from(count),
+        message,
+    };
+    let words: Vec<u16> = match ctx.call(request) {
+        Ok(Ok(Response::ReadCoils(b) | Response::ReadDiscreteInputs(b))) => {
+            b.into_iter().map(u16::from).collect()
+        }
+        Ok(Ok(Response::ReadInputRegisters(w) | Response::ReadHoldingRegisters(w))) => w,
+        Ok(Ok(other)) => return Err(refused(format!("answered {other:?}"))),
+        Ok(Err(exception)) => return Err(refused(format!("exception {exception}"))),
+        Err(e) => return Err(link(&e)),
+    };
+    if words.len() < usize::from(count) {
+        return Err(refused(format!("answered {} values", words.len())));
+    }
+    Ok(words[..usize::from(count)].to_vec())
+}
+
+/// The table [`modbus`] prints.
+pub fn render(kind: RegisterKind, start: u16, words: &[u16]) -> String {
+    let mut out = String::new();
+    if kind.is_bit() {
+        let _ = writeln!(out, "{kind:?} address  value");
+        for (i, w) in words.iter().enumerate() {
+            let _ = writeln!(out, "{:>16}  {}", usize::from(start) + i, w);
+        }
+        return out;
+    }
+    let _ = writeln!(
+        out,
+        "{:>7}  {:>6}  {:>6}  {:>6}  | {:>12} {:>12} {:>14} {:>14}",
+        "address",
+        "hex",
+        "uint16",
+        "int16",
+        "int32 big",
+        "int32 little",
+        "float32 big",
+        "float32 little"
+    );
+    let as_point = |t: ValueType, order: WordOrder| Point {
+        kind,
+        address: 0,
+        value_type: Some(t),
+        word_order: order,
+        scale: 1.0,
+        offset: 0.0,
+    };
+    let show = |p: Point, pair: &[u16]| match (p.decode(pair), p.value_type()) {
+        (None, _) => "-".to_string(),
+        (Some(v), ValueType::Float32) => compact(v),
+        (Some(v), _) => format!("{v}"),
+    };
+    for (i, &w) in words.iter().enumerate() {
+        let _ = write!(
+            out,
+            "{:>7}  {w:#06x}  {w:>6}  {:>6}  |",
+            usize::from(start) + i,
+            w as i16
+        );
+        if let Some(pair) = words.get(i..i + 2) {
+            let _ = write!(
+                out,
+                " {:>12} {:>12} {:>14} {:>14}",
+                show(as_point(ValueType::Int32, WordOrder::Big), pair),
+                show(as_point(ValueType::Int32, WordOrder::Little), pair),
+                show(as_point(ValueType::Float32, WordOrder::Big), pair),
+                show(as_point(ValueType::Float32, WordOrder::Little), pair),
+            );
+        }
+        out.push('\n');
+    }
+    out
+}
+
+/// A float as a person reads it: its f32 digits, in exponent form when very large or small.
+fn compact(v: f64) -> String {
+    let f = v as f32;
+    if f != 0.0 && !(1e-4..1e7).contains(&f.abs()) {
+        format!("{f:e}")
+    } else {
+        format!("{f}")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_float_shows_in_the_word_order_it_was_written_in() {
+        // 21.5f32 = 0x41AC_0000, high word first.
+        let t = render(RegisterKind::Holding, 100, &[0x41AC, 0x0000, 7]);
+        let first = t.lines().nth(1).unwrap();
+        assert!(first.starts_with("    100  0x41ac"), "{first}");
+        assert!(first.contains(" 21.5 "), "{first}");
+        assert_eq!(t.lines().count(), 4, "a header and three registers");
+        let bits = render(RegisterKind::Coil, 0, &[1, 0]);
+        assert!(bits.contains("               0  1\n"), "{bits}");
+    }
+}

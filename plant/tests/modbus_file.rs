@@ -1,0 +1,89 @@
+//! A Modbus plant file as the loader reads it: the map is checked against the file's
+//! channels (their count and actuator ranges) and named field by field when it is wrong;
+//! the offline runner refuses the plant with a reason.
+
+use plant::scenario::{load_scenario, PlantSource, ScenarioError};
+
+const CHANNEL: &str = r#"
+[[channels]]
+name = "temperature"
+reference = [{ kind = "constant", value = 20.0 }]
+output = { min = 0.0, max = 24.0 }
+"#;
+
+fn file(plant: &str, channels: usize) -> Result<plant::scenario::Scenario, ScenarioError> {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("s.toml");
+    let mut text = format!(
+        "name = \"m\"\nduration = 10.0\nperiod = 0.1\n\
+         controller = {{ name = \"ip\", channels = [{}] }}\n{plant}\n",
+        vec![
+            "{ law = \"intelligent\", params = { kind = \"ip\", alpha = 0.1, kp = 1.0 } }";
+            channels
+        ]
+        .join(", ")
+    );
+    for i in 0..channels {
+        text.push_str(&CHANNEL.replace("temperature", &format!("t{i}")));
+    }
+    std::fs::write(&path, text).unwrap();
+    load_scenario(path.to_str().unwrap())
+}
+
+const MAP: &str = r#"
+[plant.modbus]
+address = "127.0.0.1:5020"
+[[plant.modbus.channels]]
+output = { kind = "input", address = 0, type = "float32" }
+input = { kind = "holding", address = 0, type = "int16", scale = 0.01 }
+safe = 1.5
+"#;
+
+fn field(e: ScenarioError) -> String {
+    match e {
+        ScenarioError::Invalid { field, .. } => field,
+        other => panic!("expected an invalid field, got {other}"),
+    }
+}
+
+#[test]
+fn a_modbus_map_loads_with_its_timeout_and_safe_inputs() {
+    let s = file(MAP, 1).unwrap();
+    let PlantSource::Modbus(m) = &s.plant else {
+        panic!("a Modbus plant")
+    };
+    assert_eq!(m.timeout.as_millis(), 50, "half the 0.1 s period");
+    assert_eq!(m.config.unit, 1);
+    assert_eq!(s.safe_inputs(), vec![1.5]);
+    let e = plant::open(&s.plant, 1, 1).err().expect("offline refused");
+    assert!(
+        e.to_string().contains("real time through plant-agent"),
+        "{e}"
+    );
+}
+
+#[test]
+fn a_wrong_map_is_refused_with_its_field() {
+    let outside = MAP.replace("safe = 1.5", "safe = 30.0");
+    assert_eq!(
+        field(file(&outside, 1).unwrap_err()),
+        "plant.modbus.channels[0].safe"
+    );
+    assert_eq!(field(file(MAP, 2).unwrap_err()), "plant.modbus.channels");
+    let read_only = MAP.replace("input = { kind = \"holding\"", "input = { kind = \"input\"");
+    assert_eq!(
+        field(file(&read_only, 1).unwrap_err()),
+        "plant.modbus.channels[0].input.kind"
+    );
+    let with_driver = MAP.replace(
+        "[plant.modbus]",
+        "[plant]\ndriver = [\"python3\"]\n[plant.modbus]",
+    );
+    assert_eq!(field(file(&with_driver, 1).unwrap_err()), "plant.modbus");
+    // A field that is not in the map is a parse error naming it.
+    let typo = MAP.replace("address = \"127", "unit_id = 3\naddress = \"127");
+    match file(&typo, 1).unwrap_err() {
+        ScenarioError::Parse { message, .. } => assert!(message.contains("unit_id"), "{message}"),
+        other => panic!("expected a parse error, got {other}"),
+    }
+}
