@@ -3,6 +3,8 @@
 //!
 //! * [`modbus::ModbusBridge`]: a Modbus TCP client through the register map of the plant
 //!   file (`[plant.modbus]`, [`plant::modbus`]);
+//! * [`opcua::OpcUaBridge`]: an OPC UA client through the node ids of the plant file
+//!   (`[plant.opcua]`, [`plant::opcua`]);
 //! * [`open`]: the plant a scenario names, whichever its kind: the AERO simulator and
 //!   driver processes through [`plant::open`], the bridges here;
 //! * [`probe`]: what a server holds, for a user writing the map.
@@ -13,6 +15,7 @@
 //! only the wire.
 
 pub mod modbus;
+pub mod opcua;
 pub mod probe;
 pub mod reconnect;
 
@@ -37,6 +40,31 @@ pub fn open(
             }
             Ok(Box::new(bridge))
         }
+        PlantSource::OpcUa(o) => {
+            let bridge = opcua::OpcUaBridge::connect(o)?;
+            if bridge.channels() != channels {
+                return Err(PlantError::Channels {
+                    plant: bridge.channels(),
+                    scenario: channels,
+                });
+            }
+            Ok(Box::new(bridge))
+        }
         _ => plant::open(source, seed, channels),
+    }
+}
+
+/// Run `f` where a client's runtime may block: here, or, on an async worker (where tokio
+/// forbids blocking on a runtime, as a bridge dropped in async code would), on a scoped
+/// thread of its own.
+pub(crate) fn off_async<T: Send>(f: impl FnOnce() -> T + Send) -> T {
+    if tokio::runtime::Handle::try_current().is_ok() {
+        std::thread::scope(|s| {
+            s.spawn(f)
+                .join()
+                .unwrap_or_else(|p| std::panic::resume_unwind(p))
+        })
+    } else {
+        f()
     }
 }

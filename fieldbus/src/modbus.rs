@@ -129,7 +129,7 @@ impl ModbusBridge {
                     )))
                 }
                 Err(Failure::Link(e)) => {
-                    discard(self.ctx.take());
+                    self.ctx = None;
                     let now = self.now();
                     if !self.outage.failed(now, budget) {
                         return Err(PlantError::Server(format!(
@@ -231,7 +231,7 @@ impl Plant for ModbusBridge {
         // However the outage stood, the safe values get one fresh try of their own.
         self.outage.cleared();
         let r = self.write_inputs(&safe).map(|_| ());
-        discard(self.ctx.take());
+        self.ctx = None;
         r
     }
 }
@@ -239,19 +239,9 @@ impl Plant for ModbusBridge {
 impl Drop for ModbusBridge {
     fn drop(&mut self) {
         if !self.stopped {
-            if let Err(e) = self.stop() {
+            if let Err(e) = crate::off_async(|| self.stop()) {
                 tracing::error!(server = %self.config.address, "Modbus safe stop on drop failed: {e}");
             }
-        }
-    }
-}
-
-/// Let go of a connection. Its runtime must not be dropped on an async worker (tokio
-/// forbids it), as a bridge dropped in async code would: then it goes on a thread.
-fn discard(ctx: Option<sync::Context>) {
-    if let Some(ctx) = ctx {
-        if tokio::runtime::Handle::try_current().is_ok() {
-            std::thread::spawn(move || drop(ctx));
         }
     }
 }

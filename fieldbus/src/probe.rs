@@ -1,6 +1,6 @@
-//! What a Modbus server holds: a range of registers read once and shown every way a map
-//! could read it, so that a user finds the addresses, types and word order to write in a
-//! plant file.
+//! What a plant's server holds, for a user writing its map: a range of a Modbus server's
+//! registers read once and shown every way a map could read it ([`modbus`]), and an OPC UA
+//! server's address space browsed ([`opcua`]).
 
 use std::fmt::Write as _;
 use std::time::Duration;
@@ -195,6 +195,157 @@ fn compact(v: f64) -> String {
     } else {
         format!("{f}")
     }
+}
+
+/// What an OPC UA server's address space holds under `start` (a node id; the Objects
+/// folder by default), `depth` levels down: each node's id, browse name and class, and for
+/// a variable its value's type and value, so that a user finds the node ids to map.
+pub fn opcua(
+    endpoint: &str,
+    user: Option<(String, String)>,
+    start: &str,
+    depth: usize,
+    timeout: Duration,
+) -> Result<String, ProbeError> {
+    let link = |message: String| ProbeError::Link {
+        address: endpoint.into(),
+        message,
+    };
+    let start: opcua::types::NodeId = start
+        .parse()
+        .map_err(|_| link(format!("{start:?} is not a node id")))?;
+    let (rt, session) =
+        crate::opcua::open_session(endpoint, user, timeout, timeout).map_err(link)?;
+    let mut out = String::new();
+    let walked = rt.block_on(walk(&session, start, depth, timeout, &mut out));
+    rt.block_on(async {
+        let _ = tokio::time::timeout(timeout, session.disconnect()).await;
+    });
+    drop(rt);
+    walked.map_err(link)?;
+    Ok(out)
+}
+
+/// Browse `node`'s hierarchical children, line by line into `out`, down to `depth`.
+async fn walk(
+    session: &opcua::client::Session,
+    node: opcua::types::NodeId,
+    depth: usize,
+    timeout: Duration,
+    out: &mut String,
+) -> Result<(), String> {
+    use opcua::types::{
+        AttributeId, BrowseDescription, BrowseDirection, BrowseResultMask, NodeClass,
+        NodeClassMask, ReadValueId, ReferenceTypeId, TimestampsToReturn,
+    };
+    // Iterative, depth first: (node, level).
+    let mut stack = vec![(node, 0usize)];
+    while let Some((node, level)) = stack.pop() {
+        if level >= depth {
+            continue;
+        }
+        let desc = BrowseDescription {
+            node_id: node,
+            browse_direction: BrowseDirection::Forward,
+            reference_type_id: ReferenceTypeId::HierarchicalReferences.into(),
+            include_subtypes: true,
+            node_class_mask: NodeClassMask::all().bits(),
+            result_mask: BrowseResultMask::All as u32,
+        };
+        let mut refs = Vec::new();
+        let mut res = tokio::time::timeout(timeout, session.browse(&[desc], 0, None))
+            .await
+            .map_err(|_| "browse: timed out".to_string())?
+            .map_err(|e| format!("browse: {e}"))?
+            .remove(0);
+        loop {
+            refs.extend(res.references.take().unwrap_or_default());
+            if res.continuation_point.is_null() || res.status_code.is_bad() {
+                break;
+            }
+            res = tokio::time::timeout(
+                timeout,
+                session.browse_next(false, &[res.continuation_point.clone()]),
+            )
+            .await
+            .map_err(|_| "browse: timed out".to_string())?
+            .map_err(|e| format!("browse: {e}"))?
+            .remove(0);
+        }
+        let mut children = Vec::new();
+        for r in refs {
+            let id = r.node_id.node_id.clone();
+            let mut line = format!(
+                "{:indent$}{id}  {}  {:?}",
+                "",
+                r.browse_name.name,
+                r.node_class,
+                indent = 2 * level
+            );
+            if r.node_class == NodeClass::Variable {
+                let read = [ReadValueId::new(id.clone(), AttributeId::Value)];
+                let v = tokio::time::timeout(
+                    timeout,
+                    session.read(&read, TimestampsToReturn::Neither, 0.0),
+                )
+                .await
+                .map_err(|_| "read: timed out".to_string())?
+                .map_err(|e| format!("read: {e}"))?;
+                match v.first().and_then(|dv| dv.value.as_ref()) {
+                    Some(value) if !matches!(value, opcua::types::Variant::Empty) => {
+                        let t = value
+                            .scalar_type_id()
+                            .map_or("?".to_string(), |t| format!("{t:?}"));
+                        let mut shown = value.to_string();
+                        if shown.chars().count() > 60 {
+                            shown = shown.chars().take(57).collect::<String>() + "...";
+                        }
+                        let _ = write!(line, "  {t} = {shown}");
+                    }
+                    _ => line.push_str("  (empty)"),
+                }
+            }
+            out.push_str(&line);
+            out.push('\n');
+            children.push((id, level + 1));
+        }
+        // Depth first, in the server's order.
+        stack.extend(children.into_iter().rev());
+    }
+    Ok(())
+}
+
+/// The value of node `node` on `endpoint` now, if it is a finite number.
+pub fn read_node(
+    endpoint: &str,
+    user: Option<(String, String)>,
+    node: &str,
+    timeout: Duration,
+) -> Result<Option<f64>, ProbeError> {
+    let link = |message: String| ProbeError::Link {
+        address: endpoint.into(),
+        message,
+    };
+    let id: opcua::types::NodeId = node
+        .parse()
+        .map_err(|_| link(format!("{node:?} is not a node id")))?;
+    let (rt, session) =
+        crate::opcua::open_session(endpoint, user, timeout, timeout).map_err(link)?;
+    let read = [opcua::types::ReadValueId::new_value(id)];
+    let value = rt.block_on(async {
+        let v = tokio::time::timeout(
+            timeout,
+            session.read(&read, opcua::types::TimestampsToReturn::Neither, 0.0),
+        )
+        .await;
+        let _ = tokio::time::timeout(timeout, session.disconnect()).await;
+        v
+    });
+    drop(rt);
+    let values = value
+        .map_err(|_| link("read: timed out".into()))?
+        .map_err(|e| link(format!("read: {e}")))?;
+    Ok(values.first().and_then(crate::opcua::number))
 }
 
 #[cfg(test)]

@@ -461,10 +461,9 @@ fn variations_of(
     };
     Ok(match &scenario.plant {
         PlantSource::Aero(_) => family_of(&factors, args.seed, args.random),
-        PlantSource::Modbus(m) => bail!(
-            "the plant at {} is a Modbus server: robust varies simulators offline",
-            m.config.address
-        ),
+        PlantSource::Modbus(_) | PlantSource::OpcUa(_) => {
+            bail!("a plant behind a server (Modbus, OPC UA): robust varies simulators offline")
+        }
         PlantSource::Driver(_) if !args.factors.is_empty() => {
             bail!("--factors names the AERO's factors; a driver plant's family is fixed")
         }

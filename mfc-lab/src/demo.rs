@@ -71,7 +71,7 @@ pub async fn show_progress(
 pub fn device_ids(scenario: &Scenario, plants: usize) -> Vec<String> {
     let prefix = match scenario.plant {
         PlantSource::Aero(_) => "aero",
-        PlantSource::Driver(_) | PlantSource::Modbus(_) => "plant",
+        PlantSource::Driver(_) | PlantSource::Modbus(_) | PlantSource::OpcUa(_) => "plant",
     };
     (1..=plants).map(|i| format!("{prefix}-{i}")).collect()
 }

@@ -432,10 +432,9 @@ fn varied(scenario: &Scenario, v: &Variation) -> Result<PlantSource, RunError> {
             cmd.argv = driver_argv(&cmd.argv, table, &v.scales);
             Ok(PlantSource::Driver(cmd))
         }
-        PlantSource::Modbus(m) => Err(RunError::Bench(format!(
-            "the plant at {} is a Modbus server: it has no offline family to vary",
-            m.config.address
-        ))),
+        PlantSource::Modbus(_) | PlantSource::OpcUa(_) => Err(RunError::Bench(
+            "a plant behind a server (Modbus, OPC UA) has no offline family to vary".into(),
+        )),
     }
 }
 

@@ -41,7 +41,11 @@ fn found(v: &toml::Value, laws: &mut Vec<LawConfig>, maps: &mut Vec<OutputMapCon
             if let Some(o @ toml::Value::Table(_)) = t.get("output") {
                 maps.push(o.clone().try_into().unwrap());
             }
-            t.values().for_each(|x| found(x, laws, maps));
+            // A `[plant]` table holds no law and no output map (a Modbus map's `output` is a
+            // register, not an actuator).
+            t.iter()
+                .filter(|(k, _)| k.as_str() != "plant")
+                .for_each(|(_, x)| found(x, laws, maps));
         }
         toml::Value::Array(a) => a.iter().for_each(|x| found(x, laws, maps)),
         _ => {}

@@ -1,10 +1,11 @@
-//! What one period's plant I/O costs through the Modbus TCP bridge, against the driver
-//! path (the anchor), measured side by side in the same run on loopback: the DC motor's
-//! physics behind pymodbus (`plants/servers/modbus_plant.py`, the venv of
-//! `plants/servers/setup.sh`) and behind its driver process (`plants/dc-motor/dc_motor.py`).
+//! What one period's plant I/O costs through the Modbus TCP and OPC UA bridges, against the
+//! driver path (the anchor), measured side by side in the same run on loopback: the DC
+//! motor's physics behind pymodbus (`plants/servers/modbus_plant.py`), behind asyncua
+//! (`plants/servers/opcua_plant.py`; the venv of `plants/servers/setup.sh`) and behind its
+//! driver process (`plants/dc-motor/dc_motor.py`).
 //!
 //! `cargo bench -p plant-agent --bench bridges [-- PERIODS]` (default 1000 per round, three
-//! rounds, the two paths alternating so that both see the same machine). Each period, paced
+//! rounds, the three paths in turn so that all see the same machine). Each period, paced
 //! at 100 Hz, does what the agent does: read the outputs, write the inputs (the bridge reads
 //! back the applied value, as the shipped map asks), advance the plant's time. Prints the
 //! median and the 99th percentile of that round's time per path and their ratios.
@@ -45,6 +46,38 @@ fn round(plant: &mut dyn Plant, periods: u32) -> Vec<f64> {
     took
 }
 
+/// A server script on a free port, once it listens.
+fn server(python: &str, script: &str) -> (std::process::Child, u16) {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let mut child = Command::new(python)
+        .arg(root().join(script))
+        .args([
+            "--plant",
+            "dc-motor",
+            "--seed",
+            "1",
+            "--port",
+            &port.to_string(),
+        ])
+        .stdout(Stdio::piped())
+        .spawn()
+        .expect("a plant server");
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    assert_eq!(line.trim(), format!("listening {port}"));
+    (child, port)
+}
+
+fn scenario(rel: &str) -> plant::scenario::Scenario {
+    load_scenario(root().join(rel).to_str().unwrap()).unwrap()
+}
+
 fn main() {
     let periods: u32 = std::env::args()
         .skip(1)
@@ -56,78 +89,73 @@ fn main() {
         .output()
         .expect("plants/servers/setup.sh");
     assert!(setup.status.success(), "plants/servers/setup.sh failed");
-    let python = String::from_utf8(setup.stdout).unwrap();
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
-    let mut server = Command::new(python.lines().last().unwrap().trim())
-        .arg(root().join("plants/servers/modbus_plant.py"))
-        .args([
-            "--plant",
-            "dc-motor",
-            "--seed",
-            "1",
-            "--port",
-            &port.to_string(),
-        ])
-        .stdout(Stdio::piped())
-        .spawn()
-        .expect("the Modbus server");
-    let mut line = String::new();
-    BufReader::new(server.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    assert_eq!(line.trim(), format!("listening {port}"));
+    let stdout = String::from_utf8(setup.stdout).unwrap();
+    let python = stdout.lines().last().unwrap().trim();
+    let (mut modbus_server, modbus_port) = server(python, "plants/servers/modbus_plant.py");
+    let (mut opcua_server, opcua_port) = server(python, "plants/servers/opcua_plant.py");
 
-    let mut modbus = load_scenario(
-        root()
-            .join("plants/servers/motor-steps-modbus.toml")
-            .to_str()
-            .unwrap(),
-    )
-    .unwrap();
+    let mut modbus = scenario("plants/servers/motor-steps-modbus.toml");
     let PlantSource::Modbus(m) = &mut modbus.plant else {
         panic!("the shipped file is a Modbus plant")
     };
-    m.config.address = format!("127.0.0.1:{port}");
-    let driver = load_scenario(
-        root()
-            .join("plants/dc-motor/scenarios/motor-steps.toml")
-            .to_str()
-            .unwrap(),
-    )
-    .unwrap();
-    let mut bridge = fieldbus::modbus::ModbusBridge::connect(m).expect("the bridge");
-    let requests = bridge.requests_per_period();
-    let mut anchor = fieldbus::open(&driver.plant, 1, 1).expect("the driver");
+    m.config.address = format!("127.0.0.1:{modbus_port}");
+    let mut opcua = scenario("plants/servers/motor-steps-opcua.toml");
+    let PlantSource::OpcUa(o) = &mut opcua.plant else {
+        panic!("the shipped file is an OPC UA plant")
+    };
+    o.config.endpoint = format!("opc.tcp://127.0.0.1:{opcua_port}/");
+    let requests = fieldbus::modbus::ModbusBridge::connect(m)
+        .expect("the Modbus bridge")
+        .requests_per_period();
+    let driver = scenario("plants/dc-motor/scenarios/motor-steps.toml");
+    let mut paths: Vec<(&str, Box<dyn Plant>)> = vec![
+        (
+            "driver (anchor)",
+            fieldbus::open(&driver.plant, 1, 1).expect("the driver"),
+        ),
+        (
+            "modbus",
+            fieldbus::open(&modbus.plant, 1, 1).expect("the Modbus bridge"),
+        ),
+        (
+            "opcua",
+            fieldbus::open(&opcua.plant, 1, 1).expect("the OPC UA bridge"),
+        ),
+    ];
 
     println!("| round | path | median (us) | p99 (us) |\n|---|---|---:|---:|");
-    let (mut med, mut p99) = (Vec::new(), Vec::new());
+    let mut ratios: Vec<Vec<(f64, f64)>> = vec![Vec::new(); paths.len()];
     for r in 1..=3 {
-        let a = round(anchor.as_mut(), periods);
-        let b = round(&mut bridge, periods);
-        for (name, t) in [("driver (anchor)", &a), ("modbus", &b)] {
-            println!(
-                "| {r} | {name} | {:.0} | {:.0} |",
-                percentile(t, 0.5),
-                percentile(t, 0.99)
-            );
+        let mut anchor = (0.0, 0.0);
+        for (i, (name, plant)) in paths.iter_mut().enumerate() {
+            let t = round(plant.as_mut(), periods);
+            let (med, p99) = (percentile(&t, 0.5), percentile(&t, 0.99));
+            println!("| {r} | {name} | {med:.0} | {p99:.0} |");
+            if i == 0 {
+                anchor = (med, p99);
+            }
+            ratios[i].push((med / anchor.0, p99 / anchor.1));
         }
-        med.push(percentile(&b, 0.5) / percentile(&a, 0.5));
-        p99.push(percentile(&b, 0.99) / percentile(&a, 0.99));
     }
-    med.sort_by(f64::total_cmp);
-    p99.sort_by(f64::total_cmp);
+    println!();
+    for ((name, _), mut r) in paths.iter().zip(ratios).skip(1) {
+        r.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let med = r[1].0;
+        r.sort_by(|a, b| a.1.total_cmp(&b.1));
+        println!(
+            "{name} over the driver, median of the rounds' ratios: median {med:.2}x, p99 {:.2}x",
+            r[1].1
+        );
+    }
     println!(
-        "\nmodbus over driver, median of the rounds' ratios: median {:.2}x, p99 {:.2}x ({periods} periods per round at 100 Hz; the bridge's period makes {} requests)",
-        med[1],
-        p99[1],
-        requests
+        "({periods} periods per round at 100 Hz; a period reads the output, writes the input and reads \
+         the applied value: {requests} Modbus requests, 3 OPC UA services)"
     );
-    let _ = bridge.stop();
-    let _ = anchor.stop();
-    let _ = server.kill();
-    let _ = server.wait();
+    for (_, mut plant) in paths {
+        let _ = plant.stop();
+    }
+    for s in [&mut modbus_server, &mut opcua_server] {
+        let _ = s.kill();
+        let _ = s.wait();
+    }
 }

@@ -51,6 +51,50 @@ enum Command {
 enum ProbeCommand {
     /// Read `--count` values of `--kind` from `--start` on a Modbus TCP server.
     Modbus(ProbeModbusArgs),
+    /// Browse an OPC UA server's address space from `--node`, `--depth` levels down: node
+    /// ids, browse names, classes, and each variable's type and value.
+    Opcua(ProbeOpcUaArgs),
+}
+
+#[derive(clap::Args)]
+struct ProbeOpcUaArgs {
+    /// The endpoint, opc.tcp://host:port/path (security None).
+    endpoint: String,
+    /// Where to start (a node id). Default: the Objects folder.
+    #[arg(long, default_value = "i=85")]
+    node: String,
+    /// How many levels to go down.
+    #[arg(long, default_value_t = 3)]
+    depth: usize,
+    /// A user name (absent: anonymous); its password is the first line of --password-file.
+    #[arg(long, requires = "password_file")]
+    user: Option<String>,
+    /// The user's password file.
+    #[arg(long, requires = "user")]
+    password_file: Option<PathBuf>,
+    /// Longest wait for the session and for each answer (ms).
+    #[arg(long, default_value_t = 5000)]
+    timeout_ms: u64,
+}
+
+fn probe_opcua(a: ProbeOpcUaArgs) -> Result<u8> {
+    let user = match (a.user, a.password_file) {
+        (Some(u), Some(f)) => {
+            let text =
+                std::fs::read_to_string(&f).with_context(|| format!("reading {}", f.display()))?;
+            Some((u, text.lines().next().unwrap_or_default().to_string()))
+        }
+        _ => None,
+    };
+    let tree = fieldbus::probe::opcua(
+        &a.endpoint,
+        user,
+        &a.node,
+        a.depth,
+        std::time::Duration::from_millis(a.timeout_ms),
+    )?;
+    print!("{tree}");
+    Ok(0)
 }
 
 #[derive(clap::Args)]
@@ -135,7 +179,14 @@ pub fn main() -> std::process::ExitCode {
     let _ = tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| "info,zenoh=warn".into()),
+                // The OPC UA client logs, as errors, that it has no certificate of its own:
+                // with security None (all the bridge speaks) it needs none. The bridge says
+                // itself what matters (a password in plain text, a session that will not open).
+                .unwrap_or_else(|_| {
+                    "info,zenoh=warn,opcua_crypto=off,opcua_core::comms::secure_channel=off,\
+                     opcua_client::session::client=off,opcua_client::config=error"
+                        .into()
+                }),
         )
         .with_writer(std::io::stderr)
         // Colour codes only for a terminal: not into files or the journal.
@@ -159,6 +210,9 @@ pub fn main() -> std::process::ExitCode {
             0
         })
         .map_err(Into::into),
+        Command::Probe {
+            what: ProbeCommand::Opcua(a),
+        } => probe_opcua(a),
     };
     match result {
         Ok(code) => std::process::ExitCode::from(code),

@@ -21,9 +21,9 @@ fn scratch(name: &str) -> PathBuf {
 }
 
 mod support {
-    pub mod modbus_server;
+    pub mod plant_server;
 }
-use support::modbus_server::{free_port, root, Server};
+use support::plant_server::{free_port, root, Server};
 
 /// The shipped motor scenario on `port`, with the reconnection budget and duration given
 /// and the test's safe value; the controller by absolute path.

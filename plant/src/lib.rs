@@ -27,6 +27,7 @@ pub mod chart;
 pub mod driver;
 pub mod modbus;
 mod mode;
+pub mod opcua;
 pub mod progress;
 pub mod record;
 pub mod scenario;
@@ -124,6 +125,13 @@ pub fn open(
                 "the plant at {} is a Modbus server: it runs in real time through plant-agent \
                  (its bridge), not offline",
                 m.config.address
+            )))
+        }
+        PlantSource::OpcUa(o) => {
+            return Err(PlantError::Unsupported(format!(
+                "the plant at {} is an OPC UA server: it runs in real time through plant-agent \
+                 (its bridge), not offline",
+                o.config.endpoint
             )))
         }
     };

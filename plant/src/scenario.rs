@@ -39,6 +39,7 @@ use mfc::{ChannelConfig, LawConfig, OutputMapConfig};
 use serde::{Deserialize, Serialize};
 
 use crate::modbus::ModbusConfig;
+use crate::opcua::OpcUaConfig;
 use aero_sim::{AeroParams, PAPER_ADDED_MASS};
 use mfc::trajectory::Piece;
 
@@ -108,6 +109,9 @@ pub struct PlantTable {
     /// A plant behind a Modbus TCP server (`crate::modbus`): where each channel's values
     /// sit in its registers. Excludes the AERO fields and a driver.
     pub modbus: Option<ModbusConfig>,
+    /// A plant behind an OPC UA server (`crate::opcua`): the node ids of each channel's
+    /// values. Excludes the AERO fields, a driver and a Modbus map.
+    pub opcua: Option<OpcUaConfig>,
 }
 
 /// The plant of a loaded scenario.
@@ -120,6 +124,31 @@ pub enum PlantSource {
     /// A plant behind a Modbus TCP server (checked against the channels' actuator ranges),
     /// reached in real time through `plant-agent`: there is no offline twin.
     Modbus(ModbusPlant),
+    /// A plant behind an OPC UA server, reached in real time through `plant-agent`.
+    OpcUa(OpcUaPlant),
+}
+
+/// An OPC UA plant: its map, the request timeout its period gives, and the user's
+/// password read from the map's `password_file`.
+#[derive(Clone, PartialEq)]
+pub struct OpcUaPlant {
+    /// The map, checked.
+    pub config: OpcUaConfig,
+    /// Longest wait for one answer.
+    pub timeout: std::time::Duration,
+    /// The password of `config.user`, if any.
+    pub password: Option<String>,
+}
+
+impl std::fmt::Debug for OpcUaPlant {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        // Never the password: a Debug print ends up in logs.
+        f.debug_struct("OpcUaPlant")
+            .field("config", &self.config)
+            .field("timeout", &self.timeout)
+            .field("password", &self.password.as_ref().map(|_| "(set)"))
+            .finish()
+    }
 }
 
 /// A Modbus plant: its map, and the request timeout its period gives.
@@ -150,6 +179,7 @@ impl Scenario {
     pub fn safe_inputs(&self) -> Vec<f64> {
         match &self.plant {
             PlantSource::Modbus(m) => m.config.channels.iter().map(|c| c.safe).collect(),
+            PlantSource::OpcUa(o) => o.config.channels.iter().map(|c| c.safe).collect(),
             _ => vec![0.0; self.channels.len()],
         }
     }
@@ -160,7 +190,7 @@ impl PlantSource {
     pub fn aero(&self) -> Option<&AeroParams> {
         match self {
             PlantSource::Aero(p) => Some(p),
-            PlantSource::Driver(_) | PlantSource::Modbus(_) => None,
+            PlantSource::Driver(_) | PlantSource::Modbus(_) | PlantSource::OpcUa(_) => None,
         }
     }
 }
@@ -465,23 +495,7 @@ pub fn from_text(file: &Path, text: &str, dir: Option<&Path>) -> Result<Scenario
     }
     let plant = resolve_plant(file, &raw.plant, dir, raw.period)?;
     let n = raw.channels.len();
-    if let PlantSource::Modbus(m) = &plant {
-        let ranges: Vec<(f64, f64)> = raw
-            .channels
-            .iter()
-            .map(|c| (c.output.min, c.output.max))
-            .collect();
-        m.config
-            .check(&ranges)
-            .map_err(|e| invalid(file, format!("plant.modbus.{}", e.field), e.reason))?;
-    }
-    if n == 0 || n > MAX_CHANNELS {
-        return Err(invalid(
-            file,
-            "channels",
-            format!("need 1 to {MAX_CHANNELS} channels, got {n}"),
-        ));
-    }
+    check_server_map(file, &plant, &raw.channels)?;
     if matches!(plant, PlantSource::Aero(_)) && n != aero_sim::CHANNELS {
         return Err(invalid(
             file,
@@ -550,12 +564,40 @@ pub fn from_text(file: &Path, text: &str, dir: Option<&Path>) -> Result<Scenario
     })
 }
 
-fn resolve_plant(
+/// A plant behind a server (`[plant.opcua]` or `[plant.modbus]`), alone in its table;
+/// `None` for any other plant.
+fn server_plant(
     file: &Path,
     spec: &PlantTable,
     dir: Option<&Path>,
     period: f64,
-) -> Result<PlantSource, ScenarioError> {
+) -> Result<Option<PlantSource>, ScenarioError> {
+    if let Some(config) = &spec.opcua {
+        let aero = spec.file.is_some() || spec.added_mass || !spec.params.is_empty();
+        if aero || spec.driver.is_some() || spec.timeout_ms.is_some() || spec.modbus.is_some() {
+            return Err(invalid(
+                file,
+                "plant.opcua",
+                "an OPC UA plant is its server: drop file, added_mass, params, driver, modbus and timeout_ms (the map has its own timeout_ms)",
+            ));
+        }
+        let password = match &config.password_file {
+            Some(p) => {
+                let full = match dir {
+                    Some(d) if p.is_relative() => d.join(p),
+                    _ => p.clone(),
+                };
+                let text = read(&full)?;
+                Some(text.lines().next().unwrap_or_default().to_string())
+            }
+            None => None,
+        };
+        return Ok(Some(PlantSource::OpcUa(OpcUaPlant {
+            config: config.clone(),
+            timeout: config.timeout(period),
+            password,
+        })));
+    }
     if let Some(config) = &spec.modbus {
         let aero = spec.file.is_some() || spec.added_mass || !spec.params.is_empty();
         if aero || spec.driver.is_some() || spec.timeout_ms.is_some() {
@@ -565,10 +607,40 @@ fn resolve_plant(
                 "a Modbus plant is its server: drop file, added_mass, params, driver and timeout_ms (the map has its own timeout_ms)",
             ));
         }
-        return Ok(PlantSource::Modbus(ModbusPlant {
+        return Ok(Some(PlantSource::Modbus(ModbusPlant {
             config: config.clone(),
             timeout: config.timeout(period),
-        }));
+        })));
+    }
+    Ok(None)
+}
+
+/// A server's map checked against the file's channels (their count and actuator ranges).
+fn check_server_map(
+    file: &Path,
+    plant: &PlantSource,
+    channels: &[ScenarioChannel],
+) -> Result<(), ScenarioError> {
+    let ranges: Vec<(f64, f64)> = channels
+        .iter()
+        .map(|c| (c.output.min, c.output.max))
+        .collect();
+    let (table, checked) = match plant {
+        PlantSource::OpcUa(o) => ("opcua", o.config.check(&ranges)),
+        PlantSource::Modbus(m) => ("modbus", m.config.check(&ranges)),
+        _ => return Ok(()),
+    };
+    checked.map_err(|e| invalid(file, format!("plant.{table}.{}", e.field), e.reason))
+}
+
+fn resolve_plant(
+    file: &Path,
+    spec: &PlantTable,
+    dir: Option<&Path>,
+    period: f64,
+) -> Result<PlantSource, ScenarioError> {
+    if let Some(plant) = server_plant(file, spec, dir, period)? {
+        return Ok(plant);
     }
     if let Some(argv) = &spec.driver {
         if spec.file.is_some() || spec.added_mass || !spec.params.is_empty() {

@@ -25,9 +25,7 @@ Prints `listening PORT` on stdout once it accepts connections.
 
 import argparse
 import asyncio
-import importlib.util
 import math
-import os
 import struct
 import sys
 import time
@@ -37,25 +35,10 @@ from pymodbus.constants import ExcCodes  # noqa: E402
 from pymodbus.server import ModbusTcpServer  # noqa: E402
 from pymodbus.simulator import DataType, SimData, SimDevice  # noqa: E402
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-PLANTS = {
-    "heater": (os.path.join(HERE, os.pardir, "heater", "heater.py"), "Heater"),
-    "dc-motor": (os.path.join(HERE, os.pardir, "dc-motor", "dc_motor.py"), "DcMotor"),
-}
+from physics import PLANTS, load_plant  # noqa: E402
+
 FC_READ_INPUT = 4
 FC_WRITES = (6, 16)
-
-
-def load_plant(name, argv):
-    """The example driver's plant, built from its own command-line flags."""
-    path, cls = PLANTS[name]
-    spec = importlib.util.spec_from_file_location(name.replace("-", "_"), path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    args = module.parse_args(argv)
-    if cls == "Heater":
-        return module.Heater(args.ambient, args.gain, args.tau, args.dead_time, args.noise, args.seed)
-    return module.DcMotor(args)
 
 
 def words(x):

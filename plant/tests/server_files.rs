@@ -1,6 +1,6 @@
-//! A Modbus plant file as the loader reads it: the map is checked against the file's
-//! channels (their count and actuator ranges) and named field by field when it is wrong;
-//! the offline runner refuses the plant with a reason.
+//! Plant files of plants behind a server (Modbus, OPC UA) as the loader reads them: the
+//! map is checked against the file's channels (their count and actuator ranges) and named
+//! field by field when it is wrong; the offline runner refuses the plant with a reason.
 
 use plant::scenario::{load_scenario, PlantSource, ScenarioError};
 
@@ -86,4 +86,71 @@ fn a_wrong_map_is_refused_with_its_field() {
         ScenarioError::Parse { message, .. } => assert!(message.contains("unit_id"), "{message}"),
         other => panic!("expected a parse error, got {other}"),
     }
+}
+
+const OPCUA: &str = r#"
+[plant.opcua]
+endpoint = "opc.tcp://127.0.0.1:4840/"
+user = "operator"
+password_file = "pw"
+[[plant.opcua.channels]]
+output = "ns=2;s=Plant.Output"
+input = "ns=2;i=1002"
+safe = 2.0
+"#;
+
+/// The scenario `plant` with a password file `pw` beside it (if `password` is given).
+fn file_with_password(
+    plant: &str,
+    password: Option<&str>,
+) -> Result<plant::scenario::Scenario, ScenarioError> {
+    let dir = tempfile::tempdir().unwrap();
+    if let Some(p) = password {
+        std::fs::write(dir.path().join("pw"), format!("{p}\nignored second line\n")).unwrap();
+    }
+    let path = dir.path().join("s.toml");
+    let text = format!(
+        "name = \"o\"\nduration = 10.0\nperiod = 0.01\n\
+         controller = {{ name = \"ip\", channels = [{{ law = \"intelligent\", params = {{ kind = \"ip\", alpha = 0.1, kp = 1.0 }} }}] }}\n\
+         {plant}\n{CHANNEL}"
+    );
+    std::fs::write(&path, text).unwrap();
+    load_scenario(path.to_str().unwrap())
+}
+
+#[test]
+fn an_opcua_map_loads_with_its_password_and_never_prints_it() {
+    let s = file_with_password(OPCUA, Some("s3cret")).unwrap();
+    let PlantSource::OpcUa(o) = &s.plant else {
+        panic!("an OPC UA plant")
+    };
+    assert_eq!(
+        o.password.as_deref(),
+        Some("s3cret"),
+        "the file's first line"
+    );
+    assert_eq!(o.timeout.as_millis(), 20, "half of 10 ms, at least 20");
+    assert_eq!(s.safe_inputs(), vec![2.0]);
+    let printed = format!("{:?}", s.plant);
+    assert!(!printed.contains("s3cret"), "{printed}");
+    let e = plant::open(&s.plant, 1, 1).err().expect("offline refused");
+    assert!(e.to_string().contains("OPC UA server"), "{e}");
+    // No password file: a clear error naming it.
+    match file_with_password(OPCUA, None).unwrap_err() {
+        ScenarioError::Io { file, .. } => assert!(file.ends_with("pw"), "{file:?}"),
+        other => panic!("expected the missing password file, got {other}"),
+    }
+    let bad = OPCUA.replace("ns=2;i=1002", "Plant.Input");
+    assert_eq!(
+        field(file_with_password(&bad, Some("x")).unwrap_err()),
+        "plant.opcua.channels[0].input"
+    );
+    let secured = OPCUA.replace(
+        "[plant.opcua]\n",
+        "[plant.opcua]\nsecurity_policy = \"Basic256Sha256\"\n",
+    );
+    assert_eq!(
+        field(file_with_password(&secured, Some("x")).unwrap_err()),
+        "plant.opcua.security_policy"
+    );
 }

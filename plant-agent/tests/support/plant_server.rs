@@ -1,7 +1,9 @@
-//! A plant behind a Modbus TCP server we did not write, for tests: pymodbus
-//! (`plants/servers/modbus_plant.py`, pinned by `plants/servers/setup.sh`) hosting the DC
-//! motor's physics in real time. Shared by the agent's tests and the system tests
-//! (included by path: neither crate may depend on the other's tests).
+//! A plant behind a server we did not write, for tests: pymodbus
+//! (`plants/servers/modbus_plant.py`) or asyncua (`plants/servers/opcua_plant.py`), pinned
+//! by `plants/servers/setup.sh`, hosting the DC motor's physics in real time. Shared by the
+//! agent's tests and the system tests (included by path: neither crate may depend on the
+//! other's tests).
+#![allow(dead_code)] // each including test uses a part: Modbus registers or OPC UA nodes
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
@@ -46,16 +48,34 @@ pub fn python() -> &'static Path {
     })
 }
 
-/// The pymodbus server with the DC motor, killed when dropped.
+/// Which server.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub enum ServerKind {
+    Modbus,
+    OpcUa,
+}
+
+/// A server with the DC motor, killed when dropped.
 pub struct Server {
     child: Child,
     pub port: u16,
+    pub protocol: ServerKind,
 }
 
 impl Server {
+    /// The pymodbus server on `port`.
     pub fn start(port: u16, flags: &[&str]) -> Self {
+        Self::start_as(ServerKind::Modbus, port, flags)
+    }
+
+    /// The `protocol`'s server on `port`, with the server's `flags`.
+    pub fn start_as(protocol: ServerKind, port: u16, flags: &[&str]) -> Self {
+        let script = match protocol {
+            ServerKind::Modbus => "plants/servers/modbus_plant.py",
+            ServerKind::OpcUa => "plants/servers/opcua_plant.py",
+        };
         let mut child = Command::new(python())
-            .arg(root().join("plants/servers/modbus_plant.py"))
+            .arg(root().join(script))
             .args([
                 "--plant",
                 "dc-motor",
@@ -77,10 +97,14 @@ impl Server {
             }
         });
         let line = rx
-            .recv_timeout(Duration::from_secs(30))
+            .recv_timeout(Duration::from_secs(60))
             .expect("the server never listened");
         assert_eq!(line, format!("listening {port}"));
-        Self { child, port }
+        Self {
+            child,
+            port,
+            protocol,
+        }
     }
 
     pub fn kill(&mut self) {
@@ -88,8 +112,25 @@ impl Server {
         let _ = self.child.wait();
     }
 
+    /// Modbus: `host:port`; OPC UA: the endpoint URL.
     pub fn address(&self) -> String {
-        format!("127.0.0.1:{}", self.port)
+        match self.protocol {
+            ServerKind::Modbus => format!("127.0.0.1:{}", self.port),
+            ServerKind::OpcUa => format!("opc.tcp://127.0.0.1:{}/", self.port),
+        }
+    }
+
+    /// An OPC UA server's node `ns=2;s=Plant.NAME` (Output, Input, Applied) now.
+    pub fn node(&self, name: &str, user: Option<(&str, &str)>) -> f64 {
+        let user = user.map(|(u, p)| (u.to_string(), p.to_string()));
+        fieldbus::probe::read_node(
+            &self.address(),
+            user,
+            &format!("ns=2;s=Plant.{name}"),
+            Duration::from_secs(10),
+        )
+        .expect("reading the server")
+        .expect("a finite number")
     }
 
     /// The float32 at holding register 0 (the input) or input register 2 (what the plant

@@ -1,0 +1,167 @@
+//! Plants from the factory floor with no code: the DC motor behind a Modbus TCP server
+//! (pymodbus) and behind an OPC UA server (asyncua), servers we did not write, controlled
+//! over Zenoh through the controller service, track as their offline twin (the same physics
+//! as a driver, in lockstep) does, and are left with their safe value in the server.
+
+use mfc_lab::harness::{run_fleet, service_config};
+use mfc_lab::offline::simulate;
+use plant::modbus::RegisterKind;
+use plant::scenario::{load_scenario, PlantSource, Scenario};
+use plant_agent::agent::End;
+use system_tests::{max_held_fraction, rms_ratio_bound, served_plant, SERIAL};
+
+#[path = "../../plant-agent/tests/support/plant_server.rs"]
+mod plant_server;
+use plant_server::{free_port, root, Server, ServerKind};
+
+const SAFE: f64 = 0.25;
+
+fn load(rel: &str) -> Scenario {
+    let mut s = load_scenario(root().join(rel).to_str().unwrap()).unwrap();
+    s.duration = 9.0;
+    s
+}
+
+/// The server's file on `server`, with the test's safe value.
+fn pointed(mut s: Scenario, server: &Server) -> Scenario {
+    match &mut s.plant {
+        PlantSource::Modbus(m) => {
+            m.config.address = server.address();
+            m.config.channels[0].safe = SAFE;
+        }
+        PlantSource::OpcUa(o) => {
+            o.config.endpoint = server.address();
+            o.config.channels[0].safe = SAFE;
+        }
+        other => panic!("a plant behind a server, not {other:?}"),
+    }
+    s
+}
+
+/// What the server's input holds now (off the async worker: the probes block).
+fn input_now(server: &Server) -> f64 {
+    tokio::task::block_in_place(|| match server.protocol {
+        ServerKind::Modbus => server.value(RegisterKind::Holding, 0),
+        ServerKind::OpcUa => server.node("Input", None),
+    })
+}
+
+async fn tracks_as_its_twin(protocol: ServerKind, file: &str) {
+    const ATTEMPTS: usize = 3;
+    let _serial = SERIAL.lock().await;
+    let twin = load("plants/dc-motor/scenarios/motor-steps.toml");
+    let offline = simulate(&twin, &twin.controller, false).unwrap().summary;
+    for attempt in 1..=ATTEMPTS {
+        let server = Server::start_as(protocol, free_port(), &[]);
+        let s = pointed(load(file), &server);
+        assert_eq!(s.controller, twin.controller, "the same law on both");
+        let id = "motor-1".to_string();
+        let config = service_config(&s, &s.controller, std::slice::from_ref(&id));
+        let run = run_fleet(vec![served_plant(&s, &s.controller, &id)], config)
+            .await
+            .unwrap()
+            .remove(0);
+        let rep = &run.report;
+        eprintln!("{protocol:?} attempt {attempt}: {}", rep.headline());
+        assert_eq!(rep.end, End::Completed, "{rep:?}");
+        assert!(rep.safe_stop_applied && rep.controller_reached, "{rep:?}");
+        let k = &rep.counters;
+        assert!(
+            (k.commands + k.warming_up) as f64 >= 0.95 * k.periods as f64,
+            "served: {k:?}"
+        );
+        assert_eq!(k.fallbacks, 0, "{k:?}");
+        assert_eq!(input_now(&server), SAFE, "the safe value was left");
+        let held = k.holding_periods as f64 / k.periods.max(1) as f64;
+        if held > max_held_fraction() {
+            eprintln!(
+                "attempt {attempt}: {:.1} % of periods held: not judged",
+                100.0 * held
+            );
+            continue;
+        }
+        let ratio = rep.channels[0].rms / offline.channels[0].rms;
+        eprintln!(
+            "{protocol:?} attempt {attempt}: RMS {:.3e} through the server, {:.3e} offline: ratio \
+             {ratio:.3}; rtt p50 {:.0} us, overruns {}",
+            rep.channels[0].rms, offline.channels[0].rms, rep.rtt_p50_us, rep.overruns
+        );
+        assert!(ratio < rms_ratio_bound(), "ratio {ratio}");
+        return;
+    }
+    panic!(
+        "no attempt of {ATTEMPTS} had its commands in time: this machine cannot judge tracking now"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_modbus_plant_tracks_through_the_service_as_its_offline_twin() {
+    tracks_as_its_twin(ServerKind::Modbus, "plants/servers/motor-steps-modbus.toml").await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn an_opcua_plant_tracks_through_the_service_as_its_offline_twin() {
+    tracks_as_its_twin(ServerKind::OpcUa, "plants/servers/motor-steps-opcua.toml").await;
+}
+
+/// A gateway agent hosting a plant behind each server (and a driver plant beside them) in
+/// one batch per period: each is served under its own device and left at its safe value.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_gateway_hosts_plants_behind_servers_beside_a_driver() {
+    use mfc_lab::harness::{default_safety, ServiceHandle};
+    use plant_agent::agent::{open_plant, LoopConfig};
+
+    let _serial = SERIAL.lock().await;
+    let modbus = Server::start_as(ServerKind::Modbus, free_port(), &[]);
+    let opcua = Server::start_as(ServerKind::OpcUa, free_port(), &[]);
+    let scenarios = [
+        pointed(load("plants/servers/motor-steps-modbus.toml"), &modbus),
+        pointed(load("plants/servers/motor-steps-opcua.toml"), &opcua),
+        load("plants/dc-motor/scenarios/motor-steps.toml"),
+    ];
+    let ids: Vec<String> = ["cell-modbus", "cell-opcua", "cell-driver"]
+        .map(String::from)
+        .to_vec();
+    let mut config = controller_service::ServiceConfig::default();
+    for (s, id) in scenarios.iter().zip(&ids) {
+        config
+            .devices
+            .extend(service_config(s, &s.controller, std::slice::from_ref(id)).devices);
+    }
+    let service = ServiceHandle::start_keyed(config, None).await.unwrap();
+    let secret = service.secret.clone().unwrap();
+    let session = service.client().await.unwrap();
+    let mut plants = Vec::new();
+    for (s, id) in scenarios.iter().zip(&ids) {
+        let mut safety = default_safety(s);
+        safety.hold_periods += system_tests::margin_periods();
+        let plant = open_plant(s, s.seed).await.unwrap();
+        plants.push((plant, LoopConfig::new(s, &s.controller, id, safety)));
+    }
+    let runs = plant_agent::gateway::run_gateway(
+        &session,
+        "cell-f",
+        plants,
+        Some(secret.gateway("cell-f")),
+        plant::run_id,
+        std::future::pending(),
+    )
+    .await
+    .unwrap();
+    let _ = session.close().await;
+    service.stop().await.unwrap();
+    for (run, id) in runs.into_iter().zip(&ids) {
+        let r = run.unwrap().report;
+        eprintln!("{}", r.headline());
+        assert_eq!(&r.device_id, id);
+        assert!(r.completed() && r.safe_stop_applied, "{r:?}");
+        assert_eq!(r.link, plant_agent::agent::ControllerLink::Kept, "{r:?}");
+        let k = &r.counters;
+        assert!(
+            (k.commands + k.warming_up) as f64 >= 0.95 * k.periods as f64,
+            "{id}: {k:?}"
+        );
+    }
+    assert_eq!(input_now(&modbus), SAFE);
+    assert_eq!(input_now(&opcua), SAFE);
+}
