@@ -61,14 +61,18 @@ impl ModbusBridge {
             ctx: None,
             outage: LinkOutage::default(),
             epoch: Instant::now(),
-            stopped: false,
+            // Nothing to stop until connected: a failed start must not spend the
+            // reconnection budget on a safe stop.
+            stopped: true,
             config,
         };
+        let connect = Duration::from_millis(bridge.config.connect_timeout_ms);
         bridge.ctx = Some(
             bridge
-                .open()
+                .open(connect)
                 .map_err(|e| PlantError::Server(e.to_string()))?,
         );
+        bridge.stopped = false;
         Ok(bridge)
     }
 
@@ -84,9 +88,9 @@ impl ModbusBridge {
         self.output_reads.len() + plan_writes(&writes).len() + self.applied_reads.len()
     }
 
-    fn open(&self) -> Result<sync::Context, std::io::Error> {
+    /// A connection, waiting at most `connect` for it.
+    fn open(&self, connect: Duration) -> Result<sync::Context, std::io::Error> {
         let addr = resolve(&self.config.address)?;
-        let connect = Duration::from_millis(self.config.connect_timeout_ms);
         let mut ctx =
             sync::tcp::connect_slave_with_timeout(addr, Slave(self.config.unit), Some(connect))?;
         ctx.set_timeout(self.timeout);
@@ -105,11 +109,24 @@ impl ModbusBridge {
         what: &str,
         mut op: impl FnMut(&mut sync::Context) -> Result<T, Failure>,
     ) -> Result<T, PlantError> {
-        let budget = self.config.reconnect_ms as f64 / 1000.0;
+        // Stopping: one try on the connection as it stands, or on a new one if it was lost.
+        let budget = if self.stopped {
+            0.0
+        } else {
+            self.config.reconnect_ms as f64 / 1000.0
+        };
         loop {
+            // A connection is waited for no longer than the outage may still last.
+            let full = Duration::from_millis(self.config.connect_timeout_ms);
+            let left = Duration::from_secs_f64(self.outage.left(self.now(), budget));
+            let connect = if left.is_zero() {
+                full
+            } else {
+                full.min(left.max(Duration::from_millis(50)))
+            };
             let attempt = match self.ctx.as_mut() {
                 Some(ctx) => op(ctx),
-                None => match self.open() {
+                None => match self.open(connect) {
                     Ok(ctx) => {
                         tracing::info!(server = %self.config.address, "Modbus: connected again");
                         op(self.ctx.insert(ctx))
@@ -184,10 +201,20 @@ impl ModbusBridge {
                 ((c.input, words), given)
             })
             .unzip();
+        // Every block is tried even if one fails (a safe stop must reach every channel the
+        // server still takes); the first failure is the one reported.
+        let mut first = None;
         for b in plan_writes(&writes) {
-            self.with_link("write", |ctx| write_block(ctx, b.kind, b.start, &b.words))?;
+            if let Err(e) =
+                self.with_link("write", |ctx| write_block(ctx, b.kind, b.start, &b.words))
+            {
+                if !self.stopped {
+                    return Err(e);
+                }
+                first.get_or_insert(e);
+            }
         }
-        Ok(given)
+        first.map_or(Ok(given), Err)
     }
 }
 
@@ -228,7 +255,8 @@ impl Plant for ModbusBridge {
     fn stop(&mut self) -> Result<(), PlantError> {
         self.stopped = true;
         let safe: Vec<f64> = self.config.channels.iter().map(|c| c.safe).collect();
-        // However the outage stood, the safe values get one fresh try of their own.
+        // However the outage stood, the safe values get one try of their own (on a new
+        // connection if the last was lost): not a second reconnection budget.
         self.outage.cleared();
         let r = self.write_inputs(&safe).map(|_| ());
         self.ctx = None;

@@ -77,7 +77,9 @@ impl OpcUaBridge {
             safe: c.channels.iter().map(|ch| ch.safe).collect(),
             outage: LinkOutage::default(),
             epoch: Instant::now(),
-            stopped: false,
+            // Until the inputs are known, a stop has nothing to write, and no failure of
+            // the start is tried again.
+            stopped: true,
         };
         for (i, ch) in c.channels.iter().enumerate() {
             if let Some(a) = &ch.applied {
@@ -85,6 +87,7 @@ impl OpcUaBridge {
             }
         }
         bridge.inputs = bridge.input_types(c.channels.iter().map(|ch| ch.input.as_str()))?;
+        bridge.stopped = false;
         Ok(bridge)
     }
 
@@ -106,6 +109,7 @@ impl OpcUaBridge {
                 let t = dv
                     .value
                     .as_ref()
+                    .filter(|v| !matches!(v, Variant::Array(_)))
                     .and_then(Variant::scalar_type_id)
                     .filter(|t| variant_of(0.0, *t).is_some());
                 t.map(|t| (n.clone(), t)).ok_or_else(|| {
@@ -131,7 +135,12 @@ impl OpcUaBridge {
         what: &str,
         mut op: impl FnMut(&Arc<Session>, &tokio::runtime::Runtime, Duration) -> Result<T, Failure>,
     ) -> Result<T, PlantError> {
-        let budget = self.reconnect_ms as f64 / 1000.0;
+        // Stopping (or starting): one try, not a reconnection budget.
+        let budget = if self.stopped {
+            0.0
+        } else {
+            self.reconnect_ms as f64 / 1000.0
+        };
         loop {
             let rt = self.rt.as_ref().ok_or_else(|| {
                 PlantError::Server(format!("{}: the bridge is stopped", self.endpoint))
@@ -184,10 +193,15 @@ impl OpcUaBridge {
         let mut given = Vec::with_capacity(v.len());
         for (&(ref n, t), &x) in self.inputs.iter().zip(v) {
             let value = variant_of(x, t).unwrap_or(Variant::Empty);
-            given.push(value.as_f64().unwrap_or(x));
+            given.push(match &value {
+                Variant::Boolean(b) => f64::from(u8::from(*b)),
+                v => v.as_f64().unwrap_or(x),
+            });
             writes.push(WriteValue::value_attr(n.clone(), value));
         }
-        self.with_link("write", |s, rt, t| write(s, rt, t, &writes))?;
+        if !writes.is_empty() {
+            self.with_link("write", |s, rt, t| write(s, rt, t, &writes))?;
+        }
         Ok(given)
     }
 }
@@ -222,7 +236,7 @@ impl Plant for OpcUaBridge {
     }
 
     fn stop(&mut self) -> Result<(), PlantError> {
-        if self.stopped {
+        if self.rt.is_none() {
             return Ok(());
         }
         self.stopped = true;
@@ -242,7 +256,13 @@ impl Plant for OpcUaBridge {
 
 impl Drop for OpcUaBridge {
     fn drop(&mut self) {
-        if let Err(e) = crate::off_async(|| self.stop()) {
+        let stopped = crate::off_async(|| {
+            let r = self.stop();
+            // The runtime goes here too: never on an async worker.
+            drop(self.rt.take());
+            r
+        });
+        if let Err(e) = stopped {
             tracing::error!(server = %self.endpoint, "OPC UA safe stop on drop failed: {e}");
         }
     }
@@ -409,7 +429,8 @@ fn variant_of(x: f64, t: VariantScalarTypeId) -> Option<Variant> {
     let r = x.round();
     Some(match t {
         T::Double => Variant::Double(x),
-        T::Float => Variant::Float(x as f32),
+        // Beyond f32's range a cast gives infinity: the largest finite value instead.
+        T::Float => Variant::Float(x.clamp(-f64::from(f32::MAX), f64::from(f32::MAX)) as f32),
         T::SByte => Variant::SByte(r.clamp(-128.0, 127.0) as i8),
         T::Byte => Variant::Byte(r.clamp(0.0, 255.0) as u8),
         T::Int16 => Variant::Int16(r.clamp(i16::MIN.into(), i16::MAX.into()) as i16),

@@ -226,6 +226,58 @@ pub fn opcua(
     Ok(out)
 }
 
+/// The most nodes a probe walks, and the most browse rounds (continuation points) per
+/// node: a server answers what it likes.
+const MAX_NODES: usize = 5000;
+const MAX_ROUNDS: usize = 100;
+
+/// Every hierarchical reference of `node`, following continuation points (at most
+/// `MAX_ROUNDS`).
+async fn browse_all(
+    session: &opcua::client::Session,
+    node: opcua::types::NodeId,
+    timeout: Duration,
+) -> Result<Vec<opcua::types::ReferenceDescription>, String> {
+    use opcua::types::{
+        BrowseDescription, BrowseDirection, BrowseResultMask, NodeClassMask, ReferenceTypeId,
+    };
+    let desc = BrowseDescription {
+        node_id: node,
+        browse_direction: BrowseDirection::Forward,
+        reference_type_id: ReferenceTypeId::HierarchicalReferences.into(),
+        include_subtypes: true,
+        node_class_mask: NodeClassMask::all().bits(),
+        result_mask: BrowseResultMask::All as u32,
+    };
+    let first = |r: Vec<opcua::types::BrowseResult>| {
+        r.into_iter()
+            .next()
+            .ok_or_else(|| "browse: the server answered no result".to_string())
+    };
+    let mut res = first(
+        tokio::time::timeout(timeout, session.browse(&[desc], 0, None))
+            .await
+            .map_err(|_| "browse: timed out".to_string())?
+            .map_err(|e| format!("browse: {e}"))?,
+    )?;
+    let mut refs = Vec::new();
+    for _ in 0..MAX_ROUNDS {
+        refs.extend(res.references.take().unwrap_or_default());
+        if res.continuation_point.is_null() || res.status_code.is_bad() {
+            return Ok(refs);
+        }
+        let point = [res.continuation_point.clone()];
+        let next = session.browse_next(false, &point);
+        res = first(
+            tokio::time::timeout(timeout, next)
+                .await
+                .map_err(|_| "browse: timed out".to_string())?
+                .map_err(|e| format!("browse: {e}"))?,
+        )?;
+    }
+    Ok(refs)
+}
+
 /// Browse `node`'s hierarchical children, line by line into `out`, down to `depth`.
 async fn walk(
     session: &opcua::client::Session,
@@ -234,44 +286,23 @@ async fn walk(
     timeout: Duration,
     out: &mut String,
 ) -> Result<(), String> {
-    use opcua::types::{
-        AttributeId, BrowseDescription, BrowseDirection, BrowseResultMask, NodeClass,
-        NodeClassMask, ReadValueId, ReferenceTypeId, TimestampsToReturn,
-    };
-    // Iterative, depth first: (node, level).
+    use opcua::types::{AttributeId, NodeClass, ReadValueId, TimestampsToReturn};
+    // Iterative, depth first: (node, level); each node once (an address space may have
+    // cycles), and at most MAX_NODES lines (a server may be huge, or hostile).
+    let mut seen = std::collections::HashSet::new();
     let mut stack = vec![(node, 0usize)];
     while let Some((node, level)) = stack.pop() {
-        if level >= depth {
+        if level >= depth || !seen.insert(node.clone()) {
             continue;
         }
-        let desc = BrowseDescription {
-            node_id: node,
-            browse_direction: BrowseDirection::Forward,
-            reference_type_id: ReferenceTypeId::HierarchicalReferences.into(),
-            include_subtypes: true,
-            node_class_mask: NodeClassMask::all().bits(),
-            result_mask: BrowseResultMask::All as u32,
-        };
-        let mut refs = Vec::new();
-        let mut res = tokio::time::timeout(timeout, session.browse(&[desc], 0, None))
-            .await
-            .map_err(|_| "browse: timed out".to_string())?
-            .map_err(|e| format!("browse: {e}"))?
-            .remove(0);
-        loop {
-            refs.extend(res.references.take().unwrap_or_default());
-            if res.continuation_point.is_null() || res.status_code.is_bad() {
-                break;
-            }
-            res = tokio::time::timeout(
-                timeout,
-                session.browse_next(false, &[res.continuation_point.clone()]),
-            )
-            .await
-            .map_err(|_| "browse: timed out".to_string())?
-            .map_err(|e| format!("browse: {e}"))?
-            .remove(0);
+        if seen.len() > MAX_NODES {
+            let _ = writeln!(
+                out,
+                "... (stopped after {MAX_NODES} nodes: narrow --node or --depth)"
+            );
+            break;
         }
+        let refs = browse_all(session, node, timeout).await?;
         let mut children = Vec::new();
         for r in refs {
             let id = r.node_id.node_id.clone();

@@ -65,6 +65,11 @@ fn scenario(
 }
 
 fn agent(scenario: &Path, out: &Path) -> Child {
+    agent_to(scenario, out, Stdio::null())
+}
+
+/// The agent with its log going to `stderr` (a pipe nobody reads would fill and stall it).
+fn agent_to(scenario: &Path, out: &Path, stderr: Stdio) -> Child {
     Command::new(env!("CARGO_BIN_EXE_plant-agent"))
         .args(["run", "--device", "motor-1", "--scenario"])
         .arg(scenario)
@@ -73,7 +78,7 @@ fn agent(scenario: &Path, out: &Path) -> Child {
         .args(["--listen", &format!("tcp/127.0.0.1:{}", free_port())])
         .arg("--no-multicast-scouting")
         .stdout(Stdio::null())
-        .stderr(Stdio::piped())
+        .stderr(stderr)
         .spawn()
         .unwrap()
 }
@@ -132,15 +137,24 @@ fn a_wrong_password_is_refused_before_the_loop_with_the_reason() {
     let dir = scratch("password");
     let server = server(&["--user", "operator", "--password", "s3cret"]);
     let out = dir.join("out");
-    let mut child = agent(
+    let log = dir.join("agent.log");
+    let mut child = agent_to(
         &scenario(&dir, server.port, 0, 5.0, Some(("operator", "wrong"))),
         &out,
+        std::fs::File::create(&log).unwrap().into(),
     );
     let code = wait(&mut child, Duration::from_secs(60));
-    let mut said = String::new();
-    std::io::Read::read_to_string(&mut child.stderr.take().unwrap(), &mut said).unwrap();
+    let said = std::fs::read_to_string(&log).unwrap();
     assert_eq!(code, 1, "{said}");
-    assert!(said.contains(&server.address()), "{said}");
+    let error = said
+        .lines()
+        .find(|l| l.starts_with("error:"))
+        .unwrap_or_default();
+    assert!(error.contains(&server.address()), "{said}");
+    assert!(
+        error.contains("BadUserAccessDenied"),
+        "the server's reason: {error}"
+    );
     assert!(
         server.node("Applied", Some(("operator", "s3cret"))) == 0.0,
         "nothing was written"

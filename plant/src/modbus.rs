@@ -25,8 +25,9 @@ pub const MAX_REGISTERS_PER_WRITE: u16 = 123;
 pub struct ModbusConfig {
     /// The server, `host:port` (a name is resolved when the bridge connects).
     pub address: String,
-    /// Unit id (the "slave" a gateway forwards to). Default: 1. 255 addresses a TCP device
-    /// directly; 0 (broadcast) is refused: a broadcast is never answered.
+    /// Unit id (the "slave" a gateway forwards to). Default: 1. A TCP device addressed
+    /// directly usually takes 255 or 0 (the Modbus TCP guide's choice, the device's manual
+    /// says which).
     #[serde(default = "default_unit")]
     pub unit: u8,
     /// Longest wait for one answer (ms). Default: half the period, at least 20 ms: a read
@@ -287,7 +288,8 @@ impl Point {
         let raw = match t.raw_range() {
             Some((lo, hi)) if t == ValueType::Bool => f64::from(u8::from(raw >= 0.5)).clamp(lo, hi),
             Some((lo, hi)) => raw.round().clamp(lo, hi),
-            None => f64::from(raw as f32),
+            // Beyond f32's range a cast gives infinity: the largest finite value instead.
+            None => f64::from(raw.clamp(-f64::from(f32::MAX), f64::from(f32::MAX)) as f32),
         };
         let pair = match t {
             ValueType::Bool | ValueType::Int16 | ValueType::Uint16 => {
@@ -317,9 +319,6 @@ impl ModbusConfig {
     pub fn check(&self, ranges: &[(f64, f64)]) -> Result<(), MapError> {
         if self.address.trim().is_empty() {
             return Err(map_error("address", "needs host:port"));
-        }
-        if self.unit == 0 {
-            return Err(map_error("unit", "0 is broadcast, which no server answers"));
         }
         if self.timeout_ms == Some(0) || self.timeout_ms.is_some_and(|t| t > 60_000) {
             return Err(map_error("timeout_ms", "must be 1 to 60000"));
@@ -362,6 +361,20 @@ impl ModbusConfig {
                     format!(
                         "{} is outside the channel's actuator range [{min}, {max}]",
                         c.safe
+                    ),
+                ));
+            }
+            // What the register really holds for it (its type's range, its rounding).
+            let (_, written) = c.input.encode(c.safe);
+            if written < min || written > max || (written - c.safe).abs() > c.input.scale.abs() {
+                return Err(map_error(
+                    format!("{f}.safe"),
+                    format!(
+                        "{} would be written as {written} by the input's register ({:?}, scale {}, offset {})",
+                        c.safe,
+                        c.input.value_type(),
+                        c.input.scale,
+                        c.input.offset
                     ),
                 ));
             }
@@ -683,11 +696,24 @@ mod tests {
             field(&overlapping, &[(0.0, 24.0), (0.0, 24.0)]),
             "channels[1].input"
         );
-        let broadcast = ModbusConfig {
+        // A safe value the register cannot hold: uint16 above an offset of 10 writes 10.
+        let offset = config(vec![channel(
+            Point {
+                offset: 10.0,
+                ..point(RegisterKind::Holding, 0, ValueType::Uint16)
+            },
+            0.0,
+        )]);
+        assert_eq!(field(&offset, &[(0.0, 24.0)]), "channels[0].safe");
+        let direct = ModbusConfig {
             unit: 0,
             ..ok.clone()
         };
-        assert_eq!(field(&broadcast, &[(0.0, 24.0)]), "unit");
+        assert_eq!(
+            direct.check(&[(0.0, 24.0)]),
+            Ok(()),
+            "unit 0: a TCP device directly"
+        );
         let mut zero_scale = ok.clone();
         zero_scale.channels[0].output.scale = 0.0;
         assert_eq!(
