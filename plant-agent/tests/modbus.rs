@@ -13,17 +13,10 @@ use plant::modbus::RegisterKind;
 /// The safe value the scenarios write: distinct from anything the loop sends at rest.
 const SAFE: f64 = 0.25;
 
-fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("mfc-modbus-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
-
 mod support {
     pub mod plant_server;
 }
-use support::plant_server::{free_port, root, Server};
+use support::plant_server::{free_port, root, scratch, summary, wait, Server};
 
 /// The shipped motor scenario on `port`, with the reconnection budget and duration given
 /// and the test's safe value; the controller by absolute path.
@@ -69,24 +62,6 @@ fn agent_with(scenario: &Path, out: &Path, flags: &[&str]) -> Child {
         .unwrap()
 }
 
-fn wait(child: &mut Child, limit: Duration) -> i32 {
-    let until = Instant::now() + limit;
-    loop {
-        if let Some(status) = child.try_wait().unwrap() {
-            return status.code().expect("exited, not killed by a signal");
-        }
-        if Instant::now() > until {
-            let _ = child.kill();
-            panic!("the agent did not exit within {limit:?}");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-}
-
-fn summary(out: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap()
-}
-
 /// Wait until the loop has driven the plant: the applied input moved off 0.
 fn wait_for_the_loop(server: &Server) {
     let until = Instant::now() + Duration::from_secs(30);
@@ -98,7 +73,7 @@ fn wait_for_the_loop(server: &Server) {
 
 #[test]
 fn sigterm_leaves_the_safe_values_in_the_servers_registers() {
-    let dir = scratch("sigterm");
+    let dir = scratch("modbus", "sigterm");
     let server = Server::start(free_port(), &[]);
     let out = dir.join("out");
     let mut child = agent(&scenario(&dir, server.port, 0, 60.0), &out);
@@ -128,7 +103,7 @@ fn sigterm_leaves_the_safe_values_in_the_servers_registers() {
 /// says is safe.
 #[test]
 fn the_safe_stop_fallback_writes_the_maps_safe_values() {
-    let dir = scratch("fallback");
+    let dir = scratch("modbus", "fallback");
     let server = Server::start(free_port(), &[]);
     let out = dir.join("out");
     let mut child = agent_with(
@@ -157,7 +132,7 @@ fn the_safe_stop_fallback_writes_the_maps_safe_values() {
 
 #[test]
 fn a_server_killed_and_restarted_within_the_budget_is_reconnected() {
-    let dir = scratch("restart");
+    let dir = scratch("modbus", "restart");
     let port = free_port();
     let mut server = Server::start(port, &[]);
     let out = dir.join("out");
@@ -182,7 +157,7 @@ fn a_server_killed_and_restarted_within_the_budget_is_reconnected() {
 
 #[test]
 fn a_server_lost_for_good_ends_the_run_and_says_why() {
-    let dir = scratch("lost");
+    let dir = scratch("modbus", "lost");
     let mut server = Server::start(free_port(), &[]);
     let out = dir.join("out");
     let mut child = agent(&scenario(&dir, server.port, 300, 60.0), &out);
@@ -206,7 +181,7 @@ fn a_hostile_server_gets_a_clear_error_and_the_safe_stop() {
         ("--vanish-after", "Illegal data address", true),
         ("--silent-after", "deadline has elapsed", false),
     ] {
-        let dir = scratch(&flag[2..]);
+        let dir = scratch("modbus", &flag[2..]);
         let server = Server::start(free_port(), &[flag, "1"]);
         let out = dir.join("out");
         let mut child = agent(&scenario(&dir, server.port, 0, 60.0), &out);

@@ -11,17 +11,10 @@ use std::time::{Duration, Instant};
 mod support {
     pub mod plant_server;
 }
-use support::plant_server::{free_port, root, Server, ServerKind};
+use support::plant_server::{free_port, root, scratch, summary, wait, Server, ServerKind};
 
 /// The safe value the scenarios write: distinct from anything the loop sends at rest.
 const SAFE: f64 = 0.25;
-
-fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("mfc-opcua-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
 
 fn server(flags: &[&str]) -> Server {
     Server::start_as(ServerKind::OpcUa, free_port(), flags)
@@ -83,24 +76,6 @@ fn agent_to(scenario: &Path, out: &Path, stderr: Stdio) -> Child {
         .unwrap()
 }
 
-fn wait(child: &mut Child, limit: Duration) -> i32 {
-    let until = Instant::now() + limit;
-    loop {
-        if let Some(status) = child.try_wait().unwrap() {
-            return status.code().expect("exited, not killed by a signal");
-        }
-        if Instant::now() > until {
-            let _ = child.kill();
-            panic!("the agent did not exit within {limit:?}");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-}
-
-fn summary(out: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap()
-}
-
 fn wait_for_the_loop(server: &Server, user: Option<(&str, &str)>) {
     let until = Instant::now() + Duration::from_secs(60);
     while server.node("Applied", user) == 0.0 {
@@ -111,7 +86,7 @@ fn wait_for_the_loop(server: &Server, user: Option<(&str, &str)>) {
 
 #[test]
 fn sigterm_leaves_the_safe_value_in_the_servers_input_node() {
-    let dir = scratch("sigterm");
+    let dir = scratch("opcua", "sigterm");
     let user = Some(("operator", "s3cret"));
     let server = server(&["--user", "operator", "--password", "s3cret"]);
     let out = dir.join("out");
@@ -134,7 +109,7 @@ fn sigterm_leaves_the_safe_value_in_the_servers_input_node() {
 
 #[test]
 fn a_wrong_password_is_refused_before_the_loop_with_the_reason() {
-    let dir = scratch("password");
+    let dir = scratch("opcua", "password");
     let server = server(&["--user", "operator", "--password", "s3cret"]);
     let out = dir.join("out");
     let log = dir.join("agent.log");
@@ -163,7 +138,7 @@ fn a_wrong_password_is_refused_before_the_loop_with_the_reason() {
 
 #[test]
 fn a_server_killed_and_restarted_within_the_budget_is_reconnected() {
-    let dir = scratch("restart");
+    let dir = scratch("opcua", "restart");
     let port = free_port();
     let mut first = Server::start_as(ServerKind::OpcUa, port, &[]);
     let out = dir.join("out");
@@ -194,7 +169,7 @@ fn a_hostile_server_gets_a_clear_error_and_the_safe_stop() {
         ("--vanish-after", "BadNodeIdUnknown", true),
         ("--silent-after", "timed out", false),
     ] {
-        let dir = scratch(&flag[2..]);
+        let dir = scratch("opcua", &flag[2..]);
         let server = server(&[flag, "1"]);
         let out = dir.join("out");
         let mut child = agent(&scenario(&dir, server.port, 0, 60.0, None), &out);

@@ -320,25 +320,13 @@ impl ModbusConfig {
         if self.address.trim().is_empty() {
             return Err(map_error("address", "needs host:port"));
         }
-        if self.timeout_ms == Some(0) || self.timeout_ms.is_some_and(|t| t > 60_000) {
-            return Err(map_error("timeout_ms", "must be 1 to 60000"));
-        }
-        if self.connect_timeout_ms == 0 || self.connect_timeout_ms > 60_000 {
-            return Err(map_error("connect_timeout_ms", "must be 1 to 60000"));
-        }
-        if self.reconnect_ms > 3_600_000 {
-            return Err(map_error("reconnect_ms", "at most 3600000 (an hour)"));
-        }
-        if self.channels.len() != ranges.len() {
-            return Err(map_error(
-                "channels",
-                format!(
-                    "{} channel(s) mapped, the plant file has {}",
-                    self.channels.len(),
-                    ranges.len()
-                ),
-            ));
-        }
+        let link = LinkLimits {
+            timeout_ms: self.timeout_ms,
+            connect_timeout_ms: self.connect_timeout_ms,
+            connect_max_ms: 60_000,
+            reconnect_ms: self.reconnect_ms,
+        };
+        link.check(self.channels.len(), ranges.len())?;
         for (i, (c, &(min, max))) in self.channels.iter().zip(ranges).enumerate() {
             let f = format!("channels[{i}]");
             c.output.check(&format!("{f}.output"))?;
@@ -355,15 +343,7 @@ impl ModbusConfig {
                     ),
                 ));
             }
-            if !c.safe.is_finite() || c.safe < min || c.safe > max {
-                return Err(map_error(
-                    format!("{f}.safe"),
-                    format!(
-                        "{} is outside the channel's actuator range [{min}, {max}]",
-                        c.safe
-                    ),
-                ));
-            }
+            check_safe(&f, c.safe, min, max)?;
             // What the register really holds for it (its type's range, its rounding).
             let (_, written) = c.input.encode(c.safe);
             if written < min || written > max || (written - c.safe).abs() > c.input.scale.abs() {
@@ -403,11 +383,62 @@ impl ModbusConfig {
 
     /// The timeout per request for a loop of period `period` (s).
     pub fn timeout(&self, period: f64) -> std::time::Duration {
-        let ms = self
-            .timeout_ms
-            .unwrap_or_else(|| ((period * 500.0).ceil() as u64).max(20));
-        std::time::Duration::from_millis(ms)
+        request_timeout(self.timeout_ms, period)
     }
+}
+
+/// The link settings every server map has (Modbus here, OPC UA in [`crate::opcua`]), and
+/// their checks, written once.
+pub(crate) struct LinkLimits {
+    pub(crate) timeout_ms: Option<u64>,
+    pub(crate) connect_timeout_ms: u64,
+    /// The longest `connect_timeout_ms` this protocol accepts.
+    pub(crate) connect_max_ms: u64,
+    pub(crate) reconnect_ms: u64,
+}
+
+impl LinkLimits {
+    /// The timeouts in range, and a map of `mapped` channels for a file of `channels`.
+    pub(crate) fn check(&self, mapped: usize, channels: usize) -> Result<(), MapError> {
+        if self.timeout_ms == Some(0) || self.timeout_ms.is_some_and(|t| t > 60_000) {
+            return Err(map_error("timeout_ms", "must be 1 to 60000"));
+        }
+        let max = self.connect_max_ms;
+        if self.connect_timeout_ms == 0 || self.connect_timeout_ms > max {
+            return Err(map_error(
+                "connect_timeout_ms",
+                format!("must be 1 to {max}"),
+            ));
+        }
+        if self.reconnect_ms > 3_600_000 {
+            return Err(map_error("reconnect_ms", "at most 3600000 (an hour)"));
+        }
+        if mapped != channels {
+            return Err(map_error(
+                "channels",
+                format!("{mapped} channel(s) mapped, the plant file has {channels}"),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// A channel's (`field`, e.g. `channels[0]`) safe value inside its actuator range.
+pub(crate) fn check_safe(field: &str, safe: f64, min: f64, max: f64) -> Result<(), MapError> {
+    if safe.is_finite() && safe >= min && safe <= max {
+        return Ok(());
+    }
+    Err(map_error(
+        format!("{field}.safe"),
+        format!("{safe} is outside the channel's actuator range [{min}, {max}]"),
+    ))
+}
+
+/// The timeout per request: `timeout_ms`, or half the period, at least 20 ms (a read and
+/// a write must fit in a period).
+pub(crate) fn request_timeout(timeout_ms: Option<u64>, period: f64) -> std::time::Duration {
+    let ms = timeout_ms.unwrap_or_else(|| ((period * 500.0).ceil() as u64).max(20));
+    std::time::Duration::from_millis(ms)
 }
 
 /// One read request: a run of one kind's addresses, and the values it carries.

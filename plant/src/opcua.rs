@@ -8,7 +8,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::modbus::MapError;
+use crate::modbus::{check_safe, request_timeout, LinkLimits, MapError};
 
 /// The `[plant.opcua]` table of a plant file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -116,25 +116,13 @@ impl OpcUaConfig {
                 "a user needs its password_file, and a password_file its user",
             ));
         }
-        if self.timeout_ms == Some(0) || self.timeout_ms.is_some_and(|t| t > 60_000) {
-            return Err(map_error("timeout_ms", "must be 1 to 60000"));
-        }
-        if self.connect_timeout_ms == 0 || self.connect_timeout_ms > 600_000 {
-            return Err(map_error("connect_timeout_ms", "must be 1 to 600000"));
-        }
-        if self.reconnect_ms > 3_600_000 {
-            return Err(map_error("reconnect_ms", "at most 3600000 (an hour)"));
-        }
-        if self.channels.len() != ranges.len() {
-            return Err(map_error(
-                "channels",
-                format!(
-                    "{} channel(s) mapped, the plant file has {}",
-                    self.channels.len(),
-                    ranges.len()
-                ),
-            ));
-        }
+        let link = LinkLimits {
+            timeout_ms: self.timeout_ms,
+            connect_timeout_ms: self.connect_timeout_ms,
+            connect_max_ms: 600_000,
+            reconnect_ms: self.reconnect_ms,
+        };
+        link.check(self.channels.len(), ranges.len())?;
         for (i, (c, &(min, max))) in self.channels.iter().zip(ranges).enumerate() {
             let ids = [
                 ("output", Some(&c.output)),
@@ -149,15 +137,7 @@ impl OpcUaConfig {
                     ));
                 }
             }
-            if !c.safe.is_finite() || c.safe < min || c.safe > max {
-                return Err(map_error(
-                    format!("channels[{i}].safe"),
-                    format!(
-                        "{} is outside the channel's actuator range [{min}, {max}]",
-                        c.safe
-                    ),
-                ));
-            }
+            check_safe(&format!("channels[{i}]"), c.safe, min, max)?;
         }
         for (i, a) in self.channels.iter().enumerate() {
             if let Some(j) = self.channels[i + 1..]
@@ -175,10 +155,7 @@ impl OpcUaConfig {
 
     /// The timeout per request for a loop of period `period` (s).
     pub fn timeout(&self, period: f64) -> std::time::Duration {
-        let ms = self
-            .timeout_ms
-            .unwrap_or_else(|| ((period * 500.0).ceil() as u64).max(20));
-        std::time::Duration::from_millis(ms)
+        request_timeout(self.timeout_ms, period)
     }
 }
 

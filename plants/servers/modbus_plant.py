@@ -28,14 +28,13 @@ import asyncio
 import math
 import struct
 import sys
-import time
 
 sys.dont_write_bytecode = True
 from pymodbus.constants import ExcCodes  # noqa: E402
 from pymodbus.server import ModbusTcpServer  # noqa: E402
 from pymodbus.simulator import DataType, SimData, SimDevice  # noqa: E402
 
-from physics import PLANTS, load_plant  # noqa: E402
+from physics import PLANTS, RealTime, load_plant  # noqa: E402
 
 FC_READ_INPUT = 4
 FC_WRITES = (6, 16)
@@ -50,29 +49,8 @@ def value(ws):
     return struct.unpack(">f", struct.pack(">HH", ws[0], ws[1]))[0]
 
 
-class RealTime:
-    """The plant, advanced to the wall clock at every request."""
-
-    def __init__(self, plant, args):
-        self.plant = plant
-        self.args = args
-        self.t0 = time.monotonic()
-        self.t = 0.0
-        self.first_write = None
-        self.applied = 0.0
-
-    def catch_up(self):
-        now = time.monotonic() - self.t0
-        if now > self.t:
-            self.plant.advance(now - self.t)
-            self.t = now
-
-    def since_first_write(self):
-        return -1.0 if self.first_write is None else self.t - self.first_write
-
-    def misbehaving(self, flag):
-        after = getattr(self.args, flag)
-        return after is not None and self.since_first_write() >= after
+class ModbusPlant(RealTime):
+    """The plant behind the registers: each request catches it up first."""
 
     async def action(self, fc, start, address, count, registers, set_values):
         if self.misbehaving("silent_after"):
@@ -82,9 +60,7 @@ class RealTime:
             v = value(set_values[:2])
             if not math.isfinite(v):
                 return ExcCodes.ILLEGAL_VALUE
-            if self.first_write is None:
-                self.first_write = self.t
-            (self.applied,) = self.plant.write([v])
+            self.apply(v)
         if fc == FC_READ_INPUT:
             if address < 2 and self.misbehaving("vanish_after"):
                 return ExcCodes.ILLEGAL_ADDRESS
@@ -107,7 +83,7 @@ def parse_args(argv):
 
 
 async def serve(args, plant_argv):
-    rt = RealTime(load_plant(args.plant, plant_argv), args)
+    rt = ModbusPlant(load_plant(args.plant, plant_argv), args)
     device = SimDevice(
         id=0,
         simdata=(

@@ -33,7 +33,7 @@ sys.dont_write_bytecode = True
 from asyncua import Server, ua  # noqa: E402
 from asyncua.common.callback import CallbackType  # noqa: E402
 
-from physics import PLANTS, load_plant  # noqa: E402
+from physics import PLANTS, RealTime, load_plant  # noqa: E402
 
 NS = "urn:mfc:plant"
 
@@ -50,31 +50,6 @@ class Users:
         if (username, password) == (self.name, self.password):
             return User(role=UserRole.User)
         return None
-
-
-class RealTime:
-    def __init__(self, plant, args):
-        self.plant, self.args = plant, args
-        self.t0 = time.monotonic()
-        self.t = 0.0
-        self.first_write = None
-        self.applied = 0.0
-
-    def catch_up(self):
-        now = time.monotonic() - self.t0
-        if now > self.t:
-            self.plant.advance(now - self.t)
-            self.t = now
-
-    def misbehaving(self, flag):
-        after = getattr(self.args, flag)
-        return after is not None and self.first_write is not None and self.t - self.first_write >= after
-
-    def apply(self, v):
-        self.catch_up()
-        if self.first_write is None:
-            self.first_write = self.t
-        (self.applied,) = self.plant.write([v])
 
 
 async def serve(args, plant_argv):

@@ -3,6 +3,7 @@
 
 import importlib.util
 import os
+import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 PLANTS = {
@@ -21,3 +22,33 @@ def load_plant(name, argv):
     if cls == "Heater":
         return module.Heater(args.ambient, args.gain, args.tau, args.dead_time, args.noise, args.seed)
     return module.DcMotor(args)
+
+
+class RealTime:
+    """A plant advanced to the wall clock: `catch_up` before it is read or written. It
+    misbehaves on demand (`args.nan_after`, `vanish_after`, `silent_after`: seconds after
+    the first write)."""
+
+    def __init__(self, plant, args):
+        self.plant, self.args = plant, args
+        self.t0 = time.monotonic()
+        self.t = 0.0
+        self.first_write = None
+        self.applied = 0.0
+
+    def catch_up(self):
+        now = time.monotonic() - self.t0
+        if now > self.t:
+            self.plant.advance(now - self.t)
+            self.t = now
+
+    def misbehaving(self, flag):
+        after = getattr(self.args, flag)
+        return after is not None and self.first_write is not None and self.t - self.first_write >= after
+
+    def apply(self, v):
+        """Write `v` now (the plant clamps it); what it applies is kept in `applied`."""
+        self.catch_up()
+        if self.first_write is None:
+            self.first_write = self.t
+        (self.applied,) = self.plant.write([v])

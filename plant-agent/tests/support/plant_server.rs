@@ -155,3 +155,31 @@ impl Drop for Server {
         self.kill();
     }
 }
+
+/// A fresh scratch directory for test `name` of file `file`.
+pub fn scratch(file: &str, name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("mfc-{file}-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// The agent's exit status, once it exits within `limit` (killed and a panic otherwise).
+pub fn wait(child: &mut Child, limit: Duration) -> i32 {
+    let until = std::time::Instant::now() + limit;
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            return status.code().expect("exited, not killed by a signal");
+        }
+        if std::time::Instant::now() > until {
+            let _ = child.kill();
+            panic!("the agent did not exit within {limit:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// The run's `summary.json`.
+pub fn summary(out: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap()
+}
