@@ -323,6 +323,31 @@ async fn wait_for_controller(endpoint: &str, id: &str) {
     assert!(up, "controller {id} at {endpoint} never came up");
 }
 
+/// Wait (20 s at most) until service `id` at `endpoint` reports an answer to `device`
+/// held back because another holds the plant's lease.
+async fn wait_until_fenced(endpoint: &str, id: &str, device: &str) {
+    let session = transport::ZenohArgs::loopback(None, vec![endpoint.to_string()])
+        .open()
+        .await
+        .unwrap();
+    let mut fenced = 0;
+    for _ in 0..200 {
+        let st: Option<pb::ServiceStatus> =
+            system_tests::query(&session, keys::service_status(id), None)
+                .await
+                .ok();
+        fenced = st
+            .and_then(|st| st.devices.into_iter().find(|d| d.device_id == device))
+            .map_or(0, |d| d.lease_fenced);
+        if fenced > 0 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let _ = session.close().await;
+    assert!(fenced > 0, "{id} never held back an answer to {device}");
+}
+
 fn start_service(config: &std::path::Path, endpoint: &str) -> Child {
     service_process(&[
         "--config",
@@ -563,7 +588,7 @@ fn signal(child: &Child, signal: &str) {
 #[tokio::test(flavor = "multi_thread")]
 async fn a_paused_owner_is_fenced_by_the_plant_lease() {
     let _s = SERIAL.lock().await;
-    let s = scenario(9.0);
+    let s = scenario(12.0);
     let c = shipped_controller("ipd").unwrap();
     let dir = scratch_dir("paused-owner");
     let (pa, pb) = (
@@ -589,6 +614,10 @@ async fn a_paused_owner_is_fenced_by_the_plant_lease() {
     tokio::time::sleep(Duration::from_secs(1)).await;
     let mut b = start_service(&fb, &eb);
     wait_for_controller(&eb, "ctl-b").await;
+    // The plant reaches ctl-b only when its session's retry to `eb` succeeds, which can
+    // take seconds on a loaded machine: wait until ctl-b follows the samples and holds
+    // its answers back, then let it do so for two more seconds.
+    wait_until_fenced(&eb, "ctl-b", "aero-1").await;
     tokio::time::sleep(Duration::from_secs(2)).await;
     signal(&a, "STOP");
     tokio::time::sleep(Duration::from_secs(3)).await;
