@@ -5,6 +5,7 @@
 use std::fmt::Write as _;
 use std::time::Duration;
 
+use crate::opcua::SessionSpec;
 use plant::modbus::{
     Point, RegisterKind, ValueType, WordOrder, MAX_BITS_PER_READ, MAX_REGISTERS_PER_READ,
 };
@@ -200,22 +201,16 @@ fn compact(v: f64) -> String {
 /// What an OPC UA server's address space holds under `start` (a node id; the Objects
 /// folder by default), `depth` levels down: each node's id, browse name and class, and for
 /// a variable its value's type and value, so that a user finds the node ids to map.
-pub fn opcua(
-    endpoint: &str,
-    user: Option<(String, String)>,
-    start: &str,
-    depth: usize,
-    timeout: Duration,
-) -> Result<String, ProbeError> {
+pub fn opcua(spec: &SessionSpec, start: &str, depth: usize) -> Result<String, ProbeError> {
     let link = |message: String| ProbeError::Link {
-        address: endpoint.into(),
+        address: spec.endpoint.clone(),
         message,
     };
+    let timeout = spec.request_timeout;
     let start: opcua::types::NodeId = start
         .parse()
         .map_err(|_| link(format!("{start:?} is not a node id")))?;
-    let (rt, session) =
-        crate::opcua::open_session(endpoint, user, timeout, timeout).map_err(link)?;
+    let (rt, session) = crate::opcua::open_session(spec).map_err(link)?;
     let mut out = String::new();
     let walked = rt.block_on(walk(&session, start, depth, timeout, &mut out));
     rt.block_on(async {
@@ -347,21 +342,16 @@ async fn walk(
 }
 
 /// The value of node `node` on `endpoint` now, if it is a finite number.
-pub fn read_node(
-    endpoint: &str,
-    user: Option<(String, String)>,
-    node: &str,
-    timeout: Duration,
-) -> Result<Option<f64>, ProbeError> {
+pub fn read_node(spec: &SessionSpec, node: &str) -> Result<Option<f64>, ProbeError> {
     let link = |message: String| ProbeError::Link {
-        address: endpoint.into(),
+        address: spec.endpoint.clone(),
         message,
     };
+    let timeout = spec.request_timeout;
     let id: opcua::types::NodeId = node
         .parse()
         .map_err(|_| link(format!("{node:?} is not a node id")))?;
-    let (rt, session) =
-        crate::opcua::open_session(endpoint, user, timeout, timeout).map_err(link)?;
+    let (rt, session) = crate::opcua::open_session(spec).map_err(link)?;
     let read = [opcua::types::ReadValueId::new_value(id)];
     let value = rt.block_on(async {
         let v = tokio::time::timeout(

@@ -5,10 +5,12 @@
 //! driver process (`plants/dc-motor/dc_motor.py`).
 //!
 //! `cargo bench -p plant-agent --bench bridges [-- PERIODS]` (default 1000 per round, three
-//! rounds, the three paths in turn so that all see the same machine). Each period, paced
-//! at 100 Hz, does what the agent does: read the outputs, write the inputs (the bridge reads
-//! back the applied value, as the shipped map asks), advance the plant's time. Prints the
-//! median and the 99th percentile of that round's time per path and their ratios.
+//! rounds, the paths in turn so that all see the same machine). Each period, paced at
+//! 100 Hz, does what the agent does: read the outputs, write the inputs (the bridge reads
+//! back the applied value, as the shipped map asks), advance the plant's time. OPC UA
+//! twice: a Read per period, and the outputs by subscription (sampled every period by the
+//! server, no request). Prints the median and the 99th percentile of that round's time
+//! per path and their ratios.
 
 use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
@@ -104,6 +106,10 @@ fn main() {
         panic!("the shipped file is an OPC UA plant")
     };
     o.config.endpoint = format!("opc.tcp://127.0.0.1:{opcua_port}/");
+    let mut subscribed = opcua.clone();
+    if let PlantSource::OpcUa(o) = &mut subscribed.plant {
+        o.config.sampling = plant::opcua::Sampling::Subscribe;
+    }
     let requests = fieldbus::modbus::ModbusBridge::connect(m)
         .expect("the Modbus bridge")
         .requests_per_period();
@@ -120,6 +126,10 @@ fn main() {
         (
             "opcua",
             fieldbus::open(&opcua.plant, 1, 1).expect("the OPC UA bridge"),
+        ),
+        (
+            "opcua, subscription",
+            fieldbus::open(&subscribed.plant, 1, 1).expect("the OPC UA bridge, subscribed"),
         ),
     ];
 
@@ -149,7 +159,7 @@ fn main() {
     }
     println!(
         "({periods} periods per round at 100 Hz; a period reads the output, writes the input and reads \
-         the applied value: {requests} Modbus requests, 3 OPC UA services)"
+         the applied value: {requests} Modbus requests, 3 OPC UA services, or 2 with a subscription)"
     );
     for (_, mut plant) in paths {
         let _ = plant.stop();

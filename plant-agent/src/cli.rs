@@ -58,7 +58,7 @@ enum ProbeCommand {
 
 #[derive(clap::Args)]
 struct ProbeOpcUaArgs {
-    /// The endpoint, opc.tcp://host:port/path (security None).
+    /// The endpoint, opc.tcp://host:port/path.
     endpoint: String,
     /// Where to start (a node id). Default: the Objects folder.
     #[arg(long, default_value = "i=85")]
@@ -72,28 +72,69 @@ struct ProbeOpcUaArgs {
     /// The user's password file.
     #[arg(long, requires = "user")]
     password_file: Option<PathBuf>,
+    /// The user as a certificate (DER or PEM) instead of a name.
+    #[arg(long, requires = "user_private_key", conflicts_with = "user")]
+    user_certificate: Option<PathBuf>,
+    /// The user certificate's private key (PEM).
+    #[arg(long, requires = "user_certificate")]
+    user_private_key: Option<PathBuf>,
+    /// Security policy: None, Basic256Sha256, Aes128_Sha256_RsaOaep or Aes256_Sha256_RsaPss.
+    #[arg(long, default_value = "None")]
+    security_policy: String,
+    /// Security mode: None (with the policy None), Sign or SignAndEncrypt.
+    #[arg(long, default_value = "None")]
+    security_mode: String,
+    /// The bridge's PKI directory (own/cert.der, private/private.pem, trusted/,
+    /// rejected/): needed by any policy but None.
+    #[arg(long)]
+    pki_dir: Option<PathBuf>,
+    /// Make a self-signed certificate and key in --pki-dir if it has none (then have the
+    /// server trust own/cert.der, and move the server's certificate from rejected/ to
+    /// trusted/ once checked).
+    #[arg(long, requires = "pki_dir")]
+    create_keypair: bool,
     /// Longest wait for the session and for each answer (ms).
     #[arg(long, default_value_t = 5000)]
     timeout_ms: u64,
 }
 
 fn probe_opcua(a: ProbeOpcUaArgs) -> Result<u8> {
-    let user = match (a.user, a.password_file) {
-        (Some(u), Some(f)) => {
+    use fieldbus::opcua::{OpcUaUser, SessionSpec};
+    let timeout = std::time::Duration::from_millis(a.timeout_ms);
+    let mut spec = SessionSpec::plain(&a.endpoint, timeout);
+    spec.identity = match (
+        a.user,
+        a.password_file,
+        a.user_certificate,
+        a.user_private_key,
+    ) {
+        (Some(name), Some(f), _, _) => {
             let text =
                 std::fs::read_to_string(&f).with_context(|| format!("reading {}", f.display()))?;
-            Some((u, text.lines().next().unwrap_or_default().to_string()))
+            let password = text.lines().next().unwrap_or_default().to_string();
+            OpcUaUser::User { name, password }
         }
-        _ => None,
+        (_, _, Some(cert), Some(key)) => OpcUaUser::Certificate { cert, key },
+        _ => OpcUaUser::Anonymous,
     };
-    let tree = fieldbus::probe::opcua(
-        &a.endpoint,
-        user,
-        &a.node,
-        a.depth,
-        std::time::Duration::from_millis(a.timeout_ms),
-    )?;
-    print!("{tree}");
+    spec.policy = a.security_policy;
+    spec.mode = a.security_mode;
+    spec.pki_dir = a.pki_dir;
+    spec.create_keypair = a.create_keypair;
+    let own = spec
+        .pki_dir
+        .as_ref()
+        .map(|d| d.join(fieldbus::opcua::OWN_CERT));
+    let had = own.as_ref().is_some_and(|c| c.is_file());
+    let tree = fieldbus::probe::opcua(&spec, &a.node, a.depth);
+    // Made even when the session then fails (the server does not trust it yet): say where.
+    if let Some(cert) = own.filter(|c| !had && c.is_file()) {
+        eprintln!(
+            "made the bridge's certificate {}: have the server trust it",
+            cert.display()
+        );
+    }
+    print!("{}", tree?);
     Ok(0)
 }
 
@@ -179,13 +220,13 @@ pub fn main() -> std::process::ExitCode {
     let _ = tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
-                // The OPC UA client logs, as errors, that it has no certificate of its own:
-                // with security None (all the bridge speaks) it needs none. The bridge says
-                // itself what matters (a password in plain text, a session that will not open).
+                // The OPC UA client logs each failed try of a session as errors (several a
+                // second while a server refuses a certificate), and, with security None,
+                // that it has no certificate it then needs none of. The bridge says itself
+                // what matters, once: the server's last reason, which certificate to trust
+                // where, a password in plain text. RUST_LOG=opcua_client=debug shows it all.
                 .unwrap_or_else(|_| {
-                    "info,zenoh=warn,opcua_crypto=off,opcua_core::comms::secure_channel=off,\
-                     opcua_client::session::client=off,opcua_client::config=error"
-                        .into()
+                    "info,zenoh=warn,opcua_crypto=off,opcua_core=off,opcua_client=off".into()
                 }),
         )
         .with_writer(std::io::stderr)

@@ -11,10 +11,14 @@ use std::time::{Duration, Instant};
 mod support {
     pub mod plant_server;
 }
+use fieldbus::opcua::{OpcUaUser, SessionSpec};
 use support::plant_server::{free_port, root, scratch, summary, wait, Server, ServerKind};
 
 /// The safe value the scenarios write: distinct from anything the loop sends at rest.
 const SAFE: f64 = 0.25;
+
+/// The map's line for the outputs by subscription.
+const SUBSCRIBE: &str = "sampling = \"subscribe\"\n";
 
 fn server(flags: &[&str]) -> Server {
     Server::start_as(ServerKind::OpcUa, free_port(), flags)
@@ -29,9 +33,19 @@ fn scenario(
     duration: f64,
     user: Option<(&str, &str)>,
 ) -> PathBuf {
+    let mut lines = String::new();
+    if let Some((u, p)) = user {
+        std::fs::write(dir.join("password"), format!("{p}\n")).unwrap();
+        lines = format!("user = {u:?}\npassword_file = \"password\"\n");
+    }
+    scenario_with(dir, port, reconnect_ms, duration, &lines)
+}
+
+/// The same with `lines` added to the `[plant.opcua]` table.
+fn scenario_with(dir: &Path, port: u16, reconnect_ms: u64, duration: f64, lines: &str) -> PathBuf {
     let shipped = root().join("plants/servers/motor-steps-opcua.toml");
     let controller = root().join("plants/dc-motor/controllers/ipd.toml");
-    let mut text = std::fs::read_to_string(shipped)
+    let text = std::fs::read_to_string(shipped)
         .unwrap()
         .replace("127.0.0.1:4840", &format!("127.0.0.1:{port}"))
         .replace("timeout_ms = 20", "timeout_ms = 500")
@@ -45,13 +59,7 @@ fn scenario(
             "\"../dc-motor/controllers/ipd.toml\"",
             &format!("{:?}", controller.to_str().unwrap()),
         );
-    if let Some((u, p)) = user {
-        std::fs::write(dir.join("password"), format!("{p}\n")).unwrap();
-        text = text.replace(
-            "[plant.opcua]\n",
-            &format!("[plant.opcua]\nuser = {u:?}\npassword_file = \"password\"\n"),
-        );
-    }
+    let text = text.replace("[plant.opcua]\n", &format!("[plant.opcua]\n{lines}"));
     let path = dir.join("scenario.toml");
     std::fs::write(&path, text).unwrap();
     path
@@ -161,18 +169,21 @@ fn a_server_killed_and_restarted_within_the_budget_is_reconnected() {
     assert_eq!(second.node("Input", None), SAFE);
 }
 
-/// A server that answers nonsense: a NaN, a node that vanishes, then silence.
+/// A server that answers nonsense: a NaN, a node that vanishes, then silence; the first
+/// two also through a subscription (the bad value comes published, not read).
 #[test]
 fn a_hostile_server_gets_a_clear_error_and_the_safe_stop() {
-    for (flag, says, safe_stop) in [
-        ("--nan-after", "holds no finite number", true),
-        ("--vanish-after", "BadNodeIdUnknown", true),
-        ("--silent-after", "timed out", false),
+    for (flag, says, safe_stop, sampling) in [
+        ("--nan-after", "holds no finite number", true, ""),
+        ("--vanish-after", "BadNodeIdUnknown", true, ""),
+        ("--silent-after", "timed out", false, ""),
+        ("--nan-after", "holds no finite number", true, SUBSCRIBE),
+        ("--vanish-after", "BadNodeIdUnknown", true, SUBSCRIBE),
     ] {
-        let dir = scratch("opcua", &flag[2..]);
+        let dir = scratch("opcua", &format!("{}{}", &flag[2..], sampling.len()));
         let server = server(&[flag, "1"]);
         let out = dir.join("out");
-        let mut child = agent(&scenario(&dir, server.port, 0, 60.0, None), &out);
+        let mut child = agent(&scenario_with(&dir, server.port, 0, 60.0, sampling), &out);
         assert_eq!(wait(&mut child, Duration::from_secs(60)), 4, "{flag}");
         let s = summary(&out);
         assert_eq!(s["end"], "plant_failed", "{flag}: {s}");
@@ -183,4 +194,197 @@ fn a_hostile_server_gets_a_clear_error_and_the_safe_stop() {
             assert_eq!(server.node("Input", None), SAFE, "{flag}");
         }
     }
+}
+
+/// `plant-agent probe opcua` with `args`: its exit code, stdout and stderr.
+fn probe(args: &[&str]) -> (i32, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_plant-agent"))
+        .args(["probe", "opcua"])
+        .args(args)
+        .output()
+        .unwrap();
+    (
+        out.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&out.stdout).into(),
+        String::from_utf8_lossy(&out.stderr).into(),
+    )
+}
+
+/// A user's certificate and key made by the server's script: `{prefix}.der`, `{prefix}.pem`.
+fn user_certificate(prefix: &Path) {
+    let ok = Command::new(support::plant_server::python())
+        .arg(root().join("plants/servers/opcua_plant.py"))
+        .arg("--make-certificate")
+        .arg(prefix)
+        .status()
+        .unwrap()
+        .success();
+    assert!(ok, "making a user certificate");
+}
+
+/// The lines of a map that asks for Basic256Sha256 with SignAndEncrypt, the PKI in `pki`
+/// and the user as the certificate `user.der` (all beside the scenario).
+const SECURE: &str = "security_policy = \"Basic256Sha256\"\nsecurity_mode = \"SignAndEncrypt\"\n\
+    pki_dir = \"pki\"\nuser_certificate = \"user.der\"\nuser_private_key = \"user.pem\"\n";
+
+/// The agent's first `error:` line, once it exits 1 (refused before the loop).
+fn refused(scenario: &Path, dir: &Path) -> String {
+    let log = dir.join("refused.log");
+    let mut child = agent_to(
+        scenario,
+        &dir.join("out-refused"),
+        std::fs::File::create(&log).unwrap().into(),
+    );
+    let code = wait(&mut child, Duration::from_secs(60));
+    let said = std::fs::read_to_string(&log).unwrap();
+    assert_eq!(code, 1, "{said}");
+    said.lines()
+        .find(|l| l.starts_with("error:"))
+        .unwrap_or_default()
+        .to_string()
+}
+
+/// The first connections to a secure server, as its operators would go through them with
+/// the probe `args` (which makes the bridge's certificate in `pki`): each refusal says
+/// which certificate to trust where, and each side's operator trusts it (the server's
+/// trusted certificates are in `spki/trusted`).
+fn trust_each_other(args: &[&str], pki: &Path, spki: &Path) {
+    // The server refuses the bridge's new certificate: its operator trusts it.
+    let (code, _, err) = probe(args);
+    assert_eq!(code, 1, "{err}");
+    let own = pki.join("own/cert.der");
+    assert!(err.contains("made the bridge's certificate"), "{err}");
+    assert!(err.contains("BadCertificateUntrusted"), "{err}");
+    assert!(
+        err.contains(&format!(
+            "refused the bridge: have it trust {}",
+            own.display()
+        )),
+        "{err}"
+    );
+    std::fs::copy(&own, spki.join("trusted/plant-agent.der")).unwrap();
+    // The bridge refuses the server's certificate: its operator checks it and trusts it.
+    let (code, _, err) = probe(args);
+    assert_eq!(code, 1, "{err}");
+    let rejected: Vec<PathBuf> = std::fs::read_dir(pki.join("rejected"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    assert_eq!(rejected.len(), 1, "{rejected:?}");
+    assert!(
+        err.contains(&format!("it is now in {}", rejected[0].display())),
+        "{err}"
+    );
+    let name = rejected[0].file_name().unwrap();
+    std::fs::rename(&rejected[0], pki.join("trusted").join(name)).unwrap();
+    assert_eq!(
+        std::fs::read(pki.join("trusted").join(name)).unwrap(),
+        std::fs::read(spki.join("own/cert.der")).unwrap(),
+        "the certificate refused is the server's"
+    );
+    let (code, out, err) = probe(args);
+    assert_eq!(code, 0, "{err}");
+    assert!(out.contains("ns=2;s=Plant.Output"), "{out}");
+}
+
+/// A server that speaks only Basic256Sha256 with SignAndEncrypt and knows its one user by
+/// a certificate. The agent will not start without a certificate of its own and says how
+/// to make one; the probe makes it; each side refuses the other until its operator trusts
+/// the other's certificate, and each refusal says which certificate to trust where; then
+/// the loop runs signed and encrypted, and SIGTERM leaves the safe value. A map asking for
+/// no security is told what the server offers; a stranger's user certificate is refused.
+#[test]
+fn a_secure_server_is_reached_once_each_side_trusts_the_other() {
+    let dir = scratch("opcua", "secure");
+    user_certificate(&dir.join("user"));
+    user_certificate(&dir.join("stranger"));
+    let spki = dir.join("server-pki");
+    let server = server(&[
+        "--security",
+        "Basic256Sha256_SignAndEncrypt",
+        "--pki",
+        spki.to_str().unwrap(),
+        "--user-certificate",
+        dir.join("user.der").to_str().unwrap(),
+    ]);
+    let scenario = scenario_with(&dir, server.port, 0, 60.0, SECURE);
+    let error = refused(&scenario, &dir);
+    assert!(error.contains("--create-keypair"), "{error}");
+
+    let pki = dir.join("pki");
+    let endpoint = server.address();
+    let user = dir.join("user.der");
+    let key = dir.join("user.pem");
+    let args = [
+        endpoint.as_str(),
+        "--security-policy",
+        "Basic256Sha256",
+        "--security-mode",
+        "SignAndEncrypt",
+        "--pki-dir",
+        pki.to_str().unwrap(),
+        "--create-keypair",
+        "--user-certificate",
+        user.to_str().unwrap(),
+        "--user-private-key",
+        key.to_str().unwrap(),
+        "--depth",
+        "2",
+    ];
+    trust_each_other(&args, &pki, &spki);
+
+    // Trusted both ways: the loop runs, and SIGTERM leaves the safe value.
+    let out = dir.join("out");
+    let mut child = agent(&scenario, &out);
+    let mut spec = SessionSpec::plain(&endpoint, Duration::from_secs(10));
+    spec.policy = "Basic256Sha256".into();
+    spec.mode = "SignAndEncrypt".into();
+    spec.pki_dir = Some(pki.clone());
+    spec.identity = OpcUaUser::Certificate {
+        cert: user.clone(),
+        key: key.clone(),
+    };
+    let until = Instant::now() + Duration::from_secs(60);
+    while server.node_with(&spec, "Applied") == 0.0 {
+        assert!(Instant::now() < until, "the agent never wrote an input");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    std::thread::sleep(Duration::from_secs(1));
+    let status = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    assert_eq!(wait(&mut child, Duration::from_secs(30)), 3);
+    let s = summary(&out);
+    assert_eq!(s["end"], "interrupted", "{s}");
+    assert_eq!(s["safe_stop_applied"], true, "{s}");
+    assert!(s["counters"]["periods"].as_u64().unwrap() > 50, "{s}");
+    assert_eq!(server.node_with(&spec, "Input"), SAFE);
+
+    // No security asked of a server that has none to offer, and a stranger for a user.
+    let plain = scenario_with(&dir, server.port, 0, 5.0, "");
+    let error = refused(&plain, &dir);
+    assert!(
+        error.contains("no endpoint with None/None; it offers Basic256Sha256/SignAndEncrypt"),
+        "{error}"
+    );
+    let stranger = scenario_with(
+        &dir,
+        server.port,
+        0,
+        5.0,
+        &SECURE.replace("\"user.", "\"stranger."),
+    );
+    let error = refused(&stranger, &dir);
+    assert!(error.contains("BadUserAccessDenied"), "{error}");
+    assert!(
+        !error.contains("trust"),
+        "not a matter of certificates: {error}"
+    );
+    assert_eq!(
+        server.node_with(&spec, "Input"),
+        SAFE,
+        "nothing written since"
+    );
 }

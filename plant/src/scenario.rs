@@ -124,20 +124,30 @@ pub enum PlantSource {
     /// A plant behind a Modbus TCP server (checked against the channels' actuator ranges),
     /// reached in real time through `plant-agent`: there is no offline twin.
     Modbus(ModbusPlant),
-    /// A plant behind an OPC UA server, reached in real time through `plant-agent`.
-    OpcUa(OpcUaPlant),
+    /// A plant behind an OPC UA server, reached in real time through `plant-agent`
+    /// (boxed: its map and paths make it the largest plant by far).
+    OpcUa(Box<OpcUaPlant>),
 }
 
-/// An OPC UA plant: its map, the request timeout its period gives, and the user's
-/// password read from the map's `password_file`.
+/// An OPC UA plant: its map, what its period gives (the request timeout, the sampling
+/// interval), the user's password read from the map's `password_file`, and the map's
+/// paths resolved against the plant file's directory.
 #[derive(Clone, PartialEq)]
 pub struct OpcUaPlant {
     /// The map, checked.
     pub config: OpcUaConfig,
     /// Longest wait for one answer.
     pub timeout: std::time::Duration,
+    /// The sampling interval of a subscription (the map's, or a tenth of the period).
+    pub sampling_interval: std::time::Duration,
+    /// The loop's period: no subscription may sample slower.
+    pub period: std::time::Duration,
     /// The password of `config.user`, if any.
     pub password: Option<String>,
+    /// The bridge's PKI directory, if the map has one.
+    pub pki_dir: Option<PathBuf>,
+    /// The user's certificate and private key, if the user is a certificate.
+    pub user_certificate: Option<(PathBuf, PathBuf)>,
 }
 
 impl std::fmt::Debug for OpcUaPlant {
@@ -146,7 +156,10 @@ impl std::fmt::Debug for OpcUaPlant {
         f.debug_struct("OpcUaPlant")
             .field("config", &self.config)
             .field("timeout", &self.timeout)
+            .field("sampling_interval", &self.sampling_interval)
             .field("password", &self.password.as_ref().map(|_| "(set)"))
+            .field("pki_dir", &self.pki_dir)
+            .field("user_certificate", &self.user_certificate)
             .finish()
     }
 }
@@ -495,7 +508,7 @@ pub fn from_text(file: &Path, text: &str, dir: Option<&Path>) -> Result<Scenario
     }
     let plant = resolve_plant(file, &raw.plant, dir, raw.period)?;
     let n = raw.channels.len();
-    check_server_map(file, &plant, &raw.channels)?;
+    check_server_map(file, &plant, &raw.channels, raw.period)?;
     if matches!(plant, PlantSource::Aero(_)) && n != aero_sim::CHANNELS {
         return Err(invalid(
             file,
@@ -581,22 +594,46 @@ fn server_plant(
                 "an OPC UA plant is its server: drop file, added_mass, params, driver, modbus and timeout_ms (the map has its own timeout_ms)",
             ));
         }
+        let beside = |p: &PathBuf| match dir {
+            Some(d) if p.is_relative() => d.join(p),
+            _ => p.clone(),
+        };
         let password = match &config.password_file {
-            Some(p) => {
-                let full = match dir {
-                    Some(d) if p.is_relative() => d.join(p),
-                    _ => p.clone(),
-                };
-                let text = read(&full)?;
-                Some(text.lines().next().unwrap_or_default().to_string())
-            }
+            Some(p) => Some(
+                read(&beside(p))?
+                    .lines()
+                    .next()
+                    .unwrap_or_default()
+                    .to_string(),
+            ),
             None => None,
         };
-        return Ok(Some(PlantSource::OpcUa(OpcUaPlant {
+        let user_certificate = match (&config.user_certificate, &config.user_private_key) {
+            (Some(c), Some(k)) => {
+                let pair = (beside(c), beside(k));
+                for (field, path) in [("user_certificate", &pair.0), ("user_private_key", &pair.1)]
+                {
+                    if !path.is_file() {
+                        return Err(invalid(
+                            file,
+                            format!("plant.opcua.{field}"),
+                            format!("{} is not a file", path.display()),
+                        ));
+                    }
+                }
+                Some(pair)
+            }
+            _ => None,
+        };
+        return Ok(Some(PlantSource::OpcUa(Box::new(OpcUaPlant {
             config: config.clone(),
             timeout: config.timeout(period),
+            sampling_interval: config.sampling_interval(period),
+            period: std::time::Duration::from_secs_f64(period),
             password,
-        })));
+            pki_dir: config.pki_dir.as_ref().map(beside),
+            user_certificate,
+        }))));
     }
     if let Some(config) = &spec.modbus {
         let aero = spec.file.is_some() || spec.added_mass || !spec.params.is_empty();
@@ -620,13 +657,14 @@ fn check_server_map(
     file: &Path,
     plant: &PlantSource,
     channels: &[ScenarioChannel],
+    period: f64,
 ) -> Result<(), ScenarioError> {
     let ranges: Vec<(f64, f64)> = channels
         .iter()
         .map(|c| (c.output.min, c.output.max))
         .collect();
     let (table, checked) = match plant {
-        PlantSource::OpcUa(o) => ("opcua", o.config.check(&ranges)),
+        PlantSource::OpcUa(o) => ("opcua", o.config.check(&ranges, period)),
         PlantSource::Modbus(m) => ("modbus", m.config.check(&ranges)),
         _ => return Ok(()),
     };

@@ -109,13 +109,17 @@ fn file_with_password(
         std::fs::write(dir.path().join("pw"), format!("{p}\nignored second line\n")).unwrap();
     }
     let path = dir.path().join("s.toml");
-    let text = format!(
+    std::fs::write(&path, scenario_text(plant)).unwrap();
+    load_scenario(path.to_str().unwrap())
+}
+
+/// A one-channel scenario at 100 Hz around `plant`.
+fn scenario_text(plant: &str) -> String {
+    format!(
         "name = \"o\"\nduration = 10.0\nperiod = 0.01\n\
          controller = {{ name = \"ip\", channels = [{{ law = \"intelligent\", params = {{ kind = \"ip\", alpha = 0.1, kp = 1.0 }} }}] }}\n\
          {plant}\n{CHANNEL}"
-    );
-    std::fs::write(&path, text).unwrap();
-    load_scenario(path.to_str().unwrap())
+    )
 }
 
 #[test]
@@ -151,6 +155,35 @@ fn an_opcua_map_loads_with_its_password_and_never_prints_it() {
     );
     assert_eq!(
         field(file_with_password(&secured, Some("x")).unwrap_err()),
-        "plant.opcua.security_policy"
+        "plant.opcua.security_mode",
+        "a policy without its mode"
     );
+    // Signed and encrypted, the user a certificate: the paths resolved beside the file,
+    // and a certificate that is not there named.
+    let secured = OPCUA.replace("user = \"operator\"\npassword_file = \"pw\"\n", "").replace(
+        "[plant.opcua]\n",
+        "[plant.opcua]\nsecurity_policy = \"Basic256Sha256\"\nsecurity_mode = \"SignAndEncrypt\"\n\
+         pki_dir = \"pki\"\nuser_certificate = \"user.der\"\nuser_private_key = \"user.pem\"\n",
+    );
+    assert_eq!(
+        field(file_with_password(&secured, None).unwrap_err()),
+        "plant.opcua.user_certificate"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    for f in ["user.der", "user.pem"] {
+        std::fs::write(dir.path().join(f), "x").unwrap();
+    }
+    let path = dir.path().join("s.toml");
+    std::fs::write(&path, scenario_text(&secured)).unwrap();
+    let s = load_scenario(path.to_str().unwrap()).unwrap();
+    let PlantSource::OpcUa(o) = &s.plant else {
+        panic!("an OPC UA plant")
+    };
+    assert_eq!(o.pki_dir.as_deref(), Some(dir.path().join("pki").as_path()));
+    let (cert, key) = o.user_certificate.clone().unwrap();
+    assert_eq!(
+        (cert, key),
+        (dir.path().join("user.der"), dir.path().join("user.pem"))
+    );
+    assert_eq!(o.password, None);
 }

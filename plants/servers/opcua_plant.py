@@ -7,7 +7,7 @@ dc_motor.py), advanced to the wall clock every millisecond and whenever a client
 a write acts from the moment it arrives, its value clamped to the actuator's range, as an
 actuator would.
 
-Address space (namespace "urn:mfc:plant", index 2; security None, anonymous or user/password):
+Address space (namespace "urn:mfc:plant", index 2):
     ns=2;s=Plant.Output     Double   the measured output (degC or rad)    read-only
     ns=2;s=Plant.Input      Double   the input to apply (V)                 writable
     ns=2;s=Plant.Applied    Double   the input really applied (V)           read-only
@@ -17,8 +17,18 @@ Misbehaviour on demand, for the bridge's tests (seconds after the first write):
     --vanish-after S    the output node is deleted (reads give BadNodeIdUnknown)
     --silent-after S    the server stops answering anything (its event loop blocks)
 
+Security (default: None, anonymous):
+    --user NAME --password PW   the one user, by name
+    --user-certificate FILE     the one user, by certificate (DER)
+    --security P,...            asyncua's policy names (Basic256Sha256_SignAndEncrypt, ...)
+    --pki DIR                   the server's certificate (DIR/own/cert.der, made with its
+                                key DIR/own/key.pem if absent) and the clients it trusts:
+                                the certificates in DIR/trusted/, read again at every
+                                session (anything else is refused, BadCertificateUntrusted)
+
 Usage
-    opcua_plant.py --plant heater|dc-motor --port 4840 [--user NAME --password PW] [--seed N] [plant flags...]
+    opcua_plant.py --plant heater|dc-motor --port 4840 [security flags] [--seed N] [plant flags...]
+    opcua_plant.py --make-certificate PREFIX   writes PREFIX.der and PREFIX.pem (a user's)
 Prints `listening PORT` on stdout once it accepts connections.
 """
 
@@ -28,6 +38,7 @@ import logging
 import math
 import sys
 import time
+from pathlib import Path
 
 sys.dont_write_bytecode = True
 from asyncua import Server, ua  # noqa: E402
@@ -38,28 +49,91 @@ from physics import PLANTS, RealTime, load_plant  # noqa: E402
 NS = "urn:mfc:plant"
 
 
-class Users:
-    """One user with a password (asyncua's user manager interface)."""
+SERVER_URI = "urn:mfc:plant-server"
 
-    def __init__(self, name, password):
-        self.name, self.password = name, password
+
+class Users:
+    """One user, by name and password or by certificate (asyncua's user manager interface)."""
+
+    def __init__(self, name=None, password=None, certificate=None):
+        self.name, self.password, self.certificate = name, password, certificate
 
     def get_user(self, iserver, username=None, password=None, certificate=None):
         from asyncua.crypto.permission_rules import User, UserRole
 
-        if (username, password) == (self.name, self.password):
+        if self.name is not None and (username, password) == (self.name, self.password):
+            return User(role=UserRole.User)
+        if self.certificate is not None and certificate == self.certificate:
             return User(role=UserRole.User)
         return None
 
 
+def der_of(path):
+    """A certificate file's DER bytes (DER or PEM on disk)."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives.serialization import Encoding
+
+    data = Path(path).read_bytes()
+    if data.startswith(b"-----BEGIN"):
+        return x509.load_pem_x509_certificate(data).public_bytes(Encoding.DER)
+    return data
+
+
+def trusting(directory):
+    """A validator that accepts exactly the client certificates in `directory`, read again
+    at each session (an operator trusts a client while the server runs)."""
+    from asyncua.common.utils import ServiceError
+    from cryptography.hazmat.primitives.serialization import Encoding
+
+    async def validate(certificate, _app_description):
+        der = certificate.public_bytes(Encoding.DER)
+        trusted = [der_of(p) for p in sorted(Path(directory).glob("*")) if p.is_file()]
+        if der not in trusted:
+            raise ServiceError(ua.StatusCodes.BadCertificateUntrusted)
+
+    return validate
+
+
+async def make_certificate(key, cert, uri, server):
+    from asyncua.crypto.cert_gen import setup_self_signed_certificate
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    use = [ExtendedKeyUsageOID.SERVER_AUTH] if server else [ExtendedKeyUsageOID.CLIENT_AUTH]
+    Path(key).parent.mkdir(parents=True, exist_ok=True)
+    await setup_self_signed_certificate(
+        Path(key), Path(cert), uri, "127.0.0.1", use, {"commonName": uri.rsplit(":", 1)[-1]}
+    )
+
+
+async def secure(server, args):
+    """The policies, the server's certificate and the clients it trusts."""
+    policies = [getattr(ua.SecurityPolicyType, p) for p in args.security.split(",")]
+    server.set_security_policy(policies)
+    if args.pki:
+        pki = Path(args.pki)
+        (pki / "trusted").mkdir(parents=True, exist_ok=True)
+        await make_certificate(pki / "own/key.pem", pki / "own/cert.der", SERVER_URI, server=True)
+        await server.load_certificate(str(pki / "own/cert.der"))
+        await server.load_private_key(str(pki / "own/key.pem"))
+        server.set_certificate_validator(trusting(pki / "trusted"))
+    tokens = []
+    if args.user:
+        tokens.append(ua.UserNameIdentityToken)
+    if args.user_certificate:
+        tokens.append(ua.X509IdentityToken)
+    if tokens:
+        server.set_identity_tokens(tokens)
+
+
 async def serve(args, plant_argv):
     rt = RealTime(load_plant(args.plant, plant_argv), args)
-    server = Server(user_manager=Users(args.user, args.password) if args.user else None)
+    user_cert = der_of(args.user_certificate) if args.user_certificate else None
+    users = Users(args.user, args.password, user_cert) if args.user or user_cert else None
+    server = Server(user_manager=users)
     await server.init()
     server.set_endpoint(f"opc.tcp://{args.host}:{args.port}/")
-    server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
-    if args.user:
-        server.set_identity_tokens([ua.UserNameIdentityToken])
+    await server.set_application_uri(SERVER_URI)
+    await secure(server, args)
     idx = await server.register_namespace(NS)
     obj = await server.nodes.objects.add_object(f"ns={idx};s=Plant", f"{idx}:Plant")
     output = await obj.add_variable(f"ns={idx};s=Plant.Output", f"{idx}:Output", 0.0, ua.VariantType.Double)
@@ -103,6 +177,9 @@ def parse_args(argv):
     p.add_argument("--port", type=int, default=4840)
     p.add_argument("--user")
     p.add_argument("--password")
+    p.add_argument("--user-certificate")
+    p.add_argument("--security", default="NoSecurity")
+    p.add_argument("--pki")
     p.add_argument("--nan-after", type=float)
     p.add_argument("--vanish-after", type=float)
     p.add_argument("--silent-after", type=float)
@@ -111,6 +188,12 @@ def parse_args(argv):
 
 def main(argv=None):
     logging.basicConfig(level=logging.ERROR)
+    if argv is None:
+        argv = sys.argv[1:]
+    if argv[:1] == ["--make-certificate"] and len(argv) == 2:
+        prefix = argv[1]
+        asyncio.run(make_certificate(prefix + ".pem", prefix + ".der", "urn:mfc:user", server=False))
+        return 0
     args, plant_argv = parse_args(argv)
     try:
         asyncio.run(serve(args, plant_argv))

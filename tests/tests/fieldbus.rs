@@ -46,14 +46,17 @@ fn input_now(server: &Server) -> f64 {
     })
 }
 
-async fn tracks_as_its_twin(protocol: ServerKind, file: &str) {
+/// The plant behind `protocol`'s server (its file `file`, changed by `adapt`) tracks
+/// through the service within the usual bound of its offline twin.
+async fn tracks_as_its_twin(protocol: ServerKind, file: &str, adapt: fn(&mut Scenario)) {
     const ATTEMPTS: usize = 3;
     let _serial = SERIAL.lock().await;
     let twin = load("plants/dc-motor/scenarios/motor-steps.toml");
     let offline = simulate(&twin, &twin.controller, false).unwrap().summary;
     for attempt in 1..=ATTEMPTS {
         let server = Server::start_as(protocol, free_port(), &[]);
-        let s = pointed(load(file), &server);
+        let mut s = pointed(load(file), &server);
+        adapt(&mut s);
         assert_eq!(s.controller, twin.controller, "the same law on both");
         let id = "motor-1".to_string();
         let config = service_config(&s, &s.controller, std::slice::from_ref(&id));
@@ -96,12 +99,42 @@ async fn tracks_as_its_twin(protocol: ServerKind, file: &str) {
 
 #[tokio::test(flavor = "multi_thread")]
 async fn a_modbus_plant_tracks_through_the_service_as_its_offline_twin() {
-    tracks_as_its_twin(ServerKind::Modbus, "plants/servers/motor-steps-modbus.toml").await;
+    tracks_as_its_twin(
+        ServerKind::Modbus,
+        "plants/servers/motor-steps-modbus.toml",
+        |_| (),
+    )
+    .await;
 }
 
 #[tokio::test(flavor = "multi_thread")]
 async fn an_opcua_plant_tracks_through_the_service_as_its_offline_twin() {
-    tracks_as_its_twin(ServerKind::OpcUa, "plants/servers/motor-steps-opcua.toml").await;
+    tracks_as_its_twin(
+        ServerKind::OpcUa,
+        "plants/servers/motor-steps-opcua.toml",
+        |_| (),
+    )
+    .await;
+}
+
+/// The same with the outputs by subscription (the server samples them every millisecond,
+/// the default at a 10 ms period, and publishes the changes): no Read per period, and
+/// values up to a millisecond older.
+#[tokio::test(flavor = "multi_thread")]
+async fn an_opcua_plant_by_subscription_tracks_as_its_offline_twin() {
+    tracks_as_its_twin(
+        ServerKind::OpcUa,
+        "plants/servers/motor-steps-opcua.toml",
+        |s| match &mut s.plant {
+            PlantSource::OpcUa(o) => {
+                // The default sampling interval: a tenth of the period, 1 ms.
+                o.config.sampling = plant::opcua::Sampling::Subscribe;
+                assert_eq!(o.sampling_interval, std::time::Duration::from_millis(1));
+            }
+            other => panic!("an OPC UA plant, not {other:?}"),
+        },
+    )
+    .await;
 }
 
 /// A gateway agent hosting a plant behind each server (and a driver plant beside them) in

@@ -11,6 +11,7 @@ use std::process::{Child, Command, Stdio};
 use std::sync::OnceLock;
 use std::time::Duration;
 
+use fieldbus::opcua::{OpcUaUser, SessionSpec};
 use plant::modbus::{Point, RegisterKind, ValueType, WordOrder};
 
 pub fn root() -> PathBuf {
@@ -122,15 +123,21 @@ impl Server {
 
     /// An OPC UA server's node `ns=2;s=Plant.NAME` (Output, Input, Applied) now.
     pub fn node(&self, name: &str, user: Option<(&str, &str)>) -> f64 {
-        let user = user.map(|(u, p)| (u.to_string(), p.to_string()));
-        fieldbus::probe::read_node(
-            &self.address(),
-            user,
-            &format!("ns=2;s=Plant.{name}"),
-            Duration::from_secs(10),
-        )
-        .expect("reading the server")
-        .expect("a finite number")
+        let mut spec = SessionSpec::plain(&self.address(), Duration::from_secs(10));
+        if let Some((u, p)) = user {
+            spec.identity = OpcUaUser::User {
+                name: u.into(),
+                password: p.into(),
+            };
+        }
+        self.node_with(&spec, name)
+    }
+
+    /// The node `ns=2;s=Plant.NAME` through a session `spec` describes.
+    pub fn node_with(&self, spec: &SessionSpec, name: &str) -> f64 {
+        fieldbus::probe::read_node(spec, &format!("ns=2;s=Plant.{name}"))
+            .expect("reading the server")
+            .expect("a finite number")
     }
 
     /// The float32 at holding register 0 (the input) or input register 2 (what the plant

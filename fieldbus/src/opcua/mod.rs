@@ -1,37 +1,50 @@
 //! The OPC UA bridge: a plant behind an OPC UA server as a [`Plant`], through the node ids
 //! of its plant file ([`plant::opcua`]).
 //!
-//! Per period: one Read of every output, one Write of every input (each in the type the
-//! server declared for it, learned from its value at connection), one Read of the applied
-//! values if the map has them. The client (`async-opcua`) runs its session's event loop
+//! Per period: one Read of every output (or, with `sampling = "subscribe"`, the last
+//! values the server's subscription published, no request, and a Read once a second to
+//! confirm the nodes are still there), one Write of every input
+//! (each in the type the server declared for it, learned from its value at connection),
+//! one Read of the applied values if the map has them. The client (`async-opcua`) runs its session's event loop
 //! (keep-alives, reconnection) on a runtime of the bridge's own with one worker; the agent's
 //! plant thread blocks on each request with the map's timeout. A failing request is tried
 //! again while the outage lasts less than `reconnect_ms` (the event loop reconnects behind
 //! it); a node's bad status, a value that is not a number or a type the bridge cannot write
 //! ends the run. Every way out writes the safe values, as for Modbus.
 
-use std::sync::Arc;
+mod nodelay;
+mod session;
+mod subscription;
+
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use opcua::client::{ClientBuilder, IdentityToken, Session, SessionPollResult};
-use opcua::crypto::SecurityPolicy;
+use opcua::client::Session;
 use opcua::types::{
-    DataValue, MessageSecurityMode, NodeId, ReadValueId, TimestampsToReturn, UserTokenPolicy,
-    Variant, VariantScalarTypeId, WriteValue,
+    DataValue, NodeId, ReadValueId, TimestampsToReturn, Variant, VariantScalarTypeId, WriteValue,
 };
+use plant::opcua::Sampling;
 use plant::scenario::OpcUaPlant;
 use plant::{Plant, PlantError};
 
 use crate::reconnect::LinkOutage;
+pub(crate) use session::open_session;
+pub use session::{OpcUaUser, SessionSpec, OWN_CERT, OWN_KEY};
+use subscription::Latest;
 
 /// A plant behind an OPC UA server.
 pub struct OpcUaBridge {
     endpoint: String,
     timeout: Duration,
+    connect_timeout: Duration,
     reconnect_ms: u64,
     rt: Option<tokio::runtime::Runtime>,
     session: Arc<Session>,
     outputs: Vec<ReadValueId>,
+    /// With a subscription: what it last published, and how long it may stay silent.
+    subscribed: Option<(Arc<Mutex<Latest>>, Duration)>,
+    /// When a Read last confirmed the subscribed outputs.
+    confirmed: Instant,
     /// Each input's node and the type the server holds it in.
     inputs: Vec<(NodeId, VariantScalarTypeId)>,
     /// The channels that have an applied node, and their reads.
@@ -41,6 +54,9 @@ pub struct OpcUaBridge {
     epoch: Instant,
     stopped: bool,
 }
+
+/// How often a Read confirms the outputs a subscription publishes.
+const CONFIRM_EVERY: Duration = Duration::from_secs(1);
 
 /// Why one attempt failed: the server said no (not worth another try), or the link did.
 enum Failure {
@@ -57,13 +73,12 @@ impl OpcUaBridge {
     /// Connect to the server of `plant`, and learn the type of each input.
     pub fn connect(plant: &OpcUaPlant) -> Result<Self, PlantError> {
         let c = &plant.config;
-        let connect_timeout = Duration::from_millis(c.connect_timeout_ms);
-        let user = c.user.clone().zip(plant.password.clone());
-        let (rt, session) = open_session(&c.endpoint, user, plant.timeout, connect_timeout)
+        let (rt, session) = open_session(&SessionSpec::of(plant))
             .map_err(|e| PlantError::Server(format!("{} {e}", c.endpoint)))?;
         let mut bridge = Self {
             endpoint: c.endpoint.clone(),
             timeout: plant.timeout,
+            connect_timeout: Duration::from_millis(c.connect_timeout_ms),
             reconnect_ms: c.reconnect_ms,
             rt: Some(rt),
             session,
@@ -72,6 +87,8 @@ impl OpcUaBridge {
                 .iter()
                 .map(|ch| node(&ch.output).map(ReadValueId::new_value))
                 .collect::<Result<_, _>>()?,
+            subscribed: None,
+            confirmed: Instant::now(),
             inputs: Vec::new(),
             applied: Vec::new(),
             safe: c.channels.iter().map(|ch| ch.safe).collect(),
@@ -87,8 +104,49 @@ impl OpcUaBridge {
             }
         }
         bridge.inputs = bridge.input_types(c.channels.iter().map(|ch| ch.input.as_str()))?;
+        if c.sampling == Sampling::Subscribe {
+            bridge.subscribe(plant.sampling_interval, plant.period)?;
+        }
         bridge.stopped = false;
         Ok(bridge)
+    }
+
+    /// Subscribe to the outputs, sampled every `interval` (and never slower than
+    /// `period`), and wait (the connection's timeout at most) for the first value of each.
+    fn subscribe(&mut self, interval: Duration, period: Duration) -> Result<(), PlantError> {
+        let rt = self
+            .rt
+            .as_ref()
+            .ok_or_else(|| self.error("the bridge is stopped"))?;
+        let session = self.session.clone();
+        let latest = rt
+            .block_on(subscription::subscribe(
+                &session,
+                &self.outputs,
+                interval,
+                period,
+            ))
+            .map_err(|e| self.error(&e))?;
+        let deadline = Instant::now() + self.connect_timeout;
+        loop {
+            let complete = latest
+                .lock()
+                .map(|l| l.values.iter().all(Option::is_some))
+                .unwrap_or(false);
+            if complete {
+                break;
+            }
+            if Instant::now() > deadline {
+                return Err(self.error("the subscription published no first value of every output"));
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        self.subscribed = Some((latest, subscription::stale_after(interval)));
+        Ok(())
+    }
+
+    fn error(&self, what: &str) -> PlantError {
+        PlantError::Server(format!("{}: {what}", self.endpoint))
     }
 
     /// Each input's node and the scalar type of the value the server holds in it: what a
@@ -171,9 +229,50 @@ impl OpcUaBridge {
 
     fn read_values(&mut self, what: &str, reads: &[ReadValueId]) -> Result<Vec<f64>, PlantError> {
         let values = self.with_link(what, |s, rt, t| read(s, rt, t, reads))?;
+        self.numbers(what, reads, &values)
+    }
+
+    /// The outputs as the subscription last published them; a silent subscription is a
+    /// link failure (tried again while the outage lasts less than `reconnect_ms`).
+    fn published(
+        &mut self,
+        latest: &Mutex<Latest>,
+        stale: Duration,
+    ) -> Result<Vec<f64>, PlantError> {
+        let what = "subscription to the outputs";
+        let values = self.with_link(what, |_, _, _| {
+            let l = latest
+                .lock()
+                .map_err(|_| Failure::Answer("poisoned".into()))?;
+            match l.heard.map(|h| h.elapsed()) {
+                Some(age) if age <= stale => {}
+                age => {
+                    return Err(Failure::Link(format!(
+                        "nothing published for {:?} (a keep-alive is due every {:?})",
+                        age.unwrap_or_default(),
+                        stale / 3
+                    )))
+                }
+            }
+            Ok(l.values
+                .iter()
+                .map(|v| v.clone().unwrap_or_default())
+                .collect::<Vec<_>>())
+        })?;
+        let reads = self.outputs.clone();
+        self.numbers(what, &reads, &values)
+    }
+
+    /// Each value a finite number, or an error naming its node.
+    fn numbers(
+        &self,
+        what: &str,
+        reads: &[ReadValueId],
+        values: &[DataValue],
+    ) -> Result<Vec<f64>, PlantError> {
         reads
             .iter()
-            .zip(&values)
+            .zip(values)
             .map(|(r, dv)| {
                 number(dv).ok_or_else(|| {
                     PlantError::Server(format!(
@@ -212,6 +311,16 @@ impl Plant for OpcUaBridge {
     }
 
     fn read(&mut self) -> Result<Vec<f64>, PlantError> {
+        if let Some((latest, stale)) = self.subscribed.clone() {
+            // A server may drop a node without a word to its subscribers (asyncua keeps
+            // publishing keep-alives): a Read every second catches it.
+            if self.confirmed.elapsed() >= CONFIRM_EVERY {
+                let reads = self.outputs.clone();
+                self.read_values("read confirming the subscription", &reads)?;
+                self.confirmed = Instant::now();
+            }
+            return self.published(&latest, stale);
+        }
         let reads = self.outputs.clone();
         self.read_values("read of the outputs", &reads)
     }
@@ -264,104 +373,6 @@ impl Drop for OpcUaBridge {
         });
         if let Err(e) = stopped {
             tracing::error!(server = %self.endpoint, "OPC UA safe stop on drop failed: {e}");
-        }
-    }
-}
-
-/// A session with `endpoint` (security None; anonymous, or `user` with its password) on a
-/// runtime of its own with one worker, where the session's event loop runs (keep-alives,
-/// reconnection for ever, every `request_timeout` enforced). Errors say what failed.
-pub(crate) fn open_session(
-    endpoint: &str,
-    user: Option<(String, String)>,
-    request_timeout: Duration,
-    connect_timeout: Duration,
-) -> Result<(tokio::runtime::Runtime, Arc<Session>), String> {
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(1)
-        .thread_name("opcua-session")
-        .enable_all()
-        .build()
-        .map_err(|e| format!("runtime: {e}"))?;
-    let identity = match user {
-        Some((u, p)) => {
-            tracing::warn!(
-                server = endpoint,
-                "OPC UA: user {u}'s password goes in plain text (security None): a trusted network only"
-            );
-            IdentityToken::new_user_name(u, p)
-        }
-        None => IdentityToken::Anonymous,
-    };
-    let session = rt.block_on(async {
-        let mut client = ClientBuilder::new()
-            .application_name("mfc plant-agent")
-            .application_uri("urn:mfc:plant-agent")
-            .product_uri("urn:mfc:plant-agent")
-            .pki_dir(std::env::temp_dir().join("mfc-opcua-pki"))
-            .create_sample_keypair(false)
-            .trust_server_certs(true)
-            .session_retry_limit(-1)
-            .session_retry_initial(Duration::from_millis(200))
-            .session_retry_max(Duration::from_secs(2))
-            .request_timeout(request_timeout)
-            .keep_alive_interval(Duration::from_secs(1))
-            .client()
-            .map_err(|e| format!("client: {}", e.join("; ")))?;
-        let target = (
-            endpoint,
-            SecurityPolicy::None.to_str(),
-            MessageSecurityMode::None,
-            UserTokenPolicy::anonymous(),
-        );
-        let (session, event_loop) = tokio::time::timeout(
-            connect_timeout,
-            client.connect_to_matching_endpoint(target, identity),
-        )
-        .await
-        .map_err(|_| "connecting: timed out".to_string())?
-        .map_err(|e| format!("connecting: {e}"))?;
-        // The event loop, watched: the reason a session cannot open (a refused user, a
-        // server that is not there) is only in its events, and an operator needs it.
-        let last = Arc::new(std::sync::Mutex::new(None::<String>));
-        let seen = last.clone();
-        let events = event_loop.enter();
-        tokio::spawn(async move {
-            use futures::StreamExt;
-            futures::pin_mut!(events);
-            while let Some(event) = events.next().await {
-                let failure = match event {
-                    Ok(
-                        SessionPollResult::ConnectionLost(c)
-                        | SessionPollResult::ReconnectFailed(c),
-                    ) => c,
-                    Err(c) => c,
-                    Ok(_) => continue,
-                };
-                if let Ok(mut l) = seen.lock() {
-                    *l = Some(failure.to_string());
-                }
-            }
-        });
-        if tokio::time::timeout(connect_timeout, session.wait_for_connection())
-            .await
-            .is_err()
-        {
-            let why = last.lock().ok().and_then(|l| l.clone());
-            return Err(format!(
-                "opening the session: not open after {connect_timeout:?}{}",
-                why.map(|w| format!(" (last failure: {w})"))
-                    .unwrap_or_default()
-            ));
-        }
-        Ok::<_, String>(session)
-    });
-    match session {
-        Ok(s) => Ok((rt, s)),
-        Err(e) => {
-            // No runtime may be dropped on an async worker.
-            crate::off_async(move || drop(rt));
-            Err(e)
         }
     }
 }
