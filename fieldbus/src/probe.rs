@@ -210,7 +210,7 @@ pub fn opcua(spec: &SessionSpec, start: &str, depth: usize) -> Result<String, Pr
     let start: opcua::types::NodeId = start
         .parse()
         .map_err(|_| link(format!("{start:?} is not a node id")))?;
-    let (rt, session) = crate::opcua::open_session(spec).map_err(link)?;
+    let (rt, session, _) = crate::opcua::open_session(spec).map_err(link)?;
     let mut out = String::new();
     let walked = rt.block_on(walk(&session, start, depth, timeout, &mut out));
     rt.block_on(async {
@@ -351,7 +351,7 @@ pub fn read_node(spec: &SessionSpec, node: &str) -> Result<Option<f64>, ProbeErr
     let id: opcua::types::NodeId = node
         .parse()
         .map_err(|_| link(format!("{node:?} is not a node id")))?;
-    let (rt, session) = crate::opcua::open_session(spec).map_err(link)?;
+    let (rt, session, _) = crate::opcua::open_session(spec).map_err(link)?;
     let read = [opcua::types::ReadValueId::new_value(id)];
     let value = rt.block_on(async {
         let v = tokio::time::timeout(

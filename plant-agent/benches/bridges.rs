@@ -8,8 +8,8 @@
 //! rounds, the paths in turn so that all see the same machine). Each period, paced at
 //! 100 Hz, does what the agent does: read the outputs, write the inputs (the bridge reads
 //! back the applied value, as the shipped map asks), advance the plant's time. OPC UA
-//! twice: a Read per period, and the outputs by subscription (sampled every period by the
-//! server, no request). Prints the median and the 99th percentile of that round's time
+//! twice: a Read per period, and the outputs by subscription (sampled and published by
+//! the server every millisecond, the default at 10 ms, no request). Prints the median and the 99th percentile of that round's time
 //! per path and their ratios.
 
 use std::io::{BufRead, BufReader};

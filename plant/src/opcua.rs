@@ -54,14 +54,14 @@ pub struct OpcUaConfig {
     pub user_private_key: Option<PathBuf>,
     /// How the outputs reach the bridge: `read` (one Read per period, default) or
     /// `subscribe` (the server samples them and sends changes, no request per period;
-    /// a value is then up to one sampling interval older than a Read's).
+    /// a value is then up to two sampling intervals older than a Read's).
     #[serde(default)]
     pub sampling: Sampling,
-    /// The sampling interval (ms) of a subscription: at most the period. Default: a
-    /// tenth of the period, at least 1 ms. A value reaches the loop up to one interval
-    /// late, and a loop tuned on fresh values may not take that: the DC motor's iPD at
-    /// 10 ms tracked within 1.2x of its offline twin at 1 ms, 1.3x at 2 ms, and went
-    /// unstable at 10 ms (`docs/fieldbus.md`).
+    /// The sampling (and publishing) interval (ms) of a subscription: at most the
+    /// period. Default: a tenth of the period, at least 1 ms. A value reaches the loop up
+    /// to two intervals late (sampled, then published), and a loop tuned on fresh values
+    /// may not take that: the DC motor's iPD at 10 ms tracked within 1.03x of its offline
+    /// twin at 1 ms, 1.25x at 2 ms, and went unstable at 10 ms (`docs/fieldbus.md`).
     #[serde(default)]
     pub sampling_ms: Option<u64>,
     /// Longest wait for one answer (ms). Default: half the period, at least 20 ms.
@@ -241,6 +241,12 @@ impl OpcUaConfig {
                 "the user is a name or a certificate, not both",
             ));
         }
+        if self.user_certificate.is_some() && policy == "None" {
+            return Err(map_error(
+                "user_certificate",
+                "a user certificate proves the user to a server the bridge cannot check under the policy None: choose a policy",
+            ));
+        }
         Ok(())
     }
 
@@ -355,10 +361,21 @@ mod tests {
         c.security_mode = "Sign".into();
         assert_eq!(field(&c), "security_mode", "the policy None with a mode");
         let mut c = ok.clone();
+        c.security_policy = "Basic256Sha256".into();
+        c.security_mode = "Sign".into();
+        c.pki_dir = Some("pki".into());
         c.user_certificate = Some("user.der".into());
         assert_eq!(field(&c), "user_certificate");
         c.user_private_key = Some("user.pem".into());
         assert_eq!(c.check(&[(0.0, 24.0)], 0.01), Ok(()));
+        let mut none = c.clone();
+        none.security_policy = "None".into();
+        none.security_mode = "None".into();
+        assert_eq!(
+            field(&none),
+            "user_certificate",
+            "a user certificate under None"
+        );
         c.user = Some("op".into());
         c.password_file = Some("pw".into());
         assert_eq!(field(&c), "user_certificate", "a name and a certificate");

@@ -16,7 +16,8 @@ mod nodelay;
 mod session;
 mod subscription;
 
-use std::sync::{Arc, Mutex};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use opcua::client::Session;
@@ -30,7 +31,7 @@ use plant::{Plant, PlantError};
 use crate::reconnect::LinkOutage;
 pub(crate) use session::open_session;
 pub use session::{OpcUaUser, SessionSpec, OWN_CERT, OWN_KEY};
-use subscription::Latest;
+use subscription::{Ask, Subscribed};
 
 /// A plant behind an OPC UA server.
 pub struct OpcUaBridge {
@@ -41,10 +42,12 @@ pub struct OpcUaBridge {
     rt: Option<tokio::runtime::Runtime>,
     session: Arc<Session>,
     outputs: Vec<ReadValueId>,
-    /// With a subscription: what it last published, and how long it may stay silent.
-    subscribed: Option<(Arc<Mutex<Latest>>, Duration)>,
+    /// With a subscription: what it asks of the server, and the subscription made.
+    subscribed: Option<(Ask, Subscribed)>,
     /// When a Read last confirmed the subscribed outputs.
     confirmed: Instant,
+    /// How many times the session reconnected (counted by its event loop's watcher).
+    reconnections: Arc<AtomicU64>,
     /// Each input's node and the type the server holds it in.
     inputs: Vec<(NodeId, VariantScalarTypeId)>,
     /// The channels that have an applied node, and their reads.
@@ -73,7 +76,7 @@ impl OpcUaBridge {
     /// Connect to the server of `plant`, and learn the type of each input.
     pub fn connect(plant: &OpcUaPlant) -> Result<Self, PlantError> {
         let c = &plant.config;
-        let (rt, session) = open_session(&SessionSpec::of(plant))
+        let (rt, session, reconnections) = open_session(&SessionSpec::of(plant))
             .map_err(|e| PlantError::Server(format!("{} {e}", c.endpoint)))?;
         let mut bridge = Self {
             endpoint: c.endpoint.clone(),
@@ -89,6 +92,7 @@ impl OpcUaBridge {
                 .collect::<Result<_, _>>()?,
             subscribed: None,
             confirmed: Instant::now(),
+            reconnections,
             inputs: Vec::new(),
             applied: Vec::new(),
             safe: c.channels.iter().map(|ch| ch.safe).collect(),
@@ -105,44 +109,85 @@ impl OpcUaBridge {
         }
         bridge.inputs = bridge.input_types(c.channels.iter().map(|ch| ch.input.as_str()))?;
         if c.sampling == Sampling::Subscribe {
-            bridge.subscribe(plant.sampling_interval, plant.period)?;
+            let ask = Ask {
+                interval: plant.sampling_interval,
+                period: plant.period,
+                outage: Duration::from_millis(c.reconnect_ms),
+            };
+            let made = bridge.subscribe(&ask).map_err(|e| bridge.error(&e))?;
+            bridge.subscribed = Some((ask, made));
         }
         bridge.stopped = false;
         Ok(bridge)
     }
 
-    /// Subscribe to the outputs, sampled every `interval` (and never slower than
-    /// `period`), and wait (the connection's timeout at most) for the first value of each.
-    fn subscribe(&mut self, interval: Duration, period: Duration) -> Result<(), PlantError> {
-        let rt = self
-            .rt
-            .as_ref()
-            .ok_or_else(|| self.error("the bridge is stopped"))?;
-        let session = self.session.clone();
-        let latest = rt
-            .block_on(subscription::subscribe(
-                &session,
-                &self.outputs,
-                interval,
-                period,
-            ))
-            .map_err(|e| self.error(&e))?;
+    /// Subscribe to the outputs as `ask` says, and wait (the connection's timeout at
+    /// most) for a first good value of each.
+    fn subscribe(&self, ask: &Ask) -> Result<Subscribed, String> {
+        let rt = self.rt.as_ref().ok_or("the bridge is stopped")?;
+        let made_at = self.reconnections.load(Ordering::SeqCst);
+        let made = rt.block_on(subscription::subscribe(
+            &self.session,
+            &self.outputs,
+            ask,
+            made_at,
+        ))?;
         let deadline = Instant::now() + self.connect_timeout;
         loop {
-            let complete = latest
-                .lock()
-                .map(|l| l.values.iter().all(Option::is_some))
-                .unwrap_or(false);
+            let complete = made.latest.lock().is_ok_and(|l| {
+                l.values
+                    .iter()
+                    .all(|v| v.as_ref().is_some_and(|d| d.status().is_good()))
+            });
             if complete {
-                break;
+                return Ok(made);
             }
             if Instant::now() > deadline {
-                return Err(self.error("the subscription published no first value of every output"));
+                let _ = rt.block_on(self.session.delete_subscription(made.id));
+                return Err(
+                    "the subscription published no good first value of every output".into(),
+                );
             }
             std::thread::sleep(Duration::from_millis(5));
         }
-        self.subscribed = Some((latest, subscription::stale_after(interval)));
-        Ok(())
+    }
+
+    /// Subscribe again after a reconnection or the server's end of the subscription (the
+    /// old one deleted if the server still has it), tried again while the outage lasts
+    /// less than `reconnect_ms`.
+    fn resubscribe(&mut self) -> Result<(), PlantError> {
+        let Some((ask, old)) = self.subscribed.take() else {
+            return Ok(());
+        };
+        if let Some(rt) = &self.rt {
+            let _ = rt.block_on(async {
+                tokio::time::timeout(self.timeout, self.session.delete_subscription(old.id)).await
+            });
+        }
+        let budget = self.reconnect_ms as f64 / 1000.0;
+        loop {
+            match self.subscribe(&ask) {
+                Ok(made) => {
+                    self.outage.cleared();
+                    tracing::info!(server = %self.endpoint, "OPC UA: subscribed again");
+                    self.subscribed = Some((ask, made));
+                    return Ok(());
+                }
+                Err(e) => {
+                    let now = self.now();
+                    if !self.outage.failed(now, budget) {
+                        self.subscribed = Some((ask, old));
+                        return Err(self.error(&format!(
+                            "subscribing again: {e} (reconnect_ms = {})",
+                            self.reconnect_ms
+                        )));
+                    }
+                    tracing::warn!(server = %self.endpoint, "OPC UA subscribing again: {e}; trying again");
+                    let pause = self.outage.left(now, budget).min(0.05);
+                    std::thread::sleep(Duration::from_secs_f64(pause));
+                }
+            }
+        }
     }
 
     fn error(&self, what: &str) -> PlantError {
@@ -232,18 +277,21 @@ impl OpcUaBridge {
         self.numbers(what, reads, &values)
     }
 
-    /// The outputs as the subscription last published them; a silent subscription is a
-    /// link failure (tried again while the outage lasts less than `reconnect_ms`).
-    fn published(
-        &mut self,
-        latest: &Mutex<Latest>,
-        stale: Duration,
-    ) -> Result<Vec<f64>, PlantError> {
+    /// The outputs as the subscription last published them (`None` once it is gone: the
+    /// session reconnected, or the server ended it); a silent subscription is a link
+    /// failure (tried again while the outage lasts less than `reconnect_ms`).
+    fn published(&mut self, made: &Subscribed) -> Result<Option<Vec<f64>>, PlantError> {
         let what = "subscription to the outputs";
+        let reconnections = self.reconnections.clone();
         let values = self.with_link(what, |_, _, _| {
-            let l = latest
+            if made.gone(reconnections.load(Ordering::SeqCst)) {
+                return Ok(None);
+            }
+            let l = made
+                .latest
                 .lock()
                 .map_err(|_| Failure::Answer("poisoned".into()))?;
+            let stale = made.stale;
             match l.heard.map(|h| h.elapsed()) {
                 Some(age) if age <= stale => {}
                 age => {
@@ -254,13 +302,18 @@ impl OpcUaBridge {
                     )))
                 }
             }
-            Ok(l.values
-                .iter()
-                .map(|v| v.clone().unwrap_or_default())
-                .collect::<Vec<_>>())
+            Ok(Some(
+                l.values
+                    .iter()
+                    .map(|v| v.clone().unwrap_or_default())
+                    .collect::<Vec<_>>(),
+            ))
         })?;
+        let Some(values) = values else {
+            return Ok(None);
+        };
         let reads = self.outputs.clone();
-        self.numbers(what, &reads, &values)
+        self.numbers(what, &reads, &values).map(Some)
     }
 
     /// Each value a finite number, or an error naming its node.
@@ -311,7 +364,11 @@ impl Plant for OpcUaBridge {
     }
 
     fn read(&mut self) -> Result<Vec<f64>, PlantError> {
-        if let Some((latest, stale)) = self.subscribed.clone() {
+        while let Some(made) = self.subscribed.as_ref().map(|(_, m)| m.clone()) {
+            let Some(values) = self.published(&made)? else {
+                self.resubscribe()?;
+                continue;
+            };
             // A server may drop a node without a word to its subscribers (asyncua keeps
             // publishing keep-alives): a Read every second catches it.
             if self.confirmed.elapsed() >= CONFIRM_EVERY {
@@ -319,7 +376,7 @@ impl Plant for OpcUaBridge {
                 self.read_values("read confirming the subscription", &reads)?;
                 self.confirmed = Instant::now();
             }
-            return self.published(&latest, stale);
+            return Ok(values);
         }
         let reads = self.outputs.clone();
         self.read_values("read of the outputs", &reads)

@@ -3,6 +3,7 @@
 //! hear when that fails (what the server offers, which certificate is not trusted yet).
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -33,8 +34,8 @@ pub struct SessionSpec {
     /// `--create-keypair`. The agent never does: which certificate a plant's bridge
     /// shows is an operator's decision.
     pub create_keypair: bool,
-    /// The sampling interval of subscriptions (the client then asks for publications at
-    /// least that often).
+    /// The sampling interval of subscriptions (the client's floor on how often it asks
+    /// for publications: at that interval, not the library's default 100 ms).
     pub sampling_interval: Duration,
 }
 
@@ -140,6 +141,11 @@ impl SessionSpec {
             if policy != SecurityPolicy::None {
                 return Err(format!("the policy {} needs a PKI directory", self.policy));
             }
+            if self.create_keypair {
+                return Err(
+                    "a key pair is for a policy other than None (nothing would use it)".into(),
+                );
+            }
             // No certificate is used: a scratch directory satisfies the client.
             return Ok(std::env::temp_dir().join("mfc-opcua-pki"));
         };
@@ -184,15 +190,23 @@ pub const OWN_CERT: &str = "own/cert.der";
 /// See [`OWN_CERT`].
 pub const OWN_KEY: &str = "private/private.pem";
 
+/// A session opened: the runtime its event loop runs on, the session, and how many times
+/// it reconnected so far.
+pub(crate) type Opened = (tokio::runtime::Runtime, Arc<Session>, Arc<AtomicU64>);
+
 /// A session as `spec` describes it, on a runtime of its own with one worker, where the
 /// session's event loop runs (keep-alives, reconnection for ever, every request timeout
 /// enforced). Errors say what failed and, where they can, what to do.
-pub(crate) fn open_session(
-    spec: &SessionSpec,
-) -> Result<(tokio::runtime::Runtime, Arc<Session>), String> {
+pub(crate) fn open_session(spec: &SessionSpec) -> Result<Opened, String> {
     let (policy, mode) = spec.security()?;
     let pki = spec.pki(policy)?;
     let identity = spec.identity_token()?;
+    if policy != SecurityPolicy::None {
+        private_key_guarded(&pki.join(OWN_KEY));
+    }
+    if let OpcUaUser::Certificate { key, .. } = &spec.identity {
+        private_key_guarded(key);
+    }
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
         .thread_name("opcua-session")
@@ -200,25 +214,66 @@ pub(crate) fn open_session(
         .build()
         .map_err(|e| format!("runtime: {e}"))?;
     let rejected_before = listing(&pki.join("rejected"));
-    let session = rt.block_on(connect(spec, policy, mode, &pki, identity));
+    let mut server_cert = None;
+    let session = rt.block_on(connect(
+        spec,
+        (policy, mode),
+        &pki,
+        identity,
+        &mut server_cert,
+    ));
+    if spec.create_keypair {
+        private_key_guarded(&pki.join(OWN_KEY));
+    }
     match session {
-        Ok(s) => Ok((rt, s)),
+        Ok((s, reconnections)) => Ok((rt, s, reconnections)),
         Err(e) => {
             // No runtime may be dropped on an async worker.
             crate::off_async(move || drop(rt));
-            let hint = trust_hint(spec, policy, &pki, &rejected_before, &e);
+            let trust = Trust {
+                pki: &pki,
+                rejected_before: &rejected_before,
+                server_cert: server_cert.as_deref(),
+            };
+            let hint = trust.hint(spec, policy, &e);
             Err(e + &hint)
         }
     }
 }
 
+/// A private key readable by others than its owner is made private (a key the probe just
+/// made), or, if that fails, reported: the bridge's identity is only as safe as its key.
+#[cfg(unix)]
+fn private_key_guarded(key: &Path) {
+    use std::os::unix::fs::PermissionsExt;
+    let Ok(meta) = std::fs::metadata(key) else {
+        return;
+    };
+    if meta.permissions().mode() & 0o077 == 0 {
+        return;
+    }
+    let private = std::fs::Permissions::from_mode(0o600);
+    if let Err(e) = std::fs::set_permissions(key, private) {
+        tracing::warn!(
+            "{}: readable by others than its owner, and not made private: {e}",
+            key.display()
+        );
+    }
+    if let Some(dir) = key.parent() {
+        let _ = std::fs::set_permissions(dir, std::fs::Permissions::from_mode(0o700));
+    }
+}
+
+#[cfg(not(unix))]
+fn private_key_guarded(_key: &Path) {}
+
 async fn connect(
     spec: &SessionSpec,
-    policy: SecurityPolicy,
-    mode: MessageSecurityMode,
+    (policy, mode): (SecurityPolicy, MessageSecurityMode),
     pki: &Path,
     identity: IdentityToken,
-) -> Result<Arc<Session>, String> {
+    server_cert: &mut Option<String>,
+) -> Result<(Arc<Session>, Arc<AtomicU64>), String> {
     let secure = policy != SecurityPolicy::None;
     let client = ClientBuilder::new()
         .application_name("mfc plant-agent")
@@ -236,6 +291,9 @@ async fn connect(
         .request_timeout(spec.request_timeout)
         .keep_alive_interval(Duration::from_secs(1))
         .min_publish_interval(spec.sampling_interval)
+        // The bridge subscribes again itself after a reconnection: the library's own
+        // re-creation ignores the items it fails to re-create.
+        .recreate_subscriptions(false)
         .client()
         .map_err(|e| format!("client: {}", e.join("; ")))?;
     let endpoints = tokio::time::timeout(
@@ -245,10 +303,15 @@ async fn connect(
     .await
     .map_err(|_| "asking for its endpoints: timed out".to_string())?
     .map_err(|e| format!("asking for its endpoints: {e}"))?;
-    if !endpoints
+    let ours = endpoints
         .iter()
-        .any(|e| e.security_policy_uri.as_ref() == policy.to_uri() && e.security_mode == mode)
-    {
+        .find(|e| e.security_policy_uri.as_ref() == policy.to_uri() && e.security_mode == mode);
+    *server_cert = ours.and_then(|e| {
+        opcua::crypto::X509::from_byte_string(&e.server_certificate)
+            .ok()
+            .map(|c| opcua::crypto::CertificateStore::cert_file_name(&c))
+    });
+    if ours.is_none() {
         return Err(format!(
             "the server has no endpoint with {}/{}; it offers {}",
             spec.policy,
@@ -272,7 +335,7 @@ async fn connect(
                 .build(client.certificate_store().clone())
         })
         .map_err(|e| format!("connecting: {e}"))?;
-    let last = watch(event_loop);
+    let (last, reconnections) = watch(event_loop);
     if tokio::time::timeout(spec.connect_timeout, session.wait_for_connection())
         .await
         .is_err()
@@ -285,18 +348,23 @@ async fn connect(
                 .unwrap_or_default()
         ));
     }
-    Ok(session)
+    Ok((session, reconnections))
 }
 
-/// Run the session's event loop, keeping its last failure: the reason a session cannot
-/// open (a refused user, an untrusted certificate, a server that is not there) is only in
-/// its events, and an operator needs it.
-fn watch<T>(event_loop: opcua::client::SessionEventLoop<T>) -> Arc<std::sync::Mutex<Option<String>>>
+/// Run the session's event loop, keeping its last failure (the reason a session cannot
+/// open, a refused user, an untrusted certificate, a server that is not there, is only in
+/// its events, and an operator needs it) and counting its reconnections (after which a
+/// subscription is made again).
+fn watch<T>(
+    event_loop: opcua::client::SessionEventLoop<T>,
+) -> (Arc<std::sync::Mutex<Option<String>>>, Arc<AtomicU64>)
 where
     T: opcua::client::transport::Connector + Send + Sync + 'static,
 {
     let last = Arc::new(std::sync::Mutex::new(None::<String>));
     let seen = last.clone();
+    let reconnections = Arc::new(AtomicU64::new(0));
+    let counted = reconnections.clone();
     let events = event_loop.enter();
     tokio::spawn(async move {
         use futures::StreamExt;
@@ -307,6 +375,10 @@ where
                     SessionPollResult::ConnectionLost(c) | SessionPollResult::ReconnectFailed(c),
                 ) => c,
                 Err(c) => c,
+                Ok(SessionPollResult::Reconnected(_)) => {
+                    counted.fetch_add(1, Ordering::SeqCst);
+                    continue;
+                }
                 Ok(_) => continue,
             };
             if let Ok(mut l) = seen.lock() {
@@ -314,7 +386,7 @@ where
             }
         }
     });
-    last
+    (last, reconnections)
 }
 
 /// The policy/mode pairs a server offers, for an error message.
@@ -342,37 +414,67 @@ fn listing(dir: &Path) -> Vec<PathBuf> {
         .unwrap_or_default()
 }
 
-/// What to do about certificates after a secure session failed with `error`: a server
-/// certificate the bridge has just refused (the operator checks it and moves it to
-/// `trusted/`), or, when the server refused a certificate, the bridge's own.
-fn trust_hint(
-    spec: &SessionSpec,
-    policy: SecurityPolicy,
-    pki: &Path,
-    before: &[PathBuf],
-    error: &str,
-) -> String {
-    if policy == SecurityPolicy::None {
-        return String::new();
-    }
-    let new: Vec<PathBuf> = listing(&pki.join("rejected"))
-        .into_iter()
-        .filter(|p| !before.contains(p))
-        .collect();
-    match new.first() {
-        Some(cert) => format!(
-            "; the server's certificate is not trusted: it is now in {}; check it (the \
-             server's operator knows its thumbprint) and move it to {}",
-            cert.display(),
-            pki.join("trusted").display()
-        ),
-        None if error.contains("Certificate") || error.contains("BadSecurityChecksFailed") => {
-            format!(
-                "; the server refused the bridge: have it trust {} (for {})",
-                pki.join(OWN_CERT).display(),
-                spec.endpoint
-            )
+/// What the bridge knows of certificates when a secure session failed.
+struct Trust<'a> {
+    pki: &'a Path,
+    /// What `rejected/` held before the attempt.
+    rejected_before: &'a [PathBuf],
+    /// The file name the server's certificate has in a PKI directory, if it sent one.
+    server_cert: Option<&'a str>,
+}
+
+impl Trust<'_> {
+    /// What to do about certificates after a secure session failed with `error`: the
+    /// server's certificate the bridge refused (now or before: the operator checks it and
+    /// moves it to `trusted/`), a trusted one that fails the bridge's checks, or, when
+    /// the server refused a certificate, the bridge's own (or the user's).
+    fn hint(&self, spec: &SessionSpec, policy: SecurityPolicy, error: &str) -> String {
+        if policy == SecurityPolicy::None {
+            return String::new();
         }
-        None => String::new(),
+        let (rejected, trusted) = (self.pki.join("rejected"), self.pki.join("trusted"));
+        let new = listing(&rejected)
+            .into_iter()
+            .find(|p| !self.rejected_before.contains(p));
+        let theirs = |dir: &Path| {
+            self.server_cert
+                .map(|n| dir.join(n))
+                .filter(|p| p.is_file())
+        };
+        if let Some(cert) = new.or_else(|| theirs(&rejected)) {
+            return format!(
+                "; the server's certificate is not trusted: it is in {}; check it (the \
+                 server's operator knows its thumbprint) and move it to {}",
+                cert.display(),
+                trusted.display()
+            );
+        }
+        let checks = [
+            "BadCertificateHostNameInvalid",
+            "BadCertificateTimeInvalid",
+            "BadCertificateUriInvalid",
+            "BadCertificateInvalid",
+        ];
+        if let Some(cert) = theirs(&trusted).filter(|_| checks.iter().any(|c| error.contains(c))) {
+            return format!(
+                "; the server's certificate {} is trusted but fails the bridge's checks (the \
+                 host in the endpoint, its validity dates, its application URI)",
+                cert.display()
+            );
+        }
+        if error.contains("Certificate") || error.contains("BadSecurityChecksFailed") {
+            let user = match &spec.identity {
+                OpcUaUser::Certificate { cert, .. } => {
+                    format!(", or the user's certificate {}", cert.display())
+                }
+                _ => String::new(),
+            };
+            return format!(
+                "; the server refused the bridge: have it trust {}{user} (for {})",
+                self.pki.join(OWN_CERT).display(),
+                spec.endpoint
+            );
+        }
+        String::new()
     }
 }

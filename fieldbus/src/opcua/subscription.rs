@@ -1,6 +1,10 @@
 //! The outputs by subscription: the server samples each output node and publishes what
 //! changed, or a keep-alive when nothing did; the bridge keeps the last value of each and
 //! when it last heard from the subscription, and a period costs no request for them.
+//!
+//! The bridge owns its subscription: async-opcua's own re-creation after a reconnection
+//! is off (it ignores the items it fails to re-create, whose last values would then pass
+//! for fresh), and the bridge subscribes anew instead ([`Subscribed::gone`]).
 
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -9,7 +13,7 @@ use opcua::client::{MonitoredItem, OnSubscriptionNotification, Session};
 use opcua::client::{MonitoredItemMap, OnSubscriptionNotificationCore};
 use opcua::types::{
     DataValue, ExtensionObject, MonitoredItemCreateRequest, MonitoringMode, MonitoringParameters,
-    NotificationMessage, ReadValueId, TimestampsToReturn,
+    NotificationMessage, ReadValueId, StatusChangeNotification, TimestampsToReturn,
 };
 
 /// What the subscription last published.
@@ -19,10 +23,31 @@ pub(crate) struct Latest {
     pub values: Vec<Option<DataValue>>,
     /// When the subscription was last heard from (data or keep-alive).
     pub heard: Option<Instant>,
+    /// The server said the subscription ended (a status change).
+    pub ended: bool,
 }
 
-/// The subscription's callback: every message (a keep-alive too) counts as heard; each
-/// data value goes to its output by client handle (the output's index plus one).
+/// A subscription the bridge made: where its values land, its id, and how long it may
+/// stay silent (three keep-alive intervals, as the server revised them).
+#[derive(Clone)]
+pub(crate) struct Subscribed {
+    pub latest: Arc<Mutex<Latest>>,
+    pub id: u32,
+    pub stale: Duration,
+    /// The session's reconnections when it was made.
+    pub made_at: u64,
+}
+
+impl Subscribed {
+    /// Whether it must be made again: the session reconnected since (the server may have
+    /// a new session without it), or the server ended it.
+    pub fn gone(&self, reconnections: u64) -> bool {
+        reconnections != self.made_at || self.latest.lock().map_or(true, |l| l.ended)
+    }
+}
+
+/// The subscription's callback: each data value goes to its output by client handle (the
+/// output's index plus one); then every message, a keep-alive too, counts as heard.
 struct Notifications {
     latest: Arc<Mutex<Latest>>,
 }
@@ -36,6 +61,12 @@ impl OnSubscriptionNotification for Notifications {
             }
         }
     }
+
+    fn on_subscription_status_change(&mut self, _notification: StatusChangeNotification) {
+        if let Ok(mut l) = self.latest.lock() {
+            l.ended = true;
+        }
+    }
 }
 
 struct Heard(Notifications);
@@ -46,48 +77,61 @@ impl OnSubscriptionNotificationCore for Heard {
         notification: NotificationMessage,
         items: MonitoredItemMap<'_>,
     ) {
-        if let Ok(mut l) = self.0.latest.lock() {
-            l.heard = Some(Instant::now());
-        }
         OnSubscriptionNotificationCore::on_subscription_notification(
             &mut self.0,
             notification,
             items,
         );
+        if let Ok(mut l) = self.0.latest.lock() {
+            l.heard = Some(Instant::now());
+        }
     }
 }
 
-/// How many sampling intervals a keep-alive may take, in a subscription of `interval`:
+/// How many publishing intervals a keep-alive may take, in a subscription of `interval`:
 /// about every 100 ms.
 fn keep_alive_count(interval: Duration) -> u32 {
     let n = 0.1 / interval.as_secs_f64().max(1e-3);
     (n.ceil() as u32).clamp(1, 1000)
 }
 
-/// How long the subscription may stay silent before the bridge calls its values stale:
-/// three keep-alives.
-pub(crate) fn stale_after(interval: Duration) -> Duration {
-    interval * keep_alive_count(interval) * 3
+/// How long a subscription publishing every `interval`, with a keep-alive every
+/// `keep_alive` intervals, may stay silent before its values are stale: three keep-alives.
+pub(crate) fn stale_after(interval: Duration, keep_alive: u32) -> Duration {
+    interval * keep_alive.max(1) * 3
 }
 
-/// Subscribe to `outputs`, sampled every `interval`; the values land in the returned
-/// store. Refused: an output the server cannot monitor, or one it would sample slower
-/// than `period` (the loop would run on values older than a period); one it samples
+/// What a subscription asks of the server.
+pub(crate) struct Ask {
+    /// Sampling and publishing interval.
+    pub interval: Duration,
+    /// The loop's period: a server publishing slower is refused.
+    pub period: Duration,
+    /// How long an outage may last (the subscription must outlive it on the server).
+    pub outage: Duration,
+}
+
+/// Subscribe to `outputs` as `ask` says; the values land in the returned store. Refused:
+/// an output the server cannot monitor, or a server that would publish or sample slower
+/// than the period (the loop would run on values older than a period); one that samples
 /// slower than asked is taken with a warning.
 pub(crate) async fn subscribe(
     session: &Arc<Session>,
     outputs: &[ReadValueId],
-    interval: Duration,
-    period: Duration,
-) -> Result<Arc<Mutex<Latest>>, String> {
+    ask: &Ask,
+    made_at: u64,
+) -> Result<Subscribed, String> {
     let latest = Arc::new(Mutex::new(Latest {
         values: vec![None; outputs.len()],
         heard: None,
+        ended: false,
     }));
+    let interval = ask.interval;
     let keep_alive = keep_alive_count(interval);
     // The server drops a subscription nobody asked after for `lifetime` intervals: at
-    // least 3 keep-alives (OPC UA's rule), and 10 s, so a reconnection can take it over.
-    let lifetime = (keep_alive * 3).max((10.0 / interval.as_secs_f64()).ceil() as u32);
+    // least 3 keep-alives (OPC UA's rule), 10 s, and the outage the bridge rides out.
+    let outlive = ask.outage.max(Duration::from_secs(10)).as_secs_f64();
+    let lifetime = (keep_alive * 3).max((outlive / interval.as_secs_f64()).ceil() as u32);
     let callback = Heard(Notifications {
         latest: latest.clone(),
     });
@@ -95,7 +139,39 @@ pub(crate) async fn subscribe(
         .create_subscription(interval, lifetime, keep_alive, 0, 0, true, callback)
         .await
         .map_err(|e| format!("creating the subscription: {e}"))?;
-    let ms = interval.as_secs_f64() * 1000.0;
+    let revised = session
+        .subscription_state()
+        .lock()
+        .get(id)
+        .map(|s| (s.publishing_interval(), s.max_keep_alive_count()));
+    let (publishing, keep_alive) = revised.unwrap_or((interval, keep_alive));
+    if publishing > ask.period {
+        let _ = session.delete_subscription(id).await;
+        return Err(format!(
+            "the server publishes every {publishing:?}, slower than the period {:?}",
+            ask.period
+        ));
+    }
+    if let Err(e) = monitor(session, id, outputs, ask).await {
+        let _ = session.delete_subscription(id).await;
+        return Err(e);
+    }
+    Ok(Subscribed {
+        latest,
+        id,
+        stale: stale_after(publishing, keep_alive),
+        made_at,
+    })
+}
+
+/// Monitor each output in subscription `id`, its client handle its index plus one.
+async fn monitor(
+    session: &Arc<Session>,
+    id: u32,
+    outputs: &[ReadValueId],
+    ask: &Ask,
+) -> Result<(), String> {
+    let ms = ask.interval.as_secs_f64() * 1000.0;
     let items: Vec<MonitoredItemCreateRequest> = outputs
         .iter()
         .enumerate()
@@ -132,7 +208,7 @@ pub(crate) async fn subscribe(
             ));
         }
         let revised = c.result.revised_sampling_interval;
-        if revised > period.as_secs_f64() * 1000.0 + 1e-6 {
+        if revised > ask.period.as_secs_f64() * 1000.0 + 1e-6 {
             return Err(format!(
                 "the server samples {} every {revised} ms, slower than the period",
                 r.node_id
@@ -145,7 +221,7 @@ pub(crate) async fn subscribe(
             );
         }
     }
-    Ok(latest)
+    Ok(())
 }
 
 #[cfg(test)]
@@ -163,7 +239,17 @@ mod tests {
             1,
             "slower than 100 ms: every publication"
         );
-        assert_eq!(stale_after(ms(10)), ms(300));
-        assert_eq!(stale_after(ms(500)), ms(1500));
+        assert_eq!(stale_after(ms(10), keep_alive_count(ms(10))), ms(300));
+        assert_eq!(stale_after(ms(500), 1), ms(1500));
+        assert_eq!(
+            stale_after(ms(50), 20),
+            ms(3000),
+            "as the server revised them"
+        );
+        assert_eq!(
+            stale_after(ms(10), 0),
+            ms(30),
+            "a keep-alive count of 0 read as 1"
+        );
     }
 }
