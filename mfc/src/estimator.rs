@@ -490,18 +490,22 @@ impl<const CAP: usize> Estimator<CAP> {
         self.config.intervals().clamp(1, CAP)
     }
 
+    fn wrap(&self, i: usize) -> usize {
+        wrap(i, self.slots())
+    }
+
     fn evict(&mut self) {
         let old = self.ring[self.head];
         let m = Moments::of(&old, self.primary.anchor);
         self.primary.sums.add(&m, -1.0);
-        self.head = (self.head + 1) % self.slots();
+        self.head = self.wrap(self.head + 1);
         self.len -= 1;
     }
 
     fn insert(&mut self, iv: Interval) {
         let index = self.next_index;
         self.next_index += 1;
-        let slot = (self.head + self.len) % self.slots();
+        let slot = self.wrap(self.head + self.len);
         self.ring[slot] = iv;
         self.len += 1;
         if self.len == 1 {
@@ -528,7 +532,7 @@ impl<const CAP: usize> Estimator<CAP> {
     }
 
     fn interval(&self, k: usize) -> &Interval {
-        &self.ring[(self.head + k) % self.slots()]
+        &self.ring[self.wrap(self.head + k)]
     }
 
     fn update_lowpass(&mut self) {
@@ -614,6 +618,31 @@ impl<const CAP: usize> Estimator<CAP> {
                     have: self.samples(),
                     need: need + 1,
                 })
+            }
+        }
+    }
+}
+
+/// `i % n`, without the division in the usual case: every index the ring takes is below
+/// twice its slots (a head inside them plus at most a window), and a 64-bit division was
+/// a tenth of a control step.
+fn wrap(i: usize, n: usize) -> usize {
+    if i < n {
+        i
+    } else if i < 2 * n {
+        i - n
+    } else {
+        i % n
+    }
+}
+
+#[cfg(test)]
+mod ring_tests {
+    #[test]
+    fn wrapping_is_the_remainder() {
+        for n in 1..=12 {
+            for i in 0..5 * n {
+                assert_eq!(super::wrap(i, n), i % n, "{i} % {n}");
             }
         }
     }

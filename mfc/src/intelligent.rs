@@ -369,7 +369,11 @@ impl<const CAP: usize> IntelligentController<CAP> {
         let e = y - r.y;
         let de = dy - r.dy;
         if let Some(dt) = dt {
-            self.bump *= decay(dt, p.bumpless_time_constant);
+            // A bump is rare (a change of gains or a start from another law), and its
+            // decay costs an exp: none once it is gone.
+            if self.bump != 0.0 {
+                self.bump *= decay(dt, p.bumpless_time_constant);
+            }
             self.integrate(e, dt);
         }
         self.rest = match (self.rest, dt) {

@@ -455,6 +455,12 @@ async fn controller_crash_and_restart() {
     // plant's clock start apart by the session's set-up, longer on a busy machine.)
     assert!(rec.t[back] > rec.t[first_fb]);
     let pitch = worst(&rec, 1, 0.0, f64::INFINITY);
+    eprintln!(
+        "worst pitch error: {pitch:.4} rad; before the kill {:.4}, fallback to remote again {:.4}, after {:.4}",
+        worst(&rec, 1, 0.0, rec.t[first_fb]),
+        worst(&rec, 1, rec.t[first_fb], rec.t[back]),
+        worst(&rec, 1, rec.t[back], f64::INFINITY)
+    );
     assert!(pitch < 0.05, "pitch error reached {pitch} rad");
     assert!(rec.traces[1].y.iter().all(|y| y.abs() < 1.0), "pitch stop");
     assert_eq!(report.limit_hits, 0);
