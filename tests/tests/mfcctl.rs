@@ -146,6 +146,24 @@ async fn the_operator_reads_and_changes_a_running_device() {
     service.stop().await.unwrap();
 }
 
+/// Wait (10 s at most) until aero-1's plant has granted its lease to someone: a
+/// commissioning run needs it, and the plant grants it a few periods after it starts
+/// (later on a loaded machine).
+async fn wait_for_the_lease(ep: &str) {
+    for _ in 0..200 {
+        let status = ctl(ep, &["--json", "status", "aero-1"]).await.unwrap();
+        let status: serde_json::Value = serde_json::from_str(&status).unwrap();
+        if status["lease_holder"]
+            .as_str()
+            .is_some_and(|h| !h.is_empty())
+        {
+            return;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+    }
+    panic!("the plant never granted its lease");
+}
+
 /// `mfcctl commission` on a live AERO whose pitch `α` is ten times too large: the service
 /// excites the pitch, proposes the `α` it found, and puts it in force on `--yes`; the
 /// audit trail names who started and who confirmed, and shows the gain that moved.
@@ -182,6 +200,7 @@ async fn the_operator_commissions_alpha_on_the_live_plant() {
     let status = ctl(&ep, &["--json", "status", "aero-1"]).await.unwrap();
     let status: serde_json::Value = serde_json::from_str(&status).unwrap();
     assert!(status["commission"].is_null(), "no run: {status}");
+    wait_for_the_lease(&ep).await;
     let run = [
         "--operator",
         "alice",
