@@ -85,11 +85,32 @@ fn agent_to(scenario: &Path, out: &Path, stderr: Stdio) -> Child {
 }
 
 fn wait_for_the_loop(server: &Server, user: Option<(&str, &str)>) {
+    wait_for_an_input(|| server.node("Applied", user));
+}
+
+/// Wait (60 s at most) until `applied` reads other than 0: the agent's loop wrote.
+fn wait_for_an_input(applied: impl Fn() -> f64) {
     let until = Instant::now() + Duration::from_secs(60);
-    while server.node("Applied", user) == 0.0 {
+    while applied() == 0.0 {
         assert!(Instant::now() < until, "the agent never wrote an input");
         std::thread::sleep(Duration::from_millis(200));
     }
+}
+
+/// SIGTERM to the agent a second into its loop: it exits 3 (no controller), its run
+/// interrupted, the safe stop applied, after more than 50 periods.
+fn interrupted_after_a_second(child: &mut Child, out: &Path) {
+    std::thread::sleep(Duration::from_secs(1));
+    let status = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    assert_eq!(wait(child, Duration::from_secs(30)), 3);
+    let s = summary(out);
+    assert_eq!(s["end"], "interrupted", "{s}");
+    assert_eq!(s["safe_stop_applied"], true, "{s}");
+    assert!(s["counters"]["periods"].as_u64().unwrap() > 50, "{s}");
 }
 
 #[test]
@@ -100,17 +121,7 @@ fn sigterm_leaves_the_safe_value_in_the_servers_input_node() {
     let out = dir.join("out");
     let mut child = agent(&scenario(&dir, server.port, 0, 60.0, user), &out);
     wait_for_the_loop(&server, user);
-    std::thread::sleep(Duration::from_secs(1));
-    let status = Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
-    assert_eq!(wait(&mut child, Duration::from_secs(30)), 3);
-    let s = summary(&out);
-    assert_eq!(s["end"], "interrupted", "{s}");
-    assert_eq!(s["safe_stop_applied"], true, "{s}");
-    assert!(s["counters"]["periods"].as_u64().unwrap() > 50, "{s}");
+    interrupted_after_a_second(&mut child, &out);
     assert_eq!(server.node("Input", user), SAFE);
     assert_eq!(server.node("Applied", user), SAFE, "the plant applies it");
 }
@@ -381,22 +392,8 @@ fn a_secure_server_is_reached_once_each_side_trusts_the_other() {
         cert: user.clone(),
         key: key.clone(),
     };
-    let until = Instant::now() + Duration::from_secs(60);
-    while server.node_with(&spec, "Applied") == 0.0 {
-        assert!(Instant::now() < until, "the agent never wrote an input");
-        std::thread::sleep(Duration::from_millis(200));
-    }
-    std::thread::sleep(Duration::from_secs(1));
-    let status = Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
-    assert_eq!(wait(&mut child, Duration::from_secs(30)), 3);
-    let s = summary(&out);
-    assert_eq!(s["end"], "interrupted", "{s}");
-    assert_eq!(s["safe_stop_applied"], true, "{s}");
-    assert!(s["counters"]["periods"].as_u64().unwrap() > 50, "{s}");
+    wait_for_an_input(|| server.node_with(&spec, "Applied"));
+    interrupted_after_a_second(&mut child, &out);
     assert_eq!(server.node_with(&spec, "Input"), SAFE);
 
     // No security asked of a server that has none to offer, and a stranger for a user.
