@@ -20,7 +20,7 @@ use mfc::Reference;
 use plant::record::{Accumulator, ChannelMetrics};
 use plant::scenario::{ControllerSet, Scenario};
 use plant_agent::safety::{
-    IncomingCommand, PeriodBegin, SafetyConfig, Supervisor, SupervisorCounters, Verdict,
+    IncomingCommand, LoopMode, PeriodBegin, SafetyConfig, Supervisor, SupervisorCounters, Verdict,
 };
 use plant_agent::wire::sample_flags;
 use protocol::{pb, PROTOCOL_VERSION};
@@ -82,6 +82,25 @@ impl LinkModel {
     }
 }
 
+/// The service killed (kill -9) and started again from its last snapshot, as the
+/// crash-and-restart fault test does in real time.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ServiceCrash {
+    /// Plant time (s) of the kill: samples after it reach no one.
+    pub kill: f64,
+    /// Plant time (s) of the restart, from the last snapshot taken before the kill.
+    pub restart: f64,
+    /// How long (s) after the restart its samples still reach no one (in production:
+    /// until the plant's Zenoh session has found the new process).
+    pub unseen: f64,
+    /// How long (s) after the restart the agent still ignores the service's commands
+    /// while it hears its samples (in production: until the plant grants the new
+    /// process its lease).
+    pub unheard: f64,
+    /// Snapshot interval (s); the service's `snapshots.interval_ms`.
+    pub snapshot_every: f64,
+}
+
 /// What a run gave.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct NetRun {
@@ -94,6 +113,9 @@ pub struct NetRun {
     /// Samples the link lost, and commands.
     pub samples_lost: u64,
     pub commands_lost: u64,
+    /// With a [`ServiceCrash`]: the plant time (s) remote control resumed after it, and
+    /// per channel the largest tracking error from then on.
+    pub after_restart: Option<(f64, Vec<f64>)>,
 }
 
 #[derive(Debug)]
@@ -113,6 +135,19 @@ pub fn simulate_net(
     link: &LinkModel,
     safety: SafetyConfig,
 ) -> Result<NetRun, RunError> {
+    simulate_crash(scenario, controller, prediction, link, safety, None)
+}
+
+/// [`simulate_net`], with the service killed and restarted from its snapshot if `crash`
+/// says so.
+pub fn simulate_crash(
+    scenario: &Scenario,
+    controller: &ControllerSet,
+    prediction: Prediction,
+    link: &LinkModel,
+    safety: SafetyConfig,
+    crash: Option<ServiceCrash>,
+) -> Result<NetRun, RunError> {
     link.check().map_err(|reason| RunError::Link { reason })?;
     scenario.check_controller(controller)?;
     let n = scenario.channels.len();
@@ -121,7 +156,7 @@ pub fn simulate_net(
     for d in &mut config.devices {
         d.prediction = prediction;
     }
-    let mut registry = Registry::new(config).map_err(lockstep_error)?;
+    let mut service = Service::new(config, crash)?;
     let mut plant = plant::open(&scenario.plant, scenario.seed, n)?;
     let initial = plant.write(&vec![0.0; n])?;
     let mut sup = Supervisor::new(safety, &scenario.channel_configs(controller), initial)
@@ -133,8 +168,10 @@ pub fn simulate_net(
     let mut last_rtt_us = 0u32;
     let mut previous: VecDeque<(f64, Vec<f64>, Vec<f64>)> =
         VecDeque::with_capacity(protocol::RESENT_SAMPLES);
+    let mut after_restart: Option<(f64, Vec<f64>)> = None;
     for k in 0..scenario.steps() {
         let t = k as f64 * h;
+        service.tick(t)?;
         let y = plant.read()?;
         for (r, c) in refs.iter_mut().zip(&scenario.channels) {
             *r = evaluate(&c.reference, t);
@@ -155,16 +192,15 @@ pub fn simulate_net(
         while let Some((at, event)) = net.next_before(ns(t + h)) {
             match event {
                 Event::Sample(s) => {
-                    let mut cmd = pb::Command::default();
-                    if registry
-                        .handle_sample(Via::key(&id), &s, at, &mut cmd)
-                        .answered()
-                    {
+                    if let Some(cmd) = service.answer(&id, &s, at) {
                         net.send_command(at, cmd, s.plant_time);
                     }
                 }
                 Event::Command(cmd, sent) => {
                     let now = at as f64 * 1e-9;
+                    if service.unheard(now) {
+                        continue;
+                    }
                     last_rtt_us = ((now - sent) * 1e6).round().clamp(1.0, u32::MAX as f64) as u32;
                     let (verdict, _) = sup.on_command(now - t, IncomingCommand::from_wire(&cmd));
                     if let Verdict::Apply { v, advance, .. } = verdict {
@@ -181,6 +217,17 @@ pub fn simulate_net(
         for (i, c) in scenario.channels.iter().enumerate() {
             acc[i].add(y[i] - refs[i].y, h, applied[i], c.saturated(applied[i]));
         }
+        if crash.is_some_and(|c| t > c.restart) {
+            let worst = after_restart.get_or_insert_with(|| (f64::NAN, vec![0.0; n]));
+            if worst.0.is_nan() && sup.mode() == LoopMode::Remote {
+                worst.0 = t;
+            }
+            if !worst.0.is_nan() {
+                for (w, (y, r)) in worst.1.iter_mut().zip(y.iter().zip(&refs)) {
+                    *w = w.max((y - r.y).abs());
+                }
+            }
+        }
     }
     plant.stop()?;
     Ok(NetRun {
@@ -189,7 +236,83 @@ pub fn simulate_net(
         counters: sup.counters().clone(),
         samples_lost: net.samples_lost,
         commands_lost: net.commands_lost,
+        after_restart,
     })
+}
+
+/// The service in lockstep, with its crash if any: alive until the kill, dead until the
+/// restart, then a new registry restored from the last snapshot before the kill.
+struct Service {
+    config: controller_service::config::ServiceConfig,
+    registry: Option<Registry>,
+    crash: Option<ServiceCrash>,
+    snapshots: Vec<controller_service::snapshot::DeviceSnapshot>,
+    next_snapshot: f64,
+    restarted: bool,
+}
+
+impl Service {
+    fn new(
+        config: controller_service::config::ServiceConfig,
+        crash: Option<ServiceCrash>,
+    ) -> Result<Self, RunError> {
+        Ok(Self {
+            registry: Some(Registry::new(config.clone()).map_err(lockstep_error)?),
+            config,
+            crash,
+            snapshots: Vec::new(),
+            next_snapshot: 0.0,
+            restarted: false,
+        })
+    }
+
+    /// At plant time `t`: snapshot, kill or restart when due.
+    fn tick(&mut self, t: f64) -> Result<(), RunError> {
+        let Some(c) = self.crash else {
+            return Ok(());
+        };
+        if let Some(r) = self.registry.as_ref().filter(|_| t >= self.next_snapshot) {
+            self.snapshots = r.snapshots();
+            self.next_snapshot += c.snapshot_every;
+        }
+        if !self.restarted && t >= c.kill && self.registry.is_some() {
+            self.registry = None;
+        }
+        if !self.restarted && t >= c.restart {
+            let mut r = Registry::new(self.config.clone()).map_err(lockstep_error)?;
+            for s in &self.snapshots {
+                r.restore(s).map_err(lockstep_error)?;
+            }
+            self.registry = Some(r);
+            self.restarted = true;
+            self.next_snapshot = t + c.snapshot_every;
+        }
+        Ok(())
+    }
+
+    /// The answer to sample `s` arriving at `at` (ns), if the service is up and answers.
+    fn answer(&mut self, id: &str, s: &pb::Sample, at: u64) -> Option<pb::Command> {
+        if self
+            .crash
+            .is_some_and(|c| at as f64 * 1e-9 < c.restart + c.unseen)
+            && self.restarted
+        {
+            return None;
+        }
+        let mut cmd = pb::Command::default();
+        self.registry
+            .as_mut()?
+            .handle_sample(Via::key(id), s, at, &mut cmd)
+            .answered()
+            .then_some(cmd)
+    }
+
+    /// The agent ignores commands arriving at `now` (s): the restarted service is not yet
+    /// its controller.
+    fn unheard(&self, now: f64) -> bool {
+        self.crash
+            .is_some_and(|c| self.restarted && now < c.restart + c.unheard)
+    }
 }
 
 fn lockstep_error(e: impl std::fmt::Display) -> RunError {

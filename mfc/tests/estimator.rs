@@ -260,9 +260,9 @@ fn trapezoid_rule_is_biased_exact_weights_are_not() {
     }
 }
 
-/// With `first_window`, the estimator answers from that many intervals on while its window
-/// fills, over the samples it has, and the answer is exact for a constant F there too; after
-/// a gap restarts the window, the same again. Without it, nothing before the window is full.
+/// With `first_window`, the estimator answers from that many intervals on while its first
+/// window fills, over the samples it has, and the answer is exact for a constant F there
+/// too. Without it, nothing before the window is full.
 #[test]
 fn first_window_answers_early_and_exactly() {
     for (n, order) in [(1u8, Order::One), (2, Order::Two)] {
@@ -303,6 +303,35 @@ fn first_window_answers_early_and_exactly() {
             assert_eq!(late.estimate(order).is_ok(), k >= 20, "{order:?} k={k}");
         }
     }
+}
+
+/// After a gap that restarts the window, or a reset, `first_window` no longer applies: the
+/// plant was under another law meanwhile, so the estimator waits for the whole window.
+#[test]
+fn first_window_is_for_the_first_window_only() {
+    let cfg = EstimatorConfig {
+        window: 10,
+        first_window: 3,
+        max_interval: 0.1,
+        ..Default::default()
+    };
+    let ready_after = |est: &mut Estimator, t0: f64| {
+        (1..=10)
+            .find(|k| {
+                est.push(t0 + f64::from(*k) * 0.01, 0.0, 0.0).unwrap();
+                est.estimate(Order::Two).is_ok()
+            })
+            .unwrap()
+    };
+    let mut est: Estimator = Estimator::new(cfg, Order::Two).unwrap();
+    est.push(0.0, 0.0, 0.0).unwrap();
+    assert_eq!(ready_after(&mut est, 0.0), 3, "the first window");
+    // A gap longer than max_interval restarts the window at its sample.
+    est.push(1.0, 0.0, 0.0).unwrap();
+    assert_eq!(ready_after(&mut est, 1.0), 10, "after a gap");
+    est.reset();
+    est.push(2.0, 0.0, 0.0).unwrap();
+    assert_eq!(ready_after(&mut est, 2.0), 10, "after a reset");
 }
 
 /// `first_window` is checked: at least the order's minimal kernel, at most the window, and
