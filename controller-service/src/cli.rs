@@ -203,7 +203,8 @@ pub fn observers(config: &ServiceConfig) -> Result<(Observers, Vec<protocol::pb:
     let metrics = config.metrics.as_ref().map(|spec| {
         std::sync::Arc::new(ServiceMetrics::new(
             telemetry::Metrics::new(),
-            spec.per_device,
+            &config.controller_id,
+            spec,
             recording.clone(),
         ))
     });

@@ -394,8 +394,10 @@ pub struct ServiceConfig {
     /// Narrowing is always allowed. Default false: only this file widens an envelope.
     #[serde(default)]
     pub allow_remote_widening: bool,
-    /// A Prometheus endpoint (absent: none). `metrics = { listen = "127.0.0.1:9464",
-    /// per_device = true }`; see `telemetry::MetricsSpec`.
+    /// A Prometheus endpoint (absent: none). `metrics = { listen = "127.0.0.1:9464" }`:
+    /// service-wide series only, whatever the number of devices; `devices = ["aero-1"]`
+    /// or `per_device = true` (up to `max_devices`) add series of their own; see
+    /// `telemetry::MetricsSpec`.
     #[serde(default)]
     pub metrics: Option<telemetry::MetricsSpec>,
     /// Record samples, commands, configuration changes and events to an MCAP file (absent:
@@ -589,6 +591,9 @@ impl ServiceConfig {
         }
         if let Some(a) = &self.access {
             a.check().map_err(invalid)?;
+        }
+        if let Some(m) = &self.metrics {
+            m.check().map_err(|e| invalid(("metrics".into(), e)))?;
         }
         if let Some(a) = &self.audit {
             if a.rotate_bytes < 4096 || a.keep == 0 {

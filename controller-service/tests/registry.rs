@@ -193,6 +193,9 @@ fn bad_config_files_are_refused() {
         ("[[devices]]\nid = \"x\"\n[[devices.channels]]\nbounds = { kp = [2.0, 1.0] }", "bounds.kp"),
         ("[[devices]]\nid = \"x\"\n[[devices.channels]]\nrange = [1.0, -1.0]", "devices[0].channels[0].range"),
         ("[[devices]]\nid = \"x\"\n[[devices.channels]]\nrange = [-1.0, 1.0]\nreference = [{ kind = \"constant\", value = 2.0 }]", "outside the channel's range"),
+        ("[metrics]\nworst = 5000", "metrics.worst = 5000"),
+        ("[metrics]\ndevices = [\"a\", \"b\"]\nmax_devices = 1", "max_devices = 1"),
+        ("[metrics]\nper_device = 1", "per_device"),
     ] {
         let e = ServiceConfig::parse("svc.toml", text).unwrap_err().to_string();
         assert!(e.contains("svc.toml") && e.contains(needle), "{needle}: {e}");

@@ -103,6 +103,40 @@ pub enum Cmd {
         #[arg(long)]
         auth: bool,
     },
+    /// A real Prometheus server scraping the service while it serves plants through
+    /// gateways: series, exposition size and scrape time for the default metrics and
+    /// for series on every device, beside a service without metrics. Writes scrape.json
+    /// and scrape.md.
+    Scrape(ScrapeArgs),
+}
+
+/// `loadgen scrape`'s arguments.
+#[derive(clap::Args)]
+pub struct ScrapeArgs {
+    /// Where the results go.
+    #[arg(long, default_value = "loadgen-results/scrape")]
+    out: PathBuf,
+    /// The controller-service binary (default: beside this program).
+    #[arg(long)]
+    service_bin: Option<PathBuf>,
+    /// The Prometheus server.
+    #[arg(long, default_value = "prometheus")]
+    prometheus: PathBuf,
+    /// Plants (ids load-0 ... load-{N-1}).
+    #[arg(long, default_value_t = 10_000)]
+    devices: usize,
+    /// Gateways sharing them.
+    #[arg(long, default_value_t = 10)]
+    gateways: usize,
+    /// Samples per plant per second.
+    #[arg(long, default_value_t = 100.0)]
+    rate: f64,
+    /// Prometheus's scrape interval (s).
+    #[arg(long, default_value_t = 5.0)]
+    interval: f64,
+    /// How long the plants run (s).
+    #[arg(long, default_value_t = 30.0)]
+    duration: f64,
 }
 
 /// Parse `args`, run, and return the exit code.
@@ -230,6 +264,43 @@ async fn run(cli: LoadgenCli) -> Result<()> {
             println!("{}", crate::bench::markdown(&r));
             eprintln!("results in {}", out.display());
         }
+        Cmd::Scrape(args) => scrape(args).await?,
     }
+    Ok(())
+}
+
+async fn scrape(args: ScrapeArgs) -> Result<()> {
+    let ScrapeArgs {
+        out,
+        service_bin,
+        prometheus,
+        devices,
+        gateways,
+        rate,
+        interval,
+        duration,
+    } = args;
+    let me = std::env::current_exe().context("locating this program")?;
+    let spec = crate::scrape::ScrapeSpec {
+        service_bin: service_bin.unwrap_or_else(|| me.with_file_name("controller-service")),
+        prometheus_bin: prometheus,
+        devices,
+        gateways,
+        rate_hz: rate,
+        interval: secs("interval", interval)?,
+        duration: secs("duration", duration)?,
+        variants: vec![
+            ("none".into(), None),
+            ("default".into(), Some(String::new())),
+            (
+                "per_device".into(),
+                Some(format!("per_device = true\nmax_devices = {devices}")),
+            ),
+        ],
+        out: out.clone(),
+    };
+    let r = crate::scrape::run(&spec).await?;
+    println!("{}", crate::scrape::markdown(&spec, &r));
+    eprintln!("results in {}", out.display());
     Ok(())
 }

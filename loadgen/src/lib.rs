@@ -9,6 +9,8 @@
 //! * [`bench`]: the benchmark, which starts the service and the anchor as processes of
 //!   their own, one at a time, runs the generator against each, reads their CPU time from
 //!   `/proc`, and sweeps the number of devices for the largest that stays in the period.
+//! * [`scrape`]: a real Prometheus server scraping the service while it serves thousands
+//!   of plants: series, exposition size and scrape time per metrics configuration.
 //! * [`stats`]: the latency histogram and the `/proc` readings.
 //!
 //! The generator and the benchmark are timing instruments: nothing here is a pass/fail
@@ -19,4 +21,5 @@ pub mod bench;
 pub mod cli;
 pub mod echo;
 pub mod gen;
+pub mod scrape;
 pub mod stats;

@@ -99,8 +99,9 @@ pub async fn demo(
     if let Some(addr) = &options.metrics {
         config.metrics = Some(telemetry::MetricsSpec {
             listen: addr.clone(),
+            // A demo's few plants: each with series of its own.
             per_device: true,
-            tls: None,
+            ..telemetry::MetricsSpec::default()
         });
     }
     let board = std::sync::Arc::new(ProgressBoard::new());

@@ -283,7 +283,7 @@ pub async fn start(
         let am = Arc::new(AgentMetrics::new(Metrics::new()));
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
         // The loops store their figures every period: nothing to refresh at a scrape.
-        let refresh: telemetry::prom::Refresh = Arc::new(|| Box::pin(async {}));
+        let refresh: telemetry::prom::Refresh = Arc::new(|| Box::pin(async { String::new() }));
         let (_, serve) = telemetry::serve_metrics(spec, am.metrics().clone(), refresh, async {
             let _ = rx.await;
         })

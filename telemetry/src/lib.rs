@@ -12,7 +12,7 @@
 pub mod prom;
 pub mod record;
 
-pub use prom::{serve_metrics, Metrics, MetricsError, MetricsSpec, MetricsTls};
+pub use prom::{serve_metrics, FixedHistogram, Metrics, MetricsError, MetricsSpec, MetricsTls};
 pub use record::{
     read_recording, topic_name, RecordError, RecordSpec, RecordSummary, Recorded, Recording,
     RecordingContents, Topic,

@@ -138,6 +138,25 @@ async fn status_and_scrape_agree(
     assert!(text.contains(&format!(
         "mfc_device_loop_rtt_seconds_bucket{{{dl},le=\"0.01\"}}"
     )));
+    // The service-wide series: every device's counters summed, and histograms over every
+    // sample (here the one device's, all in once the plant has stopped).
+    for (name, want) in [
+        ("mfc_devices_samples_total", d.samples),
+        ("mfc_devices_commands_total", d.commands),
+        ("mfc_devices_lost_total", d.lost),
+        ("mfc_service_device_series", 1),
+    ] {
+        assert_eq!(m[&format!("{name}{sl}")], want as f64, "{name}");
+    }
+    assert_eq!(
+        m[&format!("mfc_devices_remote{sl}")],
+        get("mfc_device_remote")
+    );
+    assert_eq!(m[&format!("mfc_service_loop_rtt_seconds_count{sl}")], rtts);
+    assert_eq!(
+        m[&format!("mfc_service_sample_cpu_seconds_count{sl}")],
+        cpus
+    );
     (d.clone(), text)
 }
 
@@ -157,8 +176,11 @@ fn dashboard_plots_what_is_exported(exposed: &str) {
             for word in expr.split(|c: char| !(c.is_ascii_alphanumeric() || c == '_')) {
                 if word.starts_with("mfc_") {
                     plotted += 1;
+                    // A series, or a family declared with none yet (the worst devices when
+                    // none missed a sample).
                     assert!(
-                        exposed.contains(&format!("\n{word}")),
+                        exposed.contains(&format!("\n{word}"))
+                            || exposed.contains(&format!("# TYPE {word} ")),
                         "the dashboard plots {word}, which nothing exports"
                     );
                 }
@@ -280,8 +302,8 @@ async fn metrics_match_the_status_and_a_recording_decodes_and_replays() {
     let mut config = service_config(&s, &c, &["aero-1".into()]);
     config.metrics = Some(telemetry::MetricsSpec {
         listen: "127.0.0.1:0".into(),
-        per_device: true,
-        tls: None,
+        devices: vec!["aero-1".into()],
+        ..telemetry::MetricsSpec::default()
     });
     config.record = Some(RecordSpec::at(dir.join("service.mcap")));
     let service = ServiceHandle::start(config, None).await.unwrap();
@@ -369,8 +391,9 @@ async fn the_service_binary_serves_metrics_and_finishes_its_recording_on_sigterm
             .unwrap();
         assert!(run.report.controller_reached);
         // The plant has stopped; the last of its samples may still be in the service's
-        // inbox: read until two scrapes agree.
-        let key = "mfc_device_samples_total{controller=\"controller-1\",device=\"aero-1\"}";
+        // inbox: read until two scrapes agree. By default the service-wide series only:
+        // every device's samples summed.
+        let key = "mfc_devices_samples_total{controller=\"controller-1\"}";
         let mut served = -1.0;
         for _ in 0..50 {
             let now = samples(&scrape(metrics.parse().unwrap()).await)[key];

@@ -128,12 +128,13 @@ async fn prometheus_scrapes_over_tls_with_a_client_certificate_only() {
     );
     config.metrics = Some(telemetry::MetricsSpec {
         listen: format!("127.0.0.1:{port}"),
-        per_device: true,
+        devices: vec!["aero-1".into()],
         tls: Some(telemetry::MetricsTls {
             cert_file: ours.join("router/router.pem"),
             key_file: ours.join("router/router.key"),
             client_ca_file: ours.join("ca/ca.pem"),
         }),
+        ..telemetry::MetricsSpec::default()
     });
     let service = mfc_lab::harness::ServiceHandle::start(config, None)
         .await

@@ -613,6 +613,15 @@ impl Registry {
             .map_or(crate::lease::Holder::Unknown, |d| d.claimer.holder)
     }
 
+    /// Every device's numbers (its status without the parts that allocate or sort: no id,
+    /// round trips, estimates, envelope or strings), in no order: a metrics scrape sums
+    /// them over ten thousand devices without holding up the worker for long.
+    pub fn for_each_counters(&self, mut f: impl FnMut(&str, &pb::DeviceStatus)) {
+        for (k, d) in &self.devices {
+            f(k.as_str(), &d.counters_pb());
+        }
+    }
+
     /// Status of one device.
     pub fn device_status(&self, id: &str) -> Option<pb::DeviceStatus> {
         self.devices.get(id).map(|d| d.status_pb(id))
@@ -621,14 +630,26 @@ impl Registry {
     /// Status of the whole service, `uptime` in seconds. It reports `active` true and term
     /// 0, and none of the inbox's drops: the caller fills those in.
     pub fn service_status(&self, uptime: f64) -> pb::ServiceStatus {
+        self.service_status_where(uptime, |_| true)
+    }
+
+    /// [`Self::service_status`] with only the devices `keep` says in `devices`.
+    pub fn service_status_where(
+        &self,
+        uptime: f64,
+        keep: impl Fn(&str) -> bool,
+    ) -> pb::ServiceStatus {
+        let mut devices: Vec<(&str, &Device)> = self
+            .devices
+            .iter()
+            .map(|(k, d)| (k.as_str(), &**d))
+            .filter(|(id, _)| keep(id))
+            .collect();
+        devices.sort_unstable_by(|a, b| a.0.cmp(b.0));
         pb::ServiceStatus {
             version: PROTOCOL_VERSION,
             controller_id: self.controller_id.clone(),
-            devices: self
-                .sorted()
-                .into_iter()
-                .map(|(id, d)| d.status_pb(id))
-                .collect(),
+            devices: devices.into_iter().map(|(id, d)| d.status_pb(id)).collect(),
             unknown_samples: self.unknown_samples,
             unknown_devices: self.unknown_devices.iter().cloned().collect(),
             undecodable: self.undecodable,

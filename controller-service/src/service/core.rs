@@ -312,7 +312,11 @@ impl Core {
 
     /// A device's state is gone from here: its histograms go with it.
     pub(super) fn forget(&mut self, dev: &str) {
-        self.watch.histograms.remove(dev);
+        if self.watch.histograms.remove(dev).flatten().is_some() {
+            if let Some(m) = &self.watch.metrics {
+                m.forget(dev);
+            }
+        }
     }
 }
 
@@ -422,16 +426,21 @@ impl Watch {
         log_ns: u64,
     ) {
         if let Some(m) = &self.metrics {
-            let h = self
-                .histograms
-                .entry(dev.to_string())
-                .or_insert_with(|| m.device(&self.controller, dev));
-            if let Some(h) = h {
-                if sample.last_rtt_us > 0 {
-                    h.rtt.record(f64::from(sample.last_rtt_us) * 1e-6);
+            let rtt = (sample.last_rtt_us > 0).then(|| f64::from(sample.last_rtt_us) * 1e-6);
+            m.served(rtt, cpu);
+            // With the service-wide series only, no lookup per sample.
+            if m.per_device_series() {
+                if !self.histograms.contains_key(dev) {
+                    let h = m.device(&self.controller, dev);
+                    self.histograms.insert(dev.to_string(), h);
                 }
-                if let Some(c) = cpu {
-                    h.cpu.record(c);
+                if let Some(Some(h)) = self.histograms.get(dev) {
+                    if let Some(r) = rtt {
+                        h.rtt.record(r);
+                    }
+                    if let Some(c) = cpu {
+                        h.cpu.record(c);
+                    }
                 }
             }
         }

@@ -293,9 +293,15 @@ impl Worker {
     }
 
     /// The metrics endpoint asks for this worker's status.
-    fn handle_scrape(&self, reply: ScrapeRequest) {
-        let _ = reply.send(Scraped {
-            status: self.service_status(),
+    fn handle_scrape(&self, req: ScrapeRequest) {
+        let status = self.service_status_where(|id| req.detail.contains(id));
+        let mut tally = crate::observe::Tally::default();
+        lock(&self.shared.core)
+            .registry
+            .for_each_counters(|id, d| tally.add(id, d));
+        let _ = req.reply.send(Scraped {
+            status,
+            tally,
             inbox: lock(&self.shared.inbox).len(),
             gateways: lock(&self.shared.gateways).len(),
             queue: self.tx.max_capacity() - self.tx.capacity(),
@@ -365,10 +371,15 @@ impl Worker {
     /// The worker's status as a `ServiceStatus` query gets it: the registry's, with the
     /// drops counted before anything reached the worker and the standby and fleet state.
     pub(super) fn service_status(&self) -> pb::ServiceStatus {
+        self.service_status_where(|_| true)
+    }
+
+    /// [`Self::service_status`] with only the devices `keep` says.
+    fn service_status_where(&self, keep: impl Fn(&str) -> bool) -> pb::ServiceStatus {
         let shared = &self.shared;
         let core = lock(&shared.core);
         let registry = &core.registry;
-        let mut s = registry.service_status(self.started.elapsed().as_secs_f64());
+        let mut s = registry.service_status_where(self.started.elapsed().as_secs_f64(), keep);
         let (superseded, full) = {
             let ib = lock(&shared.inbox);
             (ib.superseded(), ib.full())
