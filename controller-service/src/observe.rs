@@ -9,7 +9,7 @@
 //!
 //! Recordings are written by `telemetry`'s thread; here is only what to record and when.
 
-use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
+use std::collections::{BTreeSet, HashMap, HashSet};
 use std::fmt::Write as _;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
@@ -299,7 +299,7 @@ const SERVICE_COUNTERS: &[(&str, &str, Field<pb::ServiceStatus>)] = &[
     ),
 ];
 
-/// Gauges of a worker's report, summed over the workers of a controller id.
+/// Gauges of a worker's report.
 const SERVICE_GAUGES: &[(&str, Field<Scraped>)] = &[
     ("mfc_service_devices", |w| w.tally.devices),
     ("mfc_devices_remote", |w| w.tally.remote),
@@ -317,7 +317,8 @@ const TROUBLE: u32 = pb::SampleFlags::Holding as u32
     | pb::SampleFlags::SafeStop as u32;
 
 /// How long a scrape waits for a worker; a worker that does not answer in time (stuck, or
-/// stopping) keeps the figures of its last answer.
+/// stopping) keeps the recorder's figures of its last answer, its sums are left out of
+/// that scrape, and its devices keep their counts for the worst list.
 pub const SCRAPE_TIMEOUT: Duration = Duration::from_secs(2);
 
 impl ServiceMetrics {
@@ -329,9 +330,8 @@ impl ServiceMetrics {
         spec: &MetricsSpec,
         recording: Option<Recording>,
     ) -> Self {
-        for (name, sum, help, _) in DEVICE_COUNTERS {
+        for (name, _, help, _) in DEVICE_COUNTERS {
             metrics.describe(name, None, help);
-            metrics.describe(sum, None, help);
         }
         for (name, help, _) in SERVICE_COUNTERS {
             metrics.describe(name, None, help);
@@ -447,10 +447,12 @@ impl ServiceMetrics {
     pub fn device(&self, controller: &str, device: &str) -> Option<DeviceHistograms> {
         if !self.named.contains(device) {
             let mut chosen = locked(&self.chosen);
-            if !self.spec.per_device || chosen.len() >= self.spec.max_devices {
-                return None;
+            if !chosen.contains(device) {
+                if !self.spec.per_device || chosen.len() >= self.spec.max_devices {
+                    return None;
+                }
+                chosen.insert(device.to_string());
             }
-            chosen.insert(device.to_string());
         }
         let labels = [("controller", controller), ("device", device)];
         Some(DeviceHistograms {
@@ -475,6 +477,7 @@ impl ServiceMetrics {
     /// what is rendered here (the service-wide histograms, the worst devices).
     pub async fn refresh(&self) -> String {
         let workers: Vec<_> = locked(&self.workers).clone();
+        let asked = workers.len();
         let detail = Arc::new(locked(&self.chosen).clone());
         let mut scraped = Vec::with_capacity(workers.len());
         for w in workers {
@@ -487,12 +490,12 @@ impl ServiceMetrics {
                 scraped.push(s);
             }
         }
-        self.apply(&scraped)
+        self.apply(&scraped, scraped.len() == asked)
     }
 
     /// Copy what the workers reported into the recorder, and return the text rendered
-    /// here (no I/O: unit-tested).
-    pub fn apply(&self, scraped: &[Scraped]) -> String {
+    /// here (no I/O: unit-tested). `all`: every worker answered.
+    pub fn apply(&self, scraped: &[Scraped], all: bool) -> String {
         self.apply_service(scraped);
         for w in scraped {
             let c = w.status.controller_id.as_str();
@@ -517,37 +520,39 @@ impl ServiceMetrics {
             ("mfc_service_sample_cpu_seconds", CPU_HELP),
             &labels,
         );
-        self.render_worst(&mut out, scraped, &labels);
+        Self::render_sums(&mut out, scraped);
+        self.render_worst(&mut out, (scraped, all), &labels);
         out
     }
 
-    /// The service-wide series: each worker's counters and gauges, summed over the
-    /// workers of a controller id, and every device's counters summed.
+    /// The service-wide series of the recorder: each worker's counters and gauges, labelled
+    /// with its id.
     fn apply_service(&self, scraped: &[Scraped]) {
         let m = &self.metrics;
-        let mut by_id: BTreeMap<&str, Vec<&Scraped>> = BTreeMap::new();
         for w in scraped {
-            by_id.entry(&w.status.controller_id).or_default().push(w);
-        }
-        for (c, ws) in by_id {
-            let sl = [("controller", c)];
-            let sum = |f: &dyn Fn(&Scraped) -> u64| ws.iter().map(|w| f(w)).sum::<u64>();
+            let sl = [("controller", w.status.controller_id.as_str())];
             for (name, _, get) in SERVICE_COUNTERS {
-                m.counter(name, &sl).absolute(sum(&|w| get(&w.status)));
-            }
-            for (i, (_, name, _, _)) in DEVICE_COUNTERS.iter().enumerate() {
-                let total = sum(&|w| w.tally.sums.get(i).copied().unwrap_or(0));
-                m.counter(name, &sl).absolute(total);
+                m.counter(name, &sl).absolute(get(&w.status));
             }
             for (name, get) in SERVICE_GAUGES {
-                let v = sum(get);
-                // Active if any worker answers (they share the standby's state).
-                let v = if *name == "mfc_service_active" {
-                    v.min(1)
-                } else {
-                    v
-                };
-                m.gauge(name, &sl).set(v as f64);
+                m.gauge(name, &sl).set(get(w) as f64);
+            }
+        }
+    }
+
+    /// `mfc_devices_*_total`, per worker: rendered here rather than through the recorder,
+    /// whose counters only rise, because a sum falls when a device leaves (Prometheus
+    /// takes the fall for a counter reset).
+    fn render_sums(out: &mut String, scraped: &[Scraped]) {
+        for (i, (_, name, help, _)) in DEVICE_COUNTERS.iter().enumerate() {
+            let _ = writeln!(
+                out,
+                "# HELP {name} Over every device this worker answers: {help}\n# TYPE {name} counter"
+            );
+            for w in scraped {
+                let total = w.tally.sums.get(i).copied().unwrap_or(0);
+                let c = label_value(&w.status.controller_id);
+                let _ = writeln!(out, "{name}{{controller=\"{c}\"}} {total}");
             }
         }
     }
@@ -576,18 +581,22 @@ impl ServiceMetrics {
 
     /// `mfc_worst_device_missed`: the `worst` devices by samples missed since the previous
     /// scrape (none that missed nothing), most first.
-    fn render_worst(&self, out: &mut String, scraped: &[Scraped], labels: &str) {
+    fn render_worst(&self, out: &mut String, (scraped, all): (&[Scraped], bool), labels: &str) {
         let mut previous = locked(&self.missed);
+        // A device in two reports (moving between workers): its larger count.
         let mut now: HashMap<String, u64> = HashMap::with_capacity(previous.len());
-        let mut worst: Vec<(u64, &str)> = Vec::new();
         for (id, missed) in scraped.iter().flat_map(|w| &w.tally.missed) {
+            let e = now.entry(id.clone()).or_insert(0);
+            *e = (*e).max(*missed);
+        }
+        let mut worst: Vec<(u64, &str)> = Vec::new();
+        for (id, missed) in &now {
             // A count below the last one is a new run of the device: all of it is new.
             let before = previous.get(id).copied().filter(|b| b <= missed);
             let delta = missed - before.unwrap_or(0);
             if delta > 0 {
                 worst.push((delta, id));
             }
-            now.insert(id.clone(), *missed);
         }
         let n = self.spec.worst.min(worst.len());
         if n > 0 {
@@ -603,6 +612,12 @@ impl ServiceMetrics {
                 "{name}{{{labels},device=\"{}\"}} {delta}",
                 label_value(id)
             );
+        }
+        // A worker that did not answer keeps its devices' counts for the next scrape.
+        if !all {
+            for (id, missed) in previous.drain() {
+                now.entry(id).or_insert(missed);
+            }
         }
         *previous = now;
     }
@@ -656,15 +671,15 @@ mod tests {
         }
     }
 
-    /// A worker's answer for `devices`, the whole status of those in `detail`.
-    fn scraped(devices: &[pb::DeviceStatus], detail: &[&str]) -> Scraped {
+    /// Worker `id`'s answer for `devices`, the whole status of those in `detail`.
+    fn scraped(id: &str, devices: &[pb::DeviceStatus], detail: &[&str]) -> Scraped {
         let mut tally = Tally::default();
         for d in devices {
             tally.add(&d.device_id, d);
         }
         Scraped {
             status: pb::ServiceStatus {
-                controller_id: "c1".into(),
+                controller_id: id.into(),
                 active: true,
                 queue_full: 3,
                 devices: devices
@@ -703,7 +718,7 @@ mod tests {
         assert!(sm.device("c1", "aero-1").is_some());
         assert!(sm.device("c1", "aero-2").is_none(), "not named");
         let d = [device("aero-1", 2, 1, pb::SampleFlags::Fallback as u32)];
-        let extra = sm.apply(&[scraped(&d, &["aero-1"])]);
+        let extra = sm.apply(&[scraped("c1", &d, &["aero-1"])], true);
         let t = sm.metrics().render() + &extra;
         for line in [
             "mfc_device_samples_total{controller=\"c1\",device=\"aero-1\"} 100",
@@ -724,7 +739,7 @@ mod tests {
         let mut d = d;
         d[0].samples = 150;
         d[0].lost = 4;
-        let extra = sm.apply(&[scraped(&d, &["aero-1"])]);
+        let extra = sm.apply(&[scraped("c1", &d, &["aero-1"])], true);
         let t = sm.metrics().render() + &extra;
         for line in [
             "mfc_device_samples_total{controller=\"c1\",device=\"aero-1\"} 150",
@@ -754,21 +769,23 @@ mod tests {
             assert!(sm.device("c1", &format!("load-{i}")).is_none());
         }
         let (a, b) = all.split_at(5_000);
-        let extra = sm.apply(&[scraped(a, &[]), scraped(b, &[])]);
+        let extra = sm.apply(&[scraped("c1.w0", a, &[]), scraped("c1.w1", b, &[])], true);
         let t = sm.metrics().render() + &extra;
         let n = series(&t).len();
         assert!(n < 200, "{n} series:\n{t}");
-        let lost: u64 = (0..10_000u64).map(|i| i % 37).sum();
+        let lost: u64 = (0..5_000u64).map(|i| i % 37).sum();
         for line in [
-            "mfc_service_devices{controller=\"c1\"} 10000".to_string(),
-            "mfc_devices_remote{controller=\"c1\"} 7500".into(),
-            "mfc_devices_samples_total{controller=\"c1\"} 1000000".into(),
-            format!("mfc_devices_lost_total{{controller=\"c1\"}} {lost}"),
+            "mfc_service_devices{controller=\"c1.w0\"} 5000".to_string(),
+            "mfc_service_devices{controller=\"c1.w1\"} 5000".into(),
+            "mfc_devices_remote{controller=\"c1.w0\"} 3750".into(),
+            "mfc_devices_samples_total{controller=\"c1.w1\"} 500000".into(),
+            format!("mfc_devices_lost_total{{controller=\"c1.w0\"}} {lost}"),
             "mfc_service_loop_rtt_seconds_count{controller=\"c1\"} 10000".into(),
             "mfc_service_loop_rtt_seconds_bucket{controller=\"c1\",le=\"0.002\"} 10000".into(),
             "mfc_service_loop_rtt_seconds_bucket{controller=\"c1\",le=\"0.001\"} 0".into(),
             "mfc_service_sample_cpu_seconds_count{controller=\"c1\"} 10000".into(),
-            "mfc_service_device_series{controller=\"c1\"} 0".into(),
+            "mfc_service_device_series{controller=\"c1.w0\"} 0".into(),
+            "# TYPE mfc_devices_lost_total counter".into(),
         ] {
             assert!(t.lines().any(|l| l == line), "missing {line} in\n{t}");
         }
@@ -782,8 +799,61 @@ mod tests {
         assert!(worst.iter().all(|l| l.ends_with(" 36")), "{worst:?}");
         assert!(worst[0].contains("device=\"load-1035\""), "{worst:?}");
         // Nothing missed since: no worst device at the next scrape.
-        let extra = sm.apply(&[scraped(a, &[]), scraped(b, &[])]);
+        let extra = sm.apply(&[scraped("c1.w0", a, &[]), scraped("c1.w1", b, &[])], true);
         assert!(!extra.contains("mfc_worst_device_missed{"), "{extra}");
+    }
+
+    /// A sum falls when a device leaves (the recorder's counters would stay at their peak);
+    /// a worker that did not answer does not turn its devices' whole history into misses
+    /// at the next scrape; a device in two reports (moving between workers) is one of the
+    /// worst once.
+    #[test]
+    fn sums_fall_and_the_worst_devices_survive_a_silent_worker_and_a_move() {
+        let sm = ServiceMetrics::new(Metrics::new(), "c1", &MetricsSpec::default(), None);
+        let (a, b) = (device("a", 5, 0, 0), device("b", 7, 0, 0));
+        let line = |t: &str, name: &str| {
+            t.lines()
+                .find(|l| l.starts_with(name))
+                .map(str::to_string)
+                .unwrap_or_default()
+        };
+        let t = sm.apply(&[scraped("w0", &[a.clone(), b.clone()], &[])], true);
+        assert_eq!(
+            line(&t, "mfc_devices_lost_total{"),
+            "mfc_devices_lost_total{controller=\"w0\"} 12"
+        );
+        let t = sm.apply(&[scraped("w0", std::slice::from_ref(&a), &[])], true);
+        assert_eq!(
+            line(&t, "mfc_devices_lost_total{"),
+            "mfc_devices_lost_total{controller=\"w0\"} 5"
+        );
+        // A fresh service: w1 (holding b) does not answer once: b keeps its count; then b
+        // is in both reports, with 2 more.
+        let sm = ServiceMetrics::new(Metrics::new(), "c1", &MetricsSpec::default(), None);
+        let _ = sm.apply(
+            &[
+                scraped("w0", std::slice::from_ref(&a), &[]),
+                scraped("w1", &[b], &[]),
+            ],
+            true,
+        );
+        let _ = sm.apply(&[scraped("w0", std::slice::from_ref(&a), &[])], false);
+        let b9 = device("b", 9, 0, 0);
+        let t = sm.apply(
+            &[
+                scraped("w0", &[a.clone(), b9.clone()], &[]),
+                scraped("w1", &[b9], &[]),
+            ],
+            true,
+        );
+        let worst: Vec<&str> = t
+            .lines()
+            .filter(|l| l.starts_with("mfc_worst_device_missed{"))
+            .collect();
+        assert_eq!(
+            worst,
+            ["mfc_worst_device_missed{controller=\"c1\",device=\"b\"} 2"]
+        );
     }
 
     #[test]
@@ -797,6 +867,10 @@ mod tests {
             got,
             [true, true, false, true],
             "named counts toward the cap, and always gets its series"
+        );
+        assert!(
+            sm.device("c1", "a").is_some(),
+            "asked again (on another worker)"
         );
         sm.forget("a");
         assert!(sm.device("c1", "c").is_some(), "a's place");

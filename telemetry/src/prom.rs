@@ -17,7 +17,8 @@ use metrics_exporter_prometheus::{
 };
 use serde::{Deserialize, Serialize};
 
-/// Where and what to export.
+/// Where and what to export. `per_device`, `devices`, `max_devices` and `worst` choose
+/// the controller service's series; an agent or a gateway exports every plant it runs.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MetricsSpec {
@@ -28,7 +29,7 @@ pub struct MetricsSpec {
     pub listen: String,
     /// Series per device (counters, round-trip and CPU histograms, F estimates) for every
     /// device, up to `max_devices` of them (the first to send a sample). Default false:
-    /// each device costs about 50 series, and Prometheus's guidance is to keep unbounded
+    /// each device costs about 53 series, and Prometheus's guidance is to keep unbounded
     /// sets such as device ids out of labels; the service-wide series (histograms over all
     /// devices, counters summed, the `worst` devices) say how the fleet does, and a
     /// device's detail is in `mfcctl status` and the console.
@@ -254,8 +255,9 @@ pub struct FixedHistogram {
     bounds: &'static [f64],
     /// Per bucket (not cumulative), the last one past every bound.
     counts: Vec<std::sync::atomic::AtomicU64>,
-    /// Sum of the values in nanounits (seconds: nanoseconds), rounded.
-    sum_nano: std::sync::atomic::AtomicU64,
+    /// Sum of the values, an `f64`'s bits (an integer count of nanoseconds would wrap in
+    /// about a hundred days at a million samples a second of 2 ms).
+    sum_bits: std::sync::atomic::AtomicU64,
 }
 
 impl FixedHistogram {
@@ -266,7 +268,7 @@ impl FixedHistogram {
             counts: (0..=bounds.len())
                 .map(|_| std::sync::atomic::AtomicU64::new(0))
                 .collect(),
-            sum_nano: std::sync::atomic::AtomicU64::new(0),
+            sum_bits: std::sync::atomic::AtomicU64::new(0f64.to_bits()),
         }
     }
 
@@ -277,7 +279,9 @@ impl FixedHistogram {
         let i = self.bounds.partition_point(|b| *b < v);
         self.counts[i].fetch_add(1, Relaxed);
         if v > 0.0 {
-            self.sum_nano.fetch_add((v * 1e9).round() as u64, Relaxed);
+            let _ = self.sum_bits.fetch_update(Relaxed, Relaxed, |b| {
+                Some((f64::from_bits(b) + v).to_bits())
+            });
         }
     }
 
@@ -303,7 +307,7 @@ impl FixedHistogram {
                 .map_or_else(|| "+Inf".to_string(), |b| b.to_string());
             let _ = writeln!(out, "{name}_bucket{{{labels}{sep}le=\"{le}\"}} {total}");
         }
-        let sum = self.sum_nano.load(Relaxed) as f64 / 1e9;
+        let sum = f64::from_bits(self.sum_bits.load(Relaxed));
         let braces = |l: &str| {
             if l.is_empty() {
                 String::new()

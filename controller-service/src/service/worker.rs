@@ -294,11 +294,8 @@ impl Worker {
 
     /// The metrics endpoint asks for this worker's status.
     fn handle_scrape(&self, req: ScrapeRequest) {
-        let status = self.service_status_where(|id| req.detail.contains(id));
         let mut tally = crate::observe::Tally::default();
-        lock(&self.shared.core)
-            .registry
-            .for_each_counters(|id, d| tally.add(id, d));
+        let status = self.service_status_where(|id| req.detail.contains(id), Some(&mut tally));
         let _ = req.reply.send(Scraped {
             status,
             tally,
@@ -371,11 +368,16 @@ impl Worker {
     /// The worker's status as a `ServiceStatus` query gets it: the registry's, with the
     /// drops counted before anything reached the worker and the standby and fleet state.
     pub(super) fn service_status(&self) -> pb::ServiceStatus {
-        self.service_status_where(|_| true)
+        self.service_status_where(|_| true, None)
     }
 
-    /// [`Self::service_status`] with only the devices `keep` says.
-    fn service_status_where(&self, keep: impl Fn(&str) -> bool) -> pb::ServiceStatus {
+    /// [`Self::service_status`] with only the devices `keep` says, and into `tally` the
+    /// numbers of every device this worker answers for (at the same instant: one lock).
+    fn service_status_where(
+        &self,
+        keep: impl Fn(&str) -> bool,
+        tally: Option<&mut crate::observe::Tally>,
+    ) -> pb::ServiceStatus {
         let shared = &self.shared;
         let core = lock(&shared.core);
         let registry = &core.registry;
@@ -413,10 +415,23 @@ impl Worker {
         s.superseded = superseded;
         s.active = self.standby.active;
         s.term = self.standby.term;
+        // A fleet member (a worker among several too) keeps every device's state warm but
+        // answers only for its shards: the others are not its to report.
+        let answers = |id: &str| {
+            self.member
+                .as_ref()
+                .is_none_or(|m| registry.home_of(id).is_some_and(|h| m.fleet.answers(h)))
+        };
+        if let Some(t) = tally {
+            registry.for_each_counters(|id, d| {
+                if answers(id) {
+                    t.add(id, d);
+                }
+            });
+        }
         if let Some(m) = &self.member {
             let f = &m.fleet;
-            s.devices
-                .retain(|d| registry.home_of(&d.device_id).is_some_and(|h| f.answers(h)));
+            s.devices.retain(|d| answers(&d.device_id));
             s.owned_shards = (0..protocol::SHARDS).filter(|&x| f.answers(x)).collect();
             s.fleet_members = f.members().iter().cloned().collect();
         }
