@@ -88,13 +88,50 @@ async fn get(port: u16, path: &str) -> Option<String> {
     Some(text.split_once("\r\n\r\n")?.1.to_string())
 }
 
-/// The value of the first result of an instant query on Prometheus at `port`.
-async fn query(port: u16, q: &str) -> Option<f64> {
-    let body = get(port, &format!("/api/v1/query?query={q}")).await?;
+/// `GET path` on the HTTP API of the Prometheus server at `port` on loopback: its JSON
+/// body, or `None` on any failure.
+pub async fn prometheus_api(port: u16, path: &str) -> Option<serde_json::Value> {
+    let body = get(port, path).await?;
     // A chunked body starts with its size line: take the JSON object inside.
     let json = &body[body.find('{')?..=body.rfind('}')?];
-    let v: serde_json::Value = serde_json::from_str(json).ok()?;
+    serde_json::from_str(json).ok()
+}
+
+/// The value of the first result of an instant query on Prometheus at `port`.
+async fn query(port: u16, q: &str) -> Option<f64> {
+    let v = prometheus_api(port, &format!("/api/v1/query?query={q}")).await?;
     v["data"]["result"][0]["value"][1].as_str()?.parse().ok()
+}
+
+/// A Prometheus server of its own, killed when dropped: configuration `yml`, its data
+/// and log (`prometheus.log`) in `dir`, its web and API on `127.0.0.1:{web}`.
+pub struct Prometheus(Reaped);
+
+impl Prometheus {
+    /// Start `binary` (its data directory emptied first).
+    pub fn start(binary: &Path, dir: &Path, yml: &str, web: u16) -> std::io::Result<Self> {
+        std::fs::write(dir.join("prometheus.yml"), yml)?;
+        let _ = std::fs::remove_dir_all(dir.join("data"));
+        let child = Command::new(binary)
+            .arg(format!(
+                "--config.file={}",
+                dir.join("prometheus.yml").display()
+            ))
+            .arg(format!(
+                "--storage.tsdb.path={}",
+                dir.join("data").display()
+            ))
+            .arg(format!("--web.listen-address=127.0.0.1:{web}"))
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(dir.join("prometheus.log"))?)
+            .spawn()?;
+        Ok(Self(Reaped(child)))
+    }
+
+    /// Its process id.
+    pub fn pid(&self) -> u32 {
+        self.0 .0.id()
+    }
 }
 
 /// Run every variant in turn; the results, also written to `out/scrape.json` and
@@ -173,7 +210,7 @@ async fn variant(
     let series = query(wport, job).await;
     let prometheus_scrape_s = query(wport, "scrape_duration_seconds%7Bjob%3D%22mfc%22%7D").await;
     let head_series = query(wport, "prometheus_tsdb_head_series").await;
-    let prometheus_rss = crate::stats::rss_bytes(prometheus.0.id());
+    let prometheus_rss = crate::stats::rss_bytes(prometheus.pid());
     let mut times = Vec::new();
     let mut bytes = 0;
     for _ in 0..3 {
@@ -203,28 +240,13 @@ fn start_prometheus(
     dir: &Path,
     mport: u16,
     wport: u16,
-) -> anyhow::Result<Reaped> {
+) -> anyhow::Result<Prometheus> {
     let secs = spec.interval.as_secs_f64();
     let yml = format!(
         "global:\n  scrape_interval: {secs}s\n  scrape_timeout: {secs}s\nscrape_configs:\n  - job_name: mfc\n    static_configs:\n      - targets: [\"127.0.0.1:{mport}\"]\n  - job_name: prometheus\n    static_configs:\n      - targets: [\"127.0.0.1:{wport}\"]\n"
     );
-    std::fs::write(dir.join("prometheus.yml"), yml)?;
-    let _ = std::fs::remove_dir_all(dir.join("data"));
-    let child = Command::new(&spec.prometheus_bin)
-        .arg(format!(
-            "--config.file={}",
-            dir.join("prometheus.yml").display()
-        ))
-        .arg(format!(
-            "--storage.tsdb.path={}",
-            dir.join("data").display()
-        ))
-        .arg(format!("--web.listen-address=127.0.0.1:{wport}"))
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(dir.join("prometheus.log"))?)
-        .spawn();
-    match child {
-        Ok(c) => Ok(Reaped(c)),
+    match Prometheus::start(&spec.prometheus_bin, dir, &yml, wport) {
+        Ok(p) => Ok(p),
         Err(e) => bail!(
             "starting {} ({e}): `loadgen scrape` needs a Prometheus server (apt-get install prometheus, or --prometheus PATH)",
             spec.prometheus_bin.display()

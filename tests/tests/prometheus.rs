@@ -5,19 +5,11 @@
 //! the PATH the test installs Debian's package itself when it runs as root (as the browser
 //! test installs chromium), and otherwise fails saying how to install it.
 
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::Duration;
 
+use loadgen::scrape::{prometheus_api, Prometheus};
 use system_tests::{scratch_dir, SERIAL};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-
-struct Reaped(Child);
-impl Drop for Reaped {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
 
 /// A fleet's PKI in `dir`: a CA, a server certificate for 127.0.0.1 (the router's role)
 /// and a client certificate (an operator's).
@@ -29,27 +21,11 @@ fn pki(dir: &std::path::Path) {
     mfc_deploy::generate(&inv, dir, &[], time::OffsetDateTime::now_utc()).unwrap();
 }
 
-/// `GET path` on Prometheus's HTTP API; the JSON body.
-async fn api(port: u16, path: &str) -> Option<serde_json::Value> {
-    let mut s = tokio::net::TcpStream::connect(("127.0.0.1", port))
-        .await
-        .ok()?;
-    let req = format!("GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n");
-    s.write_all(req.as_bytes()).await.ok()?;
-    let mut buf = Vec::new();
-    s.read_to_end(&mut buf).await.ok()?;
-    let text = String::from_utf8(buf).ok()?;
-    let body = text.split_once("\r\n\r\n")?.1;
-    // Prometheus answers small bodies whole; a chunked one starts with its size line.
-    let json = &body[body.find('{')?..=body.rfind('}')?];
-    serde_json::from_str(json).ok()
-}
-
 /// Every target's job, health and last error, once each has been scraped.
 async fn targets(port: u16) -> Vec<(String, String, String)> {
     let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
     loop {
-        if let Some(v) = api(port, "/api/v1/targets").await {
+        if let Some(v) = prometheus_api(port, "/api/v1/targets").await {
             let active = v["data"]["activeTargets"]
                 .as_array()
                 .cloned()
@@ -165,23 +141,8 @@ async fn prometheus_scrapes_over_tls_with_a_client_certificate_only() {
         job("other-fleet", "https", &cert(&theirs)),
         job("plain", "http", ""),
     );
-    std::fs::write(dir.join("prometheus.yml"), yml).unwrap();
     let web = transport::free_local_port().unwrap();
-    let _prom = Command::new(&prometheus)
-        .arg(format!(
-            "--config.file={}",
-            dir.join("prometheus.yml").display()
-        ))
-        .arg(format!(
-            "--storage.tsdb.path={}",
-            dir.join("data").display()
-        ))
-        .arg(format!("--web.listen-address=127.0.0.1:{web}"))
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(dir.join("prometheus.log")).unwrap())
-        .spawn()
-        .map(Reaped)
-        .unwrap();
+    let _prom = Prometheus::start(std::path::Path::new(&prometheus), &dir, &yml, web).unwrap();
 
     let got = targets(web).await;
     let health = |job: &str| got.iter().find(|(j, _, _)| j == job).cloned().unwrap();
@@ -196,7 +157,7 @@ async fn prometheus_scrapes_over_tls_with_a_client_certificate_only() {
     // job with the certificate only.
     let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
     let series = loop {
-        let v = api(web, "/api/v1/query?query=mfc_service_devices").await;
+        let v = prometheus_api(web, "/api/v1/query?query=mfc_service_devices").await;
         let r = v
             .as_ref()
             .and_then(|v| v["data"]["result"].as_array().cloned())

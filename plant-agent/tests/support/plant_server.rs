@@ -190,3 +190,18 @@ pub fn wait(child: &mut Child, limit: Duration) -> i32 {
 pub fn summary(out: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap()
 }
+
+/// A run whose server was restarted under it: it completed (the bridge reconnected),
+/// applied its safe stop, and the outage cost periods. `what` names the case.
+pub fn went_on_after_the_reconnection(out: &Path, what: &str) {
+    let s = summary(out);
+    assert_eq!(
+        s["end"], "completed",
+        "{what}: the run went on after the reconnection: {s}"
+    );
+    assert_eq!(s["safe_stop_applied"], true, "{what}: {s}");
+    assert!(
+        s["overruns"].as_u64().unwrap() > 0,
+        "{what}: the outage cost periods: {s}"
+    );
+}
