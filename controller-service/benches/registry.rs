@@ -166,3 +166,31 @@ fn lone_decode_encode(b: divan::Bencher, authenticated: bool) {
         });
     });
 }
+
+/// A fleet's handover of a thousand devices (every shard's state, as an owner hands them
+/// to a member joining): taken from the owner, encoded, decoded and restored on the
+/// newcomer. Divide by 1000 for the cost per device; `docs/scale.md` scales it to a shard of
+/// a million-plant plan.
+#[divan::bench]
+fn thousand_devices_handed_over(b: divan::Bencher) {
+    let config = || ServiceConfig::parse("bench", CONFIG).unwrap();
+    let mut owner = Registry::new(config()).unwrap();
+    let mut out = pb::Command::default();
+    for k in 1..=20 {
+        for s in samples(1000, k) {
+            owner.handle_sample(Via::key(&s.device_id), &s, 0, &mut out);
+        }
+    }
+    b.bench_local(|| {
+        let mut newcomer = Registry::new(config()).unwrap();
+        let mut restored = 0;
+        for shard in 0..protocol::SHARDS {
+            let state = owner.shard_state(shard);
+            let bytes = controller_service::snapshot::encode_shard(&state).unwrap();
+            let state = controller_service::snapshot::decode_shard(&bytes).unwrap();
+            restored += newcomer.restore_shard(&state).restored;
+        }
+        assert_eq!(restored, 1000);
+        newcomer
+    });
+}

@@ -18,8 +18,9 @@ use mfc::trajectory::Piece;
 /// keeps its estimate's trend, for predictions. 6: a handed device carries its
 /// configuration's version and whether the sender holds its lease. 7: a handed device
 /// carries its latest audit entries. 8: the estimators' `first_window`, the intelligent
-/// laws' `hold_band` and the sign they hold.
-pub const SNAPSHOT_VERSION: u32 = 8;
+/// laws' `hold_band` and the sign they hold. 9: an estimator's ring is the window's
+/// length (was the capacity's), and its shadow sums about the running sum's anchor.
+pub const SNAPSHOT_VERSION: u32 = 9;
 
 /// What a device snapshot holds.
 #[derive(Debug, Clone, Encode, Decode)]
@@ -71,10 +72,11 @@ pub fn encode(s: &DeviceSnapshot) -> Result<Vec<u8>, SnapshotError> {
     Ok(bincode::encode_to_vec(s, bincode::config::standard())?)
 }
 
-/// Decode a snapshot; never panics on any input.
+/// Decode a snapshot; never panics on any input, never allocates past
+/// [`mfc::snapshot::MAX_STATE`].
 pub fn decode(bytes: &[u8]) -> Result<DeviceSnapshot, SnapshotError> {
-    let (s, _): (DeviceSnapshot, usize) =
-        bincode::decode_from_slice(bytes, bincode::config::standard())?;
+    let cfg = bincode::config::standard().with_limit::<{ mfc::snapshot::MAX_STATE }>();
+    let (s, _): (DeviceSnapshot, usize) = bincode::decode_from_slice(bytes, cfg)?;
     if s.version != SNAPSHOT_VERSION {
         return Err(SnapshotError::Version(s.version));
     }

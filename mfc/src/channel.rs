@@ -232,7 +232,7 @@ impl<const CAP: usize> Channel<CAP> {
         r: &Reference,
         input: Option<f64>,
     ) -> Result<ChannelOutput> {
-        self.check(t, y, r)?;
+        // Each law checks its inputs before it changes anything.
         let (u, f_est, error, warming_up) = match &mut self.law {
             Law::Intelligent(c) => {
                 let o = c.step(t, y, r)?;

@@ -361,7 +361,7 @@ impl<const CAP: usize> IntelligentController<CAP> {
     pub fn step(&mut self, t: f64, y: f64, r: &Reference) -> Result<IntelligentOutput> {
         self.check(t, y, r)?;
         let dt = self.last_t.map(|t0| t - t0);
-        self.estimator.push(t, y, self.applied)?;
+        self.estimator.record(t, y, self.applied);
         self.last_t = Some(t);
         let p = self.params;
         let filtered = self.derivative.update(t, y, p.derivative_filter);
@@ -392,19 +392,8 @@ impl<const CAP: usize> IntelligentController<CAP> {
             }
             Ok(lin) => {
                 let lin = self.smooth(dt, lin);
-                let old = p.law(lin.at(p.alpha), r, e, de, self.integral) + self.bump;
-                let old = if self.bumpless_start {
-                    // Start from what the plant is applying now: after a long warm-up (a
-                    // restart), the plant may have moved on from the value held at first.
-                    self.hold = self.applied;
-                    self.bumpless_start = false;
-                    self.bump = self.hold - (old - self.bump);
-                    self.hold
-                } else {
-                    old
-                };
-                if let Some(new) = self.pending.take() {
-                    self.switch(new, lin, old, r, e, de);
+                if self.bumpless_start || self.pending.is_some() {
+                    self.start_or_switch(lin, r, e, de);
                 }
                 let p = self.params;
                 let f = lin.at(p.alpha);
@@ -415,6 +404,27 @@ impl<const CAP: usize> IntelligentController<CAP> {
         self.last_u = u;
         self.applied = u;
         Ok(IntelligentOutput { u, f_est, error: e })
+    }
+
+    /// The first estimate after a bumpless start, or a pending change of parameters:
+    /// the output the law in force gives now is the one the next law starts from (the
+    /// difference fades out as `bump`, or goes into the integral, see [`Self::switch`]).
+    fn start_or_switch(&mut self, lin: LinearEstimate, r: &Reference, e: f64, de: f64) {
+        let p = self.params;
+        let old = p.law(lin.at(p.alpha), r, e, de, self.integral) + self.bump;
+        let old = if self.bumpless_start {
+            // Start from what the plant is applying now: after a long warm-up (a
+            // restart), the plant may have moved on from the value held at first.
+            self.hold = self.applied;
+            self.bumpless_start = false;
+            self.bump = self.hold - (old - self.bump);
+            self.hold
+        } else {
+            old
+        };
+        if let Some(new) = self.pending.take() {
+            self.switch(new, lin, old, r, e, de);
+        }
     }
 
     /// The state a prediction starts from, after a step that estimated `f`: the last

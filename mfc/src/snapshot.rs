@@ -41,12 +41,58 @@ macro_rules! snapshot_struct {
     };
 }
 
-snapshot_struct!(Estimator { config, ring, head, len, next_index, last, primary, shadow, lowpass }
-check |e: &Estimator<CAP>| if e.head < e.config.intervals().clamp(1, CAP) && e.len <= e.config.intervals().min(CAP) && e.next_index >= e.len as u64 {
-    Ok(())
-} else {
-    Err(DecodeError::Other("estimator ring indices out of range"))
-});
+impl<const CAP: usize> Encode for Estimator<CAP> {
+    fn encode<E: Encoder>(&self, e: &mut E) -> Result<(), EncodeError> {
+        self.config.encode(e)?;
+        // The slots in use (the window's, not the capacity's), length first.
+        let slots = self.config.intervals().clamp(1, CAP);
+        (slots as u64).encode(e)?;
+        for i in 0..slots {
+            self.ring[i].encode(e)?;
+        }
+        self.head.encode(e)?;
+        self.len.encode(e)?;
+        self.next_index.encode(e)?;
+        self.last.encode(e)?;
+        self.primary.encode(e)?;
+        self.shadow.encode(e)?;
+        self.lowpass.encode(e)
+    }
+}
+
+impl<Ctx, const CAP: usize> Decode<Ctx> for Estimator<CAP> {
+    fn decode<D: Decoder<Context = Ctx>>(d: &mut D) -> Result<Self, DecodeError> {
+        let config: crate::EstimatorConfig = Decode::decode(d)?;
+        let slots = config.intervals().clamp(1, CAP);
+        // The ring's length is checked before anything is allocated for it.
+        let n = u64::decode(d)?;
+        if n != slots as u64 {
+            return Err(invalid("estimator ring not the window's length"));
+        }
+        let mut ring = [crate::estimator::Interval::default(); CAP];
+        for slot in &mut ring[..slots] {
+            *slot = Decode::decode(d)?;
+        }
+        let e = Self {
+            config,
+            ring,
+            head: Decode::decode(d)?,
+            len: Decode::decode(d)?,
+            next_index: Decode::decode(d)?,
+            last: Decode::decode(d)?,
+            primary: Decode::decode(d)?,
+            shadow: Decode::decode(d)?,
+            lowpass: Decode::decode(d)?,
+        };
+        if e.head < slots && e.len <= e.config.intervals().min(CAP) && e.next_index >= e.len as u64
+        {
+            Ok(e)
+        } else {
+            Err(invalid("estimator ring indices out of range"))
+        }
+    }
+}
+
 snapshot_struct!(IntelligentController {
     params,
     pending,
@@ -178,9 +224,18 @@ pub fn to_bytes<T: Encode>(state: &T) -> Result<alloc::vec::Vec<u8>, EncodeError
     bincode::encode_to_vec(state, bincode::config::standard())
 }
 
-/// Decode state encoded by [`to_bytes`]; refuses trailing bytes.
+/// Bincode's limit for [`from_bytes`]: the bytes read plus, for each container, its
+/// claimed length times its element's size in memory, so that a length claimed by
+/// corrupted or hostile bytes is refused before anything is allocated for it. 16 MiB: some
+/// 1400 channels of the default capacity (11.3 KiB each in memory), far more than a device
+/// has (a sample's outputs fit `protocol::MAX_PAYLOAD`, 64 KiB).
+pub const MAX_STATE: usize = 16 << 20;
+
+/// Decode state encoded by [`to_bytes`]; refuses trailing bytes, and never allocates past
+/// [`MAX_STATE`].
 pub fn from_bytes<T: Decode<()>>(bytes: &[u8]) -> Result<T, DecodeError> {
-    let (v, used) = bincode::decode_from_slice(bytes, bincode::config::standard())?;
+    let config = bincode::config::standard().with_limit::<MAX_STATE>();
+    let (v, used) = bincode::decode_from_slice(bytes, config)?;
     if used != bytes.len() {
         return Err(DecodeError::Other("trailing bytes after the snapshot"));
     }
