@@ -390,8 +390,8 @@ impl Moments {
 #[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
 pub(crate) struct Accumulator {
     anchor: f64,
-    first: u64,
-    active: bool,
+    pub(crate) first: u64,
+    pub(crate) active: bool,
     sums: Moments,
 }
 

@@ -84,12 +84,28 @@ impl<Ctx, const CAP: usize> Decode<Ctx> for Estimator<CAP> {
             shadow: Decode::decode(d)?,
             lowpass: Decode::decode(d)?,
         };
-        if e.head < slots && e.len <= e.config.intervals().min(CAP) && e.next_index >= e.len as u64
-        {
-            Ok(e)
-        } else {
-            Err(invalid("estimator ring indices out of range"))
-        }
+        check_estimator(&e, slots)?;
+        Ok(e)
+    }
+}
+
+/// What a decoded estimator must hold before it may step: a configuration it could have
+/// been built with, ring indices inside the window, a shadow sum that will replace the
+/// running one (it started inside the window), and a sample count far from overflowing.
+fn check_estimator<const CAP: usize>(e: &Estimator<CAP>, slots: usize) -> Result<(), DecodeError> {
+    if e.config.validate(crate::Order::One, CAP).is_err() {
+        return Err(invalid("estimator configuration invalid"));
+    }
+    let indices = e.head < slots
+        && e.len <= e.config.intervals().min(CAP)
+        && e.next_index >= e.len as u64
+        && e.next_index < 1 << 62;
+    let oldest = e.next_index.wrapping_sub(e.len as u64);
+    let shadow = !e.shadow.active || (oldest..=e.next_index).contains(&e.shadow.first);
+    if indices && shadow {
+        Ok(())
+    } else {
+        Err(invalid("estimator ring indices out of range"))
     }
 }
 
@@ -240,4 +256,51 @@ pub fn from_bytes<T: Decode<()>>(bytes: &[u8]) -> Result<T, DecodeError> {
         return Err(DecodeError::Other("trailing bytes after the snapshot"));
     }
     Ok(v)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{from_bytes, to_bytes};
+    use crate::{Estimator, EstimatorConfig, Order};
+
+    fn warm() -> Estimator {
+        let mut e: Estimator = Estimator::new(
+            EstimatorConfig {
+                window: 10,
+                ..Default::default()
+            },
+            Order::One,
+        )
+        .unwrap();
+        for k in 0..25 {
+            e.push(f64::from(k) * 0.01, f64::from(k).sin(), 0.5)
+                .unwrap();
+        }
+        e
+    }
+
+    /// A state that decodes but could not have been reached is refused: each tampering
+    /// alone, on a state that decodes as it is.
+    #[test]
+    fn unreachable_estimator_states_are_refused() {
+        let e = warm();
+        assert!(from_bytes::<Estimator>(&to_bytes(&e).unwrap()).is_ok());
+        // An empty estimator, whose indices any window admits.
+        let mut window_zero: Estimator =
+            Estimator::new(EstimatorConfig::default(), Order::One).unwrap();
+        window_zero.config.window = 0;
+        let mut overflowing = e.clone();
+        overflowing.next_index = u64::MAX;
+        let mut stale_shadow = e.clone();
+        stale_shadow.shadow.active = true;
+        stale_shadow.shadow.first = stale_shadow.next_index - stale_shadow.len as u64 - 1;
+        for (what, bad) in [
+            ("window 0", window_zero),
+            ("count about to overflow", overflowing),
+            ("shadow started before the window", stale_shadow),
+        ] {
+            let bytes = to_bytes(&bad).unwrap();
+            assert!(from_bytes::<Estimator>(&bytes).is_err(), "{what} decoded");
+        }
+    }
 }
