@@ -417,7 +417,7 @@ impl Accumulator {
 /// fields a step reads and the window's first slots share a few cache lines; a step touches
 /// only the window's slots (the rest is written once, at creation, and stays resident for
 /// all that). It is not the window's length on
-/// the heap, nor a few slots inline with the rest on the heap, although either takes a
+/// the heap, nor a few slots inline with the rest on the heap, although the first took a
 /// service's memory from about 18 to about 8 KiB per plant: both made stepping ten
 /// thousand plants 10 to 30 % slower (`docs/scale.md`, "Memory per plant").
 #[derive(Debug, Clone)]
