@@ -7,16 +7,9 @@ use controller_service::{Registry, ServiceConfig};
 use protocol::auth::Kind;
 use protocol::{pb, PROTOCOL_VERSION};
 
-const CONFIG: &str = r#"
-controller_id = "bench"
-max_devices = 100000
-[[templates]]
-pattern = "load-$*"
-[[templates.channels]]
-law = { law = "intelligent", params = { kind = "ip", alpha = 2.0, kp = 5.0 }, estimator = { window = 10 } }
-output = { min = -10.0, max = 10.0 }
-reference = [{ kind = "constant", value = 1.0 }]
-"#;
+#[path = "../tests/load/mod.rs"]
+mod load;
+use load::CONFIG;
 
 /// The service binary's allocator, so that the figures are the service's.
 #[global_allocator]
@@ -27,21 +20,7 @@ fn main() {
 }
 
 fn samples(devices: usize, k: u64) -> Vec<pb::Sample> {
-    (0..devices)
-        .map(|i| pb::Sample {
-            version: PROTOCOL_VERSION,
-            device_id: format!("load-{i}"),
-            seq: k,
-            plant_time: k as f64 * 0.01,
-            outputs: vec![0.5],
-            applied: vec![1.0],
-            flags: 0,
-            sent_unix_ns: 1,
-            last_rtt_us: 0,
-            run_id: 7,
-            ..Default::default()
-        })
-        .collect()
+    (0..devices).map(|i| load::sample(i, k, 0)).collect()
 }
 
 /// Every device's sample once through `Registry::handle_sample`, for a thousand and for ten

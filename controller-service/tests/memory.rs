@@ -43,16 +43,8 @@ unsafe impl GlobalAlloc for Counting {
 #[global_allocator]
 static GLOBAL: Counting = Counting;
 
-const CONFIG: &str = r#"
-controller_id = "memory"
-max_devices = 100000
-[[templates]]
-pattern = "load-$*"
-[[templates.channels]]
-law = { law = "intelligent", params = { kind = "ip", alpha = 2.0, kp = 5.0 }, estimator = { window = 10 } }
-output = { min = -10.0, max = 10.0 }
-reference = [{ kind = "constant", value = 1.0 }]
-"#;
+mod load;
+use load::CONFIG;
 
 const DEVICES: usize = 10_000;
 
@@ -60,27 +52,12 @@ const DEVICES: usize = 10_000;
 /// round trips and sequence numbers, configuration, reference and the table's entry.
 const SERVICE_STATE: f64 = 3072.0;
 
+/// Sample `k` of device `i`, from a plant reporting its round trips (so that the device
+/// keeps their window).
 fn sample(i: usize, k: u64) -> pb::Sample {
-    resending(i, k, 0)
-}
-
-/// A sample that carries the `resend` before it, as agents send them by default (3).
-fn resending(i: usize, k: u64, resend: usize) -> pb::Sample {
     pb::Sample {
-        previous_plant_time: (1..=resend).map(|j| (k - j as u64) as f64 * 0.01).collect(),
-        previous_outputs: vec![0.5; resend],
-        previous_applied: vec![1.0; resend],
-        version: PROTOCOL_VERSION,
-        device_id: format!("load-{i}"),
-        seq: k,
-        plant_time: k as f64 * 0.01,
-        outputs: vec![0.5],
-        applied: vec![1.0],
-        run_id: 7,
-        sent_unix_ns: 1,
-        // A plant reporting its round trips, so that the device keeps their window.
         last_rtt_us: 500,
-        ..Default::default()
+        ..load::sample(i, k, 0)
     }
 }
 
@@ -181,7 +158,12 @@ fn what_a_plant_costs_on_the_wire_and_in_a_handover() {
         protocol::encode(&pb::SampleBatch {
             version: PROTOCOL_VERSION,
             gateway_id: "gw-0".into(),
-            samples: (0..1000).map(|i| resending(i, 21, resend)).collect(),
+            samples: (0..1000)
+                .map(|i| pb::Sample {
+                    last_rtt_us: 500,
+                    ..load::sample(i, 21, resend)
+                })
+                .collect(),
             mac: Vec::new(),
         })
         .len()

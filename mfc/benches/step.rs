@@ -15,7 +15,7 @@ fn main() {
     divan::main();
 }
 
-/// Samples of the synthetic signal, repeated (a power of two: the index is a mask).
+/// Samples of the synthetic signal, repeated (a power of two, so the modulo is a mask).
 const SIGNAL: usize = 4096;
 
 fn intelligent(kind: ControllerKind, order: Order, window: usize) -> LawConfig {
@@ -28,7 +28,7 @@ fn bench_law(bencher: Bencher, law: LawConfig) {
         output: OutputMapConfig::AERO,
     })
     .unwrap();
-    // The signal is computed beforehand: a sine alone costs a fifth of a PID step, and
+    // The signal is computed beforehand: a sine alone costs about half a PID step, and
     // the figures are the step's.
     let signal: Vec<f64> = (0..SIGNAL)
         .map(|k| {
