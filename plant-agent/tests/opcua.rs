@@ -211,20 +211,27 @@ fn distinct_outputs_in_the_last_second(out: &Path) -> usize {
 }
 
 /// A server that answers nonsense: a NaN, a node that vanishes, then silence; the first
-/// two also through a subscription (the bad value comes published, not read).
+/// two also through a subscription. There the NaN is published, and the bridge's Read that
+/// confirms the subscription once a second may see it first when the publication is late
+/// (a loaded machine): either is the subscription path refusing it, so both are accepted,
+/// but not the plain Read's message.
 #[test]
 fn a_hostile_server_gets_a_clear_error_and_the_safe_stop() {
+    const NAN: &str = "ns=2;s=Plant.Output holds no finite number";
     for (flag, says, safe_stop, sampling) in [
-        ("--nan-after", "holds no finite number", true, ""),
-        ("--vanish-after", "BadNodeIdUnknown", true, ""),
-        ("--silent-after", "timed out", false, ""),
+        ("--nan-after", &["holds no finite number"][..], true, ""),
+        ("--vanish-after", &["BadNodeIdUnknown"], true, ""),
+        ("--silent-after", &["timed out"], false, ""),
         (
             "--nan-after",
-            "subscription to the outputs: ns=2;s=Plant.Output holds no finite number",
+            &[
+                &*format!("subscription to the outputs: {NAN}"),
+                &*format!("read confirming the subscription: {NAN}"),
+            ],
             true,
             SUBSCRIBE,
         ),
-        ("--vanish-after", "BadNodeIdUnknown", true, SUBSCRIBE),
+        ("--vanish-after", &["BadNodeIdUnknown"], true, SUBSCRIBE),
     ] {
         let dir = scratch("opcua", &format!("{}{}", &flag[2..], sampling.len()));
         let server = server(&[flag, "1"]);
@@ -234,7 +241,7 @@ fn a_hostile_server_gets_a_clear_error_and_the_safe_stop() {
         let s = summary(&out);
         assert_eq!(s["end"], "plant_failed", "{flag}: {s}");
         let error = s["error"].as_str().unwrap();
-        assert!(error.contains(says), "{flag}: {error}");
+        assert!(says.iter().any(|w| error.contains(w)), "{flag}: {error}");
         assert_eq!(s["safe_stop_applied"], safe_stop, "{flag}: {s}");
         if safe_stop {
             assert_eq!(server.node("Input", None), SAFE, "{flag}");

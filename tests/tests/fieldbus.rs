@@ -47,13 +47,20 @@ fn input_now(server: &Server) -> f64 {
 }
 
 /// The plant behind `protocol`'s server (its file `file`, changed by `adapt`) tracks
-/// through the service within the usual bound of its offline twin.
-async fn tracks_as_its_twin(protocol: ServerKind, file: &str, adapt: fn(&mut Scenario)) {
-    const ATTEMPTS: usize = 3;
+/// through the service within the usual bound of its offline twin: the median of `judged`
+/// runs' RMS ratios (a run whose commands came late too often is not judged).
+async fn tracks_as_its_twin(
+    protocol: ServerKind,
+    file: &str,
+    adapt: fn(&mut Scenario),
+    judged: usize,
+) {
+    let attempts = judged + 2;
     let _serial = SERIAL.lock().await;
     let twin = load("plants/dc-motor/scenarios/motor-steps.toml");
     let offline = simulate(&twin, &twin.controller, false).unwrap().summary;
-    for attempt in 1..=ATTEMPTS {
+    let mut ratios = Vec::with_capacity(judged);
+    for attempt in 1..=attempts {
         let server = Server::start_as(protocol, free_port(), &[]);
         let mut s = pointed(load(file), &server);
         adapt(&mut s);
@@ -89,11 +96,21 @@ async fn tracks_as_its_twin(protocol: ServerKind, file: &str, adapt: fn(&mut Sce
              {ratio:.3}; rtt p50 {:.0} us, overruns {}",
             rep.channels[0].rms, offline.channels[0].rms, rep.rtt_p50_us, rep.overruns
         );
-        assert!(ratio < rms_ratio_bound(), "ratio {ratio}");
-        return;
+        ratios.push(ratio);
+        if ratios.len() == judged {
+            ratios.sort_by(f64::total_cmp);
+            let median = ratios[judged / 2];
+            assert!(
+                median < rms_ratio_bound(),
+                "median ratio {median} of {ratios:?}"
+            );
+            return;
+        }
     }
     panic!(
-        "no attempt of {ATTEMPTS} had its commands in time: this machine cannot judge tracking now"
+        "{} of {attempts} attempts had their commands in time, {judged} needed: this machine \
+         cannot judge tracking now",
+        ratios.len()
     );
 }
 
@@ -103,6 +120,7 @@ async fn a_modbus_plant_tracks_through_the_service_as_its_offline_twin() {
         ServerKind::Modbus,
         "plants/servers/motor-steps-modbus.toml",
         |_| (),
+        1,
     )
     .await;
 }
@@ -113,13 +131,18 @@ async fn an_opcua_plant_tracks_through_the_service_as_its_offline_twin() {
         ServerKind::OpcUa,
         "plants/servers/motor-steps-opcua.toml",
         |_| (),
+        1,
     )
     .await;
 }
 
 /// The same with the outputs by subscription (the server samples them every millisecond,
 /// the default at a 10 ms period, and publishes the changes): no Read per period, and
-/// values up to a millisecond older.
+/// values up to a millisecond older. Judged on the median of three runs: one run's ratio
+/// spread from 0.95 to 1.24 on an idle machine and reached 1.32 once in CI, and the
+/// server's event loop was not what varied (a late-turn counter in the server, since
+/// removed: at most 0.04 % of its 1 ms turns came 5 ms late with the other core loaded,
+/// in runs from 0.97 to 1.20); `docs/fieldbus.md` has the figures.
 #[tokio::test(flavor = "multi_thread")]
 async fn an_opcua_plant_by_subscription_tracks_as_its_offline_twin() {
     tracks_as_its_twin(
@@ -133,6 +156,7 @@ async fn an_opcua_plant_by_subscription_tracks_as_its_offline_twin() {
             }
             other => panic!("an OPC UA plant, not {other:?}"),
         },
+        3,
     )
     .await;
 }
