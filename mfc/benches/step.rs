@@ -3,7 +3,7 @@
 //! `cargo bench -p mfc`. Each benchmark steps a warmed-up channel on a synthetic signal
 //! (computed beforehand, so that the figure is the step's and the ratio of two laws is the
 //! ratio of their costs); the window sweep shows the cost does not grow with the window
-//! (running moment sums).
+//! (running moment sums); `estimator` is the iP's estimator alone.
 
 use divan::{black_box, Bencher};
 use mfc::{
@@ -18,6 +18,17 @@ fn main() {
 /// Samples of the synthetic signal, repeated (a power of two, so the modulo is a mask).
 const SIGNAL: usize = 4096;
 
+/// The synthetic output, computed beforehand: a sine alone costs about half a PID step,
+/// and the figures are the step's.
+fn signal() -> Vec<f64> {
+    (0..SIGNAL)
+        .map(|k| {
+            let t = k as f64 * 0.01;
+            (t * 1.7).sin() * 0.3 + 0.001 * ((k * 7919) % 17) as f64
+        })
+        .collect()
+}
+
 fn intelligent(kind: ControllerKind, order: Order, window: usize) -> LawConfig {
     LawConfig::intelligent(kind, order, 2.0, [5.0, 1.0, 0.5], window)
 }
@@ -28,14 +39,7 @@ fn bench_law(bencher: Bencher, law: LawConfig) {
         output: OutputMapConfig::AERO,
     })
     .unwrap();
-    // The signal is computed beforehand: a sine alone costs about half a PID step, and
-    // the figures are the step's.
-    let signal: Vec<f64> = (0..SIGNAL)
-        .map(|k| {
-            let t = k as f64 * 0.01;
-            (t * 1.7).sin() * 0.3 + 0.001 * ((k * 7919) % 17) as f64
-        })
-        .collect();
+    let signal = signal();
     let mut k = 0usize;
     let mut step = move || {
         let t = k as f64 * 0.01;
@@ -101,4 +105,31 @@ fn adrc(b: Bencher) {
 #[divan::bench(args = [10, 50, 200])]
 fn ip_window(b: Bencher, window: usize) {
     bench_law(b, intelligent(ControllerKind::P, Order::One, window));
+}
+
+/// The iP's estimator alone (a sample in, an estimate out), window 10: the part of the iP's
+/// step the PID has no counterpart for, to set the iP's cost against.
+#[divan::bench]
+fn estimator(b: Bencher) {
+    let mut e: mfc::Estimator = mfc::Estimator::new(
+        mfc::EstimatorConfig {
+            window: 10,
+            ..Default::default()
+        },
+        Order::One,
+    )
+    .unwrap();
+    let signal = signal();
+    let mut k = 0usize;
+    let mut step = move || {
+        let t = k as f64 * 0.01;
+        let y = signal[k % SIGNAL];
+        k += 1;
+        e.push(black_box(t), black_box(y), black_box(0.3)).unwrap();
+        e.estimate(Order::One).ok()
+    };
+    for _ in 0..1000 {
+        step();
+    }
+    b.bench_local(step);
 }
