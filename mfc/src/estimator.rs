@@ -270,9 +270,10 @@ impl Moments {
     /// and the bubble `r²(1 - x²)`, every integral is a short polynomial in `m` and `r`:
     /// exact, as the three-point Gauss-Legendre rule this replaces was, in fewer operations
     /// (a step evaluates it twice: the interval that leaves the window and the one that
-    /// joins it).
+    /// joins it). For `order` one, only the five its kernel reads (`y` to j = 1, `u` to
+    /// j = 2), the others left at 0; each computed as for order two, to the bit.
     #[inline(always)]
-    fn of(iv: &Interval, anchor: f64) -> Self {
+    fn of(iv: &Interval, anchor: f64, order: Order) -> Self {
         let h = iv.b - iv.a;
         let r = 0.5 * h;
         let m = iv.a - anchor + r;
@@ -281,6 +282,14 @@ impl Moments {
         let dy = iv.yb - iv.ya;
         // ∫ s^j ds, j = 0..4.
         let p2 = m2 + r2 / 3.0;
+        if order == Order::One {
+            return Moments {
+                y: [h * mean, h * (m * mean + r * dy / 6.0), 0.0],
+                u: [h * iv.u, h * m * iv.u, h * p2 * iv.u, 0.0, 0.0],
+                k: [0.0; 3],
+                ku: [0.0; 3],
+            };
+        }
         let ps = [
             h,
             h * m,
@@ -331,8 +340,18 @@ impl Moments {
         }
     }
 
+    /// Add `sign` times `o`: for `order` one, only the sums its kernel reads.
     #[inline(always)]
-    fn add(&mut self, o: &Moments, sign: f64) {
+    fn add(&mut self, o: &Moments, sign: f64, order: Order) {
+        if order == Order::One {
+            for j in 0..2 {
+                self.y[j] += sign * o.y[j];
+            }
+            for j in 0..3 {
+                self.u[j] += sign * o.u[j];
+            }
+            return;
+        }
         for j in 0..3 {
             self.y[j] += sign * o.y[j];
             self.k[j] += sign * o.k[j];
@@ -411,7 +430,8 @@ impl Accumulator {
 /// Feed it every sample with [`push`](Self::push), giving the input the plant *actually*
 /// received since the previous sample (after dead-zone mapping and saturation, or the held
 /// command when a new one was lost), then ask for [`estimate`](Self::estimate). `push`
-/// and `estimate` allocate nothing and cost the same whatever the window length.
+/// and `estimate` allocate nothing and cost the same whatever the window length (an
+/// estimate for the order the running sums do not serve excepted: see [`Estimator::new`]).
 ///
 /// The ring is `CAP` intervals inside the estimator, laid out last (`repr(C)`), so that the
 /// fields a step reads and the window's first slots share a few cache lines; a step touches
@@ -432,12 +452,17 @@ pub struct Estimator<const CAP: usize = DEFAULT_CAPACITY> {
     pub(crate) shadow: Accumulator,
     /// Low-pass states for n = 1 and n = 2 (both kept so the order can change live).
     pub(crate) lowpass: [Option<LinearEstimate>; 2],
+    /// The order whose kernel the running sums serve: order one reads 5 of the 14, and a
+    /// step updates only those (an estimate for the other order is still exact, from the
+    /// ring, at a window's cost; [`Estimator::serve`] changes it).
+    pub(crate) order: Order,
     pub(crate) ring: [Interval; CAP],
 }
 
 impl<const CAP: usize> Estimator<CAP> {
-    /// A new, empty estimator. The configuration is checked for `order`; the estimator itself
-    /// can then serve both orders (it keeps the moments of both kernels).
+    /// A new, empty estimator. The configuration is checked for `order`, whose kernel the
+    /// running sums serve; an estimate for the other order is exact too, computed from the
+    /// window's intervals (see [`Estimator::serve`]).
     pub fn new(config: EstimatorConfig, order: Order) -> Result<Self> {
         config.validate(order, CAP)?;
         Ok(Self {
@@ -450,7 +475,30 @@ impl<const CAP: usize> Estimator<CAP> {
             primary: Accumulator::default(),
             shadow: Accumulator::default(),
             lowpass: [None, None],
+            order,
         })
+    }
+
+    /// Keep the running sums for `order`'s kernel from now on (a controller changing its
+    /// model's order): they are summed again from the window's intervals, at a window's
+    /// cost, once.
+    pub fn serve(&mut self, order: Order) {
+        if order == self.order {
+            return;
+        }
+        self.order = order;
+        let oldest = self.next_index - self.len as u64;
+        let mut primary = Moments::default();
+        let mut shadow = Moments::default();
+        for k in 0..self.len {
+            let iv = *self.interval(k);
+            primary.add(&Moments::of(&iv, self.primary.anchor, order), 1.0, order);
+            if self.shadow.active && oldest + k as u64 >= self.shadow.first {
+                shadow.add(&Moments::of(&iv, self.shadow.anchor, order), 1.0, order);
+            }
+        }
+        self.primary.sums = primary;
+        self.shadow.sums = shadow;
     }
 
     /// The configuration.
@@ -530,11 +578,14 @@ impl<const CAP: usize> Estimator<CAP> {
             self.clear_window();
             return;
         }
-        if self.len == self.config.intervals() {
-            self.evict();
+        // One copy of the window's update per order, each with its moments' order fixed.
+        match self.order {
+            Order::One => self.slide::<true>(iv),
+            Order::Two => self.slide::<false>(iv),
         }
-        self.insert(iv);
-        self.update_lowpass();
+        if let EstimatorKind::LowPass { time_constant } = self.config.kind {
+            self.update_lowpass(time_constant);
+        }
     }
 
     /// Ring slots in use: the window's intervals, not the whole capacity, so that a
@@ -548,15 +599,27 @@ impl<const CAP: usize> Estimator<CAP> {
         wrap(i, self.slots())
     }
 
-    fn evict(&mut self) {
+    /// `iv` joins the window, and the oldest interval leaves it if it is full; the running
+    /// sums are order one's (`ONE`) or order two's.
+    fn slide<const ONE: bool>(&mut self, iv: Interval) {
+        let order = if ONE { Order::One } else { Order::Two };
+        if self.len == self.config.intervals() {
+            self.evict(order);
+        }
+        self.insert(iv, order);
+    }
+
+    #[inline(always)]
+    fn evict(&mut self, order: Order) {
         let old = self.ring[self.head];
-        let m = Moments::of(&old, self.primary.anchor);
-        self.primary.sums.add(&m, -1.0);
+        let m = Moments::of(&old, self.primary.anchor, order);
+        self.primary.sums.add(&m, -1.0, order);
         self.head = self.wrap(self.head + 1);
         self.len -= 1;
     }
 
-    fn insert(&mut self, iv: Interval) {
+    #[inline(always)]
+    fn insert(&mut self, iv: Interval, order: Order) {
         let index = self.next_index;
         self.next_index += 1;
         let slot = self.wrap(self.head + self.len);
@@ -578,9 +641,9 @@ impl<const CAP: usize> Estimator<CAP> {
                 .shifted(self.primary.anchor - self.shadow.anchor);
             self.shadow.anchor = self.primary.anchor;
         }
-        let m = Moments::of(&iv, self.primary.anchor);
-        self.primary.sums.add(&m, 1.0);
-        self.shadow.sums.add(&m, 1.0);
+        let m = Moments::of(&iv, self.primary.anchor, order);
+        self.primary.sums.add(&m, 1.0, order);
+        self.shadow.sums.add(&m, 1.0, order);
         // Once the shadow covers exactly the window, it replaces the running sum: this
         // bounds the floating-point drift of add-and-subtract to one window's worth. It
         // moves to the window's start as it does, so that the anchor follows the data.
@@ -600,10 +663,7 @@ impl<const CAP: usize> Estimator<CAP> {
         &self.ring[self.wrap(self.head + k)]
     }
 
-    fn update_lowpass(&mut self) {
-        let EstimatorKind::LowPass { time_constant } = self.config.kind else {
-            return;
-        };
+    fn update_lowpass(&mut self, time_constant: f64) {
         let newest = *self.interval(self.len - 1);
         let h = newest.b - newest.a;
         let gain = 1.0 - libm::exp(-h / time_constant);
@@ -628,7 +688,7 @@ impl<const CAP: usize> Estimator<CAP> {
         let anchor = self.interval(first).a;
         let mut m = Moments::default();
         for k in first..self.len {
-            m.add(&Moments::of(self.interval(k), anchor), 1.0);
+            m.add(&Moments::of(self.interval(k), anchor, order), 1.0, order);
         }
         let t1 = self.interval(self.len - 1).b;
         Some(m.kernel(order, anchor, t1 - anchor, anchor))
@@ -658,6 +718,14 @@ impl<const CAP: usize> Estimator<CAP> {
         let t0 = self.interval(0).a;
         let t1 = self.interval(self.len - 1).b;
         match self.config.kind {
+            EstimatorKind::Algebraic if order == Order::Two && self.order == Order::One => {
+                // The running sums serve order one: order two's from the window itself.
+                let mut m = Moments::default();
+                for k in 0..self.len {
+                    m.add(&Moments::of(self.interval(k), t0, order), 1.0, order);
+                }
+                Ok(m.kernel(order, t0, t1 - t0, t0))
+            }
             EstimatorKind::Algebraic => {
                 Ok(self
                     .primary

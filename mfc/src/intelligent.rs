@@ -297,7 +297,7 @@ impl<const CAP: usize> IntelligentController<CAP> {
         params.validate()?;
         self.estimator.config().validate(params.order, CAP)?;
         if self.last_t.is_none() {
-            self.params = params;
+            self.adopt(params);
         } else {
             self.pending = Some(params);
         }
@@ -385,7 +385,7 @@ impl<const CAP: usize> IntelligentController<CAP> {
             Err(_) => {
                 // Window still filling: hold, and switch parameters directly.
                 if let Some(new) = self.pending.take() {
-                    self.params = new;
+                    self.adopt(new);
                 }
                 self.estimate = None;
                 (self.hold, None)
@@ -566,6 +566,12 @@ impl<const CAP: usize> IntelligentController<CAP> {
         self.integral += e * dt;
     }
 
+    /// `new` in force from now on, the estimator's running sums serving its order.
+    fn adopt(&mut self, new: IntelligentParams) {
+        self.estimator.serve(new.order);
+        self.params = new;
+    }
+
     fn switch(
         &mut self,
         new: IntelligentParams,
@@ -578,7 +584,7 @@ impl<const CAP: usize> IntelligentController<CAP> {
         if !self.params.kind.has_integral() {
             self.integral = 0.0;
         }
-        self.params = new;
+        self.adopt(new);
         let f = lin.at(new.alpha);
         if new.kind.has_integral() && new.ki > 0.0 {
             // Choose ∫e so that the new law alone gives the old output.

@@ -56,7 +56,8 @@ impl<const CAP: usize> Encode for Estimator<CAP> {
         self.last.encode(e)?;
         self.primary.encode(e)?;
         self.shadow.encode(e)?;
-        self.lowpass.encode(e)
+        self.lowpass.encode(e)?;
+        self.order.encode(e)
     }
 }
 
@@ -83,6 +84,7 @@ impl<Ctx, const CAP: usize> Decode<Ctx> for Estimator<CAP> {
             primary: Decode::decode(d)?,
             shadow: Decode::decode(d)?,
             lowpass: Decode::decode(d)?,
+            order: Decode::decode(d)?,
         };
         check_estimator(&e, slots)?;
         Ok(e)
@@ -90,10 +92,10 @@ impl<Ctx, const CAP: usize> Decode<Ctx> for Estimator<CAP> {
 }
 
 /// What a decoded estimator must hold before it may step: a configuration it could have
-/// been built with, ring indices inside the window, a shadow sum that will replace the
+/// been built with for the order its sums serve, ring indices inside the window, a shadow sum that will replace the
 /// running one (it started inside the window), and a sample count far from overflowing.
 fn check_estimator<const CAP: usize>(e: &Estimator<CAP>, slots: usize) -> Result<(), DecodeError> {
-    if e.config.validate(crate::Order::One, CAP).is_err() {
+    if e.config.validate(e.order, CAP).is_err() {
         return Err(invalid("estimator configuration invalid"));
     }
     let indices = e.head < slots
@@ -183,6 +185,7 @@ fn check_channel<const CAP: usize>(c: &Channel<CAP>) -> Result<(), DecodeError> 
     let valid = match (&c.law, &c.config.law) {
         (Law::Intelligent(l), LawConfig::Intelligent { params, estimator }) => {
             l.params() == params
+                && l.estimator.order == l.params.order
                 && l.estimator.config() == estimator
                 && params.validate().is_ok()
                 && l.params.validate().is_ok()

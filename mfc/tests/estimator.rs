@@ -172,6 +172,54 @@ fn running_sums_do_not_drift() {
     }
 }
 
+/// The running sums serve one order (order one keeps 5 of the 14); the other order's
+/// estimate is still exact, from the window's intervals, and `serve` hands the sums over to
+/// it at any point of a window (the shadow sum half built or not): after as many steps
+/// again, every estimator agrees with one built for that order from the start.
+#[test]
+fn the_sums_serve_one_order_and_change_with_it() {
+    let cfg = EstimatorConfig {
+        window: 12,
+        ..Default::default()
+    };
+    let (h, alpha) = (0.01, 0.7);
+    let sample = |k: u32| {
+        let t = f64::from(k) * h;
+        (t, (3.0 * t).sin() + 0.2 * t * t, (5.0 * t).cos())
+    };
+    let close = |a: mfc::LinearEstimate, b: mfc::LinearEstimate| {
+        let (x, y) = (a.at(alpha), b.at(alpha));
+        (x - y).abs() <= 1e-9 * (1.0 + y.abs())
+    };
+    for switch_at in [0u32, 5, 12, 17, 30] {
+        let mut one: Estimator = Estimator::new(cfg, Order::One).unwrap();
+        let mut two: Estimator = Estimator::new(cfg, Order::Two).unwrap();
+        let mut moved: Estimator = Estimator::new(cfg, Order::One).unwrap();
+        let mut back: Estimator = Estimator::new(cfg, Order::Two).unwrap();
+        for k in 0..60u32 {
+            if k == switch_at {
+                moved.serve(Order::Two);
+                back.serve(Order::One);
+            }
+            let (t, y, u) = sample(k);
+            for e in [&mut one, &mut two, &mut moved, &mut back] {
+                e.push(t, y, u).unwrap();
+            }
+            let (Ok(e1), Ok(e2)) = (one.estimate(Order::One), two.estimate(Order::Two)) else {
+                continue;
+            };
+            let what = format!("switch at {switch_at}, step {k}");
+            // Across orders, from the ring: as exact as the running sums.
+            assert!(close(one.estimate(Order::Two).unwrap(), e2), "{what}");
+            assert!(close(two.estimate(Order::One).unwrap(), e1), "{what}");
+            for e in [&moved, &back] {
+                assert!(close(e.estimate(Order::One).unwrap(), e1), "{what}");
+                assert!(close(e.estimate(Order::Two).unwrap(), e2), "{what}");
+            }
+        }
+    }
+}
+
 /// A gap longer than `max_interval` restarts the window instead of bridging it.
 #[test]
 fn long_gap_restarts_the_window() {

@@ -88,6 +88,30 @@ fn restored_state_continues_bit_for_bit() {
     assert!(bytes.len() < 64 * 1024, "{} bytes", bytes.len());
 }
 
+/// A law whose model's order changed live (an iPI of order one becoming an iPD of order
+/// two, the same estimator: its running sums then serve order two) restores and continues
+/// bit for bit, whether the change is still pending at the snapshot or has been made.
+#[test]
+fn an_order_changed_live_restores_bit_for_bit() {
+    let ipd = LawConfig::intelligent(ControllerKind::PD, Order::Two, 0.5, [9.0, 0.0, 3.0], 17);
+    for steps_after in [0, 1, 40] {
+        let mut a = mimo();
+        drive(&mut a, 0, 150);
+        let mut configs: Vec<ChannelConfig> = a.channels().iter().map(|c| *c.config()).collect();
+        configs[0].law = ipd;
+        a.reconfigure(&configs).unwrap();
+        drive(&mut a, 150, 150 + steps_after);
+        let mut b: MimoController = from_bytes(&to_bytes(&a).unwrap()).unwrap();
+        let from = 150 + steps_after;
+        let (va, vb) = (
+            drive(&mut a, from, from + 300),
+            drive(&mut b, from, from + 300),
+        );
+        assert_eq!(va, vb, "{steps_after} steps after the change");
+        assert!(va.iter().all(|v| v[0].is_finite()));
+    }
+}
+
 /// What a decoded controller must be (the decoder's promise, `mfc::snapshot`): each
 /// channel's configuration is one the constructor accepts, its output map and (for the
 /// intelligent laws, the ones whose parameters a channel shows) its law run that
