@@ -33,33 +33,34 @@ fn intelligent(kind: ControllerKind, order: Order, window: usize) -> LawConfig {
     LawConfig::intelligent(kind, order, 2.0, [5.0, 1.0, 0.5], window)
 }
 
+/// Bench `step(t, y)` on the signal, after 1000 steps of warm-up.
+fn drive<R>(bencher: Bencher, mut step: impl FnMut(f64, f64) -> R) {
+    let signal = signal();
+    let mut k = 0usize;
+    let mut next = move || {
+        let t = k as f64 * 0.01;
+        let y = signal[k % SIGNAL];
+        k += 1;
+        step(black_box(t), black_box(y))
+    };
+    for _ in 0..1000 {
+        next();
+    }
+    bencher.bench_local(next);
+}
+
 fn bench_law(bencher: Bencher, law: LawConfig) {
     let mut ch: Channel = Channel::new(&ChannelConfig {
         law,
         output: OutputMapConfig::AERO,
     })
     .unwrap();
-    let signal = signal();
-    let mut k = 0usize;
-    let mut step = move || {
-        let t = k as f64 * 0.01;
-        let y = signal[k % SIGNAL];
-        k += 1;
-        ch.step(
-            black_box(t),
-            black_box(y),
-            &Reference {
-                y: 0.2,
-                dy: 0.0,
-                ddy: 0.0,
-            },
-        )
-        .unwrap()
+    let r = Reference {
+        y: 0.2,
+        dy: 0.0,
+        ddy: 0.0,
     };
-    for _ in 0..1000 {
-        step();
-    }
-    bencher.bench_local(step);
+    drive(bencher, move |t, y| ch.step(t, y, &r).unwrap());
 }
 
 #[divan::bench]
@@ -119,17 +120,8 @@ fn estimator(b: Bencher) {
         Order::One,
     )
     .unwrap();
-    let signal = signal();
-    let mut k = 0usize;
-    let mut step = move || {
-        let t = k as f64 * 0.01;
-        let y = signal[k % SIGNAL];
-        k += 1;
-        e.push(black_box(t), black_box(y), black_box(0.3)).unwrap();
+    drive(b, move |t, y| {
+        e.push(t, y, black_box(0.3)).unwrap();
         e.estimate(Order::One).ok()
-    };
-    for _ in 0..1000 {
-        step();
-    }
-    b.bench_local(step);
+    });
 }

@@ -487,18 +487,25 @@ impl<const CAP: usize> Estimator<CAP> {
             return;
         }
         self.order = order;
-        let oldest = self.next_index - self.len as u64;
-        let mut primary = Moments::default();
-        let mut shadow = Moments::default();
-        for k in 0..self.len {
-            let iv = *self.interval(k);
-            primary.add(&Moments::of(&iv, self.primary.anchor, order), 1.0, order);
-            if self.shadow.active && oldest + k as u64 >= self.shadow.first {
-                shadow.add(&Moments::of(&iv, self.shadow.anchor, order), 1.0, order);
-            }
+        self.primary.sums = self.moments(0, self.primary.anchor, order);
+        self.shadow.sums = if self.shadow.active {
+            // The shadow started inside the window (a decoded state is checked for it).
+            let oldest = self.next_index - self.len as u64;
+            let from = (self.shadow.first - oldest) as usize;
+            self.moments(from, self.shadow.anchor, order)
+        } else {
+            Moments::default()
+        };
+    }
+
+    /// The moments of `order`'s kernel over the window's intervals from the `from`-th on,
+    /// about `anchor`: summed afresh, at a window's cost.
+    fn moments(&self, from: usize, anchor: f64, order: Order) -> Moments {
+        let mut m = Moments::default();
+        for k in from..self.len {
+            m.add(&Moments::of(self.interval(k), anchor, order), 1.0, order);
         }
-        self.primary.sums = primary;
-        self.shadow.sums = shadow;
+        m
     }
 
     /// The configuration.
@@ -686,10 +693,7 @@ impl<const CAP: usize> Estimator<CAP> {
         }
         let first = self.len - n;
         let anchor = self.interval(first).a;
-        let mut m = Moments::default();
-        for k in first..self.len {
-            m.add(&Moments::of(self.interval(k), anchor, order), 1.0, order);
-        }
+        let m = self.moments(first, anchor, order);
         let t1 = self.interval(self.len - 1).b;
         Some(m.kernel(order, anchor, t1 - anchor, anchor))
     }
@@ -720,11 +724,7 @@ impl<const CAP: usize> Estimator<CAP> {
         match self.config.kind {
             EstimatorKind::Algebraic if order == Order::Two && self.order == Order::One => {
                 // The running sums serve order one: order two's from the window itself.
-                let mut m = Moments::default();
-                for k in 0..self.len {
-                    m.add(&Moments::of(self.interval(k), t0, order), 1.0, order);
-                }
-                Ok(m.kernel(order, t0, t1 - t0, t0))
+                Ok(self.moments(0, t0, order).kernel(order, t0, t1 - t0, t0))
             }
             EstimatorKind::Algebraic => {
                 Ok(self
