@@ -160,8 +160,8 @@ pub struct ChannelOutput {
 
 /// A control law and its output map: one output of the plant.
 ///
-/// In declaration order, the law (with its estimator's ring) last, so that what a step
-/// reads sits together (see [`crate::Estimator`]).
+/// In declaration order, the law (with its estimator, whose ring is last without an
+/// allocator) last, so that what a step reads sits together (see [`crate::Estimator`]).
 #[derive(Debug, Clone)]
 #[repr(C)]
 pub struct Channel<const CAP: usize = DEFAULT_CAPACITY> {

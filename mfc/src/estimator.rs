@@ -50,8 +50,9 @@ use crate::Order;
 
 /// Default storage capacity of an estimator window, in sample intervals.
 ///
-/// 256 intervals is 2.56 s at the AERO's 10 ms period, longer than any useful MFC window;
-/// a microcontroller build picks a smaller `CAP`.
+/// 256 intervals is 2.56 s at the AERO's 10 ms period, longer than any useful MFC window.
+/// It bounds the window; with an allocator the ring holds only the window's intervals, and a
+/// microcontroller build (no allocator, the ring inline) picks a smaller `CAP`.
 pub const DEFAULT_CAPACITY: usize = 256;
 
 /// Which estimator of `F` to run.
@@ -433,13 +434,12 @@ impl Accumulator {
 /// and `estimate` allocate nothing and cost the same whatever the window length (an
 /// estimate for the order the running sums do not serve excepted: see [`Estimator::new`]).
 ///
-/// The ring is `CAP` intervals inside the estimator, laid out last (`repr(C)`), so that the
-/// fields a step reads and the window's first slots share a few cache lines; a step touches
-/// only the window's slots (the rest is written once, at creation, and stays resident for
-/// all that). It is not the window's length on
-/// the heap, nor a few slots inline with the rest on the heap, although the first took a
-/// service's memory from about 18 to about 8 KiB per plant: both made stepping ten
-/// thousand plants 10 to 30 % slower (`docs/scale.md`, "Memory per plant").
+/// The ring holds the window's intervals. With an allocator (the `alloc` feature) it is
+/// exactly the window's length on the heap, allocated once at creation: a service holding
+/// ten thousand estimators of a 10-interval window keeps 400 bytes for each, not the
+/// capacity's 10 KiB (`docs/scale.md`, "Memory per plant"). Without one it is `CAP`
+/// intervals inline, laid out last (`repr(C)`), of which a step touches only the window's.
+/// `CAP` bounds the window either way.
 #[derive(Debug, Clone)]
 #[repr(C)]
 pub struct Estimator<const CAP: usize = DEFAULT_CAPACITY> {
@@ -456,7 +456,27 @@ pub struct Estimator<const CAP: usize = DEFAULT_CAPACITY> {
     /// step updates only those (an estimate for the other order is still exact, from the
     /// ring, at a window's cost; [`Estimator::serve`] changes it).
     pub(crate) order: Order,
-    pub(crate) ring: [Interval; CAP],
+    pub(crate) ring: Ring<CAP>,
+}
+
+/// The ring's storage: the window's length on the heap with an allocator, `CAP` inline
+/// without (see [`Estimator`]).
+#[cfg(feature = "alloc")]
+pub(crate) type Ring<const CAP: usize> = alloc::boxed::Box<[Interval]>;
+#[cfg(not(feature = "alloc"))]
+pub(crate) type Ring<const CAP: usize> = [Interval; CAP];
+
+/// A ring of `slots` empty intervals (at most `CAP`, checked by the caller).
+pub(crate) fn empty_ring<const CAP: usize>(slots: usize) -> Ring<CAP> {
+    #[cfg(feature = "alloc")]
+    {
+        alloc::vec![Interval::default(); slots].into_boxed_slice()
+    }
+    #[cfg(not(feature = "alloc"))]
+    {
+        let _ = slots;
+        [Interval::default(); CAP]
+    }
 }
 
 impl<const CAP: usize> Estimator<CAP> {
@@ -467,7 +487,7 @@ impl<const CAP: usize> Estimator<CAP> {
         config.validate(order, CAP)?;
         Ok(Self {
             config,
-            ring: [Interval::default(); CAP],
+            ring: empty_ring::<CAP>(slots(&config, CAP)),
             head: 0,
             len: 0,
             next_index: 0,
@@ -599,7 +619,7 @@ impl<const CAP: usize> Estimator<CAP> {
     /// service holding thousands of estimators touches (and keeps resident) only a
     /// window's worth of memory for each, and a step stays in a few cache lines.
     fn slots(&self) -> usize {
-        self.config.intervals().clamp(1, CAP)
+        slots(&self.config, CAP)
     }
 
     fn wrap(&self, i: usize) -> usize {
@@ -755,6 +775,11 @@ impl<const CAP: usize> Estimator<CAP> {
             }
         }
     }
+}
+
+/// Ring slots for `config`'s window, with `cap` the most the ring may hold.
+pub(crate) fn slots(config: &EstimatorConfig, cap: usize) -> usize {
+    config.intervals().clamp(1, cap)
 }
 
 /// `i % n`, without the division in the usual case: every index the ring takes is below

@@ -215,8 +215,8 @@ pub struct IntelligentOutput {
 
 /// One intelligent controller (one output of the plant).
 ///
-/// In declaration order, the estimator (and its ring) last: the fields a step reads sit
-/// together, before the ring (see [`Estimator`]).
+/// In declaration order, the estimator last: the fields a step reads sit together, before
+/// the ring when it is inline (see [`Estimator`]).
 #[derive(Debug, Clone)]
 #[repr(C)]
 pub struct IntelligentController<const CAP: usize = DEFAULT_CAPACITY> {

@@ -45,7 +45,7 @@ impl<const CAP: usize> Encode for Estimator<CAP> {
     fn encode<E: Encoder>(&self, e: &mut E) -> Result<(), EncodeError> {
         self.config.encode(e)?;
         // The slots in use (the window's, not the capacity's), length first.
-        let slots = self.config.intervals().clamp(1, CAP);
+        let slots = crate::estimator::slots(&self.config, CAP);
         (slots as u64).encode(e)?;
         for i in 0..slots {
             self.ring[i].encode(e)?;
@@ -64,13 +64,13 @@ impl<const CAP: usize> Encode for Estimator<CAP> {
 impl<Ctx, const CAP: usize> Decode<Ctx> for Estimator<CAP> {
     fn decode<D: Decoder<Context = Ctx>>(d: &mut D) -> Result<Self, DecodeError> {
         let config: crate::EstimatorConfig = Decode::decode(d)?;
-        let slots = config.intervals().clamp(1, CAP);
+        let slots = crate::estimator::slots(&config, CAP);
         // The ring's length is checked before anything is allocated for it.
         let n = u64::decode(d)?;
         if n != slots as u64 {
             return Err(invalid("estimator ring not the window's length"));
         }
-        let mut ring = [crate::estimator::Interval::default(); CAP];
+        let mut ring = crate::estimator::empty_ring::<CAP>(slots);
         for slot in &mut ring[..slots] {
             *slot = Decode::decode(d)?;
         }
@@ -130,6 +130,19 @@ snapshot_struct!(IntelligentController {
     sign
 });
 snapshot_struct!(MimoController { channels });
+
+// As a `Vec` of channels: one or many, the bytes are the same.
+impl<const CAP: usize> Encode for crate::mimo::Channels<CAP> {
+    fn encode<E: Encoder>(&self, e: &mut E) -> Result<(), EncodeError> {
+        (**self).encode(e)
+    }
+}
+
+impl<Ctx, const CAP: usize> Decode<Ctx> for crate::mimo::Channels<CAP> {
+    fn decode<D: Decoder<Context = Ctx>>(d: &mut D) -> Result<Self, DecodeError> {
+        Ok(alloc::vec::Vec::<Channel<CAP>>::decode(d)?.into())
+    }
+}
 
 impl<const CAP: usize> Encode for Channel<CAP> {
     fn encode<E: Encoder>(&self, e: &mut E) -> Result<(), EncodeError> {
@@ -246,8 +259,9 @@ pub fn to_bytes<T: Encode>(state: &T) -> Result<alloc::vec::Vec<u8>, EncodeError
 /// Bincode's limit for [`from_bytes`]: the bytes read plus, for each container, its
 /// claimed length times its element's size in memory, so that a length claimed by
 /// corrupted or hostile bytes is refused before anything is allocated for it. 16 MiB: some
-/// 1400 channels of the default capacity (11.3 KiB each in memory), far more than a device
-/// has (a sample's outputs fit `protocol::MAX_PAYLOAD`, 64 KiB).
+/// 15 000 channels (1.1 KiB each in memory, their estimators' rings aside: a ring is the
+/// window's length, checked against `CAP` and read from bytes of its own), far more than a
+/// device has (a sample's outputs fit `protocol::MAX_PAYLOAD`, 64 KiB).
 pub const MAX_STATE: usize = 16 << 20;
 
 /// Decode state encoded by [`to_bytes`]; refuses trailing bytes, and never allocates past

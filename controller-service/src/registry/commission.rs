@@ -399,7 +399,7 @@ impl Device {
         if i >= n {
             return Err(format!("channel {i}: the device has {n} channels"));
         }
-        let law = self.configs[i].law;
+        let law = self.config(i).law;
         let LawConfig::Intelligent { params, .. } = law else {
             return Err(format!(
                 "channel {i}: its law is not intelligent, there is no alpha to find"
@@ -488,7 +488,7 @@ impl Device {
         let u = c.input(s.plant_time, s.outputs[i], applied);
         if c.phase == pb::CommissionPhase::CommissionProposed {
             let f = c.finding.expect("a proposal has its finding");
-            c.proposed = commissioned_law(&self.configs[i].law, &f, c.dynamics);
+            c.proposed = commissioned_law(&self.mimo.channels()[i].config().law, &f, c.dynamics);
             if c.proposed.is_none() {
                 c.abort("service", "the finding gives no law".into());
             }
@@ -535,11 +535,10 @@ impl Device {
         else {
             return Err(format!("nothing to confirm: the run is {}", c.setting()));
         };
-        let mut configs = self.configs.clone();
+        let mut configs = self.configs();
         configs[channel].law = law;
         self.check_bounds(&configs, None)?;
         self.mimo.reconfigure(&configs).map_err(|e| e.to_string())?;
-        self.configs = configs;
         if let Some(c) = self.commission.as_mut() {
             c.phase = pb::CommissionPhase::CommissionApplied;
             who.clone_into(&mut c.ended_by);

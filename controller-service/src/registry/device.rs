@@ -104,19 +104,23 @@ pub(super) enum Answered {
     Not,
 }
 
-/// `load-1234`) live inside the table's own slot, so that finding a device among thousands
-/// reads the table and nothing else: with the id behind a pointer, every lookup missed the
-/// caches once more for the comparison. Longer ids are kept on the heap and work the same.
+/// An id read on every sample (a device's, as the table's key; the lease holder's a sample
+/// reports): short ones (up to 22 bytes, as `load-1234` or `bench.w0`) live inline, in the
+/// table's own slot or in the device, so that finding a device among thousands reads the
+/// table and nothing else, and checking who holds its lease reads the device and nothing
+/// else: with the id behind a pointer, each missed the caches once more for the comparison
+/// (a sixth of stepping a thousand devices went to the holder's). Longer ids are kept on
+/// the heap and work the same.
 #[derive(Debug, Clone)]
-pub(super) enum DeviceKey {
+pub(super) enum ShortId {
     Inline { len: u8, bytes: [u8; INLINE_ID] },
     Heap(Box<str>),
 }
 
-/// Bytes of an id kept inline in [`DeviceKey`]: the key is then 24 bytes, as a `String`.
+/// Bytes of an id kept inline in [`ShortId`]: the key is then 24 bytes, as a `String`.
 const INLINE_ID: usize = 22;
 
-impl DeviceKey {
+impl ShortId {
     pub(super) fn new(id: &str) -> Self {
         if id.len() <= INLINE_ID {
             let mut bytes = [0; INLINE_ID];
@@ -141,26 +145,26 @@ impl DeviceKey {
     }
 }
 
-impl std::borrow::Borrow<str> for DeviceKey {
+impl std::borrow::Borrow<str> for ShortId {
     fn borrow(&self) -> &str {
         self.as_str()
     }
 }
 
 // Hash and equality are the id's, as `Borrow<str>` requires.
-impl std::hash::Hash for DeviceKey {
+impl std::hash::Hash for ShortId {
     fn hash<H: std::hash::Hasher>(&self, state: &mut H) {
         self.as_str().hash(state);
     }
 }
 
-impl PartialEq for DeviceKey {
+impl PartialEq for ShortId {
     fn eq(&self, other: &Self) -> bool {
         self.as_str() == other.as_str()
     }
 }
 
-impl Eq for DeviceKey {}
+impl Eq for ShortId {}
 
 /// How a sample relates to the run in force.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -186,9 +190,9 @@ pub(super) struct Device {
     pub(super) heard_unix_ns: u64,
     /// Which changes its configuration holds ([`crate::lease::Version`]).
     pub(super) version: Version,
-    /// The lease as the last sample reported it: holder (at most an id's length), epoch,
-    /// and the plant's count of refused commands.
-    pub(super) lease_holder: String,
+    /// The lease as the last sample reported it: holder (at most an id's length, printable),
+    /// epoch, and the plant's count of refused commands.
+    pub(super) lease_holder: ShortId,
     pub(super) lease_epoch: u64,
     pub(super) lease_refused: u64,
     /// Restored from a snapshot and not yet resumed: the first sample decides whether the
@@ -197,13 +201,13 @@ pub(super) struct Device {
     /// Provisioned from a template, not declared: reported in the status, and lets a
     /// snapshot rebuild the device although no declaration names it.
     pub(super) from_template: bool,
-    /// The safety envelope per channel. Every output map in `configs` lies inside it.
+    /// The safety envelope per channel. Every output map in force ([`Device::config`])
+    /// lies inside it.
     pub(super) envelope: PerChannel<Limits>,
     /// What a change of each channel may set (`crate::bounds`), from the file.
     pub(super) bounds: PerChannel<ChannelBounds>,
-    /// Laws and output maps in force (changed by `configure`); a snapshot of a declared
-    /// device is restored only if its laws equal these.
-    pub(super) configs: Vec<ChannelConfig>,
+    /// The controller, which holds the laws and output maps in force ([`Device::config`]:
+    /// one copy, changed only through `MimoController::reconfigure`).
     pub(super) mimo: MimoController,
     /// Reference pieces per channel, evaluated at `plant_time - reference_start`.
     pub(super) reference: PerChannel<Vec<Piece>>,
@@ -443,14 +447,13 @@ impl Device {
             claimer: Claimer::default(),
             heard_unix_ns: 0,
             version: Version::default(),
-            lease_holder: String::new(),
+            lease_holder: ShortId::new(""),
             lease_epoch: 0,
             lease_refused: 0,
             restored: false,
             from_template,
             envelope,
             mimo: MimoController::new(&configs).map_err(|e| e.to_string())?,
-            configs,
             reference: channels.iter().map(|c| c.reference.clone()).collect(),
             reference_start: 0.0,
             run_id: None,
@@ -585,7 +588,19 @@ impl Device {
     }
 
     pub(super) fn channels(&self) -> usize {
-        self.configs.len()
+        self.mimo.len()
+    }
+
+    /// Channel `i`'s law and output map in force (changed by `configure`, an envelope
+    /// change or a commissioning); a snapshot of a declared device is restored only if its
+    /// laws equal these.
+    pub(super) fn config(&self, i: usize) -> &ChannelConfig {
+        self.mimo.channels()[i].config()
+    }
+
+    /// Every channel's law and output map in force, to change some of them.
+    pub(super) fn configs(&self) -> Vec<ChannelConfig> {
+        self.mimo.channels().iter().map(|c| *c.config()).collect()
     }
 
     /// Rule 2, the part that depends on the device: how many values.
@@ -648,7 +663,7 @@ impl Device {
         pb::DeviceConfig {
             version: PROTOCOL_VERSION,
             device_id: id.into(),
-            channels: self.configs.iter().map(channel_to_pb).collect(),
+            channels: self.configs().iter().map(channel_to_pb).collect(),
             reference: Some(reference_to_pb(&self.reference, self.reference_start)),
             envelope: Some(self.limits_pb()),
         }
@@ -660,7 +675,7 @@ impl Device {
     pub(super) fn settings(&self) -> std::collections::BTreeMap<String, String> {
         use mfc::params::{names, param, Readable};
         let mut out = std::collections::BTreeMap::new();
-        for (i, c) in self.configs.iter().enumerate() {
+        for (i, c) in self.configs().iter().enumerate() {
             let kind = c.law.kind();
             out.insert(format!("channel {i} law"), kind.name().to_string());
             for p in names().filter_map(param).filter(|p| p.applies_to(kind)) {
@@ -700,9 +715,13 @@ impl Device {
             f_est: self.f_est.to_vec(),
             last_error: self.last_error.clone(),
             envelope: Some(self.limits_pb()),
-            lease_holder: self.lease_holder.clone(),
+            lease_holder: self.lease_holder.as_str().into(),
             commission: self.commission.as_ref().map(|c| {
-                let output = self.configs.get(c.channel).map(|k| k.output);
+                let output = self
+                    .mimo
+                    .channels()
+                    .get(c.channel)
+                    .map(|k| k.config().output);
                 c.status_pb(output.unwrap_or_default())
             }),
             ..self.counters_pb()
@@ -753,7 +772,7 @@ impl Device {
         req: &pb::ConfigRequest,
     ) -> Result<(Vec<ChannelConfig>, Option<(Vec<Vec<Piece>>, f64)>), String> {
         let n = self.channels();
-        let mut configs = self.configs.clone();
+        let mut configs = self.configs();
         if !req.channels.is_empty() {
             if req.channels.len() != n {
                 return Err(format!(
@@ -822,7 +841,7 @@ impl Device {
         let h = self.period();
         for (i, new) in configs.iter().enumerate() {
             self.bounds[i]
-                .check_change(&self.configs[i], new, &self.envelope[i], h)
+                .check_change(self.config(i), new, &self.envelope[i], h)
                 .map_err(|e| format!("channel {i}: {e}"))?;
         }
         for (i, pieces) in reference.into_iter().flatten().enumerate() {
@@ -867,16 +886,16 @@ mod tests {
         let short = "load-1234";
         let edge = "a".repeat(INLINE_ID);
         let long = "cell-7/a-rather-long-device-id-9";
-        assert!(matches!(DeviceKey::new(short), DeviceKey::Inline { .. }));
-        assert!(matches!(DeviceKey::new(&edge), DeviceKey::Inline { .. }));
-        assert!(matches!(DeviceKey::new(long), DeviceKey::Heap(_)));
-        let mut table: HashMap<DeviceKey, u32> = HashMap::new();
+        assert!(matches!(ShortId::new(short), ShortId::Inline { .. }));
+        assert!(matches!(ShortId::new(&edge), ShortId::Inline { .. }));
+        assert!(matches!(ShortId::new(long), ShortId::Heap(_)));
+        let mut table: HashMap<ShortId, u32> = HashMap::new();
         for (i, id) in [short, edge.as_str(), long, "é-ü", ""].iter().enumerate() {
-            table.insert(DeviceKey::new(id), i as u32);
-            assert_eq!(DeviceKey::new(id).as_str(), *id);
+            table.insert(ShortId::new(id), i as u32);
+            assert_eq!(ShortId::new(id).as_str(), *id);
             // `Borrow<str>` requires the same hash as the id's own.
             let h = RandomState::new();
-            assert_eq!(h.hash_one(DeviceKey::new(id)), h.hash_one(*id));
+            assert_eq!(h.hash_one(ShortId::new(id)), h.hash_one(*id));
         }
         assert_eq!(table.get(short), Some(&0));
         assert_eq!(table.get(edge.as_str()), Some(&1));

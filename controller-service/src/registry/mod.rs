@@ -54,7 +54,7 @@ use protocol::{pb, printable, PROTOCOL_VERSION};
 use crate::config::ServiceConfig;
 use crate::lease::{LeasePolicy, Seen, Standing};
 pub use commission::{MAX_CYCLES, MAX_PERIOD, MAX_RUNNING, SILENT_NS};
-use device::{reply, Device, DeviceKey};
+use device::{reply, Device, ShortId};
 pub use shards::Restored;
 
 /// Unknown device ids listed in the status; samples from further unknown ids are still
@@ -247,7 +247,7 @@ pub struct Registry {
     ///
     /// Each device is boxed: the table itself stays small enough for the caches (its slots
     /// hold the key and a pointer), and a lookup reads only it.
-    devices: HashMap<DeviceKey, Box<Device>>,
+    devices: HashMap<ShortId, Box<Device>>,
     /// Samples whose id is neither declared nor matched by a template.
     unknown_samples: u64,
     /// The first `UNKNOWN_KEPT` of those ids.
@@ -281,7 +281,7 @@ impl Registry {
                 }
             })?;
             dev.home = protocol::shard_of(&d.id);
-            devices.insert(DeviceKey::new(&d.id), Box::new(dev));
+            devices.insert(ShortId::new(&d.id), Box::new(dev));
         }
         Ok(Self {
             controller_id: config.controller_id.clone(),
@@ -332,7 +332,7 @@ impl Registry {
 
     /// Ids of the devices served now: the declared ones and those provisioned so far.
     pub fn device_ids(&self) -> impl Iterator<Item = &str> {
-        let mut ids: Vec<&str> = self.devices.keys().map(DeviceKey::as_str).collect();
+        let mut ids: Vec<&str> = self.devices.keys().map(ShortId::as_str).collect();
         ids.sort_unstable();
         ids.into_iter()
     }
@@ -430,7 +430,7 @@ impl Registry {
         }
         let mut d = Device::new(&t.channels, t.prediction, true).map_err(|_| Served::Unknown)?;
         d.home = protocol::shard_of(id);
-        self.devices.insert(DeviceKey::new(id), Box::new(d));
+        self.devices.insert(ShortId::new(id), Box::new(d));
         Ok(())
     }
 

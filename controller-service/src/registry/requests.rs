@@ -82,11 +82,10 @@ impl Registry {
         };
         let planned = d.plan(req).and_then(|(configs, reference)| {
             d.mimo.reconfigure(&configs).map_err(|e| e.to_string())?;
-            Ok((configs, reference))
+            Ok(reference)
         });
-        let applied = planned.map(|(configs, reference)| {
+        let applied = planned.map(|reference| {
             d.abort_commission("the configuration changed");
-            d.configs = configs;
             if let Some((pieces, start)) = reference {
                 d.reference = pieces.into();
                 d.reference_start = start;
@@ -183,7 +182,7 @@ impl Registry {
                 }
             }
             let configs: Vec<ChannelConfig> = d
-                .configs
+                .configs()
                 .iter()
                 .zip(&limits)
                 .map(|(c, l)| ChannelConfig {
@@ -192,12 +191,11 @@ impl Registry {
                 })
                 .collect();
             d.mimo.reconfigure(&configs).map_err(|e| e.to_string())?;
-            Ok((limits, configs))
+            Ok(limits)
         })();
-        let applied = planned.map(|(limits, configs)| {
+        let applied = planned.map(|limits| {
             d.abort_commission("the envelope changed");
             d.envelope = limits.into();
-            d.configs = configs;
             d.envelope_changes += 1;
         });
         conclude(d, &mut self.requests_refused, id, applied)

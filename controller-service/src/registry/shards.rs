@@ -5,7 +5,7 @@
 use mfc::{ChannelConfig, ChannelOutput, MimoController, Reference};
 use protocol::{pb, printable};
 
-use super::device::{Device, DeviceKey};
+use super::device::{Device, ShortId};
 use super::Registry;
 use crate::envelope::Limits;
 use crate::snapshot::{DeviceSnapshot, HandedDevice, ShardState, SNAPSHOT_VERSION};
@@ -213,7 +213,7 @@ impl Registry {
             {
                 Some(mut fresh) => {
                     fresh.home = protocol::shard_of(&id);
-                    self.devices.insert(DeviceKey::new(&id), Box::new(fresh));
+                    self.devices.insert(ShortId::new(&id), Box::new(fresh));
                 }
                 None => {
                     self.devices.remove(id.as_str());
@@ -311,7 +311,7 @@ impl Registry {
                 }
                 let d = Device::new(&t.channels, t.prediction, true)?;
                 self.devices
-                    .entry(DeviceKey::new(&snap.id))
+                    .entry(ShortId::new(&snap.id))
                     .or_insert(Box::new(d))
             }
             None => return Err(format!("device {:?} is no longer configured", snap.id)),
@@ -324,7 +324,7 @@ impl Registry {
                 d.channels()
             ));
         }
-        if !snap.from_template && !live_config && configs != d.configs {
+        if !snap.from_template && !live_config && configs != d.configs() {
             return Err(format!(
                 "device {:?}: configuration changed since the snapshot",
                 snap.id
@@ -354,7 +354,6 @@ impl Registry {
         d.outputs = smallvec::smallvec![ChannelOutput::default(); configs.len()];
         d.refs = smallvec::smallvec![Reference::default(); configs.len()];
         d.f_est = smallvec::smallvec![f64::NAN; configs.len()];
-        d.configs = configs;
         d.mimo = mimo;
         d.reference = snap.reference.iter().cloned().collect();
         d.reference_start = snap.reference_start;

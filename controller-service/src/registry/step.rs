@@ -7,7 +7,7 @@ use mfc::trajectory::evaluate;
 use mfc::{MimoController, Reference};
 use protocol::pb;
 
-use super::device::{reply, Answer, Answered, Device, PerChannel, Run};
+use super::device::{reply, Answer, Answered, Device, PerChannel, Run, ShortId};
 use super::{capped, precheck, Via, MAX_SEQ_JUMP};
 use crate::lease::{Holder, LeasePolicy, Seen, Standing};
 use protocol::MAX_HORIZON;
@@ -73,9 +73,8 @@ pub(super) fn answer(
         return None;
     }
     let seen = Seen::of(s);
-    if d.lease_holder != seen.holder {
-        d.lease_holder.clear();
-        d.lease_holder.push_str(&protocol::printable(seen.holder));
+    if d.lease_holder.as_str() != seen.holder {
+        d.lease_holder = ShortId::new(&protocol::printable(seen.holder));
     }
     (d.lease_epoch, d.lease_refused) = (seen.epoch, s.lease_refused);
     let warm = out.mode == pb::Mode::Control as i32;
@@ -261,7 +260,7 @@ fn check_inputs(
         *r = evaluate(pieces, s.plant_time - d.reference_start);
     }
     let fresh = if new_run {
-        Some(MimoController::new(&d.configs).map_err(|e| e.to_string())?)
+        Some(MimoController::new(&d.configs()).map_err(|e| e.to_string())?)
     } else {
         None
     };
