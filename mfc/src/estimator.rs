@@ -619,7 +619,16 @@ impl<const CAP: usize> Estimator<CAP> {
     /// service holding thousands of estimators touches (and keeps resident) only a
     /// window's worth of memory for each, and a step stays in a few cache lines.
     fn slots(&self) -> usize {
-        slots(&self.config, CAP)
+        // With an allocator the ring is exactly the window's slots: its length says so
+        // without a look at the configuration, and bounds the indices it is read with.
+        #[cfg(feature = "alloc")]
+        {
+            self.ring.len()
+        }
+        #[cfg(not(feature = "alloc"))]
+        {
+            slots(&self.config, CAP)
+        }
     }
 
     fn wrap(&self, i: usize) -> usize {
