@@ -26,15 +26,8 @@ pub(crate) enum Channels<const CAP: usize> {
 }
 
 impl<const CAP: usize> From<Vec<Channel<CAP>>> for Channels<CAP> {
-    fn from(mut v: Vec<Channel<CAP>>) -> Self {
-        match v.pop() {
-            Some(c) if v.is_empty() => Self::One([c]),
-            Some(c) => {
-                v.push(c);
-                Self::Many(v)
-            }
-            None => Self::Many(v),
-        }
+    fn from(v: Vec<Channel<CAP>>) -> Self {
+        <[Channel<CAP>; 1]>::try_from(v).map_or_else(Self::Many, Self::One)
     }
 }
 

@@ -92,8 +92,9 @@ impl<Ctx, const CAP: usize> Decode<Ctx> for Estimator<CAP> {
 }
 
 /// What a decoded estimator must hold before it may step: a configuration it could have
-/// been built with for the order its sums serve, ring indices inside the window, a shadow sum that will replace the
-/// running one (it started inside the window), and a sample count far from overflowing.
+/// been built with for the order its sums serve, ring indices inside the window, a shadow
+/// sum that will replace the running one (it started inside the window), and a sample
+/// count far from overflowing.
 fn check_estimator<const CAP: usize>(e: &Estimator<CAP>, slots: usize) -> Result<(), DecodeError> {
     if e.config.validate(e.order, CAP).is_err() {
         return Err(invalid("estimator configuration invalid"));
