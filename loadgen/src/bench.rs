@@ -610,7 +610,42 @@ pub fn markdown(r: &Results) -> String {
             m / 1024.0
         );
     }
+    for target in [Target::Service, Target::Echo] {
+        if let Some((a, b, m)) = rss_slope(r, target) {
+            s += &format!(
+                "Resident memory per device added through gateways, {a} to {b} plants (medians), {}: {:.1} KiB.\n",
+                name(target),
+                m / 1024.0
+            );
+        }
+    }
     s
+}
+
+/// What each device adds to the resident memory of `target` through gateways, without
+/// what serving any load costs at all (threads' buffers, the allocator's pages in use,
+/// code paged in): the slope of the median resident memory between the smallest and the
+/// largest gateway fleet measured (those sizes, and the bytes per device). `None` with
+/// fewer than two sizes.
+pub fn rss_slope(r: &Results, target: Target) -> Option<(usize, usize, f64)> {
+    let at = |n: usize| {
+        median(
+            r.trials
+                .iter()
+                .filter(|t| t.target == target && t.path == "gateway" && t.report.devices == n)
+                .filter_map(|t| t.rss_bytes.map(|b| b as f64))
+                .collect(),
+        )
+    };
+    let sizes = || {
+        r.trials
+            .iter()
+            .filter(|t| t.target == target && t.path == "gateway" && t.rss_bytes.is_some())
+            .map(|t| t.report.devices)
+    };
+    let (a, b) = (sizes().min()?, sizes().max()?);
+    (b > a).then_some(())?;
+    Some((a, b, (at(b)? - at(a)?) / (b - a) as f64))
 }
 
 /// The service's and the anchor's median p99 at [`Results::p99_at`] devices, per device.
@@ -659,6 +694,55 @@ mod tests {
             cpu_cores: None,
             rss_bytes_per_device: None,
             rss_bytes: None,
+        }
+    }
+
+    fn gateway_round(target: Target, devices: usize, rss: u64) -> Trial {
+        let mut t = round(target, 1000, 300.0, 0);
+        t.path = "gateway";
+        t.report.devices = devices;
+        t.rss_bytes = Some(rss);
+        t
+    }
+
+    /// The slope between the smallest and the largest fleet, of the medians, per target.
+    #[test]
+    fn memory_per_added_device_is_the_slope_of_the_medians() {
+        let (s, e) = (Target::Service, Target::Echo);
+        let mut r = empty_results();
+        r.trials = vec![
+            gateway_round(s, 2000, 40 << 20),
+            gateway_round(s, 2000, 90 << 20), // an outlier: the median ignores it
+            gateway_round(s, 2000, 41 << 20),
+            gateway_round(s, 10_000, 73 << 20),
+            gateway_round(s, 5000, 1),
+            gateway_round(e, 10_000, 30 << 20),
+        ];
+        let (a, b, m) = rss_slope(&r, s).unwrap();
+        assert_eq!((a, b), (2000, 10_000));
+        let want = (73.0 - 41.0) * 1048576.0 / 8000.0;
+        assert!((m - want).abs() < 1e-6, "{m} against {want}");
+        assert_eq!(rss_slope(&r, e), None, "one size: no slope");
+        assert!(markdown(&r).contains(&format!("service: {:.1} KiB", want / 1024.0)));
+    }
+
+    fn empty_results() -> Results {
+        Results {
+            rate_hz: 100.0,
+            service_workers: 1,
+            inside: 0.999,
+            warmup_s: 1.0,
+            measure_s: 1.0,
+            per_gateway: 1000,
+            rounds: 3,
+            p99_at: 100,
+            trials: Vec::new(),
+            points: Vec::new(),
+            capacity_service: None,
+            capacity_echo: None,
+            gateway_capacity_service: None,
+            gateway_capacity_echo: None,
+            auth: false,
         }
     }
 

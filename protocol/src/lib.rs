@@ -11,6 +11,8 @@ pub mod convert;
 pub mod keys;
 pub mod roles;
 
+pub use prost::bytes::Bytes;
+
 /// Generated protobuf types (package `mfc.v1`).
 #[allow(missing_docs, clippy::all)]
 pub mod pb {
@@ -153,9 +155,58 @@ versioned!(
     AuditLog
 );
 
-/// Decode a versioned message; never panics, whatever the bytes.
-pub fn decode<M: Versioned>(bytes: &[u8]) -> Result<M, DecodeError> {
-    let m = M::decode(bytes).map_err(|source| DecodeError::Malformed {
+/// A [`pb::SampleBatch`] as it arrives, its samples left encoded: the same wire format,
+/// since an embedded message is a length-delimited field, read here as bytes.
+///
+/// Decoded from a [`Bytes`] ([`decode_from`]), each sample is a slice of the payload, not
+/// a copy: taking a batch in allocates the list of slices and nothing per sample. Whoever
+/// steps the samples decodes each in turn into a [`pb::Sample`] it keeps
+/// ([`SampleBatchView::read_sample`]), whose strings and lists keep their capacity from
+/// one sample to the next. Decoding every sample on arrival allocated each one's strings
+/// and lists (four or five per sample, thousands per batch) and the batch's list of them
+/// (a quarter of a megabyte for a batch of a thousand), on the thread that received it
+/// and freed on the thread that served it (`docs/scale.md`, "Memory per plant").
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct SampleBatchView {
+    /// [`PROTOCOL_VERSION`].
+    #[prost(uint32, tag = "1")]
+    pub version: u32,
+    /// The gateway that sent it (the key's own, checked by the receiver).
+    #[prost(string, tag = "2")]
+    pub gateway_id: String,
+    /// The samples, each an encoded [`pb::Sample`].
+    #[prost(bytes = "bytes", repeated, tag = "3")]
+    pub samples: Vec<Bytes>,
+    /// As in [`pb::SampleBatch`].
+    #[prost(bytes = "vec", tag = "100")]
+    pub mac: Vec<u8>,
+}
+
+impl Versioned for SampleBatchView {
+    const NAME: &'static str = "SampleBatch";
+    fn version(&self) -> u32 {
+        self.version
+    }
+}
+
+impl SampleBatchView {
+    /// Decode one of [`Self::samples`] into `into`, replacing what it held (its buffers
+    /// are reused). Never panics. The sample's own version is not checked, as in a decoded
+    /// [`pb::SampleBatch`]: the batch's is.
+    pub fn read_sample(raw: &[u8], into: &mut pb::Sample) -> Result<(), DecodeError> {
+        use prost::Message;
+        into.clear();
+        into.merge(raw).map_err(|source| DecodeError::Malformed {
+            what: "Sample",
+            source,
+        })
+    }
+}
+
+/// [`decode`] from any buffer: from a [`Bytes`], the `bytes` fields of the message (such
+/// as [`SampleBatchView::samples`]) are slices of it, not copies.
+pub fn decode_from<M: Versioned>(buf: impl prost::bytes::Buf) -> Result<M, DecodeError> {
+    let m = M::decode(buf).map_err(|source| DecodeError::Malformed {
         what: M::NAME,
         source,
     })?;
@@ -166,6 +217,11 @@ pub fn decode<M: Versioned>(bytes: &[u8]) -> Result<M, DecodeError> {
         });
     }
     Ok(m)
+}
+
+/// Decode a versioned message; never panics, whatever the bytes.
+pub fn decode<M: Versioned>(bytes: &[u8]) -> Result<M, DecodeError> {
+    decode_from(bytes)
 }
 
 /// Encode a message to bytes; cannot fail. It does not set `version`: the caller fills it
@@ -205,6 +261,12 @@ mod tests {
             let _ = decode::<pb::Heartbeat>(&bytes);
             let _ = decode::<pb::SampleBatch>(&bytes);
             let _ = decode::<pb::CommandBatch>(&bytes);
+            if let Ok(view) = decode_from::<SampleBatchView>(Bytes::from(bytes.clone())) {
+                let mut s = pb::Sample::default();
+                for raw in &view.samples {
+                    let _ = SampleBatchView::read_sample(raw, &mut s);
+                }
+            }
         }
 
         /// Mutations of a valid sample decode or fail, never panic, and a decoded config
@@ -236,6 +298,56 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A batch read as a view gives back every sample as the whole decode does, each a
+    /// slice of the payload; a reused sample leaves nothing of the one before.
+    #[test]
+    fn a_batch_view_reads_what_the_batch_holds() {
+        let sample = |i: u64, outputs: Vec<f64>, holder: &str| pb::Sample {
+            version: PROTOCOL_VERSION,
+            device_id: format!("load-{i}"),
+            seq: i,
+            plant_time: i as f64 * 0.01,
+            outputs,
+            applied: vec![0.5; (i % 2) as usize],
+            lease_holder: holder.into(),
+            ..Default::default()
+        };
+        let batch = pb::SampleBatch {
+            version: PROTOCOL_VERSION,
+            gateway_id: "gw-1".into(),
+            samples: vec![
+                sample(1, vec![1.0, 2.0, 3.0], "bench"),
+                sample(2, vec![4.0], ""),
+                sample(3, vec![], "other"),
+            ],
+            mac: Vec::new(),
+        };
+        let payload = Bytes::from(encode(&batch));
+        let range = payload.as_ptr_range();
+        let view: SampleBatchView = decode_from(payload.clone()).unwrap();
+        assert_eq!((view.version, view.gateway_id.as_str()), (1, "gw-1"));
+        assert_eq!(view.samples.len(), 3);
+        let mut s = pb::Sample::default();
+        for (k, want) in batch.samples.iter().enumerate() {
+            assert!(
+                range.contains(&view.samples[k].as_ptr()),
+                "sample {k} copied"
+            );
+            SampleBatchView::read_sample(&view.samples[k], &mut s).unwrap();
+            assert_eq!(&s, want);
+        }
+        // A length past the end, inside a batch whose own framing holds.
+        assert!(SampleBatchView::read_sample(&[0x12, 0x05, 0x01], &mut s).is_err());
+        let old = pb::SampleBatch {
+            version: 2,
+            ..batch
+        };
+        assert!(matches!(
+            decode_from::<SampleBatchView>(Bytes::from(encode(&old))),
+            Err(DecodeError::Version { got: 2, .. })
+        ));
     }
 
     #[test]

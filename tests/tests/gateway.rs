@@ -9,7 +9,7 @@
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
-use protocol::{decode, encode, keys, pb, PROTOCOL_VERSION};
+use protocol::{decode, encode, keys, pb, Bytes, SampleBatchView, PROTOCOL_VERSION};
 use system_tests::{query, scratch_dir, SERIAL};
 use zenoh::Session;
 
@@ -143,21 +143,33 @@ impl Gateway {
         }
     }
 
-    /// One batch with every kind of sample a gateway may carry.
+    /// One batch with every kind of sample a gateway may carry, and one that does not
+    /// decode (its length runs past its end): dropped alone, the others answered.
     async fn every_kind_of_sample(&mut self) {
         let mut nan = sample("cell-1", 31, 0.0);
         nan.outputs = vec![f64::NAN];
-        let b = self
-            .exchange(vec![
-                sample("cell-0", 31, 0.0),
-                sample("cell-0", 31, 0.0), // the same sample again: answered again, the same
-                nan,                       // refused, changing nothing
-                sample("cell-2", 29, 0.0), // older than one answered: stale
-                sample("cell-3", 31, 0.0),
-                sample("bad id!", 31, 0.0), // no device to answer
-                sample("other-1", 31, 0.0), // no template: not served
-            ])
-            .await;
+        let mut raw: Vec<Bytes> = [
+            sample("cell-0", 31, 0.0),
+            sample("cell-0", 31, 0.0), // the same sample again: answered again, the same
+            nan,                       // refused, changing nothing
+            sample("cell-2", 29, 0.0), // older than one answered: stale
+            sample("cell-3", 31, 0.0),
+            sample("bad id!", 31, 0.0), // no device to answer
+            sample("other-1", 31, 0.0), // no template: not served
+        ]
+        .iter()
+        .map(|s| Bytes::from(encode(s)))
+        .collect();
+        raw.insert(3, Bytes::from_static(&[0x12, 0x05, 0x01]));
+        let payload = encode(&SampleBatchView {
+            version: PROTOCOL_VERSION,
+            gateway_id: "gw-1".into(),
+            samples: raw,
+            mac: Vec::new(),
+        });
+        let b = exchange(&self.s, &self.replies, payload).await;
+        self.every_v
+            .extend(b.commands.iter().flat_map(|c| c.v.clone()));
         let got: Vec<(&str, u64, pb::Mode)> = b
             .commands
             .iter()
@@ -245,7 +257,7 @@ fn judge_counters(st: &pb::ServiceStatus) {
             st.device_table_full,
             st.rejected
         ),
-        (1, 1, 1, 1, 1, 3, 1),
+        (1, 1, 2, 1, 1, 3, 1),
         "each refusal in its counter: {st:?}"
     );
     let dev = |id: &str| {

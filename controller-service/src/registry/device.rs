@@ -179,64 +179,45 @@ pub(super) enum Run {
 
 /// What the service holds for one device: its control state, where the plant's run stands,
 /// and the counters of its status.
+///
+/// In declaration order (`repr(C)`): the controller (whose own fields are laid out the same
+/// way), then the rest of what every sample reads or writes, roughly in the order a step
+/// reads it, then what only a status, a snapshot, a change or a refusal reads. At ten
+/// thousand devices none of them is in the caches when its sample comes, so each cache
+/// line a step touches is a miss, and lines read together cost fewer (the processor fetches
+/// neighbouring lines with a missed one). Left to the compiler, the fields are ordered by
+/// their alignment, not by use: stepping ten thousand devices took 6.06 ms against 5.32
+/// with this order (`cargo bench -p controller-service --bench registry --
+/// every_device_once`, medians of six alternated runs, 2026-11-28), and 6.8 with the
+/// controller after the rest.
 #[derive(Debug, Clone)]
+#[repr(C)]
 pub(super) struct Device {
-    /// The shard the device lives in ([`crate::fleet`]): its id's, or its gateway's if its
-    /// samples come in a gateway's batches.
-    pub(super) home: u32,
-    /// This member's side of the plant's command lease ([`crate::lease`]).
-    pub(super) claimer: Claimer,
-    /// When its last sample was stepped here (Unix ns; 0: never).
-    pub(super) heard_unix_ns: u64,
-    /// Which changes its configuration holds ([`crate::lease::Version`]).
-    pub(super) version: Version,
-    /// The lease as the last sample reported it: holder (at most an id's length, printable),
-    /// epoch, and the plant's count of refused commands.
-    pub(super) lease_holder: ShortId,
-    pub(super) lease_epoch: u64,
-    pub(super) lease_refused: u64,
-    /// Restored from a snapshot and not yet resumed: the first sample decides whether the
-    /// data history still holds (no gap) or must be forgotten.
-    pub(super) restored: bool,
-    /// Provisioned from a template, not declared: reported in the status, and lets a
-    /// snapshot rebuild the device although no declaration names it.
-    pub(super) from_template: bool,
-    /// The safety envelope per channel. Every output map in force ([`Device::config`])
-    /// lies inside it.
-    pub(super) envelope: PerChannel<Limits>,
-    /// What a change of each channel may set (`crate::bounds`), from the file.
-    pub(super) bounds: PerChannel<ChannelBounds>,
     /// The controller, which holds the laws and output maps in force ([`Device::config`]:
     /// one copy, changed only through `MimoController::reconfigure`).
     pub(super) mimo: MimoController,
-    /// Reference pieces per channel, evaluated at `plant_time - reference_start`.
-    pub(super) reference: PerChannel<Vec<Piece>>,
-    /// Plant time (s) at which the reference starts: 0 from the file, moved by a live
-    /// reference update.
-    pub(super) reference_start: f64,
-    /// The plant run this state belongs to (`None` before the first sample).
-    pub(super) run_id: Option<u64>,
-    /// Sequence numbers of the run in force, after the last answered one, whose samples
-    /// were answered REJECTED (at most [`REJECTED_KEPT`]): they arrived, so the gap they
-    /// leave before the next good sample is not counted as lost.
-    pub(super) rejected_seqs: VecDeque<u64>,
-    /// Its latest audited decisions, oldest first (at most `audit::KEPT`), handed over
-    /// with its state so that the member taking it over keeps its history.
-    pub(super) audit: VecDeque<pb::AuditEntry>,
-    /// Runs that ended, newest last, at most `RETIRED_RUNS`.
-    pub(super) retired: VecDeque<u64>,
+    /// When its last sample was stepped here (Unix ns; 0: never).
+    pub(super) heard_unix_ns: u64,
+    /// The shard the device lives in ([`crate::fleet`]): its id's, or its gateway's if its
+    /// samples come in a gateway's batches.
+    pub(super) home: u32,
+    /// The last sample's flags (what its plant was doing), for the status.
+    pub(super) last_flags: u32,
+    /// Samples for this device, counted before any check.
+    pub(super) samples: u64,
     /// Samples received since the run in force started, refused ones included: a sample of
     /// a retired run is late only while this is below `REORDER_WINDOW`.
     pub(super) run_samples: u64,
+    /// The plant run this state belongs to (`None` before the first sample).
+    pub(super) run_id: Option<u64>,
     /// Sequence number of the last sample answered with control values; refused samples do
     /// not move it.
     pub(super) last_seq: Option<u64>,
     /// Plant time of that sample (s); the next must come strictly later. Minus infinity
     /// until the first one (and after a plant restart), so any first time is accepted.
     pub(super) last_time: f64,
-    /// The command answering `last_seq`, sent again verbatim for a duplicate. `None` after a
-    /// restart or a restore.
-    pub(super) last_command: Option<Answer>,
+    /// Runs that ended, newest last, at most `RETIRED_RUNS`.
+    pub(super) retired: VecDeque<u64>,
     /// The samples refused as out of step since the last answered one, if they form a
     /// consistent stream: its last sequence and time, and how many ([`RESYNC_AFTER`]).
     pub(super) astray: Option<(u64, f64, u32)>,
@@ -246,21 +227,75 @@ pub(super) struct Device {
     /// How many of `intervals` are filled, and where the next goes.
     pub(super) intervals_len: usize,
     pub(super) intervals_next: usize,
-    /// The values of the last CONTROL command sent, kept across runs (the same actuator):
-    /// where the rate limit runs from when a sample does not say what is applied.
-    pub(super) held: Option<PerChannel<f64>>,
-    /// Each step's outputs per channel, a buffer reused from sample to sample.
-    pub(super) outputs: PerChannel<ChannelOutput>,
-    /// The references per channel at the current sample, likewise reused.
-    pub(super) refs: PerChannel<Reference>,
-    /// Samples for this device, counted before any check.
-    pub(super) samples: u64,
-    /// Commands computed (CONTROL or WARMING_UP); not resends for duplicates, not REJECTED
-    /// or STALE answers.
-    pub(super) commands: u64,
+    /// Sequence numbers of the run in force, after the last answered one, whose samples
+    /// were answered REJECTED (at most [`REJECTED_KEPT`]): they arrived, so the gap they
+    /// leave before the next good sample is not counted as lost.
+    pub(super) rejected_seqs: VecDeque<u64>,
     /// Sequence numbers skipped between one answered sample and the next; a sample that
     /// arrived but was refused in between counts here too.
     pub(super) lost: u64,
+    /// Plant time (s) at which the reference starts: 0 from the file, moved by a live
+    /// reference update.
+    pub(super) reference_start: f64,
+    /// The references per channel at the current sample, likewise reused.
+    pub(super) refs: PerChannel<Reference>,
+    /// Reference pieces per channel, evaluated at `plant_time - reference_start`.
+    pub(super) reference: PerChannel<Vec<Piece>>,
+    /// The plant's round-trip reports (µs), oldest first, at most `RTT_WINDOW`; a report of
+    /// 0 (no round trip yet) is not kept.
+    pub(super) rtts: VecDeque<u32>,
+    /// Restored from a snapshot and not yet resumed: the first sample decides whether the
+    /// data history still holds (no gap) or must be forgotten.
+    pub(super) restored: bool,
+    /// The last commissioning run (`super::commission`), kept until the next starts; not
+    /// in snapshots (a run does not survive its member).
+    pub(super) commission: Option<Box<super::commission::Commission>>,
+    /// Each step's outputs per channel, a buffer reused from sample to sample.
+    pub(super) outputs: PerChannel<ChannelOutput>,
+    /// The safety envelope per channel. Every output map in force ([`Device::config`])
+    /// lies inside it.
+    pub(super) envelope: PerChannel<Limits>,
+    /// The values of the last CONTROL command sent, kept across runs (the same actuator):
+    /// where the rate limit runs from when a sample does not say what is applied.
+    pub(super) held: Option<PerChannel<f64>>,
+    /// Commands the final envelope check clipped: 0 unless a law or map misbehaves, or a
+    /// rate-limited channel starts (a run, a restore) where the law's first value is not
+    /// within reach of what the actuator holds.
+    pub(super) clamped: u64,
+    /// Commands computed (CONTROL or WARMING_UP); not resends for duplicates, not REJECTED
+    /// or STALE answers.
+    pub(super) commands: u64,
+    /// The last F estimate per channel; NaN until a step gives one.
+    pub(super) f_est: PerChannel<f64>,
+    /// Horizon and delay compensation of its commands (from the file).
+    pub(super) prediction: Prediction,
+    /// The command answering `last_seq`, sent again verbatim for a duplicate. `None` after a
+    /// restart or a restore.
+    pub(super) last_command: Option<Answer>,
+    /// The lease as the last sample reported it: holder (at most an id's length, printable),
+    /// epoch, and the plant's count of refused commands.
+    pub(super) lease_holder: ShortId,
+    pub(super) lease_epoch: u64,
+    pub(super) lease_refused: u64,
+    /// This member's side of the plant's command lease ([`crate::lease`]).
+    pub(super) claimer: Claimer,
+    /// With delay compensation: what the plant will apply in each coming period, as this
+    /// device's commands already sent will have it.
+    pub(super) schedule: Option<Box<Schedule>>,
+    // Read only for a status, a snapshot or a change, or counted on a refusal.
+    /// Samples sent while the plant was holding, on its local fallback or in safe stop:
+    /// counts samples, not fallback episodes.
+    pub(super) samples_off_remote: u64,
+    /// Which changes its configuration holds ([`crate::lease::Version`]).
+    pub(super) version: Version,
+    /// Provisioned from a template, not declared: reported in the status, and lets a
+    /// snapshot rebuild the device although no declaration names it.
+    pub(super) from_template: bool,
+    /// What a change of each channel may set (`crate::bounds`), from the file.
+    pub(super) bounds: PerChannel<ChannelBounds>,
+    /// Its latest audited decisions, oldest first (at most `audit::KEPT`), handed over
+    /// with its state so that the member taking it over keeps its history.
+    pub(super) audit: VecDeque<pb::AuditEntry>,
     /// Samples repeating `last_seq`, answered with the cached command when there is one.
     pub(super) duplicates: u64,
     /// Samples older than `last_seq`, or of an ended run: answered STALE.
@@ -271,39 +306,17 @@ pub(super) struct Device {
     /// Samples replaced by a newer one before the worker read them (reported by the
     /// service's inbox).
     pub(super) superseded: u64,
-    /// Samples sent while the plant was holding, on its local fallback or in safe stop:
-    /// counts samples, not fallback episodes.
-    pub(super) samples_off_remote: u64,
     /// Envelope changes accepted since the service started.
     pub(super) envelope_changes: u64,
-    /// Commands the final envelope check clipped: 0 unless a law or map misbehaves, or a
-    /// rate-limited channel starts (a run, a restore) where the law's first value is not
-    /// within reach of what the actuator holds.
-    pub(super) clamped: u64,
     /// Reference updates refused.
     pub(super) references_refused: u64,
     /// Runs started (the first sample's included).
     pub(super) restarts: u64,
-    /// The plant's round-trip reports (µs), oldest first, at most `RTT_WINDOW`; a report of
-    /// 0 (no round trip yet) is not kept.
-    pub(super) rtts: VecDeque<u32>,
-    /// The last F estimate per channel; NaN until a step gives one.
-    pub(super) f_est: PerChannel<f64>,
+    /// Lost samples recovered from the copy the next one carried.
+    pub(super) recovered: u64,
     /// Why the last refused sample or request was refused (already cut to printable
     /// length); a later good one does not clear it.
     pub(super) last_error: String,
-    /// Horizon and delay compensation of its commands (from the file).
-    pub(super) prediction: Prediction,
-    /// Lost samples recovered from the copy the next one carried.
-    pub(super) recovered: u64,
-    /// The last sample's flags (what its plant was doing), for the status.
-    pub(super) last_flags: u32,
-    /// With delay compensation: what the plant will apply in each coming period, as this
-    /// device's commands already sent will have it.
-    pub(super) schedule: Option<Box<Schedule>>,
-    /// The last commissioning run (`super::commission`), kept until the next starts; not
-    /// in snapshots (a run does not survive its member).
-    pub(super) commission: Option<Box<super::commission::Commission>>,
 }
 
 /// What the plant will apply in each period, as far as the commands already sent decide

@@ -6,7 +6,7 @@ use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
-use protocol::{encode, keys, pb, printable};
+use protocol::{encode, keys, pb, printable, SampleBatchView};
 use tokio::sync::Notify;
 use zenoh::pubsub::Publisher;
 use zenoh::{Session, Wait};
@@ -60,8 +60,9 @@ pub(super) struct Shared {
     pub(super) core: Mutex<Core>,
     /// Samples waiting for the worker: the latest per device.
     pub(super) inbox: Mutex<Inbox<pb::Sample>>,
-    /// Gateway batches waiting for the worker: the latest per gateway.
-    pub(super) gateways: Mutex<Inbox<pb::SampleBatch>>,
+    /// Gateway batches waiting for the worker: the latest per gateway, its samples still
+    /// encoded (the worker decodes them one at a time, [`Core::serve_batch`]).
+    pub(super) gateways: Mutex<Inbox<SampleBatchView>>,
     pub(super) masks: Masks,
     /// Drops counted in the callbacks, before the worker sees anything.
     pub(super) drops: Drops,
@@ -92,6 +93,10 @@ pub(super) struct Core {
     gw_publishers: HashMap<String, Arc<Publisher<'static>>>,
     /// The commands of the last batch, kept with their buffers for the next one.
     pool: Vec<pb::Command>,
+    /// The samples of the last batch, decoded, kept with their buffers for the next one:
+    /// a batch's samples are decoded into these, and allocate nothing once they are as
+    /// many and as long as the batch's.
+    samples: Vec<pb::Sample>,
     /// Whether each answer of a batch is sent, kept for the next batch.
     sends: Vec<bool>,
     /// The fleet's keys, to seal commands (`None`: open).
@@ -116,6 +121,7 @@ impl Core {
             publishers: HashMap::new(),
             gw_publishers: HashMap::new(),
             pool: Vec::new(),
+            samples: Vec::new(),
             sends: Vec::new(),
         }
     }
@@ -194,18 +200,21 @@ impl Core {
     /// Answer one gateway batch with one batch: every sample is handled exactly as a lone
     /// sample of its device would be (the registry's rules, per device), and every answer
     /// goes back in one [`pb::CommandBatch`] on the gateway's command key. The commands
-    /// are written into the pool's, kept from batch to batch, so that answering thousands
-    /// of samples a period allocates nothing. Returns the gateway and the encoded batch to
-    /// send, if this worker answers it.
+    /// are written into the pool's, and the samples decoded into the samples', both kept
+    /// from batch to batch, so that answering thousands of samples a period allocates
+    /// nothing. A sample that does not decode is dropped (counted as undecodable), the
+    /// others answered. Returns the gateway and the encoded batch to send, if this worker
+    /// answers it.
     pub(super) fn serve_batch(
         &mut self,
         answers: bool,
-        inbox: &Mutex<Inbox<pb::Sample>>,
-        taken: Taken<pb::SampleBatch>,
+        (inbox, drops): (&Mutex<Inbox<pb::Sample>>, &Drops),
+        taken: Taken<SampleBatchView>,
     ) -> Option<(String, Vec<u8>)> {
         let gw = taken.id;
         let home = protocol::shard_of(&gw);
         let batch = taken.item;
+        let mut samples = std::mem::take(&mut self.samples);
         let mut commands = std::mem::take(&mut self.pool);
         let mut sends = std::mem::take(&mut self.sends);
         let mut n = 0;
@@ -214,7 +223,18 @@ impl Core {
         let log_ns = protocol::unix_ns();
         let cpu0 = self.watch.timing().then(thread_cpu);
         let mut answered: Vec<(usize, usize, bool)> = Vec::new();
-        for (k, sample) in batch.samples.iter().enumerate() {
+        for (k, raw) in batch.samples.iter().enumerate() {
+            if samples.len() == k {
+                samples.push(pb::Sample::default());
+            }
+            let sample = &mut samples[k];
+            if let Err(e) = SampleBatchView::read_sample(raw, sample) {
+                Drops::count(&drops.undecodable);
+                let warn = &mut self.warn;
+                throttled!(warn.rejected, warn, gateway = %gw, "sample in a batch that does not decode: dropped ({e})");
+                continue;
+            }
+            let sample = &samples[k];
             let dev = sample.device_id.as_str();
             if keys::check_id(dev).is_err() {
                 // No device to answer: an id that could not even be a key.
@@ -245,7 +265,7 @@ impl Core {
         if !answered.is_empty() {
             let cpu = cpu0.map(|c| (thread_cpu() - c) / answered.len() as f64);
             for &(k, i, provisioned) in &answered {
-                let (sample, cmd) = (&batch.samples[k], &commands[i]);
+                let (sample, cmd) = (&samples[k], &commands[i]);
                 let dev = &sample.device_id;
                 self.watch
                     .served(&self.registry, dev, sample, cmd, cpu, provisioned, log_ns);
@@ -256,7 +276,10 @@ impl Core {
         let mut sent = 0;
         for (i, &send) in sends.iter().enumerate().take(n) {
             if send {
-                commands.swap(sent, i);
+                // A swap in place still copies the command (a few hundred bytes) twice.
+                if sent != i {
+                    commands.swap(sent, i);
+                }
                 sent += 1;
             }
         }
@@ -277,6 +300,7 @@ impl Core {
         });
         self.pool = out.commands;
         self.pool.extend(spare);
+        self.samples = samples;
         payload.map(|p| (gw, p))
     }
 

@@ -7,7 +7,10 @@ use std::collections::BTreeSet;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
-use protocol::{decode, keys, pb, printable, MAX_BATCH_PAYLOAD, MAX_BATCH_SAMPLES, MAX_PAYLOAD};
+use protocol::{
+    decode, decode_from, keys, pb, printable, Bytes, SampleBatchView, MAX_BATCH_PAYLOAD,
+    MAX_BATCH_SAMPLES, MAX_PAYLOAD,
+};
 use tokio::sync::mpsc;
 use zenoh::key_expr::OwnedKeyExpr;
 use zenoh::query::Query;
@@ -233,8 +236,9 @@ impl Intake {
     }
 
     /// A gateway's batch: one per period with the samples of all its plants. Checked here
-    /// as a whole (size, count, the key's own gateway id); each sample inside is checked
-    /// by the registry, as if it had come alone.
+    /// as a whole (size, count, the key's own gateway id, the MAC); each sample inside is
+    /// decoded by the worker and checked by the registry, as if it had come alone (one
+    /// that does not decode is dropped alone, counted as undecodable).
     pub(super) fn on_gateway_batch(&self, s: Sample) {
         let drops = &self.shared.drops;
         if s.payload().len() > MAX_BATCH_PAYLOAD {
@@ -248,15 +252,17 @@ impl Intake {
         if !self.shared.masks.steps(protocol::shard_of(gw)) {
             return;
         }
-        let bytes = s.payload().to_bytes();
+        // One copy of the payload, which the batch's samples are slices of until the
+        // worker decodes them (`protocol::SampleBatchView`).
+        let bytes = Bytes::from(s.payload().to_bytes().into_owned());
         let body = match &self.shared.keys {
             Some(k) => match k.open_batch(gw, &bytes) {
-                Some(body) => body,
+                Some(body) => bytes.slice_ref(body),
                 None => return Drops::count(&drops.forged),
             },
-            None => &bytes[..],
+            None => bytes,
         };
-        let Ok(batch) = decode::<pb::SampleBatch>(body) else {
+        let Ok(batch) = decode_from::<SampleBatchView>(body) else {
             Drops::count(&drops.undecodable);
             return;
         };

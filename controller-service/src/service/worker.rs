@@ -280,7 +280,7 @@ impl Worker {
                     break;
                 };
                 let answers = shared.masks.answers(protocol::shard_of(&taken.id));
-                c.serve_batch(answers, &shared.inbox, taken)
+                c.serve_batch(answers, (&shared.inbox, &shared.drops), taken)
             };
             if let Some((gw, payload)) = out {
                 publish_batch(&self.session, &shared.core, gw, payload).await;
