@@ -509,6 +509,26 @@ impl Device {
         })
     }
 
+    /// Ask the processor for every line of the state a step reads, all at once, before
+    /// the step reads the first: at ten thousand devices none is in the caches, and read
+    /// one after another by code whose branches wait on them, each miss would cost its
+    /// whole latency in turn (`docs/scale.md`, "The gateway path today": 10 000 devices
+    /// stepped in 0.79x the time). On x86_64; elsewhere nothing.
+    #[inline]
+    pub(super) fn prefetch(&self) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+            let start = std::ptr::from_ref(self).cast::<i8>();
+            for at in (0..std::mem::offset_of!(Device, samples_off_remote)).step_by(64) {
+                // SAFETY: a prefetch is a hint that reads nothing and never faults, and SSE
+                // (its target feature) is part of every x86_64; the address is inside
+                // `self` anyway.
+                unsafe { _mm_prefetch::<_MM_HINT_T0>(start.wrapping_add(at)) };
+            }
+        }
+    }
+
     /// A new plant run: fresh control state, same configuration and reference. The
     /// counters carry on across runs.
     pub(super) fn start_run(&mut self, run_id: u64, fresh: MimoController) {

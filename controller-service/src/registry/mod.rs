@@ -466,6 +466,7 @@ impl Registry {
     ) -> Served {
         // One lookup for a device already served: the common case.
         if let Some(d) = self.devices.get_mut(via.key_id) {
+            d.prefetch();
             let cx = step::Context {
                 controller_id: &self.controller_id,
                 rejected: &mut self.rejected,
