@@ -282,7 +282,8 @@ pub(super) struct Device {
     /// With delay compensation: what the plant will apply in each coming period, as this
     /// device's commands already sent will have it.
     pub(super) schedule: Option<Box<Schedule>>,
-    // Read only for a status, a snapshot or a change, or counted on a refusal.
+    // Read only for a status, a snapshot or a change, or counted on a refusal. The first
+    // of these ends what `Device::prefetch` asks for.
     /// Samples sent while the plant was holding, on its local fallback or in safe stop:
     /// counts samples, not fallback episodes.
     pub(super) samples_off_remote: u64,

@@ -300,6 +300,7 @@ impl Core {
         });
         self.pool = out.commands;
         self.pool.extend(spare);
+        keep_small(&mut samples, &batch.samples);
         self.samples = samples;
         payload.map(|p| (gw, p))
     }
@@ -421,6 +422,23 @@ pub(super) async fn publish_batch(
     }
 }
 
+/// Largest encoded sample whose decoded buffers [`Core::serve_batch`] keeps for the next
+/// batch (bytes): a sample of 16 channels carrying 3 earlier samples is about 1 KiB. The
+/// samples kept are as many as the longest batch (at most `MAX_BATCH_SAMPLES`), so without
+/// this a gateway sending one huge sample at each position in turn would leave each holding
+/// a batch's worth of capacity, gigabytes in all.
+const KEPT_SAMPLE_BYTES: usize = 2048;
+
+/// Give back the buffers of every sample of `samples` decoded from one of `raw` longer
+/// than [`KEPT_SAMPLE_BYTES`]; the others keep theirs.
+fn keep_small(samples: &mut [pb::Sample], raw: &[protocol::Bytes]) {
+    for (s, r) in samples.iter_mut().zip(raw) {
+        if r.len() > KEPT_SAMPLE_BYTES {
+            *s = pb::Sample::default();
+        }
+    }
+}
+
 /// What a worker feeds its observers, and the histogram handles of its devices (one entry
 /// per device it served: bounded by its device table).
 pub(super) struct Watch {
@@ -528,4 +546,37 @@ pub(super) fn record_config(r: &Recording, registry: &Registry, dev: &str, why: 
     }
     let t = registry.device_status(dev).map_or(0.0, |s| s.plant_time);
     r.event(dev, "config", why, t);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A sample decoded from a long encoding gives its buffers back; a short one keeps
+    /// them, and so do kept samples the batch did not reach.
+    #[test]
+    fn only_samples_of_ordinary_size_keep_their_buffers() {
+        let short = pb::Sample {
+            outputs: vec![1.0; 4],
+            ..Default::default()
+        };
+        let long = pb::Sample {
+            outputs: vec![1.0; 1000],
+            ..Default::default()
+        };
+        let raw: Vec<protocol::Bytes> = [&short, &long]
+            .iter()
+            .map(|s| protocol::Bytes::from(encode(*s)))
+            .collect();
+        assert!(raw[0].len() <= KEPT_SAMPLE_BYTES && raw[1].len() > KEPT_SAMPLE_BYTES);
+        let mut kept = vec![short.clone(), long, short.clone()];
+        keep_small(&mut kept, &raw);
+        assert_eq!(kept[0].outputs.capacity(), 4);
+        assert_eq!(
+            kept[1].outputs.capacity(),
+            0,
+            "the long one gave its buffer back"
+        );
+        assert_eq!(kept[2], short, "beyond the batch: untouched");
+    }
 }
