@@ -239,6 +239,12 @@ impl LinearEstimate {
     }
 }
 
+/// `1/3` and `1/6`, multiplied by: a division by a constant stays a division (it rounds
+/// otherwise), and a step computes the moments of two intervals.
+const THIRD: f64 = 1.0 / 3.0;
+const SIXTH: f64 = 1.0 / 6.0;
+const THIRTIETH: f64 = 1.0 / 30.0;
+
 /// One zero-order-hold interval `[a, b]`: output samples at both ends and the input the
 /// plant actually received in between.
 #[derive(Debug, Clone, Copy, Default)]
@@ -282,10 +288,10 @@ impl Moments {
         let mean = 0.5 * (iv.ya + iv.yb);
         let dy = iv.yb - iv.ya;
         // ∫ s^j ds, j = 0..4.
-        let p2 = m2 + r2 / 3.0;
+        let p2 = m2 + r2 * THIRD;
         if order == Order::One {
             return Moments {
-                y: [h * mean, h * (m * mean + r * dy / 6.0), 0.0],
+                y: [h * mean, h * (m * mean + r * dy * SIXTH), 0.0],
                 u: [h * iv.u, h * m * iv.u, h * p2 * iv.u, 0.0, 0.0],
                 k: [0.0; 3],
                 ku: [0.0; 3],
@@ -300,8 +306,8 @@ impl Moments {
         ];
         let y = [
             h * mean,
-            h * (m * mean + r * dy / 6.0),
-            h * (mean * p2 + m * r * dy / 3.0),
+            h * (m * mean + r * dy * SIXTH),
+            h * (mean * p2 + m * r * dy * THIRD),
         ];
         let hr2 = h * r2;
         let k = [
@@ -395,10 +401,12 @@ impl Moments {
                     - 2.0 * g * m * self.u[1]
                     + m * m * self.u[0];
                 let t5 = t * t * t * t * t;
-                let den = t5 / 30.0 + pk;
+                // One division, of times alone (the bubble's moments are the samples'
+                // times'), where two would wait for the data.
+                let inv = 1.0 / (t5 * THIRTIETH + pk);
                 LinearEstimate {
-                    base: 2.0 * a / den,
-                    per_alpha: -(pku + q) / den,
+                    base: 2.0 * a * inv,
+                    per_alpha: -(pku + q) * inv,
                 }
             }
         }
@@ -593,22 +601,18 @@ impl<const CAP: usize> Estimator<CAP> {
         let Some((a, ya)) = self.last.replace((t, y)) else {
             return;
         };
-        let iv = Interval {
-            a,
-            b: t,
-            ya,
-            yb: y,
-            u: u_applied,
-        };
         if t - a > self.config.max_interval {
             // Too long a gap: start a fresh window at this sample.
             self.clear_window();
             return;
         }
         // One copy of the window's update per order, each with its moments' order fixed.
+        // The interval goes as its five numbers, in registers: built here and read there
+        // through memory, its halves were loaded wider than they had just been stored,
+        // which stalls the load (no store forwarding) on every step.
         match self.order {
-            Order::One => self.slide::<true>(iv),
-            Order::Two => self.slide::<false>(iv),
+            Order::One => self.slide::<true>(a, t, ya, y, u_applied),
+            Order::Two => self.slide::<false>(a, t, ya, y, u_applied),
         }
         if let EstimatorKind::LowPass { time_constant } = self.config.kind {
             self.update_lowpass(time_constant);
@@ -637,7 +641,8 @@ impl<const CAP: usize> Estimator<CAP> {
 
     /// `iv` joins the window, and the oldest interval leaves it if it is full; the running
     /// sums are order one's (`ONE`) or order two's.
-    fn slide<const ONE: bool>(&mut self, iv: Interval) {
+    fn slide<const ONE: bool>(&mut self, a: f64, b: f64, ya: f64, yb: f64, u: f64) {
+        let iv = Interval { a, b, ya, yb, u };
         let order = if ONE { Order::One } else { Order::Two };
         if self.len == self.config.intervals() {
             self.evict(order);
@@ -650,7 +655,8 @@ impl<const CAP: usize> Estimator<CAP> {
         let old = self.ring[self.head];
         let m = Moments::of(&old, self.primary.anchor, order);
         self.primary.sums.add(&m, -1.0, order);
-        self.head = self.wrap(self.head + 1);
+        let next = self.head + 1;
+        self.head = if next == self.slots() { 0 } else { next };
         self.len -= 1;
     }
 
@@ -667,16 +673,8 @@ impl<const CAP: usize> Estimator<CAP> {
         if !self.shadow.active {
             self.shadow = Accumulator::start(index, self.primary.anchor);
         }
-        // The shadow sums about the primary's anchor, so one interval's moments serve both.
-        // A decoded state whose shadow has an anchor of its own (nothing here writes one)
-        // has its sums moved, never mixed.
-        if self.shadow.anchor != self.primary.anchor {
-            self.shadow.sums = self
-                .shadow
-                .sums
-                .shifted(self.primary.anchor - self.shadow.anchor);
-            self.shadow.anchor = self.primary.anchor;
-        }
+        // The shadow sums about the primary's anchor, so one interval's moments serve both
+        // (a decoded state is brought to that: `align_shadow`).
         let m = Moments::of(&iv, self.primary.anchor, order);
         self.primary.sums.add(&m, 1.0, order);
         self.shadow.sums.add(&m, 1.0, order);
@@ -692,6 +690,39 @@ impl<const CAP: usize> Estimator<CAP> {
                 ..self.shadow
             };
             self.shadow.active = false;
+        }
+    }
+
+    /// The window's start and end times (`len > 0`): the oldest interval's start, at the
+    /// head (below the slots, so no wrap), and the newest sample's time, which ends the
+    /// newest interval (a decoded state is checked for it).
+    #[inline]
+    fn span(&self) -> (f64, f64) {
+        let t1 = self.last.map_or(f64::NAN, |(t, _)| t);
+        (self.ring[self.head].a, t1)
+    }
+
+    /// Move a decoded shadow's sums to the primary's anchor, which a step assumes it
+    /// shares: nothing here writes another, but a state decoded from elsewhere may hold
+    /// one, and its sums are then moved, never mixed.
+    #[cfg(feature = "snapshot")]
+    pub(crate) fn align_shadow(&mut self) {
+        if self.shadow.active && self.shadow.anchor != self.primary.anchor {
+            self.shadow.sums = self
+                .shadow
+                .sums
+                .shifted(self.primary.anchor - self.shadow.anchor);
+            self.shadow.anchor = self.primary.anchor;
+        }
+    }
+
+    /// The newest sample ends the newest interval, as [`Self::span`] assumes: always true
+    /// of a state built by steps, checked of a decoded one (its indices checked first).
+    #[cfg(feature = "snapshot")]
+    pub(crate) fn newest_is_last(&self) -> bool {
+        self.len == 0 || {
+            let iv = self.interval(self.len - 1);
+            self.last == Some((iv.b, iv.yb))
         }
     }
 
@@ -748,8 +779,7 @@ impl<const CAP: usize> Estimator<CAP> {
                 need: need + 1,
             });
         }
-        let t0 = self.interval(0).a;
-        let t1 = self.interval(self.len - 1).b;
+        let (t0, t1) = self.span();
         match self.config.kind {
             EstimatorKind::Algebraic if order == Order::Two && self.order == Order::One => {
                 // The running sums serve order one: order two's from the window itself.
@@ -811,6 +841,54 @@ mod ring_tests {
         for n in 1..=12 {
             for i in 0..5 * n {
                 assert_eq!(super::wrap(i, n), i % n, "{i} % {n}");
+            }
+        }
+    }
+}
+
+#[cfg(all(test, feature = "snapshot"))]
+mod decoded_tests {
+    use super::{Estimator, EstimatorConfig, Order};
+    use crate::snapshot::{from_bytes, to_bytes};
+
+    fn pushed(e: &mut Estimator, k: u32) {
+        let t = f64::from(k) * 0.01;
+        e.push(t, (3.0 * t).sin(), 0.5 + 0.1 * t).unwrap();
+    }
+
+    /// A decoded shadow that sums about an anchor of its own (nothing here writes one) is
+    /// moved to the running sum's anchor once, when decoded, since a step assumes they
+    /// share it: the estimates then go on as the original's, through the shadow's
+    /// replacing the running sum. Mixed instead of moved, they would not.
+    #[test]
+    fn a_decoded_shadow_about_its_own_anchor_is_moved_once() {
+        let config = EstimatorConfig {
+            window: 10,
+            ..Default::default()
+        };
+        let mut e: Estimator = Estimator::new(config, Order::One).unwrap();
+        for k in 0..26 {
+            pushed(&mut e, k);
+        }
+        assert!(e.shadow.active, "the shadow is summing");
+        let mut moved = e.clone();
+        let delta = 0.037;
+        moved.shadow.sums = moved.shadow.sums.shifted(delta);
+        moved.shadow.anchor += delta;
+        let mut decoded: Estimator = from_bytes(&to_bytes(&moved).unwrap()).unwrap();
+        assert_eq!(decoded.shadow.anchor, decoded.primary.anchor);
+        for k in 26..60 {
+            pushed(&mut e, k);
+            pushed(&mut decoded, k);
+            let (a, b) = (
+                e.estimate(Order::One).unwrap(),
+                decoded.estimate(Order::One).unwrap(),
+            );
+            for (x, y) in [(a.base, b.base), (a.per_alpha, b.per_alpha)] {
+                assert!(
+                    (x - y).abs() <= 1e-9 * (1.0 + x.abs()),
+                    "step {k}: {x} vs {y}"
+                );
             }
         }
     }

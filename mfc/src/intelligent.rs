@@ -198,7 +198,28 @@ impl IntelligentParams {
         if self.kind.has_derivative() {
             acc += self.kd * de;
         }
-        -acc / self.alpha
+        // A product with a reciprocal that depends on the parameters alone: the division
+        // starts with the step, instead of waiting for the rest of the law at its end.
+        acc * (-1.0 / self.alpha)
+    }
+
+    /// The law for the estimate `lin` (`f = lin.at(alpha)`), plus `bump`. Equal to
+    /// `law(f) + bump` but for rounding, since `-(f + ...)/alpha = -(base + ...)/alpha -
+    /// per_alpha`: of the estimate, only `per_alpha` depends on the input the plant was
+    /// given, and that input is the last step's output, so a stream of steps is a chain
+    /// through it. Subtracted last, it leaves the division and the rest of the law off
+    /// that chain (they wait only for the sample).
+    #[inline]
+    fn law_linear(
+        &self,
+        lin: LinearEstimate,
+        r: &Reference,
+        e: f64,
+        de: f64,
+        i: f64,
+        bump: f64,
+    ) -> f64 {
+        (self.law(lin.base, r, e, de, i) + bump) - lin.per_alpha
     }
 }
 
@@ -358,6 +379,10 @@ impl<const CAP: usize> IntelligentController<CAP> {
     }
 
     /// One control step at time `t` with measurement `y` and reference `r`.
+    ///
+    /// Always inlined (into [`crate::Channel`]'s step): its output then reaches the
+    /// output map in registers. Returned through memory, it was stored and loaded again
+    /// on the chain that runs from one sample's command to the next step's estimate.
     pub fn step(&mut self, t: f64, y: f64, r: &Reference) -> Result<IntelligentOutput> {
         self.check(t, y, r)?;
         let dt = self.last_t.map(|t0| t - t0);
@@ -396,8 +421,8 @@ impl<const CAP: usize> IntelligentController<CAP> {
                     self.start_or_switch(lin, r, e, de);
                 }
                 let p = self.params;
-                let f = lin.at(p.alpha);
-                (p.law(f, r, e, de, self.integral) + self.bump, Some(f))
+                let u = p.law_linear(lin, r, e, de, self.integral, self.bump);
+                (u, Some(lin.at(p.alpha)))
             }
         };
         let u = self.hold_hysteresis(u);
@@ -411,7 +436,7 @@ impl<const CAP: usize> IntelligentController<CAP> {
     /// difference fades out as `bump`, or goes into the integral, see [`Self::switch`]).
     fn start_or_switch(&mut self, lin: LinearEstimate, r: &Reference, e: f64, de: f64) {
         let p = self.params;
-        let old = p.law(lin.at(p.alpha), r, e, de, self.integral) + self.bump;
+        let old = p.law_linear(lin, r, e, de, self.integral, self.bump);
         let old = if self.bumpless_start {
             // Start from what the plant is applying now: after a long warm-up (a
             // restart), the plant may have moved on from the value held at first.
@@ -469,12 +494,20 @@ impl<const CAP: usize> IntelligentController<CAP> {
     /// `y'` for the law: the model-based observer's when it is on and an estimate of `F`
     /// exists to drive it, else `filtered` (the derivative filter's), from which the
     /// observer also starts.
+    #[inline(always)]
     fn observe(&mut self, dt: Option<f64>, y: f64, filtered: f64) -> f64 {
         let p = &self.params;
         if !(p.derivative_observer > 0.0 && p.order == Order::Two) {
             self.observer = None;
             return filtered;
         }
+        self.observe_model(dt, y, filtered)
+    }
+
+    /// [`Self::observe`] with the observer on (out of line: most laws have it off).
+    #[inline(never)]
+    fn observe_model(&mut self, dt: Option<f64>, y: f64, filtered: f64) -> f64 {
+        let p = &self.params;
         let next = match (self.observer, dt, self.estimate) {
             (Some((oy, ody)), Some(h), Some(lin)) if h > 0.0 => {
                 // Predict over h with the ultra-local model and the input really applied,
@@ -501,7 +534,21 @@ impl<const CAP: usize> IntelligentController<CAP> {
     }
 
     /// The estimate through `estimate_filter`, remembered as the one in force.
+    #[inline(always)]
     fn smooth(&mut self, dt: Option<f64>, lin: LinearEstimate) -> LinearEstimate {
+        let p = &self.params;
+        if p.estimate_filter <= 0.0 && p.hold_estimate_filter <= 0.0 {
+            // No filter (the default): what the general case gives for a `tau` of 0.
+            self.estimate = Some(lin);
+            self.trend = None;
+            return lin;
+        }
+        self.smooth_filtered(dt, lin)
+    }
+
+    /// [`Self::smooth`] with a filter on (out of line: the default has none).
+    #[inline(never)]
+    fn smooth_filtered(&mut self, dt: Option<f64>, lin: LinearEstimate) -> LinearEstimate {
         let p = &self.params;
         let tau = if p.hold_estimate_filter > 0.0 && self.resting() {
             p.hold_estimate_filter
@@ -535,9 +582,11 @@ impl<const CAP: usize> IntelligentController<CAP> {
     /// `hold_band`: at rest, a reversal of the command's sign inside the band gives 0.
     fn hold_hysteresis(&mut self, u: f64) -> f64 {
         let band = self.params.hold_band;
-        let reversal = self.sign != 0.0 && u != 0.0 && u.signum() != self.sign;
-        if band > 0.0 && reversal && u.abs() < band && self.resting() {
-            return 0.0;
+        if band > 0.0 && u.abs() < band && self.sign != 0.0 && u != 0.0 {
+            let reversal = u.signum() != self.sign;
+            if reversal && self.resting() {
+                return 0.0;
+            }
         }
         if u != 0.0 {
             self.sign = u.signum();
@@ -556,7 +605,8 @@ impl<const CAP: usize> IntelligentController<CAP> {
         if !p.kind.has_integral() {
             return;
         }
-        let push = -p.ki * e * dt / p.alpha;
+        // Only its sign counts: that of `-ki e dt / alpha`, without the division.
+        let push = -(p.ki * e * dt) * p.alpha;
         let tol = 1e-9 * (1.0 + self.last_u.abs());
         let high = self.last_u > self.applied + tol;
         let low = self.last_u < self.applied - tol;
@@ -600,7 +650,7 @@ impl<const CAP: usize> IntelligentController<CAP> {
             self.integral = (-new.alpha * u_old - f + feedforward - new.kp * e - d) / new.ki;
             self.bump = 0.0;
         } else {
-            self.bump = u_old - new.law(f, r, e, de, self.integral);
+            self.bump = u_old - new.law_linear(lin, r, e, de, self.integral, 0.0);
         }
     }
 }

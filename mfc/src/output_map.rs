@@ -86,6 +86,7 @@ impl OutputMapConfig {
 
 impl OutputMapConfig {
     /// The dead-zone compensation alone (no limits): odd and nondecreasing.
+    #[inline]
     pub fn compensate(&self, u: f64) -> f64 {
         let d = self.dead_zone;
         if self.smoothing > 0.0 {
@@ -101,38 +102,12 @@ impl OutputMapConfig {
 
     /// The inverse of [`compensate`](Self::compensate): the `u` whose compensation is
     /// `v` (for the step, 0 inside the dead zone). NaN gives NaN.
+    #[inline]
     pub fn uncompensate(&self, v: f64) -> f64 {
         let d = self.dead_zone;
         let mag = v.abs();
         let u = if self.smoothing > 0.0 && d > 0.0 {
-            // g(u) = u + d tanh(u/s) is increasing with g' in [1, 1 + d/s], so the root of
-            // g(u) = |v| lies in [max(|v| - d, 0), |v|]: Newton's steps, kept inside that
-            // bracket by bisection when they leave it, converge in a handful of steps.
-            let s = self.smoothing;
-            let (mut lo, mut hi) = ((mag - d).max(0.0), mag);
-            let mut u = lo;
-            for _ in 0..100 {
-                let th = libm::tanh(u / s);
-                let g = u + d * th - mag;
-                if g == 0.0 {
-                    break;
-                }
-                if g > 0.0 {
-                    hi = u;
-                } else {
-                    lo = u;
-                }
-                let slope = 1.0 + d / s * (1.0 - th * th);
-                let mut next = u - g / slope;
-                if !(next > lo && next < hi) {
-                    next = 0.5 * (lo + hi);
-                }
-                if next == u || hi - lo <= f64::EPSILON * hi {
-                    break;
-                }
-                u = next;
-            }
-            u
+            self.smooth_root(mag)
         } else {
             (mag - d).max(0.0)
         };
@@ -143,6 +118,41 @@ impl OutputMapConfig {
         } else {
             -u
         }
+    }
+
+    /// The `u >= 0` whose smooth compensation is `mag >= 0` (out of line: the step's
+    /// inverse, inlined where a channel steps, stays short).
+    #[inline(never)]
+    fn smooth_root(&self, mag: f64) -> f64 {
+        let d = self.dead_zone;
+        // g(u) = u + d tanh(u/s) is increasing with g' in [1, 1 + d/s], so the root of
+        // g(u) = |v| lies in [max(|v| - d, 0), |v|]: Newton's steps, kept inside that
+        // bracket by bisection when they leave it, converge in a handful of steps.
+        let s = self.smoothing;
+        let (mut lo, mut hi) = ((mag - d).max(0.0), mag);
+        let mut u = lo;
+        for _ in 0..100 {
+            let th = libm::tanh(u / s);
+            let g = u + d * th - mag;
+            if g == 0.0 {
+                break;
+            }
+            if g > 0.0 {
+                hi = u;
+            } else {
+                lo = u;
+            }
+            let slope = 1.0 + d / s * (1.0 - th * th);
+            let mut next = u - g / slope;
+            if !(next > lo && next < hi) {
+                next = 0.5 * (lo + hi);
+            }
+            if next == u || hi - lo <= f64::EPSILON * hi {
+                break;
+            }
+            u = next;
+        }
+        u
     }
 }
 
@@ -175,6 +185,7 @@ impl OutputMap {
     }
 
     /// Map `u` to the output `v` applied from time `t` on.
+    #[inline]
     pub fn apply(&mut self, t: f64, u: f64) -> Result<f64> {
         finite("time", t)?;
         finite("control", u)?;
@@ -194,6 +205,7 @@ impl OutputMap {
     /// The virtual input `u` that an applied output `v` amounts to, under the dead-zone
     /// model the compensation assumes: for the step, `v` inside the dead zone does nothing;
     /// for the smooth map, the `u` it would have compensated to `v`.
+    #[inline]
     pub fn inverse(&self, v: f64) -> f64 {
         self.config
             .uncompensate(v.clamp(self.config.min, self.config.max))

@@ -74,7 +74,7 @@ impl<Ctx, const CAP: usize> Decode<Ctx> for Estimator<CAP> {
         for slot in &mut ring[..slots] {
             *slot = Decode::decode(d)?;
         }
-        let e = Self {
+        let mut e = Self {
             config,
             ring,
             head: Decode::decode(d)?,
@@ -87,14 +87,15 @@ impl<Ctx, const CAP: usize> Decode<Ctx> for Estimator<CAP> {
             order: Decode::decode(d)?,
         };
         check_estimator(&e, slots)?;
+        e.align_shadow();
         Ok(e)
     }
 }
 
 /// What a decoded estimator must hold before it may step: a configuration it could have
 /// been built with for the order its sums serve, ring indices inside the window, a shadow
-/// sum that will replace the running one (it started inside the window), and a sample
-/// count far from overflowing.
+/// sum that will replace the running one (it started inside the window), a sample count
+/// far from overflowing, and a newest sample that ends the newest interval.
 fn check_estimator<const CAP: usize>(e: &Estimator<CAP>, slots: usize) -> Result<(), DecodeError> {
     if e.config.validate(e.order, CAP).is_err() {
         return Err(invalid("estimator configuration invalid"));
@@ -105,7 +106,7 @@ fn check_estimator<const CAP: usize>(e: &Estimator<CAP>, slots: usize) -> Result
         && e.next_index < 1 << 62;
     let oldest = e.next_index.wrapping_sub(e.len as u64);
     let shadow = !e.shadow.active || (oldest..=e.next_index).contains(&e.shadow.first);
-    if indices && shadow {
+    if indices && shadow && e.newest_is_last() {
         Ok(())
     } else {
         Err(invalid("estimator ring indices out of range"))
@@ -312,8 +313,11 @@ mod tests {
         let mut stale_shadow = e.clone();
         stale_shadow.shadow.active = true;
         stale_shadow.shadow.first = stale_shadow.next_index - stale_shadow.len as u64 - 1;
+        let mut detached = e.clone();
+        detached.last = detached.last.map(|(t, y)| (t + 0.5, y));
         for (what, bad) in [
             ("window 0", window_zero),
+            ("newest sample not the window's end", detached),
             ("count about to overflow", overflowing),
             ("shadow started before the window", stale_shadow),
         ] {
