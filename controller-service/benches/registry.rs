@@ -51,6 +51,36 @@ fn every_device_once(b: divan::Bencher, devices: usize) {
     });
 }
 
+/// [`every_device_once`] with the next sample's device asked for before each step
+/// (`Registry::prefetch`), as the service serves a gateway's batch: its state arrives
+/// while the sample before it is stepped.
+#[divan::bench(args = [1000, 10000])]
+fn every_device_once_ahead(b: divan::Bencher, devices: usize) {
+    let mut r = Registry::new(ServiceConfig::parse("bench", CONFIG).unwrap()).unwrap();
+    let mut out = pb::Command::default();
+    let mut k = 1;
+    for _ in 0..20 {
+        for s in samples(devices, k) {
+            r.handle_sample(Via::key(&s.device_id), &s, 0, &mut out);
+        }
+        k += 1;
+    }
+    let mut batch = samples(devices, k);
+    b.bench_local(|| {
+        for s in &mut batch {
+            s.seq = k;
+            s.plant_time = k as f64 * 0.01;
+        }
+        for (i, s) in batch.iter().enumerate() {
+            if let Some(next) = batch.get(i + 1) {
+                r.prefetch(&next.device_id);
+            }
+            divan::black_box(r.handle_sample(Via::key(&s.device_id), s, k, &mut out));
+        }
+        k += 1;
+    });
+}
+
 /// Decoding a thousand-sample batch and encoding its thousand commands: the protobuf part
 /// of a batch, for comparison; with `true`, the batch's MAC checked and the commands'
 /// batch sealed too (`protocol::auth`: one MAC each way per batch).

@@ -499,6 +499,15 @@ impl Registry {
         served(step::answer((cx, &mut self.handing), d, via, s, out), true)
     }
 
+    /// Ask the processor for a served device's state ahead of its sample (a batch's
+    /// next few): its table entry and the lines of the device a step reads arrive while
+    /// the samples before it are stepped. Changes nothing; an unknown id does nothing.
+    pub fn prefetch(&self, key_id: &str) {
+        if let Some(d) = self.devices.get(key_id) {
+            d.prefetch();
+        }
+    }
+
     /// Count a sample whose device cannot be served (rule 1).
     fn count_unserved(&mut self, key_id: &str, why: Served) {
         if why == Served::TableFull {

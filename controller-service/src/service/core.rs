@@ -99,6 +99,8 @@ pub(super) struct Core {
     samples: Vec<pb::Sample>,
     /// Whether each answer of a batch is sent, kept for the next batch.
     sends: Vec<bool>,
+    /// Which of a batch's samples decoded with a valid device id, kept for the next batch.
+    good: Vec<usize>,
     /// The fleet's keys, to seal commands (`None`: open).
     keys: Option<Arc<Keyring>>,
     /// Who may change what, and the audit trail every decision goes to.
@@ -123,6 +125,7 @@ impl Core {
             pool: Vec::new(),
             samples: Vec::new(),
             sends: Vec::new(),
+            good: Vec::new(),
         }
     }
 
@@ -217,32 +220,22 @@ impl Core {
         let mut samples = std::mem::take(&mut self.samples);
         let mut commands = std::mem::take(&mut self.pool);
         let mut sends = std::mem::take(&mut self.sends);
+        let mut good = std::mem::take(&mut self.good);
+        self.read_batch(&gw, &batch, &mut samples, &mut good, drops);
         let mut n = 0;
         // One clock read for the batch: its time is shared by its samples (reading the
         // clock per sample would cost as much as a step).
         let log_ns = protocol::unix_ns();
         let cpu0 = self.watch.timing().then(thread_cpu);
         let mut answered: Vec<(usize, usize, bool)> = Vec::new();
-        for (k, raw) in batch.samples.iter().enumerate() {
-            if samples.len() == k {
-                samples.push(pb::Sample::default());
-            }
-            let sample = &mut samples[k];
-            if let Err(e) = SampleBatchView::read_sample(raw, sample) {
-                Drops::count(&drops.undecodable);
-                let warn = &mut self.warn;
-                throttled!(warn.rejected, warn, gateway = %gw, "sample in a batch that does not decode: dropped ({e})");
-                continue;
+        for (j, &k) in good.iter().enumerate() {
+            if let Some(&next) = good.get(j + 1) {
+                // The next sample's device comes from memory while this one is stepped:
+                // with thousands of devices, each one's state is a cache miss otherwise.
+                self.registry.prefetch(&samples[next].device_id);
             }
             let sample = &samples[k];
             let dev = sample.device_id.as_str();
-            if keys::check_id(dev).is_err() {
-                // No device to answer: an id that could not even be a key.
-                self.registry.note_bad_id();
-                let warn = &mut self.warn;
-                throttled!(warn.rejected, warn, gateway = %gw, device = %printable(dev), "sample in a batch with an invalid device id: dropped");
-                continue;
-            }
             if commands.len() == n {
                 commands.push(pb::Command::default());
             }
@@ -285,6 +278,7 @@ impl Core {
         }
         sends.clear();
         self.sends = sends;
+        self.good = good;
         let spare = commands.split_off(sent);
         let out = pb::CommandBatch {
             version: protocol::PROTOCOL_VERSION,
@@ -303,6 +297,41 @@ impl Core {
         keep_small(&mut samples, &batch.samples);
         self.samples = samples;
         payload.map(|p| (gw, p))
+    }
+
+    /// Decode a batch's samples into `samples` (kept from batch to batch) and list in
+    /// `good` those that decoded with a valid device id; any other is counted and dropped
+    /// alone. All of them first, so that the serving pass knows each sample's next one.
+    fn read_batch(
+        &mut self,
+        gw: &str,
+        batch: &SampleBatchView,
+        samples: &mut Vec<pb::Sample>,
+        good: &mut Vec<usize>,
+        drops: &Drops,
+    ) {
+        good.clear();
+        for (k, raw) in batch.samples.iter().enumerate() {
+            if samples.len() == k {
+                samples.push(pb::Sample::default());
+            }
+            let sample = &mut samples[k];
+            if let Err(e) = SampleBatchView::read_sample(raw, sample) {
+                Drops::count(&drops.undecodable);
+                let warn = &mut self.warn;
+                throttled!(warn.rejected, warn, gateway = %gw, "sample in a batch that does not decode: dropped ({e})");
+                continue;
+            }
+            let dev = sample.device_id.as_str();
+            if keys::check_id(dev).is_err() {
+                // No device to answer: an id that could not even be a key.
+                self.registry.note_bad_id();
+                let warn = &mut self.warn;
+                throttled!(warn.rejected, warn, gateway = %gw, device = %printable(dev), "sample in a batch with an invalid device id: dropped");
+                continue;
+            }
+            good.push(k);
+        }
     }
 
     /// Publish `cmd` from one of zenoh's callbacks (a blocking put there is zenoh's own
