@@ -28,6 +28,20 @@ fn samples(devices: usize, k: u64) -> Vec<pb::Sample> {
 /// the devices' state costs once it no longer fits the caches.
 #[divan::bench(args = [1000, 10000])]
 fn every_device_once(b: divan::Bencher, devices: usize) {
+    each_device_stepped::<false>(b, devices);
+}
+
+/// [`every_device_once`] with the next sample's device asked for before each step
+/// (`Registry::prefetch`), as the service serves a gateway's batch: its state arrives
+/// while the sample before it is stepped.
+#[divan::bench(args = [1000, 10000])]
+fn every_device_once_ahead(b: divan::Bencher, devices: usize) {
+    each_device_stepped::<true>(b, devices);
+}
+
+/// Each device's sample once per iteration; with `AHEAD`, the next one's device asked for
+/// first (a constant, so that the plain form's code is the plain loop).
+fn each_device_stepped<const AHEAD: bool>(b: divan::Bencher, devices: usize) {
     let mut r = Registry::new(ServiceConfig::parse("bench", CONFIG).unwrap()).unwrap();
     // One command written over and over, as the service's batches reuse theirs.
     let mut out = pb::Command::default();
@@ -44,36 +58,11 @@ fn every_device_once(b: divan::Bencher, devices: usize) {
             s.seq = k;
             s.plant_time = k as f64 * 0.01;
         }
-        for s in &batch {
-            divan::black_box(r.handle_sample(Via::key(&s.device_id), s, k, &mut out));
-        }
-        k += 1;
-    });
-}
-
-/// [`every_device_once`] with the next sample's device asked for before each step
-/// (`Registry::prefetch`), as the service serves a gateway's batch: its state arrives
-/// while the sample before it is stepped.
-#[divan::bench(args = [1000, 10000])]
-fn every_device_once_ahead(b: divan::Bencher, devices: usize) {
-    let mut r = Registry::new(ServiceConfig::parse("bench", CONFIG).unwrap()).unwrap();
-    let mut out = pb::Command::default();
-    let mut k = 1;
-    for _ in 0..20 {
-        for s in samples(devices, k) {
-            r.handle_sample(Via::key(&s.device_id), &s, 0, &mut out);
-        }
-        k += 1;
-    }
-    let mut batch = samples(devices, k);
-    b.bench_local(|| {
-        for s in &mut batch {
-            s.seq = k;
-            s.plant_time = k as f64 * 0.01;
-        }
         for (i, s) in batch.iter().enumerate() {
-            if let Some(next) = batch.get(i + 1) {
-                r.prefetch(&next.device_id);
+            if AHEAD {
+                if let Some(next) = batch.get(i + 1) {
+                    r.prefetch(&next.device_id);
+                }
             }
             divan::black_box(r.handle_sample(Via::key(&s.device_id), s, k, &mut out));
         }
