@@ -504,7 +504,14 @@ fn predict(
     };
     // The round trip in periods: the command for `seq` lands in period `seq + m`.
     let m = if p.delay_compensation {
-        let mut recent: Vec<u32> = d.rtts.iter().rev().take(DELAY_WINDOW).copied().collect();
+        // On the stack: a step allocates nothing.
+        let mut window = [0u32; DELAY_WINDOW];
+        let mut n = 0;
+        for (slot, rtt) in window.iter_mut().zip(d.rtts.iter().rev()) {
+            *slot = *rtt;
+            n += 1;
+        }
+        let recent = &mut window[..n];
         if recent.is_empty() {
             0
         } else {
