@@ -57,8 +57,8 @@ pub(super) struct Worker {
     snapshots: Option<SnapshotSpec>,
     /// Throttles for what the worker logs (the core keeps its own).
     pub(super) warn: Warnings,
-    /// The drop counts last reported, in [`Drops::counts`]'s order then superseded.
-    reported: [u64; 7],
+    /// The drop counts last reported, in the order [`Worker::report_drops`] logs them.
+    reported: [u64; 8],
     started: Instant,
 }
 
@@ -175,7 +175,7 @@ impl Worker {
             standby,
             snapshots,
             warn: Warnings::default(),
-            reported: [0; 7],
+            reported: [0; 8],
             started,
         };
         tracing::info!(controller = %worker.id, devices = lock(&worker.shared.core).registry.device_count(), "serving");
@@ -345,7 +345,11 @@ impl Worker {
             let ib = lock(&shared.inbox);
             (ib.superseded(), ib.full())
         };
-        let full = full + lock(&shared.gateways).full();
+        let (superseded_batches, gw_full) = {
+            let gw = lock(&shared.gateways);
+            (gw.superseded(), gw.full())
+        };
+        let full = full + gw_full;
         let [oversized, bad_key, queue_full, undecodable, unknown, forged] = shared.drops.counts();
         let now = [
             oversized,
@@ -355,11 +359,12 @@ impl Worker {
             undecodable,
             unknown,
             forged,
+            superseded_batches,
         ];
         let d: Vec<u64> = now.iter().zip(&self.reported).map(|(a, b)| a - b).collect();
         if d.iter().any(|&x| x > 0) {
             tracing::warn!(oversized = d[0], bad_key = d[1], queue_full = d[2], superseded = d[3], undecodable_samples = d[4],
-                unknown_devices = d[5], forged = d[6], "messages dropped since the last report (every drop is counted in the service status)");
+                unknown_devices = d[5], forged = d[6], superseded_batches = d[7], "messages dropped since the last report (every drop is counted in the service status)");
         }
         self.reported = now;
         self.warn.flush(Instant::now());
