@@ -239,8 +239,9 @@ impl LinearEstimate {
     }
 }
 
-/// `1/3` and `1/6`, multiplied by: a division by a constant stays a division (it rounds
-/// otherwise), and a step computes the moments of two intervals.
+/// Constants multiplied by, not divided by: a division by a constant stays a division (the
+/// product with its reciprocal rounds otherwise), and a step computes the moments of two
+/// intervals and a kernel.
 const THIRD: f64 = 1.0 / 3.0;
 const SIXTH: f64 = 1.0 / 6.0;
 const THIRTIETH: f64 = 1.0 / 30.0;

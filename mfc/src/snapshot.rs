@@ -106,11 +106,13 @@ fn check_estimator<const CAP: usize>(e: &Estimator<CAP>, slots: usize) -> Result
         && e.next_index < 1 << 62;
     let oldest = e.next_index.wrapping_sub(e.len as u64);
     let shadow = !e.shadow.active || (oldest..=e.next_index).contains(&e.shadow.first);
-    if indices && shadow && e.newest_is_last() {
-        Ok(())
-    } else {
-        Err(invalid("estimator ring indices out of range"))
+    if !(indices && shadow) {
+        return Err(invalid("estimator ring indices out of range"));
     }
+    if !e.newest_is_last() {
+        return Err(invalid("estimator's last sample is not its window's end"));
+    }
+    Ok(())
 }
 
 snapshot_struct!(IntelligentController {

@@ -499,9 +499,9 @@ impl Registry {
         served(step::answer((cx, &mut self.handing), d, via, s, out), true)
     }
 
-    /// Ask the processor for a served device's state ahead of its sample (a batch's
-    /// next few): its table entry and the lines of the device a step reads arrive while
-    /// the samples before it are stepped. Changes nothing; an unknown id does nothing.
+    /// Ask the processor for a served device's state ahead of its sample (a batch's next
+    /// one): its table entry and the lines of the device a step reads arrive while the
+    /// sample before it is stepped. Changes nothing; an unknown id does nothing.
     pub fn prefetch(&self, key_id: &str) {
         if let Some(d) = self.devices.get(key_id) {
             d.prefetch();
