@@ -118,6 +118,23 @@ impl<const CAP: usize> Law<CAP> {
         })
     }
 
+    /// The configuration this law runs: the inverse of [`Law::new`] (a pending change of
+    /// parameters included).
+    fn config(&self) -> LawConfig {
+        match self {
+            Law::Intelligent(c) => LawConfig::Intelligent {
+                params: *c.params(),
+                estimator: *c.estimator().config(),
+            },
+            Law::Pid(c) => LawConfig::Pid {
+                params: *c.params(),
+            },
+            Law::Adrc(c) => LawConfig::Adrc {
+                params: *c.params(),
+            },
+        }
+    }
+
     fn check(&self, t: f64, y: f64, r: &Reference) -> Result<()> {
         match self {
             Law::Intelligent(c) => c.check(t, y, r),
@@ -162,10 +179,13 @@ pub struct ChannelOutput {
 ///
 /// In declaration order, the law (with its estimator, whose ring is last without an
 /// allocator) last, so that what a step reads sits together (see [`crate::Estimator`]).
+///
+/// The configuration in force is not kept beside the state: the law holds its parameters
+/// and the map its own, and [`Channel::config`] reads them (a copy would be 184 bytes of
+/// each plant a service holds, and a second place for the truth).
 #[derive(Debug, Clone)]
 #[repr(C)]
 pub struct Channel<const CAP: usize = DEFAULT_CAPACITY> {
-    pub(crate) config: ChannelConfig,
     pub(crate) map: OutputMap,
     pub(crate) last_t: Option<f64>,
     pub(crate) last_v: f64,
@@ -179,16 +199,19 @@ impl<const CAP: usize> Channel<CAP> {
         let law = Law::new(&config.law)?;
         Ok(Self {
             law,
-            config: *config,
             map,
             last_t: None,
             last_v: 0.0,
         })
     }
 
-    /// The configuration in force.
-    pub fn config(&self) -> &ChannelConfig {
-        &self.config
+    /// The configuration in force: the law's parameters (a change not yet applied
+    /// included, as the law's own `params` shows it) and the output map's.
+    pub fn config(&self) -> ChannelConfig {
+        ChannelConfig {
+            law: self.law.config(),
+            output: *self.map.config(),
+        }
     }
 
     /// The output map.
@@ -299,7 +322,7 @@ impl<const CAP: usize> Channel<CAP> {
             out.iter_mut().for_each(|o| *o = last.v);
             return;
         };
-        let c = &self.config.output;
+        let c = self.map.config();
         let given = |j: usize| applied.get(j).copied().filter(|a| a.is_finite());
         // What the plant gets over period j (the one before element j's).
         let mut v_cur = given(0).unwrap_or(last.v);
@@ -380,7 +403,7 @@ impl<const CAP: usize> Channel<CAP> {
     ///
     /// Refused with nothing changed if the configuration is invalid.
     pub fn reconfigure(&mut self, config: &ChannelConfig) -> Result<()> {
-        let map_changed = config.output != self.config.output;
+        let map_changed = config.output != *self.map.config();
         if map_changed {
             config.output.validate()?;
         }
@@ -403,7 +426,6 @@ impl<const CAP: usize> Channel<CAP> {
         if map_changed {
             self.map.set_config(config.output)?;
         }
-        self.config = *config;
         Ok(())
     }
 }

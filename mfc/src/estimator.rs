@@ -251,11 +251,47 @@ const THIRTIETH: f64 = 1.0 / 30.0;
 #[derive(Debug, Clone, Copy, Default)]
 #[cfg_attr(feature = "snapshot", derive(bincode::Encode, bincode::Decode))]
 pub(crate) struct Interval {
-    a: f64,
-    b: f64,
-    ya: f64,
-    yb: f64,
-    u: f64,
+    pub(crate) a: f64,
+    pub(crate) b: f64,
+    pub(crate) ya: f64,
+    pub(crate) yb: f64,
+    pub(crate) u: f64,
+}
+
+/// A sample of the window, and the input the plant received from it until the next: the
+/// start of one interval, whose end is the next slot's sample (or, for the newest, the
+/// estimator's last). Consecutive intervals share their ends, so the ring keeps each
+/// number once: 24 bytes an interval where the intervals themselves took 40 (a service
+/// holds ten thousand rings, `docs/scale.md`, "Memory per plant").
+#[derive(Debug, Clone, Copy, Default)]
+pub(crate) struct Slot {
+    pub(crate) t: f64,
+    pub(crate) y: f64,
+    pub(crate) u: f64,
+}
+
+impl Slot {
+    /// The interval from this slot's sample to `(b, yb)`.
+    #[inline(always)]
+    pub(crate) fn to(self, (b, yb): (f64, f64)) -> Interval {
+        Interval {
+            a: self.t,
+            b,
+            ya: self.y,
+            yb,
+            u: self.u,
+        }
+    }
+}
+
+impl From<Interval> for Slot {
+    fn from(iv: Interval) -> Self {
+        Slot {
+            t: iv.a,
+            y: iv.ya,
+            u: iv.u,
+        }
+    }
 }
 
 /// Moments of one or more intervals about an anchor time `c` (`s = t - c`).
@@ -471,20 +507,20 @@ pub struct Estimator<const CAP: usize = DEFAULT_CAPACITY> {
 /// The ring's storage: the window's length on the heap with an allocator, `CAP` inline
 /// without (see [`Estimator`]).
 #[cfg(feature = "alloc")]
-pub(crate) type Ring<const CAP: usize> = alloc::boxed::Box<[Interval]>;
+pub(crate) type Ring<const CAP: usize> = alloc::boxed::Box<[Slot]>;
 #[cfg(not(feature = "alloc"))]
-pub(crate) type Ring<const CAP: usize> = [Interval; CAP];
+pub(crate) type Ring<const CAP: usize> = [Slot; CAP];
 
-/// A ring of `slots` empty intervals (at most `CAP`, checked by the caller).
+/// A ring of `slots` empty slots (at most `CAP`, checked by the caller).
 pub(crate) fn empty_ring<const CAP: usize>(slots: usize) -> Ring<CAP> {
     #[cfg(feature = "alloc")]
     {
-        alloc::vec![Interval::default(); slots].into_boxed_slice()
+        alloc::vec![Slot::default(); slots].into_boxed_slice()
     }
     #[cfg(not(feature = "alloc"))]
     {
         let _ = slots;
-        [Interval::default(); CAP]
+        [Slot::default(); CAP]
     }
 }
 
@@ -532,7 +568,7 @@ impl<const CAP: usize> Estimator<CAP> {
     fn moments(&self, from: usize, anchor: f64, order: Order) -> Moments {
         let mut m = Moments::default();
         for k in from..self.len {
-            m.add(&Moments::of(self.interval(k), anchor, order), 1.0, order);
+            m.add(&Moments::of(&self.interval(k), anchor, order), 1.0, order);
         }
         m
     }
@@ -646,14 +682,16 @@ impl<const CAP: usize> Estimator<CAP> {
         let iv = Interval { a, b, ya, yb, u };
         let order = if ONE { Order::One } else { Order::Two };
         if self.len == self.config.intervals() {
-            self.evict(order);
+            self.evict((a, ya), order);
         }
         self.insert(iv, order);
     }
 
+    /// The oldest interval leaves the window; `newest_end` is the sample that ends the
+    /// newest interval (the last one before the sample being taken in).
     #[inline(always)]
-    fn evict(&mut self, order: Order) {
-        let old = self.ring[self.head];
+    fn evict(&mut self, newest_end: (f64, f64), order: Order) {
+        let old = self.interval_ending(0, newest_end);
         let m = Moments::of(&old, self.primary.anchor, order);
         self.primary.sums.add(&m, -1.0, order);
         let next = self.head + 1;
@@ -666,7 +704,7 @@ impl<const CAP: usize> Estimator<CAP> {
         let index = self.next_index;
         self.next_index += 1;
         let slot = self.wrap(self.head + self.len);
-        self.ring[slot] = iv;
+        self.ring[slot] = iv.into();
         self.len += 1;
         if self.len == 1 {
             self.primary = Accumulator::start(index, iv.a);
@@ -684,7 +722,7 @@ impl<const CAP: usize> Estimator<CAP> {
         // moves to the window's start as it does, so that the anchor follows the data.
         let oldest = self.next_index - self.len as u64;
         if oldest == self.shadow.first {
-            let start = self.interval(0).a;
+            let start = self.ring[self.head].t;
             self.primary = Accumulator {
                 anchor: start,
                 sums: self.shadow.sums.shifted(start - self.shadow.anchor),
@@ -700,7 +738,7 @@ impl<const CAP: usize> Estimator<CAP> {
     #[inline]
     fn span(&self) -> (f64, f64) {
         let t1 = self.last.map_or(f64::NAN, |(t, _)| t);
-        (self.ring[self.head].a, t1)
+        (self.ring[self.head].t, t1)
     }
 
     /// Move a decoded shadow's sums to the primary's anchor, which a step assumes it
@@ -717,22 +755,28 @@ impl<const CAP: usize> Estimator<CAP> {
         }
     }
 
-    /// The newest sample ends the newest interval, as [`Self::span`] assumes: always true
-    /// of a state built by steps, checked of a decoded one (its indices checked first).
-    #[cfg(feature = "snapshot")]
-    pub(crate) fn newest_is_last(&self) -> bool {
-        self.len == 0 || {
-            let iv = self.interval(self.len - 1);
-            self.last == Some((iv.b, iv.yb))
-        }
+    /// The window's `k`-th interval, oldest first (`k < len`), the newest ending at the
+    /// last sample.
+    pub(crate) fn interval(&self, k: usize) -> Interval {
+        self.interval_ending(k, self.last.unwrap_or_default())
     }
 
-    fn interval(&self, k: usize) -> &Interval {
-        &self.ring[self.wrap(self.head + k)]
+    /// The window's `k`-th interval, the newest ending at `newest_end`: it starts at its
+    /// slot and ends at the next one's sample.
+    #[inline(always)]
+    fn interval_ending(&self, k: usize, newest_end: (f64, f64)) -> Interval {
+        let start = self.ring[self.wrap(self.head + k)];
+        let end = if k + 1 < self.len {
+            let next = self.ring[self.wrap(self.head + k + 1)];
+            (next.t, next.y)
+        } else {
+            newest_end
+        };
+        start.to(end)
     }
 
     fn update_lowpass(&mut self, time_constant: f64) {
-        let newest = *self.interval(self.len - 1);
+        let newest = self.interval(self.len - 1);
         let h = newest.b - newest.a;
         let gain = 1.0 - libm::exp(-h / time_constant);
         for (slot, order) in [(0, Order::One), (1, Order::Two)] {

@@ -223,6 +223,43 @@ impl IntelligentParams {
     }
 }
 
+/// A change of parameters waiting for the next step. With an allocator it is boxed: a
+/// change is rare, and inline it was 96 bytes of every plant a service holds
+/// (`docs/scale.md`, "Memory per plant"); without one (a microcontroller) it is inline.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub(crate) struct Pending(
+    #[cfg(feature = "alloc")] Option<alloc::boxed::Box<IntelligentParams>>,
+    #[cfg(not(feature = "alloc"))] Option<IntelligentParams>,
+);
+
+impl Pending {
+    pub(crate) fn get(&self) -> Option<&IntelligentParams> {
+        self.0.as_ref().map(core::borrow::Borrow::borrow)
+    }
+
+    pub(crate) fn is_some(&self) -> bool {
+        self.0.is_some()
+    }
+
+    pub(crate) fn take(&mut self) -> Option<IntelligentParams> {
+        #[cfg(feature = "alloc")]
+        {
+            self.0.take().map(|p| *p)
+        }
+        #[cfg(not(feature = "alloc"))]
+        {
+            self.0.take()
+        }
+    }
+
+    pub(crate) fn put(&mut self, p: IntelligentParams) {
+        // Boxed with an allocator, as it is without one.
+        #[allow(clippy::useless_conversion)]
+        let p = p.into();
+        self.0 = Some(p);
+    }
+}
+
 /// What one step of an intelligent controller produced.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct IntelligentOutput {
@@ -242,7 +279,7 @@ pub struct IntelligentOutput {
 #[repr(C)]
 pub struct IntelligentController<const CAP: usize = DEFAULT_CAPACITY> {
     pub(crate) params: IntelligentParams,
-    pub(crate) pending: Option<IntelligentParams>,
+    pub(crate) pending: Pending,
     pub(crate) integral: f64,
     pub(crate) derivative: DerivativeFilter,
     pub(crate) last_t: Option<f64>,
@@ -279,7 +316,7 @@ impl<const CAP: usize> IntelligentController<CAP> {
         let estimator = Estimator::new(estimator, params.order)?;
         Ok(Self {
             params,
-            pending: None,
+            pending: Pending::default(),
             estimator,
             integral: 0.0,
             derivative: DerivativeFilter::default(),
@@ -299,7 +336,7 @@ impl<const CAP: usize> IntelligentController<CAP> {
 
     /// Parameters in force (a pending change shows from the next step).
     pub fn params(&self) -> &IntelligentParams {
-        self.pending.as_ref().unwrap_or(&self.params)
+        self.pending.get().unwrap_or(&self.params)
     }
 
     /// The estimator (window state, configuration).
@@ -320,7 +357,7 @@ impl<const CAP: usize> IntelligentController<CAP> {
         if self.last_t.is_none() {
             self.adopt(params);
         } else {
-            self.pending = Some(params);
+            self.pending.put(params);
         }
         Ok(())
     }

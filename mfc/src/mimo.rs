@@ -54,13 +54,18 @@ impl<const CAP: usize> core::ops::DerefMut for Channels<CAP> {
 impl<const CAP: usize> MimoController<CAP> {
     /// One channel per configuration (allocates once, here).
     pub fn new(configs: &[ChannelConfig]) -> Result<Self> {
-        let channels = configs
-            .iter()
-            .map(Channel::new)
-            .collect::<Result<Vec<_>>>()?;
-        Ok(Self {
-            channels: channels.into(),
-        })
+        // One channel straight into its place: through a `Vec`, it was an allocation
+        // freed at once, which a service making thousands of devices interleaved with
+        // their long-lived ones (`docs/scale.md`, "Memory per plant").
+        let channels = match configs {
+            [one] => Channels::One([Channel::new(one)?]),
+            _ => configs
+                .iter()
+                .map(Channel::new)
+                .collect::<Result<Vec<_>>>()?
+                .into(),
+        };
+        Ok(Self { channels })
     }
 
     /// Number of channels.

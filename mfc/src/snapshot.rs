@@ -17,8 +17,8 @@ use bincode::enc::Encoder;
 use bincode::error::{DecodeError, EncodeError};
 use bincode::{Decode, Encode};
 
-use crate::channel::{Channel, Law, LawConfig};
-use crate::estimator::Estimator;
+use crate::channel::{Channel, ChannelConfig, Law, LawConfig};
+use crate::estimator::{Estimator, Interval};
 use crate::intelligent::IntelligentController;
 use crate::mimo::MimoController;
 use crate::output_map::{OutputMap, OutputMapConfig};
@@ -44,11 +44,20 @@ macro_rules! snapshot_struct {
 impl<const CAP: usize> Encode for Estimator<CAP> {
     fn encode<E: Encoder>(&self, e: &mut E) -> Result<(), EncodeError> {
         self.config.encode(e)?;
-        // The slots in use (the window's, not the capacity's), length first.
+        // The slots (the window's, not the capacity's), length first, each as the
+        // interval it starts (the format of a ring of intervals); a slot outside the
+        // window, as a zero-length one.
         let slots = crate::estimator::slots(&self.config, CAP);
         (slots as u64).encode(e)?;
         for i in 0..slots {
-            self.ring[i].encode(e)?;
+            let k = (i + slots - self.head) % slots;
+            let iv = if k < self.len {
+                self.interval(k)
+            } else {
+                let s = self.ring[i];
+                s.to((s.t, s.y))
+            };
+            iv.encode(e)?;
         }
         self.head.encode(e)?;
         self.len.encode(e)?;
@@ -70,9 +79,13 @@ impl<Ctx, const CAP: usize> Decode<Ctx> for Estimator<CAP> {
         if n != slots as u64 {
             return Err(invalid("estimator ring not the window's length"));
         }
+        let mut intervals = alloc::vec::Vec::with_capacity(slots);
+        for _ in 0..slots {
+            intervals.push(Interval::decode(d)?);
+        }
         let mut ring = crate::estimator::empty_ring::<CAP>(slots);
-        for slot in &mut ring[..slots] {
-            *slot = Decode::decode(d)?;
+        for (slot, iv) in ring[..slots].iter_mut().zip(&intervals) {
+            *slot = (*iv).into();
         }
         let mut e = Self {
             config,
@@ -87,6 +100,7 @@ impl<Ctx, const CAP: usize> Decode<Ctx> for Estimator<CAP> {
             order: Decode::decode(d)?,
         };
         check_estimator(&e, slots)?;
+        check_window(&e, &intervals)?;
         e.align_shadow();
         Ok(e)
     }
@@ -109,10 +123,56 @@ fn check_estimator<const CAP: usize>(e: &Estimator<CAP>, slots: usize) -> Result
     if !(indices && shadow) {
         return Err(invalid("estimator ring indices out of range"));
     }
-    if !e.newest_is_last() {
-        return Err(invalid("estimator's last sample is not its window's end"));
+    Ok(())
+}
+
+/// The window's intervals, as decoded, follow one another, and the newest ends at the last
+/// sample: the ring keeps each shared end once ([`crate::estimator::Slot`]), so a window
+/// that was not one would otherwise be changed into one. Always true of a state built by
+/// steps; checked after [`check_estimator`] (the indices are inside the ring).
+fn check_window<const CAP: usize>(
+    e: &Estimator<CAP>,
+    decoded: &[Interval],
+) -> Result<(), DecodeError> {
+    let slots = decoded.len();
+    let at = |k: usize| &decoded[(e.head + k) % slots];
+    for k in 0..e.len {
+        let iv = at(k);
+        let end = if k + 1 < e.len {
+            let next = at(k + 1);
+            (next.a, next.ya)
+        } else {
+            match e.last {
+                Some(last) => last,
+                None => return Err(invalid("estimator's window has no last sample")),
+            }
+        };
+        if (iv.b, iv.yb) != end {
+            return Err(invalid(if k + 1 < e.len {
+                "estimator's intervals do not follow one another"
+            } else {
+                "estimator's last sample is not its window's end"
+            }));
+        }
     }
     Ok(())
+}
+
+/// As the `Option<IntelligentParams>` it was, boxed or not.
+impl Encode for crate::intelligent::Pending {
+    fn encode<E: Encoder>(&self, e: &mut E) -> Result<(), EncodeError> {
+        self.get().encode(e)
+    }
+}
+
+impl<Ctx> Decode<Ctx> for crate::intelligent::Pending {
+    fn decode<D: Decoder<Context = Ctx>>(d: &mut D) -> Result<Self, DecodeError> {
+        let mut p = Self::default();
+        if let Some(params) = Option::<crate::IntelligentParams>::decode(d)? {
+            p.put(params);
+        }
+        Ok(p)
+    }
 }
 
 snapshot_struct!(IntelligentController {
@@ -151,7 +211,9 @@ impl<Ctx, const CAP: usize> Decode<Ctx> for crate::mimo::Channels<CAP> {
 impl<const CAP: usize> Encode for Channel<CAP> {
     fn encode<E: Encoder>(&self, e: &mut E) -> Result<(), EncodeError> {
         self.law.encode(e)?;
-        self.config.encode(e)?;
+        // The configuration stays in the format (a decoder checks it against the law's
+        // state), though the channel reads it from that state now.
+        self.config().encode(e)?;
         self.map.encode(e)?;
         self.last_t.encode(e)?;
         self.last_v.encode(e)
@@ -161,7 +223,7 @@ impl<const CAP: usize> Encode for Channel<CAP> {
 impl<Ctx, const CAP: usize> Decode<Ctx> for Channel<CAP> {
     fn decode<D: Decoder<Context = Ctx>>(d: &mut D) -> Result<Self, DecodeError> {
         let law: Law<CAP> = Decode::decode(d)?;
-        let config = Decode::decode(d)?;
+        let config: ChannelConfig = Decode::decode(d)?;
         // The map as `OutputMap` encodes it (its configuration, then the last output for
         // the rate limit), rebuilt through its constructor: its fields are its own.
         let map_config: OutputMapConfig = Decode::decode(d)?;
@@ -175,12 +237,11 @@ impl<Ctx, const CAP: usize> Decode<Ctx> for Channel<CAP> {
         }
         let c = Self {
             law,
-            config,
             map,
             last_t: Decode::decode(d)?,
             last_v: Decode::decode(d)?,
         };
-        check_channel(&c)?;
+        check_channel(&c, &config)?;
         Ok(c)
     }
 }
@@ -189,9 +250,13 @@ fn invalid(what: &'static str) -> DecodeError {
     DecodeError::Other(what)
 }
 
-/// A decoded channel runs its own, valid, configuration (module documentation).
-fn check_channel<const CAP: usize>(c: &Channel<CAP>) -> Result<(), DecodeError> {
-    if c.map.config() != &c.config.output {
+/// A decoded channel runs the configuration it was encoded with, and a valid one (module
+/// documentation).
+fn check_channel<const CAP: usize>(
+    c: &Channel<CAP>,
+    config: &ChannelConfig,
+) -> Result<(), DecodeError> {
+    if c.map.config() != &config.output {
         return Err(invalid(
             "output map differs from the channel's configuration",
         ));
@@ -199,7 +264,7 @@ fn check_channel<const CAP: usize>(c: &Channel<CAP>) -> Result<(), DecodeError> 
     if !c.last_v.is_finite() || c.last_t.is_some_and(|t| !t.is_finite()) {
         return Err(invalid("channel's last output or time not finite"));
     }
-    let valid = match (&c.law, &c.config.law) {
+    let valid = match (&c.law, &config.law) {
         (Law::Intelligent(l), LawConfig::Intelligent { params, estimator }) => {
             l.params() == params
                 && l.estimator.order == l.params.order
@@ -315,16 +380,50 @@ mod tests {
         let mut stale_shadow = e.clone();
         stale_shadow.shadow.active = true;
         stale_shadow.shadow.first = stale_shadow.next_index - stale_shadow.len as u64 - 1;
-        let mut detached = e.clone();
-        detached.last = detached.last.map(|(t, y)| (t + 0.5, y));
         for (what, bad) in [
             ("window 0", window_zero),
-            ("newest sample not the window's end", detached),
             ("count about to overflow", overflowing),
             ("shadow started before the window", stale_shadow),
         ] {
             let bytes = to_bytes(&bad).unwrap();
             assert!(from_bytes::<Estimator>(&bytes).is_err(), "{what} decoded");
         }
+    }
+
+    /// `bytes` with the first 8 bytes that encode `from` encoding `to` instead.
+    fn tamper(bytes: &[u8], from: f64, to: f64) -> Vec<u8> {
+        let at = bytes
+            .windows(8)
+            .position(|w| w == from.to_le_bytes())
+            .expect("the value is in the encoding");
+        let mut out = bytes.to_vec();
+        out[at..at + 8].copy_from_slice(&to.to_le_bytes());
+        out
+    }
+
+    /// The ring keeps each end two intervals share once, so a window whose intervals do not
+    /// follow one another, or whose newest does not end at the last sample, cannot be
+    /// represented: it is refused, not mended. The format is a ring of intervals: 0.20 s
+    /// is where two of them meet (either copy moved opens a gap), and 0.24 s, the last
+    /// sample, first appears as the newest interval's end.
+    #[test]
+    fn a_window_that_is_not_one_is_refused() {
+        let e = warm();
+        let bytes = to_bytes(&e).unwrap();
+        let t = |k: u32| f64::from(k) * 0.01;
+        for (what, k, message) in [
+            ("a gap", 20, "do not follow one another"),
+            ("the newest detached", 24, "is not its window's end"),
+        ] {
+            let bad = tamper(&bytes, t(k), t(k) + 0.001);
+            let err = from_bytes::<Estimator>(&bad).expect_err(what).to_string();
+            assert!(err.contains(message), "{what}: {err}");
+        }
+        let back: Estimator = from_bytes(&bytes).unwrap();
+        assert_eq!(
+            to_bytes(&back).unwrap(),
+            bytes,
+            "a state built by steps round-trips"
+        );
     }
 }

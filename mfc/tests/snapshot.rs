@@ -97,7 +97,7 @@ fn an_order_changed_live_restores_bit_for_bit() {
     for steps_after in [0, 1, 40] {
         let mut a = mimo();
         drive(&mut a, 0, 150);
-        let mut configs: Vec<ChannelConfig> = a.channels().iter().map(|c| *c.config()).collect();
+        let mut configs: Vec<ChannelConfig> = a.channels().iter().map(|c| c.config()).collect();
         configs[0].law = ipd;
         a.reconfigure(&configs).unwrap();
         drive(&mut a, 150, 150 + steps_after);
@@ -122,7 +122,7 @@ fn an_order_changed_live_restores_bit_for_bit() {
 /// commands.
 fn assert_valid(m: &mut MimoController) -> usize {
     for (i, c) in m.channels().iter().enumerate() {
-        let cfg = *c.config();
+        let cfg = c.config();
         assert!(
             Channel::<DEFAULT_CAPACITY>::new(&cfg).is_ok(),
             "channel {i}: {cfg:?}"

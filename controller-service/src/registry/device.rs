@@ -292,8 +292,10 @@ pub(super) struct Device {
     /// Provisioned from a template, not declared: reported in the status, and lets a
     /// snapshot rebuild the device although no declaration names it.
     pub(super) from_template: bool,
-    /// What a change of each channel may set (`crate::bounds`), from the file.
-    pub(super) bounds: PerChannel<ChannelBounds>,
+    /// What a change of each channel may set (`crate::bounds`), from the file. Boxed: read
+    /// only on a change, and inline it was 96 bytes of every plant, enough to put the
+    /// device in the allocator's next size class (`docs/scale.md`, "Memory per plant").
+    pub(super) bounds: Box<PerChannel<ChannelBounds>>,
     /// Its latest audited decisions, oldest first (at most `audit::KEPT`), handed over
     /// with its state so that the member taking it over keeps its history.
     pub(super) audit: VecDeque<pb::AuditEntry>,
@@ -456,7 +458,7 @@ impl Device {
             .collect::<Result<PerChannel<_>, String>>()?;
         let n = configs.len();
         Ok(Self {
-            bounds,
+            bounds: Box::new(bounds),
             home: 0,
             claimer: Claimer::default(),
             heard_unix_ns: 0,
@@ -628,13 +630,13 @@ impl Device {
     /// Channel `i`'s law and output map in force (changed by `configure`, an envelope
     /// change or a commissioning); a snapshot of a declared device is restored only if its
     /// laws equal these.
-    pub(super) fn config(&self, i: usize) -> &ChannelConfig {
+    pub(super) fn config(&self, i: usize) -> ChannelConfig {
         self.mimo.channels()[i].config()
     }
 
     /// Every channel's law and output map in force, to change some of them.
     pub(super) fn configs(&self) -> Vec<ChannelConfig> {
-        self.mimo.channels().iter().map(|c| *c.config()).collect()
+        self.mimo.channels().iter().map(|c| c.config()).collect()
     }
 
     /// Rule 2, the part that depends on the device: how many values.
@@ -875,7 +877,7 @@ impl Device {
         let h = self.period();
         for (i, new) in configs.iter().enumerate() {
             self.bounds[i]
-                .check_change(self.config(i), new, &self.envelope[i], h)
+                .check_change(&self.config(i), new, &self.envelope[i], h)
                 .map_err(|e| format!("channel {i}: {e}"))?;
         }
         for (i, pieces) in reference.into_iter().flatten().enumerate() {

@@ -297,7 +297,7 @@ impl Registry {
     fn restore_with(&mut self, snap: &DeviceSnapshot, live_config: bool) -> Result<(), String> {
         let mimo: MimoController =
             mfc::snapshot::from_bytes(&snap.mimo).map_err(|e| e.to_string())?;
-        let configs: Vec<ChannelConfig> = mimo.channels().iter().map(|c| *c.config()).collect();
+        let configs: Vec<ChannelConfig> = mimo.channels().iter().map(|c| c.config()).collect();
         let d = match self.devices.get_mut(snap.id.as_str()) {
             Some(d) => d,
             None if snap.from_template => {
