@@ -55,13 +55,13 @@ const DEVICES: usize = 10_000;
 const SERVICE_STATE: f64 = 2048.0;
 
 /// Most heap a controller of one iP channel with a 10-interval window may hold (bytes):
-/// its channel and the window's ring (1232 on 2026-11-28). A ring of the estimator's whole
-/// capacity (256 intervals, 10 KiB) does not fit, nor a second copy of the channel's
+/// its channel and the window's ring (1072 on 2026-11-28). A ring of the estimator's whole
+/// capacity (256 intervals, 6 KiB) does not fit, nor a second copy of the channel's
 /// configuration (184 bytes) beside the one its law and map hold.
 const CONTROLLER: f64 = 1536.0;
 
 /// Most resident memory the registry may add per device, in a process of its own (bytes):
-/// the heap above and the allocator's rounding of it into size classes and pages (3036 on
+/// the heap above and the allocator's rounding of it into size classes and pages (2826 on
 /// 2026-11-28, with the device in mimalloc's class of 2048 bytes; one of 2560 before).
 const RESIDENT: f64 = 3584.0;
 

@@ -479,12 +479,13 @@ impl Accumulator {
 /// and `estimate` allocate nothing and cost the same whatever the window length (an
 /// estimate for the order the running sums do not serve excepted: see [`Estimator::new`]).
 ///
-/// The ring holds the window's intervals. With an allocator (the `alloc` feature) it is
-/// exactly the window's length on the heap, allocated once at creation: a service holding
-/// ten thousand estimators of a 10-interval window keeps 400 bytes for each, not the
-/// capacity's 10 KiB (`docs/scale.md`, "Memory per plant"). Without one it is `CAP`
-/// intervals inline, laid out last (`repr(C)`), of which a step touches only the window's.
-/// `CAP` bounds the window either way.
+/// The ring holds the window's intervals, each as the sample that starts it and the input
+/// that followed (a `Slot`: the next slot's sample, or the last, ends it). With an
+/// allocator (the `alloc` feature) it is exactly the window's length on the heap,
+/// allocated once at creation: a service holding ten thousand estimators of a 10-interval
+/// window keeps 240 bytes for each, not the capacity's 6 KiB (`docs/scale.md`, "Memory per
+/// plant"). Without one it is `CAP` slots inline, laid out last (`repr(C)`), of which a
+/// step touches only the window's. `CAP` bounds the window either way.
 #[derive(Debug, Clone)]
 #[repr(C)]
 pub struct Estimator<const CAP: usize = DEFAULT_CAPACITY> {

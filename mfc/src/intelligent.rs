@@ -1,6 +1,6 @@
 //! Intelligent controllers: iP, iPI, iPD and iPID.
 //!
-//! With `e = y - y*` and `F_est` from the [`Estimator`](crate::Estimator):
+//! With `e = y - y*` and `F_est` from the [`Estimator`]:
 //!
 //! ```text
 //! u = -(F_est - y*^(n) + Kp e + Ki ∫e + Kd e') / α
