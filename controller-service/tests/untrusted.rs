@@ -741,6 +741,166 @@ fn limits_of(r: &Registry, id: &str) -> Vec<(f64, f64)> {
         .unwrap_or_default()
 }
 
+/// The samples of [`the_envelope_holds_and_state_stays_bounded`], each answer checked:
+/// the registry under test, the envelopes of its file, each device's clock and next
+/// sequence number, and what is known of the heater's commands.
+struct Stream {
+    r: Registry,
+    file: Vec<Vec<(f64, f64)>>,
+    t: [f64; 4],
+    next: [u64; 4],
+    /// What the heater's actuator holds: it applies every CONTROL command and says so.
+    held: f64,
+    /// The heater's samples answered with a command (run, seq, time), and the largest
+    /// interval between two answered consecutive ones of a run: the service's period
+    /// estimate (a median of such intervals) is never above it. A sequence number is the
+    /// run's: the same one in another run is another sample.
+    answered: Option<(u64, u64, f64)>,
+    longest: f64,
+}
+
+impl Stream {
+    fn new(r: Registry) -> Self {
+        let file = IDS.iter().map(|id| limits_of(&r, id)).collect();
+        Self {
+            r,
+            file,
+            t: [0.0; 4],
+            next: [1; 4],
+            held: 0.0,
+            answered: None,
+            longest: 0.0,
+        }
+    }
+
+    /// Send device `dev`'s sample (`seq` or the next, `dt` after its last), and check the
+    /// answer: finite values inside the envelope in force and the file's.
+    fn sample(
+        &mut self,
+        dev: usize,
+        run: u64,
+        seq: Option<u64>,
+        dt: f64,
+        y: &[f64],
+    ) -> Result<(), TestCaseError> {
+        let seq = seq.unwrap_or(self.next[dev]);
+        self.next[dev] = seq.wrapping_add(1);
+        // A NaN time is one bad sample, not a clock broken for good.
+        let time = if dt.is_nan() {
+            f64::NAN
+        } else {
+            self.t[dev] += dt;
+            self.t[dev]
+        };
+        let id = IDS[dev];
+        let mut s = sample(id, run, seq, time, y);
+        if id == "heater" {
+            s.applied = vec![self.held];
+        }
+        let env = limits_of(&self.r, id);
+        let Ok(c) = self.r.answer(id, &s) else {
+            return Ok(());
+        };
+        prop_assert_eq!(c.seq, seq);
+        let env = if env.is_empty() {
+            limits_of(&self.r, id)
+        } else {
+            env
+        };
+        for (i, v) in c.v.iter().enumerate() {
+            prop_assert!(v.is_finite(), "{}: {:?}", id, c.v);
+            prop_assert!(
+                env[i].0 <= *v && *v <= env[i].1,
+                "{}: {} outside {:?}",
+                id,
+                v,
+                env[i]
+            );
+            if let Some(f) = self.file[dev].get(i) {
+                prop_assert!(
+                    f.0 <= *v && *v <= f.1,
+                    "{}: {} outside the file's {:?}",
+                    id,
+                    v,
+                    f
+                );
+            }
+        }
+        prop_assert!(c.error.len() < 300);
+        if id == "heater" {
+            self.heater_rate(&c, run, time, env[0])?;
+        }
+        Ok(())
+    }
+
+    /// The heater's command `c` moved from what its actuator holds by no more than the
+    /// rate limit (100 V/s) allows.
+    fn heater_rate(
+        &mut self,
+        c: &pb::Command,
+        run: u64,
+        time: f64,
+        env: (f64, f64),
+    ) -> Result<(), TestCaseError> {
+        let seq = c.seq;
+        let computed = c.mode == pb::Mode::Control as i32 || c.mode == pb::Mode::WarmingUp as i32;
+        // Plant time since the run's last answered sample: within a run, before a period
+        // is known, the limit's time step is that (at most 1 s); a new run's first command
+        // moves at most one period.
+        let in_run = self.answered.filter(|(r, _, _)| *r == run);
+        let since = in_run.map_or(0.0, |(_, _, tq)| (time - tq).clamp(0.0, 1.0));
+        let resent = in_run.is_some_and(|(_, q, _)| q == seq);
+        if computed && !resent {
+            if let Some((_, q, tq)) = in_run {
+                if seq == q.wrapping_add(1) {
+                    self.longest = self.longest.max(time - tq);
+                }
+            }
+            self.answered = Some((run, seq, time));
+        }
+        if c.mode == pb::Mode::Control as i32 {
+            // Over at most two periods, from what the actuator holds, whatever the plant's
+            // clock did; unless a narrowed envelope forced the command to its edge.
+            let (v, held) = (c.v[0], self.held);
+            let inside = env.0 <= held && held <= env.1;
+            let step = 100.0 * (2.0 * self.longest).max(since);
+            prop_assert!(
+                !inside || (v - held).abs() <= step * (1.0 + 2e-9) + 1e-12,
+                "heater: {} -> {} (longest interval {}, since {})",
+                held,
+                v,
+                self.longest,
+                since
+            );
+            self.held = v;
+        }
+        Ok(())
+    }
+}
+
+/// A case the property test found (2026-11-28): the heater's run 2 answers its seq 710,
+/// then run 1 starts with the same number at an earlier time. The check once took run
+/// 1's 710 for a resend of run 2's, never counted the run's first interval, and allowed
+/// the next command no step at all, where the service rightly moved it by 1 V in 10 ms.
+#[test]
+fn a_sequence_number_is_its_runs() {
+    let mut stream = Stream::new(registry());
+    let heater = 1;
+    for (run, seq, dt, y) in [
+        (2, Some(710), 0.01, 0.0),
+        (1, Some(709), 0.01, f64::NAN),
+        (1, None, -0.25632273391113297, 0.0),
+        (1, None, 0.01, 0.0),
+    ] {
+        stream.sample(heater, run, seq, dt, &[y]).unwrap();
+    }
+    assert!(
+        stream.held > 0.99,
+        "the last command moved: {}",
+        stream.held
+    );
+}
+
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(1024))]
     /// Random sequences of samples, configuration changes, envelope changes and reference
@@ -749,69 +909,12 @@ proptest! {
     /// (remote widening is off); state stays bounded.
     #[test]
     fn the_envelope_holds_and_state_stays_bounded(ops in proptest::collection::vec(op(), 1..200)) {
-        let mut r = registry();
-        let file: Vec<Vec<(f64, f64)>> = IDS.iter().map(|id| limits_of(&r, id)).collect();
-        let mut t = [0.0f64; 4];
-        let mut next = [1u64; 4];
-        // What the heater's actuator holds: it applies every CONTROL command and says so.
-        let mut held = 0.0f64;
-        // The heater's samples answered with a command (seq, time), and the largest
-        // interval between two answered consecutive ones: the service's period estimate
-        // (a median of such intervals) is never above it.
-        let mut answered: Option<(u64, f64)> = None;
-        let mut longest = 0.0f64;
+        let mut stream = Stream::new(registry());
         for op in ops {
+            let r = &mut stream.r;
             match op {
                 Op::Sample { dev, run, seq, dt, y } => {
-                    let seq = seq.unwrap_or(next[dev]);
-                    next[dev] = seq.wrapping_add(1);
-                    // A NaN time is one bad sample, not a clock broken for good.
-                    let time = if dt.is_nan() { f64::NAN } else { t[dev] += dt; t[dev] };
-                    let id = IDS[dev];
-                    let mut s = sample(id, run, seq, time, &y);
-                    if id == "heater" {
-                        s.applied = vec![held];
-                    }
-                    let env = limits_of(&r, id);
-                    if let Ok(c) = r.answer(id, &s) {
-                        prop_assert_eq!(c.seq, seq);
-                        let env = if env.is_empty() { limits_of(&r, id) } else { env };
-                        for (i, v) in c.v.iter().enumerate() {
-                            prop_assert!(v.is_finite(), "{}: {:?}", id, c.v);
-                            prop_assert!(env[i].0 <= *v && *v <= env[i].1, "{}: {} outside {:?}", id, v, env[i]);
-                            if let Some(f) = file[dev].get(i) {
-                                prop_assert!(f.0 <= *v && *v <= f.1, "{}: {} outside the file's {:?}", id, v, f);
-                            }
-                        }
-                        let computed = c.mode == pb::Mode::Control as i32
-                            || c.mode == pb::Mode::WarmingUp as i32;
-                        // Plant time since the last answered sample: within a run, before
-                        // a period is known, the limit's time step is that (at most 1 s).
-                        let since = answered.map_or(0.0, |(_, tq)| (time - tq).clamp(0.0, 1.0));
-                        if id == "heater" && computed {
-                            let resent = answered.is_some_and(|(q, _)| q == seq);
-                            if !resent {
-                                if let Some((q, tq)) = answered {
-                                    if seq == q.wrapping_add(1) {
-                                        longest = longest.max(time - tq);
-                                    }
-                                }
-                                answered = Some((seq, time));
-                            }
-                        }
-                        if id == "heater" && c.mode == pb::Mode::Control as i32 {
-                            // The rate limit (100 V/s) over at most two periods, from what
-                            // the actuator holds, whatever the plant's clock did; unless a
-                            // narrowed envelope forced the command to its edge.
-                            let v = c.v[0];
-                            let inside = env[0].0 <= held && held <= env[0].1;
-                            let step = 100.0 * (2.0 * longest).max(since);
-                            prop_assert!(!inside || (v - held).abs() <= step * (1.0 + 2e-9) + 1e-12,
-                                "heater: {} -> {} (longest interval {}, since {})", held, v, longest, since);
-                            held = v;
-                        }
-                        prop_assert!(c.error.len() < 300);
-                    }
+                    stream.sample(dev, run, seq, dt, &y)?;
                 }
                 Op::Update { dev, channel, kp, alpha, min, max, rate } => {
                     let req = pb::ConfigRequest {
@@ -826,11 +929,11 @@ proptest! {
                     }
                 }
                 Op::Envelope { dev, lo, hi } => {
-                    let n = limits_of(&r, IDS[dev]).len();
+                    let n = limits_of(r, IDS[dev]).len();
                     let req = envelope(&vec![(Some(lo), Some(hi), None); n]);
-                    let before = limits_of(&r, IDS[dev]);
+                    let before = limits_of(r, IDS[dev]);
                     let rep = r.change_envelope(IDS[dev], &req);
-                    let after = limits_of(&r, IDS[dev]);
+                    let after = limits_of(r, IDS[dev]);
                     if rep.accepted {
                         for (b, a) in before.iter().zip(&after) {
                             prop_assert!(a.0 >= b.0 && a.1 <= b.1, "widened {:?} -> {:?}", b, a);
@@ -849,7 +952,7 @@ proptest! {
                 }
             }
         }
-        let st = r.service_status(0.0);
+        let st = stream.r.service_status(0.0);
         prop_assert!(st.devices.len() <= 4);
         prop_assert!(st.unknown_devices.len() <= 64);
         for d in &st.devices {
