@@ -126,28 +126,21 @@ fn check_estimator<const CAP: usize>(e: &Estimator<CAP>, slots: usize) -> Result
     Ok(())
 }
 
-/// The window's intervals, as decoded, follow one another, and the newest ends at the last
-/// sample: the ring keeps each shared end once ([`crate::estimator::Slot`]), so a window
+/// The window's intervals, as decoded, are the ones the ring gives back
+/// ([`Estimator::interval`]: each ends where the next starts, the newest at the last
+/// sample). The ring keeps each shared end once ([`crate::estimator::Slot`]), so a window
 /// that was not one would otherwise be changed into one. Always true of a state built by
 /// steps; checked after [`check_estimator`] (the indices are inside the ring).
 fn check_window<const CAP: usize>(
     e: &Estimator<CAP>,
     decoded: &[Interval],
 ) -> Result<(), DecodeError> {
-    let slots = decoded.len();
-    let at = |k: usize| &decoded[(e.head + k) % slots];
+    if e.len > 0 && e.last.is_none() {
+        return Err(invalid("estimator's window has no last sample"));
+    }
     for k in 0..e.len {
-        let iv = at(k);
-        let end = if k + 1 < e.len {
-            let next = at(k + 1);
-            (next.a, next.ya)
-        } else {
-            match e.last {
-                Some(last) => last,
-                None => return Err(invalid("estimator's window has no last sample")),
-            }
-        };
-        if (iv.b, iv.yb) != end {
+        let (iv, kept) = (&decoded[(e.head + k) % decoded.len()], e.interval(k));
+        if (iv.b, iv.yb) != (kept.b, kept.yb) {
             return Err(invalid(if k + 1 < e.len {
                 "estimator's intervals do not follow one another"
             } else {
