@@ -37,6 +37,25 @@ pub struct ServiceCli {
     pub zenoh: ZenohArgs,
 }
 
+/// Transparent huge pages for this process from now on, or none
+/// ([`ServiceConfig::huge_pages`]): the kernel's flag for the whole process, which
+/// overrides the allocator's requests for them. Pages already in place stay as they are;
+/// little is, before the file is read. Elsewhere than on Linux, nothing.
+pub fn huge_pages(allowed: bool) -> std::io::Result<()> {
+    #[cfg(target_os = "linux")]
+    {
+        let disable = libc::c_ulong::from(!allowed);
+        // SAFETY: PR_SET_THP_DISABLE reads its integer arguments and touches no memory.
+        let rc = unsafe { libc::prctl(libc::PR_SET_THP_DISABLE, disable, 0, 0, 0) };
+        if rc != 0 {
+            return Err(std::io::Error::last_os_error());
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = allowed;
+    Ok(())
+}
+
 /// Parse `args` (the first is the program name), log to stderr, serve until SIGINT or
 /// SIGTERM; returns the process's exit code.
 pub fn main_with_args<I, T>(args: I) -> std::process::ExitCode
@@ -85,6 +104,9 @@ pub async fn run(cli: ServiceCli) -> Result<()> {
     // First: a SIGTERM while the session opens must end the service cleanly, not be lost.
     let mut shutdown = Box::pin(transport::shutdown_signal());
     let mut config = ServiceConfig::load(&cli.config)?;
+    if let Err(e) = huge_pages(config.huge_pages) {
+        tracing::warn!(%e, "transparent huge pages not set; the kernel's setting stays");
+    }
     if let Some(id) = cli.controller_id {
         config.controller_id = id;
         config.check(&cli.config.display().to_string())?;
@@ -284,5 +306,23 @@ mod tests {
     fn cli_is_consistent() {
         use clap::CommandFactory;
         super::ServiceCli::command().debug_assert();
+    }
+
+    /// The kernel's own account of the process (`THP_enabled` in `/proc/self/status`)
+    /// follows the setting both ways. Other tests of this process are not disturbed: huge
+    /// pages change where memory comes from, not what it holds.
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn huge_pages_follow_the_setting() {
+        let enabled = || {
+            let status = std::fs::read_to_string("/proc/self/status").unwrap();
+            let line = status.lines().find(|l| l.starts_with("THP_enabled:"));
+            let line = line.expect("THP_enabled in /proc/self/status (Linux 5.0 on)");
+            line.split_whitespace().nth(1) == Some("1")
+        };
+        super::huge_pages(false).unwrap();
+        assert!(!enabled());
+        super::huge_pages(true).unwrap();
+        assert!(enabled());
     }
 }

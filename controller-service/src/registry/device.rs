@@ -11,6 +11,7 @@ use protocol::convert::{
 };
 use protocol::{pb, PROTOCOL_VERSION};
 
+use super::rare::RareState;
 use super::{latency, REORDER_WINDOW, RESYNC_AFTER};
 use crate::bounds::ChannelBounds;
 use crate::config::{DeviceChannel, Prediction};
@@ -41,7 +42,7 @@ const RETIRED_RUNS: usize = 4;
 /// the heap and work the same.
 pub(super) type PerChannel<T> = SmallVec<[T; 2]>;
 
-/// Rejected sequence numbers a device keeps at most (`Device::rejected_seqs`): a stream of
+/// Rejected sequence numbers a device keeps at most (`Rare::rejected_seqs`): a stream of
 /// rejected samples longer than this counts the rest as lost, never more memory.
 pub(super) const REJECTED_KEPT: usize = 64;
 
@@ -182,7 +183,8 @@ pub(super) enum Run {
 ///
 /// In declaration order (`repr(C)`): the controller (whose own fields are laid out the same
 /// way), then the rest of what every sample reads or writes, roughly in the order a step
-/// reads it, then what only a status, a snapshot, a change or a refusal reads. At ten
+/// reads it, then what only a status, a snapshot or a change reads; what only rare events
+/// write (refusals, duplicates, ended runs) is behind a pointer ([`RareState`]). At ten
 /// thousand devices none of them is in the caches when its sample comes, so each cache
 /// line a step touches is a miss, and lines read together cost fewer (the processor fetches
 /// neighbouring lines with a missed one). Left to the compiler, the fields are ordered by
@@ -216,21 +218,16 @@ pub(super) struct Device {
     /// Plant time of that sample (s); the next must come strictly later. Minus infinity
     /// until the first one (and after a plant restart), so any first time is accepted.
     pub(super) last_time: f64,
-    /// Runs that ended, newest last, at most `RETIRED_RUNS`.
-    pub(super) retired: VecDeque<u64>,
-    /// The samples refused as out of step since the last answered one, if they form a
-    /// consistent stream: its last sequence and time, and how many ([`RESYNC_AFTER`]).
-    pub(super) astray: Option<(u64, f64, u32)>,
+    /// What it keeps for rare events (refusals, duplicates, ended runs, operators'
+    /// changes), allocated on the first: read on every sample, so among the fields a step
+    /// asks for.
+    pub(super) rare: RareState,
     /// Recent intervals between consecutive samples (s), for the period estimate that
     /// bounds the rate limit's `dt`; kept across runs (the same rig, the same period).
     pub(super) intervals: [f64; PERIOD_WINDOW],
     /// How many of `intervals` are filled, and where the next goes.
     pub(super) intervals_len: usize,
     pub(super) intervals_next: usize,
-    /// Sequence numbers of the run in force, after the last answered one, whose samples
-    /// were answered REJECTED (at most [`REJECTED_KEPT`]): they arrived, so the gap they
-    /// leave before the next good sample is not counted as lost.
-    pub(super) rejected_seqs: VecDeque<u64>,
     /// Sequence numbers skipped between one answered sample and the next; a sample that
     /// arrived but was refused in between counts here too.
     pub(super) lost: u64,
@@ -241,6 +238,8 @@ pub(super) struct Device {
     pub(super) refs: PerChannel<Reference>,
     /// Reference pieces per channel, evaluated at `plant_time - reference_start`.
     pub(super) reference: PerChannel<Vec<Piece>>,
+    /// Runs started (the first sample's included).
+    pub(super) restarts: u64,
     /// The plant's round-trip reports (µs), oldest first, at most `RTT_WINDOW`; a report of
     /// 0 (no round trip yet) is not kept.
     pub(super) rtts: VecDeque<u32>,
@@ -258,10 +257,6 @@ pub(super) struct Device {
     /// The values of the last CONTROL command sent, kept across runs (the same actuator):
     /// where the rate limit runs from when a sample does not say what is applied.
     pub(super) held: Option<PerChannel<f64>>,
-    /// Commands the final envelope check clipped: 0 unless a law or map misbehaves, or a
-    /// rate-limited channel starts (a run, a restore) where the law's first value is not
-    /// within reach of what the actuator holds.
-    pub(super) clamped: u64,
     /// Commands computed (CONTROL or WARMING_UP); not resends for duplicates, not REJECTED
     /// or STALE answers.
     pub(super) commands: u64,
@@ -282,11 +277,8 @@ pub(super) struct Device {
     /// With delay compensation: what the plant will apply in each coming period, as this
     /// device's commands already sent will have it.
     pub(super) schedule: Option<Box<Schedule>>,
-    // Read only for a status, a snapshot or a change, or counted on a refusal. The first
-    // of these ends what `Device::prefetch` asks for.
-    /// Samples sent while the plant was holding, on its local fallback or in safe stop:
-    /// counts samples, not fallback episodes.
-    pub(super) samples_off_remote: u64,
+    // Read only for a status, a snapshot or a change. The first of these ends what
+    // `Device::prefetch` asks for.
     /// Which changes its configuration holds ([`crate::lease::Version`]).
     pub(super) version: Version,
     /// Provisioned from a template, not declared: reported in the status, and lets a
@@ -296,30 +288,6 @@ pub(super) struct Device {
     /// only on a change, and inline it was 96 bytes of every plant, enough to put the
     /// device in the allocator's next size class (`docs/scale.md`, "Memory per plant").
     pub(super) bounds: Box<PerChannel<ChannelBounds>>,
-    /// Its latest audited decisions, oldest first (at most `audit::KEPT`), handed over
-    /// with its state so that the member taking it over keeps its history.
-    pub(super) audit: VecDeque<pb::AuditEntry>,
-    /// Samples repeating `last_seq`, answered with the cached command when there is one.
-    pub(super) duplicates: u64,
-    /// Samples older than `last_seq`, or of an ended run: answered STALE.
-    pub(super) stale: u64,
-    /// Samples answered REJECTED: another device's id, bad values, a sequence jump, or a
-    /// step the core refused.
-    pub(super) rejected: u64,
-    /// Samples replaced by a newer one before the worker read them (reported by the
-    /// service's inbox).
-    pub(super) superseded: u64,
-    /// Envelope changes accepted since the service started.
-    pub(super) envelope_changes: u64,
-    /// Reference updates refused.
-    pub(super) references_refused: u64,
-    /// Runs started (the first sample's included).
-    pub(super) restarts: u64,
-    /// Lost samples recovered from the copy the next one carried.
-    pub(super) recovered: u64,
-    /// Why the last refused sample or request was refused (already cut to printable
-    /// length); a later good one does not clear it.
-    pub(super) last_error: String,
 }
 
 /// What the plant will apply in each period, as far as the commands already sent decide
@@ -401,28 +369,34 @@ impl Device {
 
     /// The counters a snapshot keeps, in its order (`DeviceSnapshot::counters`).
     pub(super) fn counters(&self) -> [u64; 7] {
+        let rare = self.rare.get();
         [
             self.samples,
             self.commands,
             self.lost,
-            self.duplicates,
-            self.stale,
-            self.rejected,
-            self.samples_off_remote,
+            rare.duplicates,
+            rare.stale,
+            rare.rejected,
+            rare.samples_off_remote,
         ]
     }
 
     /// Restore what [`Device::counters`] gave.
     pub(super) fn set_counters(&mut self, c: [u64; 7]) {
+        let [samples, commands, lost, rest @ ..] = c;
+        (self.samples, self.commands, self.lost) = (samples, commands, lost);
+        // Zeros need no rare state: allocated only for a count to keep.
+        let rare = match self.rare.existing() {
+            Some(rare) => rare,
+            None if rest == [0; 4] => return,
+            None => self.rare.get_mut(),
+        };
         [
-            self.samples,
-            self.commands,
-            self.lost,
-            self.duplicates,
-            self.stale,
-            self.rejected,
-            self.samples_off_remote,
-        ] = c;
+            rare.duplicates,
+            rare.stale,
+            rare.rejected,
+            rare.samples_off_remote,
+        ] = rest;
     }
 
     pub(super) fn new(
@@ -473,14 +447,12 @@ impl Device {
             reference: channels.iter().map(|c| c.reference.clone()).collect(),
             reference_start: 0.0,
             run_id: None,
-            rejected_seqs: VecDeque::new(),
-            audit: VecDeque::new(),
-            retired: VecDeque::with_capacity(RETIRED_RUNS),
             run_samples: 0,
             last_seq: None,
             last_time: f64::NEG_INFINITY,
             last_command: None,
-            astray: None,
+            rare: RareState::default(),
+            restarts: 0,
             held: None,
             intervals: [0.0; PERIOD_WINDOW],
             intervals_len: 0,
@@ -490,20 +462,9 @@ impl Device {
             samples: 0,
             commands: 0,
             lost: 0,
-            duplicates: 0,
-            stale: 0,
-            rejected: 0,
-            superseded: 0,
-            samples_off_remote: 0,
-            envelope_changes: 0,
-            clamped: 0,
-            references_refused: 0,
-            restarts: 0,
             rtts: VecDeque::with_capacity(RTT_WINDOW),
             f_est: smallvec::smallvec![f64::NAN; n],
-            last_error: String::new(),
             prediction,
-            recovered: 0,
             last_flags: 0,
             schedule: prediction
                 .delay_compensation
@@ -523,7 +484,7 @@ impl Device {
         {
             use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
             let start = std::ptr::from_ref(self).cast::<i8>();
-            for at in (0..std::mem::offset_of!(Device, samples_off_remote)).step_by(64) {
+            for at in (0..std::mem::offset_of!(Device, version)).step_by(64) {
                 // SAFETY: a prefetch is a hint that reads nothing and never faults, and SSE
                 // (its target feature) is part of every x86_64; the address is inside
                 // `self` anyway.
@@ -535,25 +496,27 @@ impl Device {
     /// A new plant run: fresh control state, same configuration and reference. The
     /// counters carry on across runs.
     pub(super) fn start_run(&mut self, run_id: u64, fresh: MimoController) {
-        if let Some(old) = self.run_id {
-            if old != run_id {
-                if self.retired.len() == RETIRED_RUNS {
-                    self.retired.pop_front();
-                }
-                self.retired.push_back(old);
+        // A plant's first run is not a rare event: nothing to keep, nothing allocated.
+        if let Some(old) = self.run_id.filter(|&old| old != run_id) {
+            let retired = &mut self.rare.get_mut().retired;
+            if retired.len() == RETIRED_RUNS {
+                retired.pop_front();
             }
+            retired.push_back(old);
         }
-        self.retired.retain(|r| *r != run_id);
+        if let Some(rare) = self.rare.existing() {
+            rare.retired.retain(|r| *r != run_id);
+            rare.rejected_seqs.clear();
+            rare.astray = None;
+        }
+        self.restarts += 1;
         self.mimo = fresh;
         self.run_id = Some(run_id);
-        self.rejected_seqs.clear();
         self.run_samples = 0;
         self.restored = false;
         self.last_seq = None;
         self.last_time = f64::NEG_INFINITY;
         self.last_command = None;
-        self.astray = None;
-        self.restarts += 1;
         self.abort_commission("the plant restarted");
         if let Some(s) = &mut self.schedule {
             **s = Schedule::new(s.n);
@@ -561,15 +524,16 @@ impl Device {
     }
 
     /// A sample of the run in force was answered REJECTED: note its number if it lies
-    /// ahead of the last answered one (see `rejected_seqs`).
+    /// ahead of the last answered one (see `Rare::rejected_seqs`).
     pub(super) fn note_rejected(&mut self, run_id: u64, seq: u64) {
         let ahead = self.last_seq.is_some_and(|l| seq > l);
+        let kept = &self.rare.get().rejected_seqs;
         if self.run_id == Some(run_id)
             && ahead
-            && self.rejected_seqs.len() < REJECTED_KEPT
-            && !self.rejected_seqs.contains(&seq)
+            && kept.len() < REJECTED_KEPT
+            && !kept.contains(&seq)
         {
-            self.rejected_seqs.push_back(seq);
+            self.rare.get_mut().rejected_seqs.push_back(seq);
         }
     }
 
@@ -578,12 +542,15 @@ impl Device {
     /// to `seq`.
     pub(super) fn missing_before(&mut self, last: u64, seq: u64) -> u64 {
         let gap = seq.saturating_sub(last).saturating_sub(1);
-        let arrived = self
+        let Some(rare) = self.rare.existing() else {
+            return gap;
+        };
+        let arrived = rare
             .rejected_seqs
             .iter()
             .filter(|&&q| q > last && q < seq)
             .count() as u64;
-        self.rejected_seqs.retain(|&q| q > seq);
+        rare.rejected_seqs.retain(|&q| q > seq);
         gap.saturating_sub(arrived)
     }
 
@@ -615,11 +582,12 @@ impl Device {
     /// [`RESYNC_AFTER`] of them in a row form a stream of their own, which the device then
     /// follows as a new run.
     pub(super) fn out_of_step(&mut self, s: &pb::Sample) -> bool {
-        let n = match self.astray {
+        let rare = self.rare.get_mut();
+        let n = match rare.astray {
             Some((seq, t, n)) if s.seq > seq && s.plant_time > t => n + 1,
             _ => 1,
         };
-        self.astray = Some((s.seq, s.plant_time, n));
+        rare.astray = Some((s.seq, s.plant_time, n));
         n >= RESYNC_AFTER
     }
 
@@ -660,7 +628,8 @@ impl Device {
         match (self.run_id, self.last_seq) {
             (None, _) => Run::New,
             (Some(r), _) if s.run_id != r => {
-                if self.retired.contains(&s.run_id) && self.run_samples < REORDER_WINDOW {
+                if self.rare.get().retired.contains(&s.run_id) && self.run_samples < REORDER_WINDOW
+                {
                     Run::Retired
                 } else if ordered && s.run_id < r {
                     Run::Earlier
@@ -749,7 +718,7 @@ impl Device {
             device_id: id.into(),
             loop_rtt: Some(latency(&self.rtts)),
             f_est: self.f_est.to_vec(),
-            last_error: self.last_error.clone(),
+            last_error: self.rare.get().last_error.clone(),
             envelope: Some(self.limits_pb()),
             lease_holder: self.lease_holder.as_str().into(),
             commission: self.commission.as_ref().map(|c| {
@@ -768,6 +737,7 @@ impl Device {
     /// round trips, estimates, envelope or strings): what a metrics scrape sums over
     /// every device.
     pub(super) fn counters_pb(&self) -> pb::DeviceStatus {
+        let rare = self.rare.get();
         pb::DeviceStatus {
             version: PROTOCOL_VERSION,
             last_seq: self.last_seq.unwrap_or(0),
@@ -779,17 +749,17 @@ impl Device {
             samples: self.samples,
             commands: self.commands,
             lost: self.lost,
-            duplicates: self.duplicates,
-            stale: self.stale,
-            rejected: self.rejected,
-            samples_off_remote: self.samples_off_remote,
+            duplicates: rare.duplicates,
+            stale: rare.stale,
+            rejected: rare.rejected,
+            samples_off_remote: rare.samples_off_remote,
             from_template: self.from_template,
-            superseded: self.superseded,
-            envelope_changes: self.envelope_changes,
-            clamped: self.clamped,
-            references_refused: self.references_refused,
+            superseded: rare.superseded,
+            envelope_changes: rare.envelope_changes,
+            clamped: rare.clamped,
+            references_refused: rare.references_refused,
             restarts: self.restarts,
-            recovered: self.recovered,
+            recovered: rare.recovered,
             last_flags: self.last_flags,
             lease_epoch: self.lease_epoch,
             lease_refused: self.lease_refused,
@@ -939,5 +909,18 @@ mod tests {
         assert_eq!(table.get("é-ü"), Some(&3));
         assert_eq!(table.get("load-123"), None);
         assert_eq!(table.get(&edge[1..]), None);
+    }
+}
+
+#[cfg(all(test, target_pointer_width = "64"))]
+mod size_tests {
+    /// A device is one allocation of mimalloc's class of 1792 bytes: a field more and it
+    /// takes the class of 2048, 256 bytes more for every plant (`docs/scale.md`, "Memory
+    /// per plant"). Make room (what only rare events need goes to `super::rare::Rare`)
+    /// rather than raise this.
+    #[test]
+    fn a_device_fits_the_allocators_class_of_1792_bytes() {
+        let size = std::mem::size_of::<super::Device>();
+        assert!(size <= 1792, "a device is {size} bytes");
     }
 }

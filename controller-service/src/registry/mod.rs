@@ -43,6 +43,7 @@
 
 mod commission;
 mod device;
+mod rare;
 mod requests;
 mod shards;
 mod step;
@@ -394,7 +395,7 @@ impl Registry {
     /// inbox's own).
     pub fn note_superseded(&mut self, id: &str, n: u64) {
         if let Some(d) = self.devices.get_mut(id) {
-            d.superseded += n;
+            d.rare.get_mut().superseded += n;
         }
     }
 
@@ -538,10 +539,10 @@ impl Registry {
         };
         let reason = capped(reason);
         d.samples += 1;
-        d.rejected += 1;
+        d.rare.get_mut().rejected += 1;
         d.note_rejected(s.run_id, s.seq);
         self.rejected += 1;
-        d.last_error.clone_from(&reason);
+        d.rare.get_mut().last_error.clone_from(&reason);
         let mut cmd = reply(
             (&self.controller_id, key_id),
             (s.seq, s.sent_unix_ns, now_unix_ns),

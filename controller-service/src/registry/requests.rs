@@ -24,7 +24,7 @@ impl Registry {
     /// Keep an audit entry with its device (dropped if the device is not served).
     pub fn audit(&mut self, entry: pb::AuditEntry) {
         if let Some(d) = self.devices.get_mut(entry.device_id.as_str()) {
-            crate::audit::push(&mut d.audit, entry);
+            crate::audit::push(&mut d.rare.get_mut().audit, entry);
         }
     }
 
@@ -33,7 +33,7 @@ impl Registry {
         self.devices.get(id).map(|d| pb::AuditLog {
             version: PROTOCOL_VERSION,
             device_id: id.into(),
-            entries: d.audit.iter().cloned().collect(),
+            entries: d.rare.get().audit.iter().cloned().collect(),
         })
     }
 
@@ -44,7 +44,7 @@ impl Registry {
         let why = capped(why);
         self.requests_refused += 1;
         let config = self.devices.get_mut(id).map(|d| {
-            d.last_error.clone_from(&why);
+            d.rare.get_mut().last_error.clone_from(&why);
             d.config_pb(id)
         });
         refused(why, config)
@@ -144,7 +144,7 @@ impl Registry {
         let reply = self.configure(id, &req);
         if !reply.accepted {
             if let Some(d) = self.devices.get_mut(id) {
-                d.references_refused += 1;
+                d.rare.get_mut().references_refused += 1;
             }
         }
         reply
@@ -196,7 +196,7 @@ impl Registry {
         let applied = planned.map(|limits| {
             d.abort_commission("the envelope changed");
             d.envelope = limits.into();
-            d.envelope_changes += 1;
+            d.rare.get_mut().envelope_changes += 1;
         });
         conclude(d, &mut self.requests_refused, id, applied)
     }
@@ -234,7 +234,7 @@ fn conclude(
         Err(reason) => {
             let reason = capped(reason);
             *requests_refused += 1;
-            d.last_error.clone_from(&reason);
+            d.rare.get_mut().last_error.clone_from(&reason);
             refused(reason, Some(d.config_pb(id)))
         }
     }

@@ -129,7 +129,10 @@ impl Registry {
                         .into_iter()
                         .filter(|e| e.device_id == id)
                         .collect();
-                    out.audit.extend(crate::audit::merge(&mut d.audit, &handed));
+                    if !handed.is_empty() {
+                        let kept = &mut d.rare.get_mut().audit;
+                        out.audit.extend(crate::audit::merge(kept, &handed));
+                    }
                 }
                 d.version = d.version.max(h.config_version);
                 if let Some(k) = h.holds.filter(|k| *k >= heard) {
@@ -279,7 +282,7 @@ impl Registry {
             audit: protocol::encode(&pb::AuditLog {
                 version: protocol::PROTOCOL_VERSION,
                 device_id: id.into(),
-                entries: d.audit.iter().cloned().collect(),
+                entries: d.rare.get().audit.iter().cloned().collect(),
             }),
         })
     }
@@ -362,7 +365,9 @@ impl Registry {
         d.last_time = snap.last_time;
         d.set_counters(snap.counters);
         d.last_command = None;
-        d.retired.clear();
+        if let Some(rare) = d.rare.existing() {
+            rare.retired.clear();
+        }
         d.restored = true;
         d.abort_commission("the device's state was restored");
         Ok(())

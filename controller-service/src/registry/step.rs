@@ -151,7 +151,7 @@ fn step_sample(cx: &mut Context<'_>, d: &mut Device, key_id: &str, s: &pb::Sampl
             };
         }
         Err(Refusal::Stale(why)) => {
-            d.stale += 1;
+            d.rare.get_mut().stale += 1;
             return Answered::Reply(reply(
                 (cx.controller_id, key_id),
                 (s.seq, s.sent_unix_ns, cx.now_unix_ns),
@@ -185,10 +185,10 @@ fn refuse(
     reason: String,
 ) -> Answered {
     let reason = capped(reason);
-    d.rejected += 1;
+    d.rare.get_mut().rejected += 1;
     d.note_rejected(s.run_id, s.seq);
     *cx.rejected += 1;
-    d.last_error.clone_from(&reason);
+    d.rare.get_mut().last_error.clone_from(&reason);
     Answered::Reply(reply(
         (cx.controller_id, key_id),
         (s.seq, s.sent_unix_ns, cx.now_unix_ns),
@@ -225,7 +225,7 @@ fn admit(d: &mut Device, key_id: &str, s: &pb::Sample, ordered: bool) -> Result<
     // Rule 4, within the run in force.
     let why = match d.last_seq {
         Some(last) if s.seq == last => {
-            d.duplicates += 1;
+            d.rare.get_mut().duplicates += 1;
             return Err(Refusal::Duplicate);
         }
         Some(last) if s.seq < last => Refusal::Stale(""),
@@ -288,7 +288,9 @@ fn take_in(d: &mut Device, s: &pb::Sample, fresh: Option<MimoController>) -> Pac
     if let Some(m) = fresh {
         d.start_run(s.run_id, m);
     }
-    d.astray = None;
+    if let Some(rare) = d.rare.existing() {
+        rare.astray = None;
+    }
     if s.last_rtt_us > 0 {
         if d.rtts.len() == super::device::RTT_WINDOW {
             d.rtts.pop_front();
@@ -299,7 +301,7 @@ fn take_in(d: &mut Device, s: &pb::Sample, fresh: Option<MimoController>) -> Pac
         | pb::SampleFlags::Fallback as u32
         | pb::SampleFlags::SafeStop as u32;
     if s.flags & plant_trouble != 0 {
-        d.samples_off_remote += 1;
+        d.rare.get_mut().samples_off_remote += 1;
     }
     d.last_flags = s.flags;
     let dt = s.plant_time - d.last_time;
@@ -389,7 +391,7 @@ fn bounded_command(d: &mut Device, s: &pb::Sample, pace: &Pace) -> Result<PerCha
         v.push(x);
     }
     if clipped {
-        d.clamped += 1;
+        d.rare.get_mut().clamped += 1;
     }
     if let (Some((i, _)), Some(c)) = (input, d.commission.as_mut()) {
         c.sent(d.mimo.channels()[i].output_map().inverse(v[i]));
@@ -478,7 +480,7 @@ fn recover_previous(d: &mut Device, s: &pb::Sample) {
         let _ = d.mimo.report_applied(applied);
         let mut outputs = d.outputs.clone();
         if d.mimo.step(t, y, &refs, &mut outputs).is_ok() {
-            d.recovered += 1;
+            d.rare.get_mut().recovered += 1;
             // Time moves on to the recovered sample: a later copy must come after it.
             d.last_time = t;
         }
