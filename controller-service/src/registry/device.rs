@@ -226,8 +226,12 @@ pub(super) struct Device {
     /// bounds the rate limit's `dt`; kept across runs (the same rig, the same period).
     pub(super) intervals: [f64; PERIOD_WINDOW],
     /// How many of `intervals` are filled, and where the next goes.
-    pub(super) intervals_len: usize,
-    pub(super) intervals_next: usize,
+    pub(super) intervals_len: u8,
+    pub(super) intervals_next: u8,
+    /// The rare state holds a stray stream or refused sequence numbers
+    /// ([`super::rare::Rare::unsettled`]), which a good sample then reads; otherwise a step
+    /// does not touch the rare state at all (it is not among the lines a step asks for).
+    pub(super) unsettled: bool,
     /// Sequence numbers skipped between one answered sample and the next; a sample that
     /// arrived but was refused in between counts here too.
     pub(super) lost: u64,
@@ -257,6 +261,11 @@ pub(super) struct Device {
     /// The values of the last CONTROL command sent, kept across runs (the same actuator):
     /// where the rate limit runs from when a sample does not say what is applied.
     pub(super) held: Option<PerChannel<f64>>,
+    /// Commands the final envelope check clipped: 0 unless a law or map misbehaves, or a
+    /// rate-limited channel starts (a run, a restore) where the law's first value is not
+    /// within reach of what the actuator holds. Not with the rare events: every run of a
+    /// rate-limited plant starts with one.
+    pub(super) clamped: u64,
     /// Commands computed (CONTROL or WARMING_UP); not resends for duplicates, not REJECTED
     /// or STALE answers.
     pub(super) commands: u64,
@@ -457,6 +466,8 @@ impl Device {
             intervals: [0.0; PERIOD_WINDOW],
             intervals_len: 0,
             intervals_next: 0,
+            unsettled: false,
+            clamped: 0,
             outputs: smallvec::smallvec![ChannelOutput::default(); n],
             refs: smallvec::smallvec![Reference::default(); n],
             samples: 0,
@@ -509,6 +520,7 @@ impl Device {
             rare.rejected_seqs.clear();
             rare.astray = None;
         }
+        self.unsettled = false;
         self.restarts += 1;
         self.mimo = fresh;
         self.run_id = Some(run_id);
@@ -534,6 +546,7 @@ impl Device {
             && !kept.contains(&seq)
         {
             self.rare.get_mut().rejected_seqs.push_back(seq);
+            self.unsettled = true;
         }
     }
 
@@ -542,8 +555,9 @@ impl Device {
     /// to `seq`.
     pub(super) fn missing_before(&mut self, last: u64, seq: u64) -> u64 {
         let gap = seq.saturating_sub(last).saturating_sub(1);
-        let Some(rare) = self.rare.existing() else {
-            return gap;
+        let rare = match self.rare.existing() {
+            Some(rare) if self.unsettled => rare,
+            _ => return gap,
         };
         let arrived = rare
             .rejected_seqs
@@ -551,13 +565,29 @@ impl Device {
             .filter(|&&q| q > last && q < seq)
             .count() as u64;
         rare.rejected_seqs.retain(|&q| q > seq);
+        self.unsettled = rare.unsettled();
         gap.saturating_sub(arrived)
+    }
+
+    /// A sample of the run in force was answered: the stray stream it ends is forgotten.
+    /// Reads the rare state only if it holds one (or refused numbers).
+    pub(super) fn settle(&mut self) {
+        // Every write of the two keeps the flag in step (checked by every test's samples,
+        // the property tests of `tests/untrusted.rs` among them).
+        debug_assert_eq!(self.unsettled, self.rare.get().unsettled());
+        if !self.unsettled {
+            return;
+        }
+        if let Some(rare) = self.rare.existing() {
+            rare.astray = None;
+            self.unsettled = rare.unsettled();
+        }
     }
 
     /// The sample period: the lower median of the recent intervals; `None` before
     /// [`PERIOD_MIN_INTERVALS`] of them.
     pub(super) fn period(&self) -> Option<f64> {
-        let n = self.intervals_len;
+        let n = usize::from(self.intervals_len);
         if n < PERIOD_MIN_INTERVALS {
             return None;
         }
@@ -573,9 +603,10 @@ impl Device {
         if !(dt.is_finite() && dt > 0.0) {
             return;
         }
-        self.intervals[self.intervals_next] = dt;
-        self.intervals_next = (self.intervals_next + 1) % PERIOD_WINDOW;
-        self.intervals_len = (self.intervals_len + 1).min(PERIOD_WINDOW);
+        // PERIOD_WINDOW (8) fits a u8, whose byte is all the count and the place take.
+        self.intervals[usize::from(self.intervals_next)] = dt;
+        self.intervals_next = (self.intervals_next + 1) % PERIOD_WINDOW as u8;
+        self.intervals_len = (self.intervals_len + 1).min(PERIOD_WINDOW as u8);
     }
 
     /// Count a sample of the run in force refused as out of step; true once
@@ -588,6 +619,7 @@ impl Device {
             _ => 1,
         };
         rare.astray = Some((s.seq, s.plant_time, n));
+        self.unsettled = true;
         n >= RESYNC_AFTER
     }
 
@@ -756,7 +788,7 @@ impl Device {
             from_template: self.from_template,
             superseded: rare.superseded,
             envelope_changes: rare.envelope_changes,
-            clamped: rare.clamped,
+            clamped: self.clamped,
             references_refused: rare.references_refused,
             restarts: self.restarts,
             recovered: rare.recovered,

@@ -1,9 +1,10 @@
 //! What a device keeps only for rare events: refusals, duplicates, ended runs, operators'
-//! changes. In steady state (a plant sending good samples in order) all of it is empty or
-//! zero, so a device keeps a pointer that stays `None` until the first such event; the
-//! state itself was 224 bytes of every plant, enough to keep the device in mimalloc's
-//! size class of 2048 bytes instead of the one of 1792 (`docs/scale.md`, "Memory per
-//! plant").
+//! changes. Until the first such event (a plant that has sent good samples in order since
+//! it started) all of it is empty or zero, so a device keeps a pointer that stays `None`
+//! until then; the state itself was 216 bytes of every plant, enough to keep the device in
+//! mimalloc's size class of 2048 bytes instead of the one of 1792 (`docs/scale.md`,
+//! "Memory per plant"). Once allocated it stays, and a step does not read it unless it
+//! holds something a good sample settles (`Device::unsettled`).
 
 use std::collections::VecDeque;
 
@@ -41,16 +42,21 @@ pub(super) struct Rare {
     /// Samples replaced by a newer one before the worker read them (reported by the
     /// service's inbox).
     pub(super) superseded: u64,
-    /// Commands the final envelope check clipped: 0 unless a law or map misbehaves, or a
-    /// rate-limited channel starts (a run, a restore) where the law's first value is not
-    /// within reach of what the actuator holds.
-    pub(super) clamped: u64,
     /// Envelope changes accepted since the service started.
     pub(super) envelope_changes: u64,
     /// Reference updates refused.
     pub(super) references_refused: u64,
     /// Lost samples recovered from the copy the next one carried.
     pub(super) recovered: u64,
+}
+
+impl Rare {
+    /// A stray stream or refused sequence numbers are kept: what a good sample of the run
+    /// in force settles (`Device::unsettled` mirrors it, so that a step reads this state
+    /// only then).
+    pub(super) fn unsettled(&self) -> bool {
+        self.astray.is_some() || !self.rejected_seqs.is_empty()
+    }
 }
 
 /// What a device without rare state reads: everything empty or zero.
@@ -65,7 +71,6 @@ static NONE: Rare = Rare {
     rejected: 0,
     samples_off_remote: 0,
     superseded: 0,
-    clamped: 0,
     envelope_changes: 0,
     references_refused: 0,
     recovered: 0,
@@ -87,7 +92,7 @@ impl RareState {
         self.0.get_or_insert_with(Box::default)
     }
 
-    /// To write only if there is something already: `None` while all is empty (so that
+    /// To write only if it was ever allocated: `None` until the first write (so that
     /// clearing nothing allocates nothing).
     #[inline]
     pub(super) fn existing(&mut self) -> Option<&mut Rare> {

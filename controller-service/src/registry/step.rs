@@ -288,9 +288,7 @@ fn take_in(d: &mut Device, s: &pb::Sample, fresh: Option<MimoController>) -> Pac
     if let Some(m) = fresh {
         d.start_run(s.run_id, m);
     }
-    if let Some(rare) = d.rare.existing() {
-        rare.astray = None;
-    }
+    d.settle();
     if s.last_rtt_us > 0 {
         if d.rtts.len() == super::device::RTT_WINDOW {
             d.rtts.pop_front();
@@ -391,7 +389,7 @@ fn bounded_command(d: &mut Device, s: &pb::Sample, pace: &Pace) -> Result<PerCha
         v.push(x);
     }
     if clipped {
-        d.rare.get_mut().clamped += 1;
+        d.clamped += 1;
     }
     if let (Some((i, _)), Some(c)) = (input, d.commission.as_mut()) {
         c.sent(d.mimo.channels()[i].output_map().inverse(v[i]));
