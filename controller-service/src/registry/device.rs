@@ -219,8 +219,8 @@ pub(super) struct Device {
     /// until the first one (and after a plant restart), so any first time is accepted.
     pub(super) last_time: f64,
     /// What it keeps for rare events (refusals, duplicates, ended runs, operators'
-    /// changes), allocated on the first: read on every sample, so among the fields a step
-    /// asks for.
+    /// changes), allocated on the first. A step follows the pointer only when `unsettled`
+    /// says the state holds something for a good sample to settle.
     pub(super) rare: RareState,
     /// Recent intervals between consecutive samples (s), for the period estimate that
     /// bounds the rate limit's `dt`; kept across runs (the same rig, the same period).
@@ -555,9 +555,11 @@ impl Device {
     /// to `seq`.
     pub(super) fn missing_before(&mut self, last: u64, seq: u64) -> u64 {
         let gap = seq.saturating_sub(last).saturating_sub(1);
-        let rare = match self.rare.existing() {
-            Some(rare) if self.unsettled => rare,
-            _ => return gap,
+        if !self.unsettled {
+            return gap;
+        }
+        let Some(rare) = self.rare.existing() else {
+            return gap;
         };
         let arrived = rare
             .rejected_seqs
@@ -603,7 +605,7 @@ impl Device {
         if !(dt.is_finite() && dt > 0.0) {
             return;
         }
-        // PERIOD_WINDOW (8) fits a u8, whose byte is all the count and the place take.
+        // A byte each for the count and the place: PERIOD_WINDOW (8) fits a u8.
         self.intervals[usize::from(self.intervals_next)] = dt;
         self.intervals_next = (self.intervals_next + 1) % PERIOD_WINDOW as u8;
         self.intervals_len = (self.intervals_len + 1).min(PERIOD_WINDOW as u8);

@@ -12,7 +12,7 @@ use protocol::pb;
 
 /// A device's state for rare events (see the module documentation). Its counters are the
 /// status's: they carry on across runs, as the device's other counters do.
-#[derive(Debug, Clone, Default, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub(super) struct Rare {
     /// Runs that ended, newest last, at most `RETIRED_RUNS`.
     pub(super) retired: VecDeque<u64>,
@@ -59,7 +59,15 @@ impl Rare {
     }
 }
 
-/// What a device without rare state reads: everything empty or zero.
+/// Everything empty or zero: what a device without rare state reads, and what the state
+/// starts from when it is allocated.
+impl Default for Rare {
+    fn default() -> Self {
+        NONE.clone()
+    }
+}
+
+/// What a device without rare state reads ([`RareState::get`]).
 static NONE: Rare = Rare {
     retired: VecDeque::new(),
     astray: None,
