@@ -22,7 +22,7 @@ use crate::campaign::{run_case, Campaign, CaseOptions};
 use crate::compare::compare;
 use crate::demo::{demo, DemoOptions};
 use crate::harness::service_config;
-use crate::offline::{simulate, OfflineSummary};
+use crate::offline::{simulate, simulate_timed, IoTiming, OfflineSummary};
 use crate::tune::{starting_point, tune, KINDS};
 
 #[derive(Parser)]
@@ -187,6 +187,15 @@ struct SimArgs {
     /// for the reproduction), or `both` (with --compare: one table each).
     #[arg(long, value_enum, default_value = "scenario")]
     map: MapChoice,
+    /// How old each value is when the controller gets it (ms): the plant is read this
+    /// long before the sample instant, as a subscription's published value was sampled.
+    /// Default 0, the lockstep loop.
+    #[arg(long, default_value_t = 0.0, conflicts_with = "compare")]
+    value_age_ms: f64,
+    /// How long after the sample instant the command reaches the plant (ms), as a write
+    /// across a network lands. Default 0. With --value-age-ms, under the period together.
+    #[arg(long, default_value_t = 0.0, conflicts_with = "compare")]
+    write_delay_ms: f64,
 }
 
 #[derive(clap::Args)]
@@ -676,7 +685,11 @@ fn sim(args: &SimArgs) -> Result<()> {
         }
         scenario.duration = d;
     }
-    let r = simulate(&scenario, &set, true)?;
+    let timing = IoTiming {
+        value_age: args.value_age_ms / 1e3,
+        write_delay: args.write_delay_ms / 1e3,
+    };
+    let r = simulate_timed(&scenario, &set, true, timing)?;
     let out = &args.out;
     write_run(
         out,

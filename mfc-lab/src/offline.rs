@@ -7,6 +7,12 @@
 //! [`plant::Plant`]: the built-in AERO simulator or a driver process, so a
 //! user tries and tunes a controller on their own simulator before going live. This is
 //! also the reference the networked loop is compared against.
+//!
+//! The lockstep loop reads and writes at the sample instant. A plant behind a fieldbus
+//! does not: a subscription serves a value the server sampled before the tick, and a
+//! write lands when it crosses the network. [`IoTiming`] puts those two delays into the
+//! offline run, so that a user sees what they cost a law before going live (a tight
+//! tracking loop can lose a third of its accuracy to one millisecond, `docs/fieldbus.md`).
 
 use mfc::trajectory::evaluate;
 use mfc::{ChannelOutput, MimoController, Reference};
@@ -37,6 +43,9 @@ pub enum RunError {
     /// A benchmark ([`crate::robust`]) cannot vary this plant, or one of its runs failed.
     #[error("{0}")]
     Bench(String),
+    /// The I/O timing asked for does not fit in a period ([`IoTiming::check`]).
+    #[error("I/O timing: {0}")]
+    Timing(String),
     /// A networked run in lockstep ([`crate::netsim`]) could not be set up or went wrong.
     #[error("network simulation: {reason}")]
     Link {
@@ -79,12 +88,58 @@ pub struct Simulation {
     pub summary: OfflineSummary,
 }
 
+/// Where, around the sample instant, the loop's I/O meets the plant, in seconds; both zero
+/// (the default) is the lockstep loop.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct IoTiming {
+    /// How old the value the controller gets is at the tick: the plant is read this long
+    /// before it (a subscription's last published value, sampled and sent before).
+    pub value_age: f64,
+    /// How long after the tick the command reaches the plant (a write crossing the
+    /// network, a server applying it when it arrives).
+    pub write_delay: f64,
+}
+
+impl IoTiming {
+    /// Both delays finite, not negative, and their sum under the period: a later value or
+    /// write belongs to another period, which this loop cannot say.
+    pub fn check(&self, period: f64) -> Result<(), RunError> {
+        let (a, w) = (self.value_age, self.write_delay);
+        if !(a.is_finite() && a >= 0.0 && w.is_finite() && w >= 0.0) {
+            return Err(RunError::Timing(format!(
+                "a value's age and a write's delay are seconds, not negative: {a} and {w}"
+            )));
+        }
+        if a + w >= period {
+            return Err(RunError::Timing(format!(
+                "a value {a} s old and a write {w} s late take a whole {period} s period or more"
+            )));
+        }
+        Ok(())
+    }
+}
+
 /// Run `scenario` closed-loop with `controller`, recording every period if `record`.
 pub fn simulate(
     scenario: &Scenario,
     controller: &ControllerSet,
     record: bool,
 ) -> Result<Simulation, RunError> {
+    simulate_timed(scenario, controller, record, IoTiming::default())
+}
+
+/// [`simulate`] with the loop's I/O off the sample instant as `timing` says: each period
+/// the plant is read, `value_age` passes (the tick: the controller steps on the reference
+/// of that instant), `write_delay` passes, the command is written, and the rest of the
+/// period passes. The metrics judge the value read against the reference at the tick, as
+/// a live run's report does; the plant's truth, where it has one, is taken after the write.
+pub fn simulate_timed(
+    scenario: &Scenario,
+    controller: &ControllerSet,
+    record: bool,
+    timing: IoTiming,
+) -> Result<Simulation, RunError> {
+    timing.check(scenario.period)?;
     scenario.check_controller(controller)?;
     let n = scenario.channels.len();
     let configs = scenario.channel_configs(controller);
@@ -111,6 +166,7 @@ pub fn simulate(
     for k in 0..steps {
         let t = k as f64 * h;
         let y = plant.read()?;
+        pass(&mut *plant, timing.value_age)?;
         for (r, c) in refs.iter_mut().zip(&scenario.channels) {
             *r = evaluate(&c.reference, t);
         }
@@ -122,6 +178,7 @@ pub fn simulate(
         for (vi, o) in v.iter_mut().zip(&out) {
             *vi = o.v;
         }
+        pass(&mut *plant, timing.write_delay)?;
         let applied = plant.write(&v)?;
         if applied != v {
             // The plant limited the input: keep the estimator honest.
@@ -150,7 +207,8 @@ pub fn simulate(
                 net: None,
             });
         }
-        plant.advance(h)?;
+        // Exactly `h` when both delays are zero: the lockstep run is unchanged to the bit.
+        plant.advance(h - timing.value_age - timing.write_delay)?;
     }
     let limit_hits = plant.limit_hits();
     plant.stop()?;
@@ -166,6 +224,14 @@ pub fn simulate(
         record: periods,
         summary,
     })
+}
+
+/// Let `dt` of plant time pass, if any.
+fn pass(plant: &mut dyn plant::Plant, dt: f64) -> Result<(), PlantError> {
+    if dt > 0.0 {
+        plant.advance(dt)?;
+    }
+    Ok(())
 }
 
 /// Each channel's accumulated errors as its metrics, named as the scenario names it.
