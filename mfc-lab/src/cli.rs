@@ -188,13 +188,24 @@ struct SimArgs {
     #[arg(long, value_enum, default_value = "scenario")]
     map: MapChoice,
     /// How old each value is when the controller gets it (ms): the plant is read this
-    /// long before the sample instant, as a subscription's published value was sampled.
-    /// Default 0, the lockstep loop.
-    #[arg(long, default_value_t = 0.0, conflicts_with = "compare")]
+    /// long before the sample instant, as a subscription's published value was sampled
+    /// before it. 0 is the lockstep loop.
+    #[arg(
+        long,
+        default_value_t = 0.0,
+        allow_negative_numbers = true,
+        conflicts_with = "compare"
+    )]
     value_age_ms: f64,
     /// How long after the sample instant the command reaches the plant (ms), as a write
-    /// across a network lands. Default 0. With --value-age-ms, under the period together.
-    #[arg(long, default_value_t = 0.0, conflicts_with = "compare")]
+    /// across a network lands. The value's age and the write's delay together must be
+    /// under the scenario's period.
+    #[arg(
+        long,
+        default_value_t = 0.0,
+        allow_negative_numbers = true,
+        conflicts_with = "compare"
+    )]
     write_delay_ms: f64,
 }
 
@@ -685,6 +696,14 @@ fn sim(args: &SimArgs) -> Result<()> {
         }
         scenario.duration = d;
     }
+    for (flag, ms) in [
+        ("--value-age-ms", args.value_age_ms),
+        ("--write-delay-ms", args.write_delay_ms),
+    ] {
+        if !(ms.is_finite() && ms >= 0.0) {
+            bail!("{flag} must be a number of milliseconds, 0 or more, not {ms}");
+        }
+    }
     let timing = IoTiming {
         value_age: args.value_age_ms / 1e3,
         write_delay: args.write_delay_ms / 1e3,
@@ -849,7 +868,16 @@ fn print_service_config(args: &ServiceConfigArgs) -> Result<()> {
 }
 
 fn print_summary(s: &OfflineSummary) {
-    println!("{} with {}:", s.scenario, s.controller);
+    match s.timing {
+        Some(t) => println!(
+            "{} with {}, each value {} ms old and each write {} ms late:",
+            s.scenario,
+            s.controller,
+            t.value_age * 1e3,
+            t.write_delay * 1e3
+        ),
+        None => println!("{} with {}:", s.scenario, s.controller),
+    }
     for c in &s.channels {
         println!(
             "  {:<18} rms {:.3e}  max {:.3e}  iae {:.3e}  saturated {:.1}%  chatter {:.3}",

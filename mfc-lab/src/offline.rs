@@ -77,6 +77,9 @@ pub struct OfflineSummary {
     pub limit_hits: usize,
     /// Whether the run went to the end (a controller error stops it).
     pub completed: bool,
+    /// The I/O timing the run had, when not the lockstep loop's ([`simulate_timed`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub timing: Option<IoTiming>,
 }
 
 /// A finished offline run.
@@ -89,14 +92,17 @@ pub struct Simulation {
 }
 
 /// Where, around the sample instant, the loop's I/O meets the plant, in seconds; both zero
-/// (the default) is the lockstep loop.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
+/// (the default) is the lockstep loop. The plant is time-invariant, so what a run shows is
+/// the loop's delay, their sum, more than either.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct IoTiming {
-    /// How old the value the controller gets is at the tick: the plant is read this long
-    /// before it (a subscription's last published value, sampled and sent before).
+    /// How old the value the controller gets is at the tick, in seconds: the plant is read
+    /// this long before it (a subscription's last published value, sampled and sent
+    /// before).
     pub value_age: f64,
-    /// How long after the tick the command reaches the plant (a write crossing the
-    /// network, a server applying it when it arrives).
+    /// How long after the tick the command reaches the plant, in seconds (a write crossing
+    /// the network, a server applying it when it arrives).
     pub write_delay: f64,
 }
 
@@ -107,7 +113,8 @@ impl IoTiming {
         let (a, w) = (self.value_age, self.write_delay);
         if !(a.is_finite() && a >= 0.0 && w.is_finite() && w >= 0.0) {
             return Err(RunError::Timing(format!(
-                "a value's age and a write's delay are seconds, not negative: {a} and {w}"
+                "a value's age and a write's delay must be finite and at least 0 s, not {a} s \
+                 and {w} s"
             )));
         }
         if a + w >= period {
@@ -131,8 +138,8 @@ pub fn simulate(
 /// [`simulate`] with the loop's I/O off the sample instant as `timing` says: each period
 /// the plant is read, `value_age` passes (the tick: the controller steps on the reference
 /// of that instant), `write_delay` passes, the command is written, and the rest of the
-/// period passes. The metrics judge the value read against the reference at the tick, as
-/// a live run's report does; the plant's truth, where it has one, is taken after the write.
+/// period passes. The metrics judge the value read (and the plant's truth at that read,
+/// where it has one) against the reference at the tick, as a live run's report does.
 pub fn simulate_timed(
     scenario: &Scenario,
     controller: &ControllerSet,
@@ -166,6 +173,8 @@ pub fn simulate_timed(
     for k in 0..steps {
         let t = k as f64 * h;
         let y = plant.read()?;
+        // The truth at the read, before time passes (a write changes no state).
+        let truth = plant.truth().filter(|x| x.len() == n);
         pass(&mut *plant, timing.value_age)?;
         for (r, c) in refs.iter_mut().zip(&scenario.channels) {
             *r = evaluate(&c.reference, t);
@@ -184,7 +193,6 @@ pub fn simulate_timed(
             // The plant limited the input: keep the estimator honest.
             let _ = mimo.report_applied(&applied);
         }
-        let truth = plant.truth().filter(|x| x.len() == n);
         has_truth &= truth.is_some();
         for (i, c) in scenario.channels.iter().enumerate() {
             let saturated = c.saturated(applied[i]);
@@ -219,6 +227,7 @@ pub fn simulate_timed(
         truth: has_truth.then(|| finish(&acc_true, scenario)),
         limit_hits,
         completed: !failed,
+        timing: (timing != IoTiming::default()).then_some(timing),
     };
     Ok(Simulation {
         record: periods,

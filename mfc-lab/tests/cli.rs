@@ -30,6 +30,10 @@ fn sim_writes_timeseries_summary_and_plots() {
             .unwrap();
     assert_eq!(summary["scenario"], "scenario-4");
     assert_eq!(summary["controller"], "ipd");
+    assert!(
+        summary.get("timing").is_none(),
+        "a lockstep run has no timing"
+    );
     for ch in summary["channels"].as_array().unwrap() {
         for key in ["name", "rms", "max_abs", "iae", "saturated_fraction"] {
             assert!(!ch[key].is_null(), "{key}");
@@ -130,6 +134,52 @@ fn bad_input_gives_a_clear_error_and_exit_code() {
         let err = String::from_utf8_lossy(&out.stderr);
         assert!(err.contains(says), "{flag}: {err}");
     }
+    for (args, says) in [
+        (
+            &["--value-age-ms", "-1"][..],
+            "--value-age-ms must be a number of milliseconds, 0 or more, not -1",
+        ),
+        (
+            &["--write-delay-ms", "nan"],
+            "--write-delay-ms must be a number of milliseconds, 0 or more, not NaN",
+        ),
+        (
+            &["--value-age-ms", "6", "--write-delay-ms", "4"],
+            "a value 0.006 s old and a write 0.004 s late take a whole 0.01 s period",
+        ),
+    ] {
+        let out = lab()
+            .args(["sim", "--duration", "1", "--out"])
+            .arg(dir.path())
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "{args:?}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(says), "{args:?}: {err}");
+    }
+}
+
+/// A run with its I/O off the sample instant says so, on the terminal and in its summary.
+#[test]
+fn sim_with_a_late_value_says_so() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = succeed(
+        lab()
+            .args(["sim", "--duration", "2", "--value-age-ms", "1.5"])
+            .args(["--write-delay-ms", "0.5", "--out"])
+            .arg(dir.path()),
+    );
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("each value 1.5 ms old and each write 0.5 ms late"),
+        "{text}"
+    );
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("summary.json")).unwrap())
+            .unwrap();
+    assert_eq!(summary["timing"]["value_age"], 1.5e-3);
+    assert_eq!(summary["timing"]["write_delay"], 0.5e-3);
 }
 
 fn plants() -> std::path::PathBuf {

@@ -1,7 +1,8 @@
 //! Plants from the factory floor with no code: the DC motor behind a Modbus TCP server
 //! (pymodbus) and behind an OPC UA server (asyncua), servers we did not write, controlled
 //! over Zenoh through the controller service, track as their offline twin (the same physics
-//! as a driver, in lockstep) does, and are left with their safe value in the server.
+//! as a driver, in lockstep, or with the values as old as a subscription makes them) does,
+//! and are left with their safe value in the server.
 
 use mfc_lab::harness::{run_fleet, service_config};
 use mfc_lab::offline::{simulate_timed, IoTiming};
@@ -144,16 +145,18 @@ async fn an_opcua_plant_tracks_through_the_service_as_its_offline_twin() {
 
 /// The same with the outputs by subscription (the server samples them every millisecond,
 /// the default at a 10 ms period, and publishes the changes): no Read per period, and
-/// values older than a Read's. This loop is that sensitive: offline, a value 0.5 ms old
-/// costs it 16 % of RMS and 1 ms 30 % (`mfc-lab sim --value-age-ms`), and asyncua's
-/// values, sampled and published by a Python event loop, were 1.8-2.0 ms old at the median
-/// (its source timestamps, measured once). Against the lockstep twin the ratio was a draw
-/// on the server's timing (0.95 to 1.50; medians of three 1.30 and 1.37 failed on
-/// 11-28). So the twin reads each value one sampling interval (1 ms) before the tick, the
-/// age the subscription asks for and fresher than what came: the bound is the usual one,
-/// against a twin with the timing a subscription promises. A bridge serving values a
-/// period old still fails it (RMS about 100 times the twin's, `docs/fieldbus.md`). Judged
-/// on the median of three runs, as one run's ratio still spreads by a third.
+/// values older than a Read's, by up to a sampling plus a publishing interval (2 ms). This
+/// loop is that sensitive: offline, a value 0.5 ms old costs it 16 % of its RMS and 1 ms
+/// 30 % (`mfc-lab sim --value-age-ms`), and against the lockstep twin the ratio was a draw
+/// on when asyncua's Python event loop sampled and published (0.95 to 1.50 in single runs;
+/// medians of three 1.30 and 1.37 failed on 11-28). So the twin reads each value 1 ms
+/// before the tick, the sampling interval the bridge asks for; the live runs behaved about
+/// so (their medians of three against the lockstep twin, 1.16 to 1.37, are where 0.5 to
+/// 1.5 ms of age puts it). That widens what passes, and says by how much: the bound 1.3 on
+/// this twin is 1.69 on the lockstep one, so a bridge serving values 3 ms old would pass
+/// (1.13 of this twin) where 5 ms (2.04) or a period's worth (about 100) fails
+/// (`docs/fieldbus.md`). Judged on the median of three runs, as one run's ratio still
+/// spreads by a third.
 #[tokio::test(flavor = "multi_thread")]
 async fn an_opcua_plant_by_subscription_tracks_as_its_offline_twin() {
     tracks_as_its_twin(
