@@ -187,26 +187,54 @@ struct SimArgs {
     /// for the reproduction), or `both` (with --compare: one table each).
     #[arg(long, value_enum, default_value = "scenario")]
     map: MapChoice,
+    #[command(flatten)]
+    timing: TimingArgs,
+}
+
+/// The loop's I/O off the sample instant, as a fieldbus has it (`sim` and `tune`).
+#[derive(clap::Args)]
+struct TimingArgs {
     /// How old each value is when the controller gets it (ms): the plant is read this
     /// long before the sample instant, as a subscription's published value was sampled
-    /// before it. 0 is the lockstep loop.
-    #[arg(
-        long,
-        default_value_t = 0.0,
-        allow_negative_numbers = true,
-        conflicts_with = "compare"
-    )]
+    /// before it. 0 is the lockstep loop. Not with `sim --compare`.
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     value_age_ms: f64,
     /// How long after the sample instant the command reaches the plant (ms), as a write
     /// across a network lands. The value's age and the write's delay together must be
-    /// under the scenario's period.
-    #[arg(
-        long,
-        default_value_t = 0.0,
-        allow_negative_numbers = true,
-        conflicts_with = "compare"
-    )]
+    /// under the scenario's period. Not with `sim --compare`.
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     write_delay_ms: f64,
+}
+
+impl TimingArgs {
+    /// The timing in seconds, each figure a number of milliseconds, 0 or more (the sum
+    /// is checked against the period by the run).
+    fn timing(&self) -> Result<IoTiming> {
+        for (flag, ms) in [
+            ("--value-age-ms", self.value_age_ms),
+            ("--write-delay-ms", self.write_delay_ms),
+        ] {
+            if !(ms.is_finite() && ms >= 0.0) {
+                bail!("{flag} must be a number of milliseconds, 0 or more, not {ms}");
+            }
+        }
+        Ok(IoTiming {
+            value_age: self.value_age_ms / 1e3,
+            write_delay: self.write_delay_ms / 1e3,
+        })
+    }
+
+    /// The flags as given, for the command a tuned file says it was made by.
+    fn flags(&self) -> String {
+        let mut s = String::new();
+        if self.value_age_ms != 0.0 {
+            s += &format!(" --value-age-ms {}", self.value_age_ms);
+        }
+        if self.write_delay_ms != 0.0 {
+            s += &format!(" --write-delay-ms {}", self.write_delay_ms);
+        }
+        s
+    }
 }
 
 #[derive(clap::Args)]
@@ -277,6 +305,8 @@ struct TuneArgs {
     /// Name of the written controller set. Default: the starting point's.
     #[arg(long)]
     name: Option<String>,
+    #[command(flatten)]
+    timing: TimingArgs,
 }
 
 #[derive(clap::Args)]
@@ -441,6 +471,9 @@ fn real_main() -> Result<()> {
         Command::Sim(args) if args.compare => {
             if args.controller.is_some() {
                 bail!("--compare takes --controllers (a list), not --controller");
+            }
+            if !args.timing.flags().is_empty() {
+                bail!("--compare runs the lockstep loop: no --value-age-ms or --write-delay-ms");
             }
             let only =
                 (!args.controllers.is_empty()).then_some((&args.scenario, &args.controllers));
@@ -696,19 +729,7 @@ fn sim(args: &SimArgs) -> Result<()> {
         }
         scenario.duration = d;
     }
-    for (flag, ms) in [
-        ("--value-age-ms", args.value_age_ms),
-        ("--write-delay-ms", args.write_delay_ms),
-    ] {
-        if !(ms.is_finite() && ms >= 0.0) {
-            bail!("{flag} must be a number of milliseconds, 0 or more, not {ms}");
-        }
-    }
-    let timing = IoTiming {
-        value_age: args.value_age_ms / 1e3,
-        write_delay: args.write_delay_ms / 1e3,
-    };
-    let r = simulate_timed(&scenario, &set, true, timing)?;
+    let r = simulate_timed(&scenario, &set, true, args.timing.timing()?)?;
     let out = &args.out;
     write_run(
         out,
@@ -813,12 +834,20 @@ fn tune_command(args: &TuneArgs) -> Result<()> {
         (None, None) => bail!("give --controller KIND or --start FILE"),
     };
     scenario.check_controller(&start_set)?;
+    let timing = args.timing.timing()?;
     let label = start_set.name.clone();
     let bar = bar(budget as u64, "{msg} [{bar:30}] {pos}/{len} runs ({eta})");
-    let tuned = tune(&scenario, &start_set, budget, args.seed, |done, best| {
-        bar.set_position(done as u64);
-        bar.set_message(format!("tuning {label}: best {best:.4}"));
-    })?;
+    let tuned = tune(
+        &scenario,
+        &start_set,
+        budget,
+        args.seed,
+        timing,
+        |done, best| {
+            bar.set_position(done as u64);
+            bar.set_message(format!("tuning {label}: best {best:.4}"));
+        },
+    )?;
     bar.finish_and_clear();
     let mut set = tuned.set;
     if let Some(name) = &args.name {
@@ -830,9 +859,10 @@ fn tune_command(args: &TuneArgs) -> Result<()> {
         std::fs::create_dir_all(dir)?;
     }
     let command = format!(
-        "mfc-lab tune --scenario {} {from} --budget {budget} --seed {}{}",
+        "mfc-lab tune --scenario {} {from} --budget {budget} --seed {}{}{}",
         scenario.name,
         args.seed,
+        args.timing.flags(),
         args.name
             .as_ref()
             .map(|n| format!(" --name {n}"))

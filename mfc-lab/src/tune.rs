@@ -21,7 +21,7 @@ use mfc::{AdrcParams, ControllerKind, LawConfig, Order, PidParams};
 use aero_sim::rng::Rng;
 use plant::scenario::{ControllerSet, Scenario};
 
-use crate::offline::{simulate, RunError};
+use crate::offline::{simulate_timed, IoTiming, RunError};
 use mfc::trajectory::evaluate;
 
 /// Controller kinds with a built-in starting point for the AERO. Other plants give theirs
@@ -212,10 +212,15 @@ pub const SATURATION_ALLOWANCE: f64 = 0.05;
 pub const CHATTER_WEIGHT: f64 = 0.1;
 
 /// Objective: sum over channels of IAE / (duration · reference range), plus the saturation
-/// and chatter penalties, plus 1 per hit of a mechanical limit (the AERO's pitch stop). Invalid gains (refused by the core) cost
-/// infinity.
-pub fn objective(scenario: &Scenario, set: &ControllerSet) -> Result<f64, RunError> {
-    let r = match simulate(scenario, set, false) {
+/// and chatter penalties, plus 1 per hit of a mechanical limit (the AERO's pitch stop),
+/// on a run with the I/O timing `timing` (the lockstep loop's by default). Invalid gains
+/// (refused by the core) cost infinity.
+pub fn objective(
+    scenario: &Scenario,
+    set: &ControllerSet,
+    timing: IoTiming,
+) -> Result<f64, RunError> {
+    let r = match simulate_timed(scenario, set, false, timing) {
         Ok(r) => r,
         Err(RunError::Controller { .. } | RunError::Scenario(_)) => return Ok(f64::INFINITY),
         Err(e) => return Err(e),
@@ -247,22 +252,25 @@ pub struct Tuned {
     pub runs: usize,
 }
 
-/// Tune `start` on `scenario` with exactly `budget` simulated runs. `progress` is called
-/// after every run with (runs done, best cost).
+/// Tune `start` on `scenario` with exactly `budget` simulated runs, each with the I/O
+/// timing `timing` (a law for a fieldbus whose values come late is tuned with them late).
+/// `progress` is called after every run with (runs done, best cost).
 pub fn tune(
     scenario: &Scenario,
     start: &ControllerSet,
     budget: usize,
     seed: u64,
+    timing: IoTiming,
     mut progress: impl FnMut(usize, f64),
 ) -> Result<Tuned, RunError> {
+    timing.check(scenario.period)?;
     let x0 = to_logs(start);
     let dims = x0.len();
     let mut rng = Rng::new(seed);
     let mut runs = 0usize;
     let eval = |x: &[f64], runs: &mut usize| -> Result<f64, RunError> {
         *runs += 1;
-        objective(scenario, &from_logs(start, x))
+        objective(scenario, &from_logs(start, x), timing)
     };
     let start_cost = eval(&x0, &mut runs)?;
     let (mut best_x, mut best) = (x0.clone(), start_cost);
@@ -301,8 +309,18 @@ pub fn tune(
         }
     }
     let mut set = from_logs(start, &best_x);
+    let late = if timing == IoTiming::default() {
+        String::new()
+    } else {
+        format!(
+            ", each value {} ms old and each write {} ms late",
+            timing.value_age * 1e3,
+            timing.write_delay * 1e3
+        )
+    };
     set.description = format!(
-        "tuned by `mfc-lab tune` on {} with {} runs (seed {}): IAE objective {:.4} from {:.4}",
+        "tuned by `mfc-lab tune` on {} with {} runs (seed {}{late}): IAE objective {:.4} from \
+         {:.4}",
         scenario.name, runs, seed, best, start_cost
     );
     Ok(Tuned {

@@ -160,7 +160,8 @@ fn bad_input_gives_a_clear_error_and_exit_code() {
     }
 }
 
-/// A run with its I/O off the sample instant says so, on the terminal and in its summary.
+/// A run with its I/O off the sample instant says so, on the terminal and in its summary;
+/// a law tuned so says so in its file.
 #[test]
 fn sim_with_a_late_value_says_so() {
     let dir = tempfile::tempdir().unwrap();
@@ -180,6 +181,36 @@ fn sim_with_a_late_value_says_so() {
             .unwrap();
     assert_eq!(summary["timing"]["value_age"], 1.5e-3);
     assert_eq!(summary["timing"]["write_delay"], 0.5e-3);
+    let out = lab()
+        .args(["sim", "--compare", "--value-age-ms", "1"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--compare runs the lockstep loop"), "{err}");
+    // A law tuned for late values: its file says with which timing, and the command.
+    let file = dir.path().join("pid-late.toml");
+    succeed(
+        lab()
+            .args([
+                "tune",
+                "--scenario",
+                "1",
+                "--controller",
+                "pid",
+                "--budget",
+                "2",
+            ])
+            .args(["--value-age-ms", "2", "--out"])
+            .arg(&file),
+    );
+    let text = std::fs::read_to_string(&file).unwrap();
+    let first = text.lines().next().unwrap();
+    assert!(first.contains("--seed 1 --value-age-ms 2`"), "{first}");
+    assert!(
+        text.contains("each value 2 ms old and each write 0 ms late"),
+        "{text}"
+    );
 }
 
 fn plants() -> std::path::PathBuf {

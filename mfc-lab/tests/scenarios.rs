@@ -3,8 +3,8 @@
 
 use std::io::Write;
 
-use mfc_lab::offline::simulate;
-use mfc_lab::tune::{starting_point, tune};
+use mfc_lab::offline::{simulate, IoTiming};
+use mfc_lab::tune::{objective, starting_point, tune};
 use plant::scenario::{
     load_controller, load_scenario, shipped_controller, ScenarioError, SHIPPED_CONTROLLERS,
     SHIPPED_SCENARIOS,
@@ -99,11 +99,42 @@ fn tuning_respects_its_budget_and_is_replayable() {
     let s = load_scenario("1").unwrap();
     let start = starting_point("pid").unwrap();
     let mut calls = 0;
-    let a = tune(&s, &start, 12, 5, |_, _| calls += 1).unwrap();
+    let a = tune(&s, &start, 12, 5, IoTiming::default(), |_, _| calls += 1).unwrap();
     assert!(a.runs <= 12 && calls == a.runs);
     assert!(a.cost <= a.start_cost);
-    let b = tune(&s, &start, 12, 5, |_, _| {}).unwrap();
+    let b = tune(&s, &start, 12, 5, IoTiming::default(), |_, _| {}).unwrap();
     assert_eq!(a.set, b.set, "same seed, same result");
+}
+
+/// A law tuned for late values is judged with them late: its cost is the objective of
+/// runs with that timing (not the lockstep one's), and its file says which timing.
+#[test]
+fn tuning_for_late_values_runs_them_late() {
+    let mut s = load_scenario("1").unwrap();
+    s.duration = 10.0;
+    let start = starting_point("ipd").unwrap();
+    let late = IoTiming {
+        value_age: 4e-3,
+        write_delay: 1e-3,
+    };
+    let t = tune(&s, &start, 6, 5, late, |_, _| {}).unwrap();
+    assert_eq!(t.cost, objective(&s, &t.set, late).unwrap());
+    assert_ne!(t.cost, objective(&s, &t.set, IoTiming::default()).unwrap());
+    assert!(
+        t.set
+            .description
+            .contains("each value 4 ms old and each write 1 ms late"),
+        "{}",
+        t.set.description
+    );
+    let too_late = IoTiming {
+        value_age: 8e-3,
+        write_delay: 2e-3,
+    };
+    assert!(matches!(
+        tune(&s, &start, 6, 5, too_late, |_, _| {}),
+        Err(mfc_lab::offline::RunError::Timing(_))
+    ));
 }
 
 fn write(dir: &tempfile::TempDir, name: &str, text: &str) -> String {
