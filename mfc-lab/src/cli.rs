@@ -172,7 +172,8 @@ struct SimArgs {
     #[arg(long, default_value = "out/sim")]
     out: PathBuf,
     /// Run every shipped controller on the four shipped scenarios and print the table;
-    /// with --scenario and --controllers, those instead.
+    /// with --scenario and --controllers, those instead. In lockstep: not with
+    /// --value-age-ms or --write-delay-ms.
     #[arg(long)]
     compare: bool,
     /// With --compare: controller files or shipped names, comma-separated.
@@ -196,12 +197,12 @@ struct SimArgs {
 struct TimingArgs {
     /// How old each value is when the controller gets it (ms): the plant is read this
     /// long before the sample instant, as a subscription's published value was sampled
-    /// before it. 0 is the lockstep loop. Not with `sim --compare`.
+    /// before it. 0 is the lockstep loop.
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     value_age_ms: f64,
     /// How long after the sample instant the command reaches the plant (ms), as a write
     /// across a network lands. The value's age and the write's delay together must be
-    /// under the scenario's period. Not with `sim --compare`.
+    /// under the scenario's period.
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     write_delay_ms: f64,
 }
@@ -860,7 +861,7 @@ fn tune_command(args: &TuneArgs) -> Result<()> {
     }
     let command = format!(
         "mfc-lab tune --scenario {} {from} --budget {budget} --seed {}{}{}",
-        scenario.name,
+        args.scenario,
         args.seed,
         args.timing.flags(),
         args.name
@@ -899,13 +900,7 @@ fn print_service_config(args: &ServiceConfigArgs) -> Result<()> {
 
 fn print_summary(s: &OfflineSummary) {
     match s.timing {
-        Some(t) => println!(
-            "{} with {}, each value {} ms old and each write {} ms late:",
-            s.scenario,
-            s.controller,
-            t.value_age * 1e3,
-            t.write_delay * 1e3
-        ),
+        Some(t) => println!("{} with {}, {t}:", s.scenario, s.controller),
         None => println!("{} with {}:", s.scenario, s.controller),
     }
     for c in &s.channels {

@@ -126,6 +126,26 @@ impl IoTiming {
     }
 }
 
+/// "each value 1.5 ms old and each write 0.5 ms late" (the parts that are not zero, to the
+/// microsecond), or "in lockstep".
+impl std::fmt::Display for IoTiming {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let ms = |s: f64| (s * 1e6).round() / 1e3;
+        let (a, w) = (self.value_age, self.write_delay);
+        match (a != 0.0, w != 0.0) {
+            (false, false) => write!(f, "in lockstep"),
+            (true, false) => write!(f, "each value {} ms old", ms(a)),
+            (false, true) => write!(f, "each write {} ms late", ms(w)),
+            (true, true) => write!(
+                f,
+                "each value {} ms old and each write {} ms late",
+                ms(a),
+                ms(w)
+            ),
+        }
+    }
+}
+
 /// Run `scenario` closed-loop with `controller`, recording every period if `record`.
 pub fn simulate(
     scenario: &Scenario,

@@ -312,11 +312,7 @@ pub fn tune(
     let late = if timing == IoTiming::default() {
         String::new()
     } else {
-        format!(
-            ", each value {} ms old and each write {} ms late",
-            timing.value_age * 1e3,
-            timing.write_delay * 1e3
-        )
+        format!(", {timing}")
     };
     set.description = format!(
         "tuned by `mfc-lab tune` on {} with {} runs (seed {}{late}): IAE objective {:.4} from \

@@ -163,7 +163,7 @@ fn bad_input_gives_a_clear_error_and_exit_code() {
 /// A run with its I/O off the sample instant says so, on the terminal and in its summary;
 /// a law tuned so says so in its file.
 #[test]
-fn sim_with_a_late_value_says_so() {
+fn a_late_timing_is_said_by_sim_and_tune() {
     let dir = tempfile::tempdir().unwrap();
     let out = succeed(
         lab()
@@ -206,11 +206,11 @@ fn sim_with_a_late_value_says_so() {
     );
     let text = std::fs::read_to_string(&file).unwrap();
     let first = text.lines().next().unwrap();
-    assert!(first.contains("--seed 1 --value-age-ms 2`"), "{first}");
     assert!(
-        text.contains("each value 2 ms old and each write 0 ms late"),
-        "{text}"
+        first.contains("tune --scenario 1 --controller pid --budget 2 --seed 1 --value-age-ms 2`"),
+        "the command that made it, as given: {first}"
     );
+    assert!(text.contains("(seed 1, each value 2 ms old)"), "{text}");
 }
 
 fn plants() -> std::path::PathBuf {
