@@ -20,8 +20,9 @@ use mfc::trajectory::Piece;
 /// carries its latest audit entries. 8: the estimators' `first_window`, the intelligent
 /// laws' `hold_band` and the sign they hold. 9: an estimator's ring is the window's
 /// length (was the capacity's), and its shadow sums about the running sum's anchor. 10: an
-/// estimator carries the order its running sums serve.
-pub const SNAPSHOT_VERSION: u32 = 10;
+/// estimator carries the order its running sums serve. 11: the intelligent laws'
+/// `feedforward_within_range`.
+pub const SNAPSHOT_VERSION: u32 = 11;
 
 /// What a device snapshot holds.
 #[derive(Debug, Clone, Encode, Decode)]

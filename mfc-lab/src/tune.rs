@@ -51,6 +51,15 @@ fn quantisation_aware(mut law: LawConfig) -> LawConfig {
     law
 }
 
+/// Drops a reference feedforward that brakes against the law at the actuator's limit
+/// (`plants/aero/controllers/ipd.toml`: steps faster than the rotors).
+fn within_range(mut law: LawConfig) -> LawConfig {
+    if let LawConfig::Intelligent { params, .. } = &mut law {
+        params.feedforward_within_range = true;
+    }
+    law
+}
+
 /// Estimates from 5 intervals on while the window fills, rather than hold 0 V for a
 /// window (`plants/aero/controllers/ipd.toml`: the arm sags under the mass meanwhile).
 fn started_early(mut law: LawConfig) -> LawConfig {
@@ -78,10 +87,18 @@ pub fn starting_point(kind: &str) -> Option<ControllerSet> {
         // The paper's own remedy for weak friction: n = 2 (iPD) on the pitch, the error
         // dynamics e'' + 3 e' + 9 e = 0 (3 rad/s, damping 0.5), a 20-sample window; alpha,
         // the observer and the estimate filter as `plants/aero/controllers/ipd.toml`
-        // explains. Azimuth: the paper's iP.
+        // explains. Azimuth: the paper's iP. Both drop an unreachable feedforward.
         "ipd" => vec![
-            started_early(intelligent(P, Order::One, 0.001, 0.5, 0.0, 0.0, 10)),
-            started_early(quantisation_aware(intelligent(
+            within_range(started_early(intelligent(
+                P,
+                Order::One,
+                0.001,
+                0.5,
+                0.0,
+                0.0,
+                10,
+            ))),
+            within_range(started_early(quantisation_aware(intelligent(
                 PD,
                 Order::Two,
                 0.2,
@@ -89,7 +106,7 @@ pub fn starting_point(kind: &str) -> Option<ControllerSet> {
                 0.0,
                 3.0,
                 20,
-            ))),
+            )))),
         ],
         // The same as first shipped: alpha by the magnitude rule for the step map (0.1),
         // y' from the derivative filter, F_est unfiltered.

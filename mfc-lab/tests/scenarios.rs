@@ -94,6 +94,45 @@ fn mass_does_not_deteriorate_mfc_tracking() {
     }
 }
 
+/// Fast steps (scenario 5): the headline `ipd` ahead of the shipped ADRC on the pitch,
+/// by dropping a feedforward that brakes against the law at the voltage limit
+/// (`feedforward_within_range`); without that rule it was behind. The rule never acts on
+/// scenarios 1 to 4, which run to the bit as without it.
+#[test]
+fn fast_steps_put_the_headline_ahead_of_adrc_on_the_pitch() {
+    let ipd = shipped_controller("ipd").unwrap();
+    let mut always = ipd.clone();
+    let mut rules = 0;
+    for law in &mut always.channels {
+        if let mfc::LawConfig::Intelligent { params, .. } = law {
+            rules += usize::from(params.feedforward_within_range);
+            params.feedforward_within_range = false;
+        }
+    }
+    assert_eq!(rules, 2, "ipd has the rule on both channels");
+    let pitch = |scenario: &str, c: &plant::scenario::ControllerSet| {
+        let s = load_scenario(scenario).unwrap();
+        let r = simulate(&s, c, false).unwrap().summary;
+        assert!(r.completed && r.limit_hits == 0, "{scenario} {}", c.name);
+        r.channels
+    };
+    let (with, without) = (pitch("5", &ipd), pitch("5", &always));
+    let adrc = pitch("5", &shipped_controller("adrc").unwrap());
+    assert!(
+        with[1].rms < 0.85 * adrc[1].rms && without[1].rms > adrc[1].rms,
+        "pitch RMS: ipd {}, without the rule {}, adrc {}",
+        with[1].rms,
+        without[1].rms,
+        adrc[1].rms
+    );
+    for scenario in ["1", "2", "3", "4"] {
+        let (a, b) = (pitch(scenario, &ipd), pitch(scenario, &always));
+        for ch in 0..2 {
+            assert_eq!(a[ch].rms.to_bits(), b[ch].rms.to_bits(), "{scenario} {ch}");
+        }
+    }
+}
+
 #[test]
 fn tuning_respects_its_budget_and_is_replayable() {
     let s = load_scenario("1").unwrap();

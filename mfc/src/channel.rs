@@ -258,7 +258,7 @@ impl<const CAP: usize> Channel<CAP> {
         // Each law checks its inputs before it changes anything.
         let (u, f_est, error, warming_up) = match &mut self.law {
             Law::Intelligent(c) => {
-                let o = c.step(t, y, r)?;
+                let o = c.step_mapped(t, y, r, Some(self.map.config()))?;
                 (o.u, o.f_est, o.error, o.f_est.is_none())
             }
             Law::Pid(c) => (c.step(t, y, r)?, None, y - r.y, false),
@@ -334,7 +334,7 @@ impl<const CAP: usize> Channel<CAP> {
                 P::A(p) => p.advance(h, u_cur),
             }
             let u = match &mut predictor {
-                P::I(p) => p.law(h, &refs[j]),
+                P::I(p) => p.law(h, &refs[j], c),
                 P::A(p) => p.law(&refs[j]),
             };
             let mut v = if u.is_finite() {

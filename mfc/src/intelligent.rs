@@ -47,6 +47,25 @@
 //!   tolerance: an error whose correction needs less than `b` in the reversing direction
 //!   waits until it needs more (`docs/results-aero.md`, "A hold band").
 //!
+//! # A reference the actuator cannot follow
+//! The law feeds the reference's own derivative forward (`y*'` for n = 1, `y*''` for
+//! n = 2): exact while the plant follows, since the error dynamics then need nothing else.
+//! A reference faster than the actuator can make the plant go (a step shaped over 0.3 s on
+//! the AERO's pitch) asks for an acceleration, then a braking, that the plant cannot
+//! deliver: the command saturates on the feedforward, and in the braking half it
+//! saturates *against* the error, braking a plant that is still far behind, which then
+//! arrives late and overshoots. With `feedforward_within_range`, a step whose feedforward
+//! opposes the rest of the law (the estimate of `F` and the error terms) and would take
+//! the command past the actuator's range (the output map's `min` or `max`, through its
+//! dead-zone compensation) drops the feedforward for that step: the rest alone then says
+//! where to push. Where the two push the same way (the reference accelerating away from
+//! the plant) the command keeps both and saturates, which is the most the actuator can do
+//! to follow (dropping it there too, tried, left the AERO's pitch further behind on
+//! slower steps than keeping it always). A reference the plant can follow never saturates the
+//! command, so nothing changes there. Only a [`crate::Channel`] knows the range: a
+//! controller stepped on its own keeps the feedforward (`docs/results-aero.md`, "Fast
+//! steps").
+//!
 //! # Predictions (packetized horizons, delay compensation)
 //! [`crate::Channel::plan`] runs the ultra-local model forward from the controller's state.
 //! With `trend = 0`, `F` is held at the filtered `F_est`: an estimate that already lags
@@ -68,6 +87,7 @@
 use crate::error::{finite, non_negative, nonzero, MfcError, Result};
 use crate::estimator::{Estimator, EstimatorConfig, LinearEstimate, DEFAULT_CAPACITY};
 use crate::filter::{decay, DerivativeFilter};
+use crate::output_map::OutputMapConfig;
 use crate::{ControllerKind, Order, Reference};
 
 /// Time constant of the low-pass that gives the estimate's trend for predictions, in units
@@ -133,6 +153,10 @@ pub struct IntelligentParams {
     /// Time constant (s) with which the offset left by a parameter change fades.
     /// Default: 0.2.
     pub bumpless_time_constant: f64,
+    /// Drop the reference's feedforward on a step where it opposes the rest of the law
+    /// and would take the command past the actuator's range (module documentation, "A
+    /// reference the actuator cannot follow"). Default: false.
+    pub feedforward_within_range: bool,
 }
 
 impl Default for IntelligentParams {
@@ -151,6 +175,7 @@ impl Default for IntelligentParams {
             hold_after: 1.0,
             hold_band: 0.0,
             bumpless_time_constant: 0.2,
+            feedforward_within_range: false,
         }
     }
 }
@@ -185,12 +210,48 @@ impl IntelligentParams {
         Ok(())
     }
 
-    /// The control law for an estimate `f`, error `e`, error derivative `de` and integral `i`.
-    fn law(&self, f: f64, r: &Reference, e: f64, de: f64, i: f64) -> f64 {
-        let feedforward = match self.order {
+    /// The reference's derivative of the model's order, which the law feeds forward.
+    #[inline(always)]
+    fn feedforward(&self, r: &Reference) -> f64 {
+        match self.order {
             Order::One => r.dy,
             Order::Two => r.ddy,
+        }
+    }
+
+    /// The law's output `u` without the reference's feedforward where the rule is on, the
+    /// feedforward opposes the rest of the law, and with it `u` lies beyond the range of
+    /// `map` in the feedforward's direction (module documentation, "A reference the
+    /// actuator cannot follow"); else `u`.
+    #[inline]
+    fn within_range(&self, u: f64, r: &Reference, map: Option<&OutputMapConfig>) -> f64 {
+        let Some(map) = map.filter(|_| self.feedforward_within_range) else {
+            return u;
         };
+        // The feedforward's share of `u`: the law is `-(f - feedforward + ...) / alpha`.
+        let share = self.feedforward(r) / self.alpha;
+        if share == 0.0 {
+            return u;
+        }
+        // The rest of the law: the estimate of `F` and the error terms.
+        let rest = u - share;
+        if rest * share >= 0.0 {
+            // The two push the same way (a reference accelerating away from the plant):
+            // all of it, saturated, is what the actuator can do to follow.
+            return u;
+        }
+        let v = map.compensate(u);
+        let beyond = (share > 0.0 && v > map.max) || (share < 0.0 && v < map.min);
+        if beyond {
+            rest
+        } else {
+            u
+        }
+    }
+
+    /// The control law for an estimate `f`, error `e`, error derivative `de` and integral `i`.
+    fn law(&self, f: f64, r: &Reference, e: f64, de: f64, i: f64) -> f64 {
+        let feedforward = self.feedforward(r);
         let mut acc = f - feedforward + self.kp * e;
         if self.kind.has_integral() {
             acc += self.ki * i;
@@ -421,6 +482,19 @@ impl<const CAP: usize> IntelligentController<CAP> {
     /// output map in registers. Returned through memory, it was stored and loaded again
     /// on the chain that runs from one sample's command to the next step's estimate.
     pub fn step(&mut self, t: f64, y: f64, r: &Reference) -> Result<IntelligentOutput> {
+        self.step_mapped(t, y, r, None)
+    }
+
+    /// [`Self::step`] for a law whose output goes through `map` (the actuator's range,
+    /// for `feedforward_within_range`).
+    #[inline(always)]
+    pub(crate) fn step_mapped(
+        &mut self,
+        t: f64,
+        y: f64,
+        r: &Reference,
+        map: Option<&OutputMapConfig>,
+    ) -> Result<IntelligentOutput> {
         self.check(t, y, r)?;
         let dt = self.last_t.map(|t0| t - t0);
         self.estimator.record(t, y, self.applied);
@@ -459,7 +533,7 @@ impl<const CAP: usize> IntelligentController<CAP> {
                 }
                 let p = self.params;
                 let u = p.law_linear(lin, r, e, de, self.integral, self.bump);
-                (u, Some(lin.at(p.alpha)))
+                (p.within_range(u, r, map), Some(lin.at(p.alpha)))
             }
         };
         let u = self.hold_hysteresis(u);
@@ -730,14 +804,16 @@ impl IntelligentPredictor {
         self.bump *= decay(h, p.bumpless_time_constant);
     }
 
-    /// The law at the predicted state for reference `r`; the integral then takes this
-    /// period's error, as [`IntelligentController::step`] does on the next sample.
-    pub(crate) fn law(&mut self, h: f64, r: &Reference) -> f64 {
+    /// The law at the predicted state for reference `r`, its output going through `map`;
+    /// the integral then takes this period's error, as [`IntelligentController::step`]
+    /// does on the next sample.
+    pub(crate) fn law(&mut self, h: f64, r: &Reference, map: &OutputMapConfig) -> f64 {
         let e = self.y - r.y;
         let de = self.dy - r.dy;
         if self.params.kind.has_integral() {
             self.integral += e * h;
         }
-        self.params.law(self.f, r, e, de, self.integral) + self.bump
+        let u = self.params.law(self.f, r, e, de, self.integral) + self.bump;
+        self.params.within_range(u, r, Some(map))
     }
 }

@@ -67,6 +67,7 @@ pub fn channel_to_pb(c: &ChannelConfig) -> pb::ChannelConfig {
             hold_estimate_filter: params.hold_estimate_filter,
             hold_after: Some(params.hold_after),
             hold_band: params.hold_band,
+            feedforward_within_range: params.feedforward_within_range,
             estimator: Some(pb::Estimator {
                 kind: match estimator.kind {
                     EstimatorKind::Algebraic => pb::estimator::Kind::Algebraic,
@@ -161,6 +162,7 @@ pub fn channel_from_pb(c: &pb::ChannelConfig) -> Result<ChannelConfig, ConvertEr
                         .hold_after
                         .unwrap_or(IntelligentParams::default().hold_after),
                     hold_band: i.hold_band,
+                    feedforward_within_range: i.feedforward_within_range,
                 },
                 estimator: EstimatorConfig {
                     kind: est_kind,

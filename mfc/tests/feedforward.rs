@@ -1,0 +1,162 @@
+//! `feedforward_within_range`: a reference's feedforward that opposes the rest of the law
+//! and would saturate the command is dropped for that step; everywhere else the law runs
+//! as without the rule, to the bit.
+//!
+//! Each test runs two channels, the rule on and off, each closed around its own exact
+//! double integrator `y'' = F + v` (the ultra-local model itself, `F = -1`), on a shaped
+//! step: one the actuator can follow, one it cannot.
+
+use mfc::{
+    Channel, ChannelConfig, ChannelOutput, ControllerKind, EstimatorConfig, IntelligentController,
+    IntelligentParams, LawConfig, Order, OutputMapConfig, Reference,
+};
+
+const H: f64 = 0.01;
+const LIMIT: f64 = 3.0;
+const F: f64 = -1.0;
+
+fn params(rule: bool) -> IntelligentParams {
+    IntelligentParams {
+        kind: ControllerKind::PD,
+        order: Order::Two,
+        alpha: 1.0,
+        kp: 9.0,
+        kd: 6.0,
+        feedforward_within_range: rule,
+        ..IntelligentParams::default()
+    }
+}
+
+fn estimator() -> EstimatorConfig {
+    EstimatorConfig {
+        window: 10,
+        ..EstimatorConfig::default()
+    }
+}
+
+fn channel(rule: bool) -> Channel {
+    Channel::new(&ChannelConfig {
+        law: LawConfig::Intelligent {
+            params: params(rule),
+            estimator: estimator(),
+        },
+        output: OutputMapConfig {
+            min: -LIMIT,
+            max: LIMIT,
+            ..OutputMapConfig::default()
+        },
+    })
+    .unwrap()
+}
+
+/// A quintic step of `height` over `duration` seconds from t = 1 s, with its derivatives.
+fn shaped_step(t: f64, height: f64, duration: f64) -> Reference {
+    let s = ((t - 1.0) / duration).clamp(0.0, 1.0);
+    let inside = if (0.0..1.0).contains(&((t - 1.0) / duration)) {
+        1.0
+    } else {
+        0.0
+    };
+    Reference {
+        y: height * s * s * s * (10.0 - 15.0 * s + 6.0 * s * s),
+        dy: inside * height / duration * 30.0 * s * s * (1.0 - s) * (1.0 - s),
+        ddy: inside * height / (duration * duration) * 60.0 * s * (1.0 - s) * (1.0 - 2.0 * s),
+    }
+}
+
+/// The plant `y'' = F + v`, exact over a period of constant `v`.
+#[derive(Default)]
+struct Plant {
+    y: f64,
+    dy: f64,
+}
+
+impl Plant {
+    fn advance(&mut self, v: f64) {
+        let acc = F + v;
+        self.y += H * self.dy + 0.5 * H * H * acc;
+        self.dy += H * acc;
+    }
+}
+
+/// Each period's reference and output of a channel closed around its own plant, 6 s.
+fn run(mut ch: Channel, reference: impl Fn(f64) -> Reference) -> Vec<(Reference, ChannelOutput)> {
+    let mut plant = Plant::default();
+    (0..600)
+        .map(|k| {
+            let t = k as f64 * H;
+            let r = reference(t);
+            let o = ch.step(t, plant.y, &r).unwrap();
+            plant.advance(o.v);
+            (r, o)
+        })
+        .collect()
+}
+
+fn rms(run: &[(Reference, ChannelOutput)]) -> f64 {
+    let sum: f64 = run.iter().map(|(_, o)| o.error * o.error).sum();
+    (sum / run.len() as f64).sqrt()
+}
+
+#[test]
+fn a_reference_the_actuator_can_follow_runs_as_without_the_rule() {
+    // 0.1 over 3 s: at most 0.06 of acceleration, where the actuator gives 3 - 1.
+    let slow = |t| shaped_step(t, 0.1, 3.0);
+    let (on, off) = (run(channel(true), slow), run(channel(false), slow));
+    // While the reference moves (where the rule could act), the command stays inside.
+    let moving: Vec<_> = on.iter().filter(|(r, _)| r.ddy != 0.0).collect();
+    assert!(moving.len() > 250, "the reference moved");
+    assert!(moving.iter().all(|(_, o)| o.v.abs() < LIMIT));
+    for (k, (a, b)) in on.iter().zip(&off).enumerate() {
+        assert_eq!(a.1.v.to_bits(), b.1.v.to_bits(), "period {k}");
+    }
+}
+
+#[test]
+fn a_feedforward_against_the_law_at_the_limit_is_dropped() {
+    // 1 over 0.3 s: about 64 of acceleration, then as much braking.
+    let fast = |t| shaped_step(t, 1.0, 0.3);
+    let (on, off) = (run(channel(true), fast), run(channel(false), fast));
+    let first = on
+        .iter()
+        .zip(&off)
+        .position(|(a, b)| a.1.v != b.1.v)
+        .expect("the rule changed some command");
+    // Until then the two ran alike, the command saturated in the reference's direction
+    // while it accelerated away from the plant: the feedforward that agrees is kept.
+    let pushed = off[..first]
+        .iter()
+        .filter(|(r, o)| r.ddy > 0.0 && o.v == LIMIT)
+        .count();
+    assert!(pushed > 0, "no saturated push before period {first}");
+    // The first difference: the reference brakes while the plant is still behind; without
+    // the rule the command saturates on the braking, with it the rest of the law pushes on.
+    let (r, with) = &on[first];
+    let without = &off[first].1;
+    assert!(r.ddy < 0.0, "the reference brakes at period {first}");
+    assert!(with.error < 0.0, "the plant is behind at period {first}");
+    assert_eq!(without.v, -LIMIT);
+    assert!(with.v > 0.0, "period {first}: {} with the rule", with.v);
+    // And it pays: the plant arrives sooner and overshoots less.
+    let (a, b) = (rms(&on), rms(&off));
+    assert!(a < 0.9 * b, "RMS {a} with the rule, {b} without");
+}
+
+#[test]
+fn a_controller_on_its_own_keeps_the_feedforward() {
+    // No output map, no range: the rule cannot judge, and changes nothing.
+    let fast = |t| shaped_step(t, 1.0, 0.3);
+    let mut on = IntelligentController::<256>::new(params(true), estimator()).unwrap();
+    let mut off = IntelligentController::<256>::new(params(false), estimator()).unwrap();
+    let mut plant = Plant::default();
+    for k in 0..300 {
+        let t = k as f64 * H;
+        let r = fast(t);
+        let a = on.step(t, plant.y, &r).unwrap();
+        let b = off.step(t, plant.y, &r).unwrap();
+        assert_eq!(a.u.to_bits(), b.u.to_bits(), "period {k}");
+        plant.advance(a.u.clamp(-LIMIT, LIMIT));
+        on.set_applied(a.u.clamp(-LIMIT, LIMIT)).unwrap();
+        off.set_applied(b.u.clamp(-LIMIT, LIMIT)).unwrap();
+    }
+}
