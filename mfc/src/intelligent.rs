@@ -15,7 +15,9 @@
 //! old and the new parameters on the same data (the estimate is kept linear in `α`, so `F`
 //! is re-evaluated for the new `α` exactly), then either re-initialises the integral so the
 //! output is continuous (kinds with an integral) or adds the difference as an offset that
-//! fades with `bumpless_time_constant`. The applied input therefore never jumps on a change.
+//! fades with `bumpless_time_constant`. The applied input therefore never jumps on a change,
+//! but on a step where `feedforward_within_range` drops the feedforward (below): the change
+//! matches the law with the feedforward, so the output may jump by the feedforward's share.
 //!
 //! # Quantised measurements
 //! An encoder's output is a staircase. Differentiating it (even filtered) turns every count
@@ -62,9 +64,11 @@
 //! the plant) the command keeps both and saturates, which is the most the actuator can do
 //! to follow (dropping it there too, tried, left the AERO's pitch further behind on
 //! slower steps than keeping it always). A reference the plant can follow never saturates the
-//! command, so nothing changes there. Only a [`crate::Channel`] knows the range: a
-//! controller stepped on its own keeps the feedforward (`docs/results-aero.md`, "Fast
-//! steps").
+//! command, so nothing changes there; a map without limits (the default) never either.
+//! The rule is a switch, not a blend: past the limit the command jumps by the
+//! feedforward's share, which a nearly feasible reference may make it do more than once.
+//! Only a [`crate::Channel`] knows the range: a controller stepped on its own keeps the
+//! feedforward (`docs/results-aero.md`, "Fast steps").
 //!
 //! # Predictions (packetized horizons, delay compensation)
 //! [`crate::Channel::plan`] runs the ultra-local model forward from the controller's state.
@@ -230,7 +234,9 @@ impl IntelligentParams {
         };
         // The feedforward's share of `u`: the law is `-(f - feedforward + ...) / alpha`.
         let share = self.feedforward(r) / self.alpha;
-        if share == 0.0 {
+        if share == 0.0 || !share.is_finite() || !u.is_finite() {
+            // Nothing to drop, or nothing finite to judge it by: the law as it is (a
+            // non-finite command is never sent, `crate::Channel`).
             return u;
         }
         // The rest of the law: the estimate of `F` and the error terms.
@@ -477,16 +483,16 @@ impl<const CAP: usize> IntelligentController<CAP> {
     }
 
     /// One control step at time `t` with measurement `y` and reference `r`.
-    ///
-    /// Always inlined (into [`crate::Channel`]'s step): its output then reaches the
-    /// output map in registers. Returned through memory, it was stored and loaded again
-    /// on the chain that runs from one sample's command to the next step's estimate.
     pub fn step(&mut self, t: f64, y: f64, r: &Reference) -> Result<IntelligentOutput> {
         self.step_mapped(t, y, r, None)
     }
 
     /// [`Self::step`] for a law whose output goes through `map` (the actuator's range,
     /// for `feedforward_within_range`).
+    ///
+    /// Always inlined (into [`crate::Channel`]'s step): its output then reaches the
+    /// output map in registers. Returned through memory, it was stored and loaded again
+    /// on the chain that runs from one sample's command to the next step's estimate.
     #[inline(always)]
     pub(crate) fn step_mapped(
         &mut self,

@@ -3,8 +3,9 @@
 //! as without the rule, to the bit.
 //!
 //! Each test runs two channels, the rule on and off, each closed around its own exact
-//! double integrator `y'' = F + v` (the ultra-local model itself, `F = -1`), on a shaped
-//! step: one the actuator can follow, one it cannot.
+//! double integrator `y'' = F + g v` (the ultra-local model itself, `F = -1`), on a shaped
+//! step: one the actuator can follow, one it cannot. Each runs for a plant gain `g` of 1
+//! and of -1 (`alpha` of the same sign), and with and without a smooth dead-zone map.
 
 use mfc::{
     Channel, ChannelConfig, ChannelOutput, ControllerKind, EstimatorConfig, IntelligentController,
@@ -15,11 +16,37 @@ const H: f64 = 0.01;
 const LIMIT: f64 = 3.0;
 const F: f64 = -1.0;
 
-fn params(rule: bool) -> IntelligentParams {
+/// A plant's gain and its channel's dead-zone compensation.
+#[derive(Debug, Clone, Copy)]
+struct Case {
+    gain: f64,
+    dead_zone: f64,
+}
+
+const CASES: [Case; 4] = [
+    Case {
+        gain: 1.0,
+        dead_zone: 0.0,
+    },
+    Case {
+        gain: -1.0,
+        dead_zone: 0.0,
+    },
+    Case {
+        gain: 1.0,
+        dead_zone: 0.5,
+    },
+    Case {
+        gain: -1.0,
+        dead_zone: 0.5,
+    },
+];
+
+fn params(rule: bool, case: Case) -> IntelligentParams {
     IntelligentParams {
         kind: ControllerKind::PD,
         order: Order::Two,
-        alpha: 1.0,
+        alpha: case.gain,
         kp: 9.0,
         kd: 6.0,
         feedforward_within_range: rule,
@@ -34,15 +61,17 @@ fn estimator() -> EstimatorConfig {
     }
 }
 
-fn channel(rule: bool) -> Channel {
+fn channel(rule: bool, case: Case) -> Channel {
     Channel::new(&ChannelConfig {
         law: LawConfig::Intelligent {
-            params: params(rule),
+            params: params(rule, case),
             estimator: estimator(),
         },
         output: OutputMapConfig {
             min: -LIMIT,
             max: LIMIT,
+            dead_zone: case.dead_zone,
+            smoothing: 0.2 * case.dead_zone,
             ..OutputMapConfig::default()
         },
     })
@@ -64,24 +93,37 @@ fn shaped_step(t: f64, height: f64, duration: f64) -> Reference {
     }
 }
 
-/// The plant `y'' = F + v`, exact over a period of constant `v`.
-#[derive(Default)]
+/// The plant `y'' = F + gain v`, exact over a period of constant `v`.
 struct Plant {
+    gain: f64,
     y: f64,
     dy: f64,
 }
 
 impl Plant {
+    fn new(gain: f64) -> Self {
+        Plant {
+            gain,
+            y: 0.0,
+            dy: 0.0,
+        }
+    }
+
     fn advance(&mut self, v: f64) {
-        let acc = F + v;
+        let acc = F + self.gain * v;
         self.y += H * self.dy + 0.5 * H * H * acc;
         self.dy += H * acc;
     }
 }
 
 /// Each period's reference and output of a channel closed around its own plant, 6 s.
-fn run(mut ch: Channel, reference: impl Fn(f64) -> Reference) -> Vec<(Reference, ChannelOutput)> {
-    let mut plant = Plant::default();
+fn run(
+    rule: bool,
+    case: Case,
+    reference: impl Fn(f64) -> Reference,
+) -> Vec<(Reference, ChannelOutput)> {
+    let mut ch = channel(rule, case);
+    let mut plant = Plant::new(case.gain);
     (0..600)
         .map(|k| {
             let t = k as f64 * H;
@@ -102,53 +144,77 @@ fn rms(run: &[(Reference, ChannelOutput)]) -> f64 {
 fn a_reference_the_actuator_can_follow_runs_as_without_the_rule() {
     // 0.1 over 3 s: at most 0.06 of acceleration, where the actuator gives 3 - 1.
     let slow = |t| shaped_step(t, 0.1, 3.0);
-    let (on, off) = (run(channel(true), slow), run(channel(false), slow));
-    // While the reference moves (where the rule could act), the command stays inside.
-    let moving: Vec<_> = on.iter().filter(|(r, _)| r.ddy != 0.0).collect();
-    assert!(moving.len() > 250, "the reference moved");
-    assert!(moving.iter().all(|(_, o)| o.v.abs() < LIMIT));
-    for (k, (a, b)) in on.iter().zip(&off).enumerate() {
-        assert_eq!(a.1.v.to_bits(), b.1.v.to_bits(), "period {k}");
+    for case in CASES {
+        let (on, off) = (run(true, case, slow), run(false, case, slow));
+        // While the reference moves (where the rule could act), the command stays inside.
+        let moving: Vec<_> = on.iter().filter(|(r, _)| r.ddy != 0.0).collect();
+        assert!(moving.len() > 250, "the reference moved");
+        assert!(moving.iter().all(|(_, o)| o.v.abs() < LIMIT), "{case:?}");
+        for (k, (a, b)) in on.iter().zip(&off).enumerate() {
+            assert_eq!(a.1.v.to_bits(), b.1.v.to_bits(), "{case:?} period {k}");
+        }
     }
 }
 
 #[test]
 fn a_feedforward_against_the_law_at_the_limit_is_dropped() {
+    for case in CASES {
+        feedforward_against_the_law_at_the_limit_is_dropped(case);
+    }
+}
+
+fn feedforward_against_the_law_at_the_limit_is_dropped(case: Case) {
     // 1 over 0.3 s: about 64 of acceleration, then as much braking.
     let fast = |t| shaped_step(t, 1.0, 0.3);
-    let (on, off) = (run(channel(true), fast), run(channel(false), fast));
+    let (on, off) = (run(true, case, fast), run(false, case, fast));
     let first = on
         .iter()
         .zip(&off)
         .position(|(a, b)| a.1.v != b.1.v)
-        .expect("the rule changed some command");
+        .unwrap_or_else(|| panic!("{case:?}: the rule changed no command"));
+    // The voltage that pushes the plant up (the reference's way).
+    let up = case.gain * LIMIT;
     // Until then the two ran alike, the command saturated in the reference's direction
     // while it accelerated away from the plant: the feedforward that agrees is kept.
     let pushed = off[..first]
         .iter()
-        .filter(|(r, o)| r.ddy > 0.0 && o.v == LIMIT)
+        .filter(|(r, o)| r.ddy > 0.0 && o.v == up)
         .count();
-    assert!(pushed > 0, "no saturated push before period {first}");
+    assert!(
+        pushed > 0,
+        "{case:?}: no saturated push before period {first}"
+    );
     // The first difference: the reference brakes while the plant is still behind; without
     // the rule the command saturates on the braking, with it the rest of the law pushes on.
     let (r, with) = &on[first];
     let without = &off[first].1;
-    assert!(r.ddy < 0.0, "the reference brakes at period {first}");
-    assert!(with.error < 0.0, "the plant is behind at period {first}");
-    assert_eq!(without.v, -LIMIT);
-    assert!(with.v > 0.0, "period {first}: {} with the rule", with.v);
+    assert!(
+        r.ddy < 0.0,
+        "{case:?}: the reference brakes at period {first}"
+    );
+    assert!(
+        with.error < 0.0,
+        "{case:?}: the plant is behind at period {first}"
+    );
+    assert_eq!(without.v, -up, "{case:?}");
+    assert!(
+        with.v * case.gain > 0.0,
+        "{case:?} period {first}: {} with the rule",
+        with.v
+    );
     // And it pays: the plant arrives sooner and overshoots less.
     let (a, b) = (rms(&on), rms(&off));
-    assert!(a < 0.9 * b, "RMS {a} with the rule, {b} without");
+    assert!(a < 0.9 * b, "{case:?}: RMS {a} with the rule, {b} without");
 }
 
 #[test]
 fn a_controller_on_its_own_keeps_the_feedforward() {
     // No output map, no range: the rule cannot judge, and changes nothing.
     let fast = |t| shaped_step(t, 1.0, 0.3);
-    let mut on = IntelligentController::<256>::new(params(true), estimator()).unwrap();
-    let mut off = IntelligentController::<256>::new(params(false), estimator()).unwrap();
-    let mut plant = Plant::default();
+    let case = CASES[0];
+    let mut on = IntelligentController::<256>::new(params(true, case), estimator()).unwrap();
+    let mut off = IntelligentController::<256>::new(params(false, case), estimator()).unwrap();
+    let mut plant = Plant::new(case.gain);
     for k in 0..300 {
         let t = k as f64 * H;
         let r = fast(t);

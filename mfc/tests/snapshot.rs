@@ -30,6 +30,7 @@ fn mimo() -> MimoController {
                         estimate_filter: 0.05,
                         hold_estimate_filter: 0.3,
                         hold_after: 4.0,
+                        feedforward_within_range: true,
                         ..params
                     },
                     estimator,

@@ -519,6 +519,29 @@ mod tests {
                 ),
                 output: OutputMapConfig::AERO,
             },
+            // Every option of an intelligent law away from its default.
+            ChannelConfig {
+                law: LawConfig::Intelligent {
+                    params: mfc::IntelligentParams {
+                        kind: ControllerKind::PD,
+                        order: Order::Two,
+                        alpha: -0.2,
+                        derivative_observer: 30.0,
+                        estimate_filter: 0.05,
+                        hold_estimate_filter: 0.15,
+                        hold_after: 0.5,
+                        hold_band: 1.0,
+                        feedforward_within_range: true,
+                        ..Default::default()
+                    },
+                    estimator: mfc::EstimatorConfig {
+                        window: 20,
+                        first_window: 5,
+                        ..Default::default()
+                    },
+                },
+                output: OutputMapConfig::AERO,
+            },
             ChannelConfig {
                 law: LawConfig::Pid {
                     params: PidParams {
