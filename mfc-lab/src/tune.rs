@@ -51,7 +51,7 @@ fn quantisation_aware(mut law: LawConfig) -> LawConfig {
     law
 }
 
-/// Drops a reference feedforward that brakes against the law at the actuator's limit
+/// Cuts a reference feedforward that brakes against the law at the actuator's limit
 /// (`plants/aero/controllers/ipd.toml`: steps faster than the rotors).
 fn within_range(mut law: LawConfig) -> LawConfig {
     if let LawConfig::Intelligent { params, .. } = &mut law {

@@ -16,8 +16,8 @@
 //! is re-evaluated for the new `α` exactly), then either re-initialises the integral so the
 //! output is continuous (kinds with an integral) or adds the difference as an offset that
 //! fades with `bumpless_time_constant`. The applied input therefore never jumps on a change,
-//! but on a step where `feedforward_within_range` drops the feedforward (below): the change
-//! matches the law with the feedforward, so the output may jump by the feedforward's share.
+//! but on a step where `feedforward_within_range` cuts the feedforward (below): the change
+//! matches the law with all of the feedforward, so the output may jump by what was cut.
 //!
 //! # Quantised measurements
 //! An encoder's output is a staircase. Differentiating it (even filtered) turns every count
@@ -59,16 +59,21 @@
 //! arrives late and overshoots. With `feedforward_within_range`, a step whose feedforward
 //! opposes the rest of the law (the estimate of `F` and the error terms) and would take
 //! the command past the actuator's range (the output map's `min` or `max`, through its
-//! dead-zone compensation) drops the feedforward for that step: the rest alone then says
-//! where to push. Where the two push the same way (the reference accelerating away from
-//! the plant) the command keeps both and saturates, which is the most the actuator can do
-//! to follow (dropping it there too, tried, left the AERO's pitch further behind on
-//! slower steps than keeping it always). A reference the plant can follow never saturates the
-//! command, so nothing changes there; a map without limits (the default) never either.
-//! The rule is a switch, not a blend: past the limit the command jumps by the
-//! feedforward's share, which a nearly feasible reference may make it do more than once.
-//! Only a [`crate::Channel`] knows the range: a controller stepped on its own keeps the
-//! feedforward (`docs/results-aero.md`, "Fast steps").
+//! dead-zone compensation) keeps the feedforward only in the proportion of the range the
+//! rest leaves unused on its own side: all of it while the rest asks for nothing (the
+//! plant on the reference, where braking with the reference is right), none once the rest
+//! alone asks for the whole side (the plant far behind, where it must push on). Where the
+//! two push the same way (the reference accelerating away from the plant) the command
+//! keeps both and saturates, which is the most the actuator can do to follow (dropping it
+//! there too, tried, left the AERO's pitch further behind on slower steps than keeping it
+//! always; dropping all of an opposing feedforward, the rule's first form, did worse than
+//! this cut on every step sequence where either acts). A reference the plant can follow
+//! never saturates the command, so nothing changes there; nor with a map without limits
+//! (the default). The cut is not continuous at the limit: the command goes from the limit
+//! to the rest plus what is kept of the feedforward, a jump a nearly feasible reference
+//! may make it take more than once. Only a [`crate::Channel`] knows the range: a
+//! controller stepped on its own keeps the feedforward (`docs/results-aero.md`, "Fast
+//! steps").
 //!
 //! # Predictions (packetized horizons, delay compensation)
 //! [`crate::Channel::plan`] runs the ultra-local model forward from the controller's state.
@@ -157,9 +162,10 @@ pub struct IntelligentParams {
     /// Time constant (s) with which the offset left by a parameter change fades.
     /// Default: 0.2.
     pub bumpless_time_constant: f64,
-    /// Drop the reference's feedforward on a step where it opposes the rest of the law
-    /// and would take the command past the actuator's range (module documentation, "A
-    /// reference the actuator cannot follow"). Default: false.
+    /// Cut the reference's feedforward on a step where it opposes the rest of the law and
+    /// would take the command past the actuator's range, to the part of the range the
+    /// rest leaves unused (module documentation, "A reference the actuator cannot
+    /// follow"). Default: false.
     pub feedforward_within_range: bool,
 }
 
@@ -223,7 +229,7 @@ impl IntelligentParams {
         }
     }
 
-    /// The law's output `u` without the reference's feedforward where the rule is on, the
+    /// The law's output `u` with the reference's feedforward cut where the rule is on, the
     /// feedforward opposes the rest of the law, and with it `u` lies beyond the range of
     /// `map` in the feedforward's direction (module documentation, "A reference the
     /// actuator cannot follow"); else `u`.
@@ -235,7 +241,7 @@ impl IntelligentParams {
         // The feedforward's share of `u`: the law is `-(f - feedforward + ...) / alpha`.
         let share = self.feedforward(r) / self.alpha;
         if share == 0.0 || !share.is_finite() || !u.is_finite() {
-            // Nothing to drop, or nothing finite to judge it by: the law as it is (a
+            // Nothing to cut, or nothing finite to judge it by: the law as it is (a
             // non-finite command is never sent, `crate::Channel`).
             return u;
         }
@@ -248,11 +254,20 @@ impl IntelligentParams {
         }
         let v = map.compensate(u);
         let beyond = (share > 0.0 && v > map.max) || (share < 0.0 && v < map.min);
-        if beyond {
-            rest
-        } else {
-            u
+        if !beyond {
+            return u;
         }
+        // The feedforward in the proportion of its side of the range the rest leaves
+        // unused: all of it while the rest asks for nothing (the plant on the reference),
+        // none once the rest alone asks for the whole side (the plant far behind).
+        let side = if rest > 0.0 { map.max } else { -map.min };
+        let used = if side > 0.0 && side.is_finite() {
+            (map.compensate(rest).abs() / side).min(1.0)
+        } else {
+            // No limit on the rest's side: it leaves all of it unused.
+            0.0
+        };
+        rest + share * (1.0 - used)
     }
 
     /// The control law for an estimate `f`, error `e`, error derivative `de` and integral `i`.
