@@ -87,7 +87,7 @@ pub fn starting_point(kind: &str) -> Option<ControllerSet> {
         // The paper's own remedy for weak friction: n = 2 (iPD) on the pitch, the error
         // dynamics e'' + 3 e' + 9 e = 0 (3 rad/s, damping 0.5), a 20-sample window; alpha,
         // the observer and the estimate filter as `plants/aero/controllers/ipd.toml`
-        // explains. Azimuth: the paper's iP. Both drop an unreachable feedforward.
+        // explains. Azimuth: the paper's iP. Both cut an unreachable feedforward.
         "ipd" => vec![
             within_range(started_early(intelligent(
                 P,

@@ -16,8 +16,9 @@
 //! is re-evaluated for the new `α` exactly), then either re-initialises the integral so the
 //! output is continuous (kinds with an integral) or adds the difference as an offset that
 //! fades with `bumpless_time_constant`. The applied input therefore never jumps on a change,
-//! but on a step where `feedforward_within_range` cuts the feedforward (below): the change
-//! matches the law with all of the feedforward, so the output may jump by what was cut.
+//! but where `feedforward_within_range` cuts the feedforward (below): a start from another
+//! law on such a step matches the law with all of the feedforward, and may jump by what
+//! was cut; a change of `α` there, by the difference of the two cuts.
 //!
 //! # Quantised measurements
 //! An encoder's output is a staircase. Differentiating it (even filtered) turns every count
@@ -66,8 +67,11 @@
 //! two push the same way (the reference accelerating away from the plant) the command
 //! keeps both and saturates, which is the most the actuator can do to follow (dropping it
 //! there too, tried, left the AERO's pitch further behind on slower steps than keeping it
-//! always; dropping all of an opposing feedforward, the rule's first form, did worse than
-//! this cut on every step sequence where either acts). A reference the plant can follow
+//! always; dropping all of an opposing feedforward, the rule's first form, left the pitch
+//! further behind than this cut on every step sequence where either acts). The proportion
+//! is measured in the actuator's units, after the map: through the paper's step map
+//! (`smoothing = 0`) any rest commands at least the dead zone, so at most `1 - dead_zone /
+//! max` of the feedforward is kept there (58 % on the AERO). A reference the plant can follow
 //! never saturates the command, so nothing changes there; nor with a map without limits
 //! (the default). The cut is not continuous at the limit: the command goes from the limit
 //! to the rest plus what is kept of the feedforward, a jump a nearly feasible reference
@@ -163,9 +167,9 @@ pub struct IntelligentParams {
     /// Default: 0.2.
     pub bumpless_time_constant: f64,
     /// Cut the reference's feedforward on a step where it opposes the rest of the law and
-    /// would take the command past the actuator's range, to the part of the range the
-    /// rest leaves unused (module documentation, "A reference the actuator cannot
-    /// follow"). Default: false.
+    /// would take the command past the actuator's range, keeping it in the proportion of
+    /// the range the rest leaves unused (module documentation, "A reference the actuator
+    /// cannot follow"). Default: false.
     pub feedforward_within_range: bool,
 }
 
@@ -260,13 +264,12 @@ impl IntelligentParams {
         // The feedforward in the proportion of its side of the range the rest leaves
         // unused: all of it while the rest asks for nothing (the plant on the reference),
         // none once the rest alone asks for the whole side (the plant far behind).
-        let side = if rest > 0.0 { map.max } else { -map.min };
-        let used = if side > 0.0 && side.is_finite() {
-            (map.compensate(rest).abs() / side).min(1.0)
-        } else {
-            // No limit on the rest's side: it leaves all of it unused.
-            0.0
-        };
+        // Measured in the actuator's units (after the map): a side of width 0 (a range
+        // such as [0, 100]) is all used by any rest, an unlimited side none (`rest` is not
+        // 0 here, so neither ratio is 0 / 0). The magnitude, not `-min`: a `min` of 0
+        // would give -0, and a ratio of -infinity.
+        let side = (if rest > 0.0 { map.max } else { map.min }).abs();
+        let used = (map.compensate(rest).abs() / side).min(1.0);
         rest + share * (1.0 - used)
     }
 

@@ -1,6 +1,7 @@
 //! `feedforward_within_range`: a reference's feedforward that opposes the rest of the law
-//! and would saturate the command is cut for that step, to the part of the range the rest
-//! leaves unused; everywhere else the law runs as without the rule, to the bit.
+//! and would saturate the command is cut for that step, kept in the proportion of the
+//! range the rest leaves unused; everywhere else the law runs as without the rule, to the
+//! bit.
 //!
 //! Each test runs two channels, the rule on and off, each closed around its own exact
 //! double integrator `y'' = F + g v` (the ultra-local model itself, `F = -1`), on a shaped
@@ -62,18 +63,26 @@ fn estimator() -> EstimatorConfig {
 }
 
 fn channel(rule: bool, case: Case) -> Channel {
-    Channel::new(&ChannelConfig {
-        law: LawConfig::Intelligent {
-            params: params(rule, case),
-            estimator: estimator(),
-        },
-        output: OutputMapConfig {
+    channel_with(
+        rule,
+        case,
+        OutputMapConfig {
             min: -LIMIT,
             max: LIMIT,
             dead_zone: case.dead_zone,
             smoothing: 0.2 * case.dead_zone,
             ..OutputMapConfig::default()
         },
+    )
+}
+
+fn channel_with(rule: bool, case: Case, output: OutputMapConfig) -> Channel {
+    Channel::new(&ChannelConfig {
+        law: LawConfig::Intelligent {
+            params: params(rule, case),
+            estimator: estimator(),
+        },
+        output,
     })
     .unwrap()
 }
@@ -122,8 +131,15 @@ fn run(
     case: Case,
     reference: impl Fn(f64) -> Reference,
 ) -> Vec<(Reference, ChannelOutput)> {
-    let mut ch = channel(rule, case);
-    let mut plant = Plant::new(case.gain);
+    run_channel(channel(rule, case), case.gain, reference)
+}
+
+fn run_channel(
+    mut ch: Channel,
+    gain: f64,
+    reference: impl Fn(f64) -> Reference,
+) -> Vec<(Reference, ChannelOutput)> {
+    let mut plant = Plant::new(gain);
     (0..600)
         .map(|k| {
             let t = k as f64 * H;
@@ -205,6 +221,31 @@ fn feedforward_against_the_law_at_the_limit_is_cut(case: Case) {
     // And it pays: the plant arrives sooner and overshoots less.
     let (a, b) = (rms(&on), rms(&off));
     assert!(a < 0.9 * b, "{case:?}: RMS {a} with the rule, {b} without");
+}
+
+/// A range with a side of width 0 (a heater's `[0, max]`): a rest of the law that asks
+/// for that side asks for all of it, so an opposing feedforward at the limit goes.
+#[test]
+fn a_side_of_width_zero_is_all_used() {
+    let one_sided = OutputMapConfig {
+        min: 0.0,
+        max: LIMIT,
+        ..OutputMapConfig::default()
+    };
+    // Down by 1 over 0.3 s: the braking (y*'' > 0) comes while the plant is still above.
+    let fast_down = |t| shaped_step(t, -1.0, 0.3);
+    let case = CASES[0];
+    let on = run_channel(channel_with(true, case, one_sided), 1.0, fast_down);
+    let off = run_channel(channel_with(false, case, one_sided), 1.0, fast_down);
+    let first = on
+        .iter()
+        .zip(&off)
+        .position(|(a, b)| a.1.v != b.1.v)
+        .expect("the rule changed some command");
+    let (r, with) = &on[first];
+    assert!(r.ddy > 0.0, "the reference brakes at period {first}");
+    assert!(with.error > 0.0, "the plant is above it at period {first}");
+    assert_eq!((with.v, off[first].1.v), (0.0, LIMIT), "period {first}");
 }
 
 #[test]
