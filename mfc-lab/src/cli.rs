@@ -308,6 +308,48 @@ struct TuneArgs {
     name: Option<String>,
     #[command(flatten)]
     timing: TimingArgs,
+    #[command(flatten)]
+    family: FamilyArgs,
+}
+
+/// `tune --family`: gains for a family of plants, not one (the robustness benchmark's).
+#[derive(clap::Args)]
+struct FamilyArgs {
+    /// Tune for the whole family `robust` runs (the nominal plant, each factor at each end
+    /// of its range, --random combinations): minimise the worst of the bars (the best
+    /// baseline's RMS on each variation, the start's nominal RMS, --bound times the law's
+    /// own nominal, the chatter bar), each as a fraction of its limit. --budget counts
+    /// candidates, each run on every variation.
+    #[arg(long, conflicts_with_all = ["value_age_ms", "write_delay_ms"])]
+    family: bool,
+    /// AERO factors to vary (as `robust --factors`). Default: all.
+    #[arg(long, value_delimiter = ',', requires = "family")]
+    factors: Vec<String>,
+    /// Random combinations of every factor in the family.
+    #[arg(long, default_value_t = 8, requires = "family")]
+    random: usize,
+    /// Seed of the family's random combinations (`robust --seed`).
+    #[arg(long, default_value_t = 1, requires = "family")]
+    family_seed: u64,
+    /// The untouched laws not to lose to on any variation (shipped names or files).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "pid,adrc",
+        requires = "family"
+    )]
+    baselines: Vec<String>,
+    /// The largest RMS over the law's own nominal accepted on any variation.
+    #[arg(long, default_value_t = 2.0, requires = "family")]
+    bound: f64,
+    /// The largest chatter accepted (mean |v(k) - v(k-1)|, the plant's input units; 0.7
+    /// V is issue 30's on the AERO). Default: the starting point's own worst over the
+    /// family.
+    #[arg(long, requires = "family")]
+    chatter: Option<f64>,
+    /// Threads (default: the machine's cores).
+    #[arg(long, requires = "family")]
+    threads: Option<usize>,
 }
 
 #[derive(clap::Args)]
@@ -499,11 +541,13 @@ fn real_main() -> Result<()> {
 /// fixed table; a Modbus plant has none.
 fn variations_of(
     scenario: &plant::scenario::Scenario,
-    args: &RobustArgs,
+    names: &[String],
+    seed: u64,
+    random: usize,
 ) -> Result<Vec<crate::robust::Variation>> {
     use crate::robust::{driver_factors, driver_family, family_of, Factor};
     use plant::scenario::PlantSource;
-    let factors = if args.factors.is_empty() {
+    let factors = if names.is_empty() {
         Factor::ALL.to_vec()
     } else {
         let parse = |n: &String| {
@@ -511,18 +555,18 @@ fn variations_of(
                 format!("no factor `{n}`: rotor, mass, spring, damping, noise, motor, encoder")
             })
         };
-        args.factors.iter().map(parse).collect::<Result<Vec<_>>>()?
+        names.iter().map(parse).collect::<Result<Vec<_>>>()?
     };
     Ok(match &scenario.plant {
-        PlantSource::Aero(_) => family_of(&factors, args.seed, args.random),
+        PlantSource::Aero(_) => family_of(&factors, seed, random),
         PlantSource::Modbus(_) | PlantSource::OpcUa(_) => {
             bail!("a plant behind a server (Modbus, OPC UA): robust varies simulators offline")
         }
-        PlantSource::Driver(_) if !args.factors.is_empty() => {
+        PlantSource::Driver(_) if !names.is_empty() => {
             bail!("--factors names the AERO's factors; a driver plant's family is fixed")
         }
         PlantSource::Driver(cmd) => match driver_factors(&cmd.argv) {
-            Some(table) => driver_family(table, args.seed, args.random),
+            Some(table) => driver_family(table, seed, random),
             None => bail!(
                 "no family for the driver {:?}: robust varies the AERO simulator, heater.py and dc_motor.py",
                 cmd.argv
@@ -531,12 +575,40 @@ fn variations_of(
     })
 }
 
+/// Each named controller (a shipped AERO name or a file), checked against the scenario;
+/// `flag` is the option that named them, for the error.
+fn controllers_for(
+    scenario: &plant::scenario::Scenario,
+    names: &[String],
+    flag: &str,
+) -> Result<Vec<plant::scenario::ControllerSet>> {
+    names
+        .iter()
+        .map(|n| {
+            let c = load_controller(n)?;
+            scenario.check_controller(&c).with_context(|| {
+                format!(
+                    "`{n}` ({flag}; another plant's controllers are files, such as its pid.toml)"
+                )
+            })?;
+            Ok(c)
+        })
+        .collect()
+}
+
+/// `--threads`, or the machine's cores.
+fn threads_or_cores(threads: Option<usize>) -> usize {
+    threads.unwrap_or_else(|| {
+        std::thread::available_parallelism().map_or(1, std::num::NonZeroUsize::get)
+    })
+}
+
 /// `robust`: the family run, judged, written.
 fn robust(args: &RobustArgs) -> Result<()> {
     use crate::robust::{check, heat_map, judge, markdown, run};
     use plant::scenario::PlantSource;
     let scenario = load_scenario(&args.scenario)?;
-    let variations = variations_of(&scenario, args)?;
+    let variations = variations_of(&scenario, &args.factors, args.seed, args.random)?;
     let names: Vec<String> = match (&scenario.plant, args.controllers.is_empty()) {
         (_, false) => args.controllers.clone(),
         (PlantSource::Aero(_), true) => SHIPPED_CONTROLLERS
@@ -545,17 +617,8 @@ fn robust(args: &RobustArgs) -> Result<()> {
             .collect(),
         (_, true) => bail!("a driver plant's controllers are files: name them with --controllers"),
     };
-    let sets = names
-        .iter()
-        .map(|n| {
-            let c = load_controller(n)?;
-            scenario.check_controller(&c)?;
-            Ok(c)
-        })
-        .collect::<Result<Vec<_>>>()?;
-    let threads = args.threads.unwrap_or_else(|| {
-        std::thread::available_parallelism().map_or(1, std::num::NonZeroUsize::get)
-    });
+    let sets = controllers_for(&scenario, &names, "--controllers")?;
+    let threads = threads_or_cores(args.threads);
     eprintln!(
         "robust: {} controllers x {} variations of scenario {} on {threads} threads",
         sets.len(),
@@ -835,6 +898,9 @@ fn tune_command(args: &TuneArgs) -> Result<()> {
         (None, None) => bail!("give --controller KIND or --start FILE"),
     };
     scenario.check_controller(&start_set)?;
+    if args.family.family {
+        return tune_family_command(args, &scenario, &start_set, &from);
+    }
     let timing = args.timing.timing()?;
     let label = start_set.name.clone();
     let bar = bar(budget as u64, "{msg} [{bar:30}] {pos}/{len} runs ({eta})");
@@ -854,11 +920,7 @@ fn tune_command(args: &TuneArgs) -> Result<()> {
     if let Some(name) = &args.name {
         set.name = name.clone();
     }
-    let text = toml::to_string_pretty(&set)?;
     let out = &args.out;
-    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir)?;
-    }
     let command = format!(
         "mfc-lab tune --scenario {} {from} --budget {budget} --seed {}{}{}",
         args.scenario,
@@ -869,8 +931,7 @@ fn tune_command(args: &TuneArgs) -> Result<()> {
             .map(|n| format!(" --name {n}"))
             .unwrap_or_default()
     );
-    std::fs::write(out, format!("# Written by `{command}`.\n{text}"))
-        .with_context(|| format!("writing {}", out.display()))?;
+    write_tuned(out, &command, &set)?;
     println!(
         "{label} on {}: objective {:.4} (start {:.4}) in {} runs; wrote {}",
         scenario.name,
@@ -880,6 +941,106 @@ fn tune_command(args: &TuneArgs) -> Result<()> {
         out.display()
     );
     Ok(())
+}
+
+/// `tune --family`: the baselines and the start over the family, then the search; the
+/// result written with the command that made it and the margins before and after.
+fn tune_family_command(
+    args: &TuneArgs,
+    scenario: &plant::scenario::Scenario,
+    start: &plant::scenario::ControllerSet,
+    from: &str,
+) -> Result<()> {
+    use crate::robust::run;
+    use crate::tune::{tune_family, Bars};
+    let f = &args.family;
+    if !(f.bound.is_finite() && f.bound >= 1.0) {
+        bail!("--bound must be a ratio of 1 or more, not {}", f.bound);
+    }
+    if let Some(c) = f.chatter.filter(|c| !(c.is_finite() && *c > 0.0)) {
+        bail!("--chatter must be a positive number, not {c}");
+    }
+    let variations = variations_of(scenario, &f.factors, f.family_seed, f.random)?;
+    let baselines = controllers_for(scenario, &f.baselines, "--baselines")?;
+    let threads = threads_or_cores(f.threads);
+    eprintln!(
+        "tune --family: {} variations of {}, baselines {}, {} candidates on {threads} threads",
+        variations.len(),
+        scenario.name,
+        f.baselines.join(", "),
+        args.budget
+    );
+    let base_cells = run(scenario, &baselines, &variations, threads)?;
+    let start_cells = run(scenario, std::slice::from_ref(start), &variations, threads)?;
+    let bars = Bars::new(&variations, &base_cells, &start_cells, f.bound, f.chatter);
+    let label = start.name.clone();
+    let bar = bar(
+        args.budget as u64,
+        "{msg} [{bar:30}] {pos}/{len} candidates ({eta})",
+    );
+    let tuned = tune_family(
+        scenario,
+        start,
+        &variations,
+        &bars,
+        args.budget,
+        args.seed,
+        threads,
+        |done, best| {
+            bar.set_position(done as u64);
+            bar.set_message(format!(
+                "tuning {label} over the family: worst margin {best:.3}"
+            ));
+        },
+    )?;
+    bar.finish_and_clear();
+    let mut set = tuned.set;
+    if let Some(name) = &args.name {
+        set.name = name.clone();
+    }
+    let mut command = format!(
+        "mfc-lab tune --scenario {} {from} --budget {} --seed {} --family --random {} \
+         --family-seed {} --baselines {} --bound {}",
+        args.scenario,
+        args.budget,
+        args.seed,
+        f.random,
+        f.family_seed,
+        f.baselines.join(","),
+        f.bound
+    );
+    if !f.factors.is_empty() {
+        command += &format!(" --factors {}", f.factors.join(","));
+    }
+    if let Some(c) = f.chatter {
+        command += &format!(" --chatter {c}");
+    }
+    if let Some(n) = &args.name {
+        command += &format!(" --name {n}");
+    }
+    write_tuned(&args.out, &command, &set)?;
+    println!(
+        "{label} over {} variations of {}: worst margin {:.3} (start {:.3}) in {} candidates; wrote {}\n  start: {}\n  tuned: {}",
+        variations.len(),
+        scenario.name,
+        tuned.margins.worst(),
+        tuned.start_margins.worst(),
+        tuned.evaluations,
+        args.out.display(),
+        tuned.start_margins,
+        tuned.margins,
+    );
+    Ok(())
+}
+
+/// Write a tuned set as TOML, headed by the command that made it.
+fn write_tuned(out: &Path, command: &str, set: &plant::scenario::ControllerSet) -> Result<()> {
+    let text = toml::to_string_pretty(set)?;
+    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir)?;
+    }
+    std::fs::write(out, format!("# Written by `{command}`.\n{text}"))
+        .with_context(|| format!("writing {}", out.display()))
 }
 
 /// `service-config`: the service's configuration for these devices, as TOML.

@@ -86,6 +86,104 @@ fn tune_output_is_usable_by_sim() {
     );
 }
 
+/// `tune --family`: gains for a slice of the robustness family, written with the command
+/// that made them and usable by `sim` and `robust`; the margins said before and after;
+/// bad bars refused.
+#[test]
+fn a_family_tuning_says_its_margins_and_writes_a_usable_law() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("ipd-rotor.toml");
+    let out = succeed(
+        lab()
+            .args([
+                "tune",
+                "--scenario",
+                "1",
+                "--controller",
+                "ipd",
+                "--budget",
+                "4",
+            ])
+            .args(["--family", "--factors", "rotor", "--random", "1", "--out"])
+            .arg(&file),
+    );
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(said.contains("over 4 variations of scenario-1"), "{said}");
+    assert!(said.contains("start: against the best baseline"), "{said}");
+    assert!(said.contains("tuned: against the best baseline"), "{said}");
+    let text = std::fs::read_to_string(&file).unwrap();
+    assert!(
+        text.starts_with(
+            "# Written by `mfc-lab tune --scenario 1 --controller ipd --budget 4 --seed 1 \
+             --family --random 1 --family-seed 1 --baselines pid,adrc --bound 2 --factors rotor`"
+        ),
+        "{text}"
+    );
+    succeed(
+        lab()
+            .args([
+                "robust",
+                "--scenario",
+                "1",
+                "--factors",
+                "rotor",
+                "--random",
+                "0",
+            ])
+            .arg("--controllers")
+            .arg(&file)
+            .arg("--out")
+            .arg(dir.path().join("robust")),
+    );
+    for (flags, says) in [
+        (["--bound", "0.5"], "--bound must be a ratio of 1 or more"),
+        (["--chatter", "0"], "--chatter must be a positive number"),
+    ] {
+        let out = lab()
+            .args([
+                "tune",
+                "--controller",
+                "ipd",
+                "--budget",
+                "1",
+                "--family",
+                "--out",
+            ])
+            .arg(dir.path().join("x.toml"))
+            .args(flags)
+            .output()
+            .unwrap();
+        assert!(!out.status.success());
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(says), "{err}");
+    }
+    // Another plant's baselines are its own files: the AERO's default says so.
+    let heater = concat!(env!("CARGO_MANIFEST_DIR"), "/../plants/heater");
+    let out = lab()
+        .args(["tune", "--budget", "1", "--family", "--scenario"])
+        .arg(format!("{heater}/scenarios/heater-steps.toml"))
+        .arg("--start")
+        .arg(format!("{heater}/controllers/ipd.toml"))
+        .arg("--out")
+        .arg(dir.path().join("h.toml"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("`pid` (--baselines"), "{err}");
+    // The family's flags mean nothing without it, and a late timing is not the family's.
+    for flags in [&["--random", "2"][..], &["--family", "--value-age-ms", "2"]] {
+        let out = lab()
+            .args(["tune", "--controller", "ipd", "--budget", "1", "--out"])
+            .arg(dir.path().join("y.toml"))
+            .args(flags)
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "{flags:?}");
+        assert!(!dir.path().join("y.toml").exists(), "{flags:?}");
+    }
+}
+
 #[test]
 fn bad_input_gives_a_clear_error_and_exit_code() {
     let dir = tempfile::tempdir().unwrap();

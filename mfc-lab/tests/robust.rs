@@ -44,3 +44,38 @@ fn the_headline_law_holds_its_bars_on_the_structural_slice() {
     assert!(moved, "the slice changed nothing");
     assert!(cells.iter().any(|c| c.controller == "pid" && !c.safe));
 }
+
+/// The DC motor's law tuned for its family (`mfc-lab tune --family`,
+/// `plants/dc-motor/controllers/ipd-family.toml`), untouched, over that family (friction,
+/// backlash, inertia x0.5 and x2, 4 seeded combinations): within 2x its own nominal RMS
+/// everywhere, safe everywhere, and its nominal RMS under the shipped `ipd`'s, which breaks
+/// the 2x (2.19x with twice the inertia). What it does not hold, and this test does not
+/// claim: the ADRC's nominal RMS is lower (`docs/results-robust.md`, "Gains for a family").
+#[test]
+fn the_motor_law_tuned_for_its_family_holds_within_twice_its_nominal() {
+    use mfc_lab::robust::{driver_factors, driver_family};
+    use plant::scenario::{load_controller, PlantSource};
+    let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../plants/dc-motor");
+    let scenario = load_scenario(&format!("{root}/scenarios/motor-steps.toml")).unwrap();
+    let PlantSource::Driver(cmd) = &scenario.plant else {
+        panic!("the motor is a driver plant")
+    };
+    let variations = driver_family(driver_factors(&cmd.argv).unwrap(), 1, 4);
+    assert_eq!(variations.len(), 1 + 6 + 4);
+    let sets: Vec<_> = ["ipd-family", "ipd"]
+        .iter()
+        .map(|n| load_controller(&format!("{root}/controllers/{n}.toml")).unwrap())
+        .collect();
+    let cells = run(&scenario, &sets, &variations, 2).unwrap();
+    let verdicts = judge(&cells, &[]);
+    let (family, shipped) = (&verdicts[0], &verdicts[1]);
+    assert_eq!(family.controller, "ipd-family");
+    assert!(family.worst.0 <= 2.0, "{family:?}");
+    assert!(family.unsafe_runs.is_empty(), "{family:?}");
+    assert!(
+        family.nominal_rms[0] < shipped.nominal_rms[0],
+        "{family:?} {shipped:?}"
+    );
+    // The judgement judged something: the family moved the shipped law past the bound.
+    assert!(shipped.worst.0 > 2.0, "{shipped:?}");
+}
