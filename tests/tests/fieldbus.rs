@@ -1,8 +1,8 @@
 //! Plants from the factory floor with no code: the DC motor behind a Modbus TCP server
 //! (pymodbus) and behind an OPC UA server (asyncua), servers we did not write, controlled
 //! over Zenoh through the controller service, track as their offline twin (the same physics
-//! as a driver, in lockstep, or with the values as old as a subscription makes them) does,
-//! and are left with their safe value in the server.
+//! as a driver, its commands landing the run's round trip after the tick, or its values as
+//! old as a subscription makes them) does, and are left with their safe value in the server.
 
 use mfc_lab::harness::{run_fleet, service_config};
 use mfc_lab::offline::{simulate_timed, IoTiming};
@@ -47,23 +47,34 @@ fn input_now(server: &Server) -> f64 {
     })
 }
 
+/// Where the twin's command meets its plant.
+#[derive(Clone, Copy)]
+enum Writes {
+    /// As `IoTiming` says.
+    AsTimed,
+    /// Also the run's median round trip after the tick (sample to command, measured by the
+    /// agent): a bridge that reads at the tick writes no earlier.
+    AfterRoundTrip,
+}
+
+/// The slowest median round trip a run may have (a fifth of the 10 ms period): the twin
+/// that writes after it absorbs the delay, so the delay itself is judged here.
+const MAX_RTT_P50_US: f64 = 2000.0;
+
 /// The plant behind `protocol`'s server (its file `file`, changed by `adapt`) tracks
 /// through the service within the usual bound of its offline twin, run with the I/O
-/// timing `timing`: the median of `judged` runs' RMS ratios (a run whose commands came
-/// late too often is not judged).
+/// timing `timing` (and `writes`): the median of `judged` runs' RMS ratios (a run whose
+/// commands came late too often is not judged).
 async fn tracks_as_its_twin(
     protocol: ServerKind,
     file: &str,
     adapt: fn(&mut Scenario),
-    timing: IoTiming,
+    (timing, writes): (IoTiming, Writes),
     judged: usize,
 ) {
     let attempts = judged + 2;
     let _serial = SERIAL.lock().await;
     let twin = load("plants/dc-motor/scenarios/motor-steps.toml");
-    let offline = simulate_timed(&twin, &twin.controller, false, timing)
-        .unwrap()
-        .summary;
     let mut ratios = Vec::with_capacity(judged);
     for attempt in 1..=attempts {
         let server = Server::start_as(protocol, free_port(), &[]);
@@ -95,6 +106,21 @@ async fn tracks_as_its_twin(
             );
             continue;
         }
+        assert!(
+            rep.rtt_p50_us < MAX_RTT_P50_US,
+            "median round trip {} us",
+            rep.rtt_p50_us
+        );
+        let timing = match writes {
+            Writes::AsTimed => timing,
+            Writes::AfterRoundTrip => IoTiming {
+                write_delay: timing.write_delay + rep.rtt_p50_us * 1e-6,
+                ..timing
+            },
+        };
+        let offline = simulate_timed(&twin, &twin.controller, false, timing)
+            .unwrap()
+            .summary;
         let ratio = rep.channels[0].rms / offline.channels[0].rms;
         eprintln!(
             "{protocol:?} attempt {attempt}: RMS {:.3e} through the server, {:.3e} offline \
@@ -119,26 +145,35 @@ async fn tracks_as_its_twin(
     );
 }
 
+/// By Read: the bridge reads at the tick and writes once the command is back, which a
+/// real-time server applies when it arrives, and this loop loses 12 % to a write 0.3 ms
+/// late (`docs/fieldbus.md`). Against the lockstep twin the ratio was a draw on the host's
+/// speed: Modbus 1.06 to 1.13 on 11-27, 1.39 in a CI run on 11-29; OPC UA 0.89 to 1.13
+/// then, 1.31 to 1.40 on an idle machine on 11-29, with round trips of 0.4-0.5 ms. So the
+/// twin writes the run's median round trip after the tick (the write lands later still:
+/// the twin is the kinder to the loop), the round trip itself is bounded, and the median
+/// of three runs is judged.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_modbus_plant_tracks_through_the_service_as_its_offline_twin() {
     tracks_as_its_twin(
         ServerKind::Modbus,
         "plants/servers/motor-steps-modbus.toml",
         |_| (),
-        IoTiming::default(),
-        1,
+        (IoTiming::default(), Writes::AfterRoundTrip),
+        3,
     )
     .await;
 }
 
+/// As for Modbus.
 #[tokio::test(flavor = "multi_thread")]
 async fn an_opcua_plant_tracks_through_the_service_as_its_offline_twin() {
     tracks_as_its_twin(
         ServerKind::OpcUa,
         "plants/servers/motor-steps-opcua.toml",
         |_| (),
-        IoTiming::default(),
-        1,
+        (IoTiming::default(), Writes::AfterRoundTrip),
+        3,
     )
     .await;
 }
@@ -170,10 +205,13 @@ async fn an_opcua_plant_by_subscription_tracks_as_its_offline_twin() {
             }
             other => panic!("an OPC UA plant, not {other:?}"),
         },
-        IoTiming {
-            value_age: 1e-3,
-            write_delay: 0.0,
-        },
+        (
+            IoTiming {
+                value_age: 1e-3,
+                write_delay: 0.0,
+            },
+            Writes::AsTimed,
+        ),
         3,
     )
     .await;
