@@ -1,6 +1,7 @@
 //! The `mfc-lab` command line. Thin: parsing, progress and printing; the work is in the
 //! library.
 
+use std::num::NonZeroUsize;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
@@ -152,7 +153,7 @@ struct RobustArgs {
     bound: f64,
     /// Threads (default: the machine's cores).
     #[arg(long)]
-    threads: Option<usize>,
+    threads: Option<NonZeroUsize>,
     /// Output directory (robust.md, robust.json, robust-heatmap.svg).
     #[arg(long, default_value = "out/robust")]
     out: PathBuf,
@@ -349,7 +350,7 @@ struct FamilyArgs {
     chatter: Option<f64>,
     /// Threads (default: the machine's cores).
     #[arg(long, requires = "family")]
-    threads: Option<usize>,
+    threads: Option<NonZeroUsize>,
 }
 
 #[derive(clap::Args)]
@@ -555,7 +556,15 @@ fn variations_of(
                 format!("no factor `{n}`: rotor, mass, spring, damping, noise, motor, encoder")
             })
         };
-        names.iter().map(parse).collect::<Result<Vec<_>>>()?
+        let factors = names.iter().map(parse).collect::<Result<Vec<_>>>()?;
+        if let Some((i, _)) = factors
+            .iter()
+            .enumerate()
+            .find(|(i, f)| factors[..*i].contains(f))
+        {
+            bail!("--factors names `{}` twice: each factor once", names[i]);
+        }
+        factors
     };
     Ok(match &scenario.plant {
         PlantSource::Aero(_) => family_of(&factors, seed, random),
@@ -597,10 +606,11 @@ fn controllers_for(
 }
 
 /// `--threads`, or the machine's cores.
-fn threads_or_cores(threads: Option<usize>) -> usize {
-    threads.unwrap_or_else(|| {
-        std::thread::available_parallelism().map_or(1, std::num::NonZeroUsize::get)
-    })
+fn threads_or_cores(threads: Option<NonZeroUsize>) -> usize {
+    threads.map_or_else(
+        || std::thread::available_parallelism().map_or(1, NonZeroUsize::get),
+        NonZeroUsize::get,
+    )
 }
 
 /// `robust`: the family run, judged, written.
@@ -972,7 +982,7 @@ fn tune_family_command(
     );
     let base_cells = run(scenario, &baselines, &variations, threads)?;
     let start_cells = run(scenario, std::slice::from_ref(start), &variations, threads)?;
-    let bars = Bars::new(&variations, &base_cells, &start_cells, f.bound, f.chatter);
+    let bars = Bars::new(&variations, &base_cells, &start_cells, f.bound, f.chatter)?;
     let label = start.name.clone();
     let bar = bar(
         args.budget as u64,
@@ -994,6 +1004,13 @@ fn tune_family_command(
         },
     )?;
     bar.finish_and_clear();
+    if !tuned.margins.worst().is_finite() {
+        bail!(
+            "no candidate ran the whole family safely (the start: {}): nothing written; start \
+             from a law that does, or narrow the family with --factors",
+            tuned.start_margins
+        );
+    }
     let mut set = tuned.set;
     if let Some(name) = &args.name {
         set.name = name.clone();

@@ -171,19 +171,23 @@ pub fn starting_point(kind: &str) -> Option<ControllerSet> {
     })
 }
 
-/// Pointers to the tunable gains of a law (all are positive scales, or signed for
-/// alpha/b0); with `filters`, also an intelligent law's derivative observer bandwidth and
+/// Pointers to the tunable gains of a law, searched as scales (signed for alpha and b0):
+/// a gain of 0 is not among them, as no scale leaves 0 (a PID's `kd` or `ki` of 0 stays
+/// 0); with `filters`, also an intelligent law's derivative observer bandwidth and
 /// estimate filter where it has them (a family search: what held a slow rotor on the AERO
 /// was as much the filters as the gains, `plants/aero/controllers/ipd-lag.toml`).
 fn gains(law: &mut LawConfig, filters: bool) -> Vec<&mut f64> {
     match law {
         LawConfig::Intelligent { params, .. } => {
             let kind = params.kind;
-            let mut g = vec![&mut params.alpha, &mut params.kp];
-            if kind.has_integral() {
+            let mut g = vec![&mut params.alpha];
+            if params.kp != 0.0 {
+                g.push(&mut params.kp);
+            }
+            if kind.has_integral() && params.ki != 0.0 {
                 g.push(&mut params.ki);
             }
-            if kind.has_derivative() {
+            if kind.has_derivative() && params.kd != 0.0 {
                 g.push(&mut params.kd);
             }
             if filters && params.derivative_observer > 0.0 {
@@ -195,7 +199,10 @@ fn gains(law: &mut LawConfig, filters: bool) -> Vec<&mut f64> {
             g
         }
         LawConfig::Pid { params } => {
-            let mut g = vec![&mut params.kp, &mut params.ki];
+            let mut g = vec![&mut params.kp];
+            if params.ki != 0.0 {
+                g.push(&mut params.ki);
+            }
             if params.kd != 0.0 {
                 g.push(&mut params.kd);
             }
@@ -413,24 +420,31 @@ impl Bars {
     /// `baselines` (their cells over the family, every baseline's in the family's order),
     /// the nominal and, unless `chatter` is given, the chatter from `start`'s cells (the
     /// law is not to get noisier than it was), and `own_ratio`.
+    ///
+    /// A baseline run that hit a mechanical limit does not set a bar: it did not do better
+    /// (where every baseline did, the bar is infinite: any safe run meets it). A bar that
+    /// is not a positive number (a start whose nominal run diverged, or that never
+    /// chattered) would make every candidate's margin the same: refused, with the reason.
     pub fn new(
         variations: &[Variation],
         baselines: &[Cell],
         start: &[Cell],
         own_ratio: f64,
         chatter: Option<f64>,
-    ) -> Self {
+    ) -> Result<Self, RunError> {
+        let channels = start.first().map_or(0, |c| c.rms.len());
         let baseline = variations
             .iter()
             .map(|v| {
-                let cells: Vec<&Cell> =
-                    baselines.iter().filter(|c| c.variation == v.name).collect();
-                let channels = cells.first().map_or(0, |c| c.rms.len());
+                let cells: Vec<&Cell> = baselines
+                    .iter()
+                    .filter(|c| c.variation == v.name && c.safe)
+                    .collect();
                 let best = (0..channels)
                     .map(|ch| {
                         cells
                             .iter()
-                            .map(|c| c.rms[ch])
+                            .filter_map(|c| c.rms.get(ch).copied())
                             .fold(f64::INFINITY, f64::min)
                     })
                     .collect();
@@ -441,12 +455,37 @@ impl Bars {
             .iter()
             .flat_map(|c| c.chatter.iter().copied())
             .fold(0.0, f64::max);
-        Bars {
+        let bars = Bars {
             baseline,
             nominal: start.first().map(|c| c.rms.clone()).unwrap_or_default(),
             own_ratio,
             chatter: chatter.unwrap_or(worst_chatter),
+        };
+        let positive = |x: f64| x.is_finite() && x > 0.0;
+        if bars.nominal.is_empty() || !bars.nominal.iter().all(|&x| positive(x)) {
+            return Err(RunError::Bench(format!(
+                "the start's nominal RMS {:?} is not a positive number on every channel: \
+                 start from a law that runs the nominal plant",
+                bars.nominal
+            )));
         }
+        if !positive(bars.chatter) {
+            return Err(RunError::Bench(format!(
+                "the chatter bar {} is not a positive number (the start never changed its \
+                 command): give it with --chatter",
+                bars.chatter
+            )));
+        }
+        let nan = bars
+            .baseline
+            .iter()
+            .find(|(_, b)| b.iter().any(|x| x.is_nan()));
+        if let Some((v, _)) = nan {
+            return Err(RunError::Bench(format!(
+                "a baseline's RMS on `{v}` is not a number"
+            )));
+        }
+        Ok(bars)
     }
 }
 
@@ -478,7 +517,8 @@ impl Margins {
                 }
             })
         };
-        let bar = |b: f64| if b > 0.0 { b } else { f64::MIN_POSITIVE };
+        // Bars are positive (`Bars::new`), or infinite where every baseline was unsafe.
+        let bar = |b: f64| if b > 0.0 { b } else { f64::NAN };
         Margins {
             baseline: most(&mut cells.iter().flat_map(|c| {
                 let best = bars.baseline.iter().find(|(v, _)| *v == c.variation);
@@ -564,9 +604,13 @@ pub fn tune_family(
         let cells = robust::run(scenario, std::slice::from_ref(set), variations, threads)?;
         Ok(Some(Margins::of(&cells, bars)))
     };
-    let start_margins = margins(start)?.ok_or_else(|| {
-        RunError::Bench(format!("the starting point `{}` is refused", start.name))
+    scenario.check_controller(start).map_err(|e| {
+        RunError::Bench(format!(
+            "the starting point `{}` is refused: {e}",
+            start.name
+        ))
     })?;
+    let start_margins = margins(start)?.expect("checked above");
     let x0 = to_logs(start, true);
     // The search's first candidate is the start, just measured.
     let cost = |x: &[f64]| match x == x0.as_slice() {
@@ -574,9 +618,15 @@ pub fn tune_family(
         false => Ok(margins(&from_logs(start, x, true))?.map_or(f64::INFINITY, |m| m.worst())),
     };
     let found = search(&x0, budget, seed, cost, progress)?;
-    let mut set = from_logs(start, &found.x, true);
-    let margins = margins(&set)?
-        .ok_or_else(|| RunError::Bench(format!("the tuned set `{}` is refused", set.name)))?;
+    // Nothing better than the start: the start itself, not its gains through ln and exp.
+    let (mut set, margins) = if found.x == x0 {
+        (start.clone(), start_margins)
+    } else {
+        let set = from_logs(start, &found.x, true);
+        let m = margins(&set)?
+            .ok_or_else(|| RunError::Bench(format!("the tuned set `{}` is refused", set.name)))?;
+        (set, m)
+    };
     set.description = format!(
         "tuned by `mfc-lab tune --family` on {} over {} variations with {} candidates (seed \
          {seed}): worst margin {:.3} from {:.3} ({margins})",
@@ -629,7 +679,7 @@ mod tests {
             cell(n, [0.5, 1.0], [0.5, 1.0], 0.4),
             cell(m, [1.0, 3.0], [0.5, 1.0], 0.8),
         ];
-        let bars = Bars::new(&family, &base, &start, 2.0, None);
+        let bars = Bars::new(&family, &base, &start, 2.0, None).unwrap();
         assert_eq!(
             bars.baseline,
             vec![
@@ -666,17 +716,62 @@ mod tests {
         assert_eq!(Margins::of(&bad, &bars).worst(), f64::INFINITY);
         let mut nan = good.clone();
         nan[1].rms[0] = f64::NAN;
+        assert_eq!(Margins::of(&nan, &bars).worst(), f64::INFINITY, "an RMS");
+        let mut nan = good.clone();
         nan[1].ratio[0] = f64::NAN;
-        assert_eq!(Margins::of(&nan, &bars).worst(), f64::INFINITY);
+        assert_eq!(Margins::of(&nan, &bars).worst(), f64::INFINITY, "a ratio");
         // A variation the bars do not know is not judged as met.
         let mut stray = good.clone();
         stray[1].variation = "elsewhere".into();
         assert_eq!(Margins::of(&stray, &bars).worst(), f64::INFINITY);
         // A chatter bar given replaces the start's.
         assert_eq!(
-            Bars::new(&family, &base, &start, 2.0, Some(0.7)).chatter,
+            Bars::new(&family, &base, &start, 2.0, Some(0.7))
+                .unwrap()
+                .chatter,
             0.7
         );
+    }
+
+    /// A baseline that hit a mechanical limit sets no bar (where none was safe, any safe
+    /// run meets it); bars that would make every candidate equal are refused.
+    #[test]
+    fn unsafe_baselines_set_no_bar_and_empty_bars_are_refused() {
+        let family = family_of(&[Factor::Mass], 1, 0);
+        let (n, m) = (family[0].name.as_str(), family[1].name.as_str());
+        let mut base = [
+            cell(n, [1.0, 4.0], [1.0, 4.0], 0.1),
+            cell(m, [0.1, 0.1], [1.0, 4.0], 0.1),
+            cell(n, [2.0, 2.0], [2.0, 2.0], 0.1),
+            cell(m, [3.0, 8.0], [2.0, 2.0], 0.1),
+        ];
+        base[1].safe = false;
+        let start = [
+            cell(n, [0.5, 1.0], [0.5, 1.0], 0.4),
+            cell(m, [1.0, 3.0], [0.5, 1.0], 0.8),
+        ];
+        let bars = Bars::new(&family, &base, &start, 2.0, None).unwrap();
+        assert_eq!(bars.baseline[1], (m.to_string(), vec![3.0, 8.0]));
+        base[3].safe = false;
+        let bars = Bars::new(&family, &base, &start, 2.0, None).unwrap();
+        assert_eq!(bars.baseline[1].1, vec![f64::INFINITY; 2]);
+        let margins = Margins::of(&start, &bars);
+        assert_eq!(
+            margins.baseline, 0.5,
+            "the nominal's 1 against 2; 0 on the mass"
+        );
+        let mut quiet = start.clone();
+        for c in &mut quiet {
+            c.chatter = vec![0.0; 2];
+        }
+        let e = Bars::new(&family, &base, &quiet, 2.0, None).unwrap_err();
+        assert!(e.to_string().contains("--chatter"), "{e}");
+        assert!(Bars::new(&family, &base, &quiet, 2.0, Some(0.5)).is_ok());
+        let mut diverged = start.clone();
+        diverged[0].rms[1] = f64::NAN;
+        let e = Bars::new(&family, &base, &diverged, 2.0, None).unwrap_err();
+        assert!(e.to_string().contains("nominal RMS"), "{e}");
+        assert!(Bars::new(&family, &base, &[], 2.0, None).is_err());
     }
 
     /// On a slice of the AERO's family where the headline breaks the own-ratio bar (a
@@ -694,7 +789,7 @@ mod tests {
         let family = family_of(&[Factor::Rotor], 1, 0);
         let base_cells = robust::run(&scenario, &base, &family, 2).unwrap();
         let start_cells = robust::run(&scenario, std::slice::from_ref(&start), &family, 2).unwrap();
-        let bars = Bars::new(&family, &base_cells, &start_cells, 2.0, None);
+        let bars = Bars::new(&family, &base_cells, &start_cells, 2.0, None).unwrap();
         let mut calls = 0;
         let tuned = tune_family(&scenario, &start, &family, &bars, 12, 1, 2, |_, _| {
             calls += 1

@@ -87,8 +87,7 @@ fn tune_output_is_usable_by_sim() {
 }
 
 /// `tune --family`: gains for a slice of the robustness family, written with the command
-/// that made them and usable by `sim` and `robust`; the margins said before and after;
-/// bad bars refused.
+/// that made them and usable by `sim` and `robust`; the margins said before and after.
 #[test]
 fn a_family_tuning_says_its_margins_and_writes_a_usable_law() {
     let dir = tempfile::tempdir().unwrap();
@@ -111,6 +110,16 @@ fn a_family_tuning_says_its_margins_and_writes_a_usable_law() {
     assert!(said.contains("over 4 variations of scenario-1"), "{said}");
     assert!(said.contains("start: against the best baseline"), "{said}");
     assert!(said.contains("tuned: against the best baseline"), "{said}");
+    // "worst margin X (start Y)": numbers, and the search kept nothing worse than its start.
+    let margin = |after: &str| -> f64 {
+        let rest = &said[said.find(after).unwrap() + after.len()..];
+        rest.split([' ', ')']).next().unwrap().parse().unwrap()
+    };
+    let (tuned, start) = (margin("worst margin "), margin("(start "));
+    assert!(
+        tuned.is_finite() && start.is_finite() && tuned <= start,
+        "{said}"
+    );
     let text = std::fs::read_to_string(&file).unwrap();
     assert!(
         text.starts_with(
@@ -135,9 +144,20 @@ fn a_family_tuning_says_its_margins_and_writes_a_usable_law() {
             .arg("--out")
             .arg(dir.path().join("robust")),
     );
+}
+
+/// `tune --family`'s bad input refused with the reason, nothing written.
+#[test]
+fn a_family_tuning_refuses_bad_flags_with_the_reason() {
+    let dir = tempfile::tempdir().unwrap();
     for (flags, says) in [
         (["--bound", "0.5"], "--bound must be a ratio of 1 or more"),
         (["--chatter", "0"], "--chatter must be a positive number"),
+        (
+            ["--factors", "rotor,mass,rotor"],
+            "--factors names `rotor` twice",
+        ),
+        (["--threads", "0"], "--threads"),
     ] {
         let out = lab()
             .args([

@@ -5,12 +5,42 @@ use std::time::Duration;
 
 use controller_service::config::ServiceConfig;
 use mfc_lab::harness::{run_plant, service_config, PlantSpec, ServiceHandle};
-use mfc_lab::offline::simulate;
-use plant::scenario::{load_scenario, shipped_controller, Scenario};
-use plant_agent::safety::LoopMode;
+use mfc_lab::offline::{simulate, OfflineSummary};
+use plant::scenario::{load_scenario, shipped_controller, ControllerSet, Scenario};
+use plant_agent::safety::{LoopMode, SupervisorCounters};
 use protocol::convert::channel_to_pb;
 use protocol::{decode, encode, keys, pb, PROTOCOL_VERSION};
-use system_tests::{query, rms_ratio_bound, served_plant, SERIAL};
+use system_tests::{max_held_fraction, query, rms_ratio_bound, served_plant, SERIAL};
+
+/// Runs of a tracking test before it gives up on this machine: tracking is judged on the
+/// first whose commands came in time ([`in_time`]).
+const ATTEMPTS: usize = 3;
+
+/// Whether a run's commands came in time for its tracking to say something about the
+/// service: at most [`max_held_fraction`] of its periods ran on a held command or on the
+/// plant's own fallback (a machine that stalls the loop for 50 ms, a busy CI host, gives
+/// those; a sample or command the service loses gives `missing`, judged elsewhere).
+fn in_time(id: &str, attempt: usize, k: &SupervisorCounters) -> bool {
+    let late = (k.holding_periods + k.local_periods) as f64 / k.periods.max(1) as f64;
+    if late > max_held_fraction() {
+        eprintln!(
+            "attempt {attempt}: {id}: {:.1} % of periods held or on the fallback (bound \
+             {:.1} %): tracking not judged on this attempt",
+            100.0 * late,
+            100.0 * max_held_fraction()
+        );
+    }
+    late <= max_held_fraction()
+}
+
+/// What a tracking test says when no attempt came in time.
+fn not_judged() -> ! {
+    panic!(
+        "no attempt of {ATTEMPTS} had its commands in time (periods held or on the fallback \
+         over {:.1} %): this machine cannot judge tracking now",
+        100.0 * max_held_fraction()
+    )
+}
 
 fn shortened(name: &str, duration: f64) -> Scenario {
     let mut s = load_scenario(name).unwrap();
@@ -19,19 +49,35 @@ fn shortened(name: &str, duration: f64) -> Scenario {
 }
 
 /// One AERO tracks scenario 2 through the service about as well as offline (within
-/// `rms_ratio_bound`, 1.3 by default).
+/// `rms_ratio_bound`, 1.3 by default), on the first of [`ATTEMPTS`] runs in time.
 #[tokio::test(flavor = "multi_thread")]
 async fn one_aero_tracks_scenario_2_through_the_service() {
     let _serial = SERIAL.lock().await;
     let s = load_scenario("2").unwrap();
     let c = shipped_controller("ipd").unwrap();
     let offline = simulate(&s, &c, false).unwrap().summary;
-    let service = ServiceHandle::start(service_config(&s, &c, &["aero-1".into()]), None)
+    for attempt in 1..=ATTEMPTS {
+        if one_aero_once(&s, &c, &offline, attempt).await {
+            return;
+        }
+    }
+    not_judged();
+}
+
+/// One run of [`one_aero_tracks_scenario_2_through_the_service`]: false if it came too
+/// late to be judged.
+async fn one_aero_once(
+    s: &Scenario,
+    c: &ControllerSet,
+    offline: &OfflineSummary,
+    attempt: usize,
+) -> bool {
+    let service = ServiceHandle::start(service_config(s, c, &["aero-1".into()]), None)
         .await
         .unwrap();
     let report = run_plant(
         vec![service.endpoint.clone()],
-        PlantSpec::new(&s, &c, "aero-1"),
+        PlantSpec::new(s, c, "aero-1"),
         true,
     )
     .await
@@ -40,6 +86,9 @@ async fn one_aero_tracks_scenario_2_through_the_service() {
     service.stop().await.unwrap();
     eprintln!("{report:?}");
     assert!(report.completed());
+    if !in_time("aero-1", attempt, &report.counters) {
+        return false;
+    }
     for (net, off) in report.channels.iter().zip(&offline.channels) {
         let ratio = net.rms / off.rms;
         eprintln!(
@@ -54,6 +103,7 @@ async fn one_aero_tracks_scenario_2_through_the_service() {
         (k.commands + k.warming_up) as f64 >= 0.98 * k.periods as f64,
         "{report:?}"
     );
+    true
 }
 
 /// Three plants with different configurations and references on one service are each
@@ -62,6 +112,17 @@ async fn one_aero_tracks_scenario_2_through_the_service() {
 #[tokio::test(flavor = "multi_thread")]
 async fn several_plants_late_join_and_leave() {
     let _serial = SERIAL.lock().await;
+    for attempt in 1..=ATTEMPTS {
+        if several_plants_once(attempt).await {
+            return;
+        }
+    }
+    not_judged();
+}
+
+/// One run of [`several_plants_late_join_and_leave`]: everything judged but the tracking
+/// of a run that came too late ([`in_time`]), and then false.
+async fn several_plants_once(attempt: usize) -> bool {
     let duration = 12.0;
     let plants = [("a", "1", "ipd"), ("b", "2", "pid"), ("c", "3", "adrc")];
     let mut config = ServiceConfig::default();
@@ -117,8 +178,21 @@ async fn several_plants_late_join_and_leave() {
         assert_eq!(served, s.channel_configs(c), "{id}");
     }
     let _ = client.close().await;
-    for ((id, s, c), task) in runs.iter().zip(tasks) {
+    let mut reports = Vec::new();
+    for ((id, _, _), task) in runs.iter().zip(tasks) {
         let report = task.await.unwrap().unwrap().report;
+        assert_eq!(report.counters.fallbacks, 0, "{id}: {report:?}");
+        reports.push(report);
+    }
+    service.stop().await.unwrap();
+    let judged = runs
+        .iter()
+        .zip(&reports)
+        .all(|((id, _, _), r)| in_time(id, attempt, &r.counters));
+    if !judged {
+        return false;
+    }
+    for ((id, s, c), report) in runs.iter().zip(&reports) {
         let offline = simulate(s, c, false).unwrap().summary;
         for (net, off) in report.channels.iter().zip(&offline.channels) {
             let ratio = net.rms / off.rms;
@@ -132,9 +206,8 @@ async fn several_plants_late_join_and_leave() {
                 net.name
             );
         }
-        assert_eq!(report.counters.fallbacks, 0, "{id}: {report:?}");
     }
-    service.stop().await.unwrap();
+    true
 }
 
 /// A reconfiguration at run time takes effect without a bump in the applied voltage.
