@@ -150,9 +150,11 @@ async fn tracks_as_its_twin(
 /// late (`docs/fieldbus.md`). Against the lockstep twin the ratio was a draw on the host's
 /// speed: Modbus 1.06 to 1.13 on 11-27, 1.39 in a CI run on 11-29; OPC UA 0.89 to 1.13
 /// then, 1.31 to 1.40 on an idle machine on 11-29, with round trips of 0.4-0.5 ms. So the
-/// twin writes the run's median round trip after the tick (the write lands later still:
-/// the twin is the kinder to the loop), the round trip itself is bounded, and the median
-/// of three runs is judged.
+/// twin writes the run's median round trip after the tick, which is about the live loop's
+/// own delay (the server answers a Read with its plant as it is when the request arrives,
+/// after the tick, and applies a write when that arrives, later than the round trip by
+/// about as much), the round trip itself is bounded, and the median of three runs is
+/// judged.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_modbus_plant_tracks_through_the_service_as_its_offline_twin() {
     tracks_as_its_twin(
