@@ -440,6 +440,8 @@ impl Bars {
                     .iter()
                     .filter(|c| c.variation == v.name && c.safe)
                     .collect();
+                // `f64::min` passes over a NaN: a baseline run without a number did not
+                // do better either.
                 let best = (0..channels)
                     .map(|ch| {
                         cells
@@ -474,15 +476,6 @@ impl Bars {
                 "the chatter bar {} is not a positive number (the start never changed its \
                  command): give it with --chatter",
                 bars.chatter
-            )));
-        }
-        let nan = bars
-            .baseline
-            .iter()
-            .find(|(_, b)| b.iter().any(|x| x.is_nan()));
-        if let Some((v, _)) = nan {
-            return Err(RunError::Bench(format!(
-                "a baseline's RMS on `{v}` is not a number"
             )));
         }
         Ok(bars)
