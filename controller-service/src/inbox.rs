@@ -17,6 +17,12 @@
 //! Devices the service does not serve (yet: the first sample of a template device comes
 //! this way) share a small fixed number of slots, so a flood of unknown keys fills those
 //! and is dropped (counted as queue full) without touching the slots of served devices.
+//!
+//! A gateway's batches wait here too, one entry per gateway, but there a newer batch does
+//! not always hold a newer sample of every plant: a gateway sends a period in parts when a
+//! plant is late. So a gateway's entry is its unread [`Parts`], which a complete batch
+//! replaces and a part joins.
+//!
 //! Pure data: the service wraps it in a mutex that is held only to push or pop.
 
 use std::collections::{HashMap, HashSet, VecDeque};
@@ -28,6 +34,8 @@ pub enum Push {
     Queued,
     /// It replaced the device's unread sample (the worker is already due to come).
     Superseded,
+    /// It joined the device's unread item, replacing nothing (the worker is due).
+    Joined,
     /// No slot left for a device the service does not serve: dropped.
     Full,
 }
@@ -108,13 +116,26 @@ impl<T> Inbox<T> {
     /// counted as superseded all the same (a newer sample of its device is served
     /// instead). A replay of old samples thus cannot push a device's newest one out.
     pub fn push_unless_older(&mut self, id: &str, item: T, older: impl Fn(&T, &T) -> bool) -> Push {
-        if let Some(p) = self.pending.get_mut(id) {
-            if !older(&item, &p.item) {
-                p.item = item;
+        self.push_merged(id, item, |pending, new| {
+            if !older(&new, pending) {
+                *pending = new;
             }
-            p.superseded += 1;
-            self.superseded += 1;
-            return Push::Superseded;
+            1
+        })
+    }
+
+    /// Put an item of `id` in; if one is already pending, `merge(pending, new)` makes one
+    /// of the two and says how many items it dropped as superseded (counted).
+    pub fn push_merged(&mut self, id: &str, item: T, merge: impl FnOnce(&mut T, T) -> u64) -> Push {
+        if let Some(p) = self.pending.get_mut(id) {
+            let dropped = merge(&mut p.item, item);
+            p.superseded += dropped;
+            self.superseded += dropped;
+            return if dropped > 0 {
+                Push::Superseded
+            } else {
+                Push::Joined
+            };
         }
         if !self.served.contains(id) {
             if self.others >= self.others_cap {
@@ -158,7 +179,7 @@ impl<T> Inbox<T> {
         self.ready.is_empty()
     }
 
-    /// Samples replaced by a newer one of the same device, since the start.
+    /// Items replaced by a newer one of the same device, since the start.
     pub fn superseded(&self) -> u64 {
         self.superseded
     }
@@ -166,6 +187,50 @@ impl<T> Inbox<T> {
     /// Samples dropped for lack of a slot, since the start.
     pub fn full(&self) -> u64 {
         self.full
+    }
+}
+
+/// Most unread batches a gateway keeps side by side: a period split in two or three by
+/// late plants, and room for the worker to fall a period behind. Bounded, so a gateway
+/// sending parts faster than it is served costs a fixed amount.
+pub const PARTS: usize = 4;
+
+/// A gateway's unread batches, oldest first (at most [`PARTS`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Parts<T>(Vec<T>);
+
+impl<T> Parts<T> {
+    /// One batch.
+    pub fn one(item: T) -> Self {
+        Self(vec![item])
+    }
+
+    /// Take in the gateway's newer batches (one, as pushed: [`Parts::one`]), `complete`
+    /// if it holds a sample of each of the gateway's plants: then it holds a newer sample
+    /// of every plant than the unread batches, and replaces them. A part joins them
+    /// instead; if [`PARTS`] already wait, the oldest one goes. Returns how many went.
+    pub fn join(&mut self, newer: Self, complete: bool) -> u64 {
+        newer.0.into_iter().map(|b| self.add(b, complete)).sum()
+    }
+
+    fn add(&mut self, item: T, complete: bool) -> u64 {
+        let dropped = if complete {
+            let n = self.0.len();
+            self.0.clear();
+            n
+        } else if self.0.len() >= PARTS {
+            self.0.remove(0);
+            1
+        } else {
+            0
+        };
+        self.0.push(item);
+        dropped as u64
+    }
+
+    /// The batches, oldest first.
+    pub fn into_vec(self) -> Vec<T> {
+        self.0
     }
 }
 
@@ -224,6 +289,50 @@ mod tests {
         assert_eq!(inbox.pop().unwrap().id, "other");
         assert!(inbox.is_empty());
         assert_eq!(inbox.push("third", vec![]), Push::Queued);
+    }
+
+    #[test]
+    fn a_period_in_parts_loses_no_part_and_a_complete_batch_replaces_them() {
+        let mut inbox: Inbox<Parts<&str>> = Inbox::new(4);
+        inbox.serve("gw");
+        let add = |complete| move |p: &mut Parts<&str>, new| p.join(new, complete);
+        // A late plant's sample leaves alone, then the next period's others: both kept.
+        assert_eq!(inbox.push("gw", Parts::one("late")), Push::Queued);
+        assert_eq!(
+            inbox.push_merged("gw", Parts::one("others"), add(false)),
+            Push::Joined
+        );
+        let t = inbox.pop().unwrap();
+        assert_eq!(
+            (t.item.into_vec(), t.superseded),
+            (vec!["late", "others"], 0)
+        );
+        // Parts beyond the bound push the oldest out, counted.
+        inbox.push("gw", Parts::one("p0"));
+        for p in ["p1", "p2", "p3"] {
+            assert_eq!(
+                inbox.push_merged("gw", Parts::one(p), add(false)),
+                Push::Joined
+            );
+        }
+        assert_eq!(
+            inbox.push_merged("gw", Parts::one("p4"), add(false)),
+            Push::Superseded
+        );
+        assert_eq!(
+            inbox.pop().unwrap().item.into_vec(),
+            ["p1", "p2", "p3", "p4"]
+        );
+        // A complete batch holds a newer sample of every plant: it replaces the parts.
+        inbox.push("gw", Parts::one("a"));
+        inbox.push_merged("gw", Parts::one("b"), add(false));
+        assert_eq!(
+            inbox.push_merged("gw", Parts::one("all"), add(true)),
+            Push::Superseded
+        );
+        let t = inbox.pop().unwrap();
+        assert_eq!((t.item.into_vec(), t.superseded), (vec!["all"], 2));
+        assert_eq!(inbox.superseded(), 3);
     }
 
     #[test]

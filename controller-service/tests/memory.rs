@@ -183,6 +183,7 @@ fn what_a_plant_costs_on_the_wire_and_in_a_handover() {
                     ..load::sample(i, 21, resend)
                 })
                 .collect(),
+            plants: 1000,
             mac: Vec::new(),
         })
         .len()

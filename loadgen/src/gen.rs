@@ -481,6 +481,8 @@ fn send_loop(
                 let batch = pb::SampleBatch {
                     version: PROTOCOL_VERSION,
                     gateway_id: format!("{}-gw-{j}", spec.prefix),
+                    // Every plant each period: complete, as a gateway's batch on time.
+                    plants: u32::try_from(range.len()).unwrap_or(u32::MAX),
                     samples: range.map(|i| sample(i, &mut y)).collect(),
                     mac: Vec::new(),
                 };

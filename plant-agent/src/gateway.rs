@@ -12,7 +12,9 @@
 //!
 //! The batcher sends a period's batch as soon as every plant has given its sample, or
 //! [`FLUSH_AFTER`] after the first, whichever comes first: a plant whose driver is slow
-//! delays its neighbours by at most that.
+//! delays its neighbours by at most that, and its sample follows in a part of its own as
+//! soon as it comes (the service keeps a gateway's parts side by side, and lets only a
+//! complete batch replace them: `SampleBatch.plants` says how many make one).
 //!
 //! ```toml
 //! gateway = "cell-1"      # gateway id (key chunk); required
@@ -196,7 +198,8 @@ pub async fn run_gateway(
     let publisher =
         transport::control_publisher(session, keys::shard_gateway_samples(gateway)).await?;
     let (sample_tx, sample_rx) = mpsc::channel::<pb::Sample>(4 * n + 16);
-    let batcher = batcher(&publisher, gateway, key.as_ref(), n, sample_rx);
+    let devices: Vec<String> = plants.iter().map(|(_, c)| c.device_id.clone()).collect();
+    let batcher = batcher(&publisher, gateway, key.as_ref(), &devices, sample_rx);
 
     let (stop_tx, stop_rx) = watch::channel(false);
     // Each plant's loop is a task of its own, so a thousand plants cost a thousand wakes a
@@ -302,22 +305,105 @@ async fn command_router(
         .map_err(AgentError::from)
 }
 
-/// Collect the plants' samples and send one batch per period.
+/// A period's samples as the plants give them: each plant's sample at most once per
+/// period, so that a batch with every plant's is complete (the service lets it replace the
+/// gateway's unread batches whole), and a plant's next sample begins the next period.
+///
+/// A period may leave in parts: what came by [`FLUSH_AFTER`] after its first sample
+/// ([`Period::part`]), then the late plants' samples, sent as soon as the last of them
+/// completes the period. Plants' sequence numbers say nothing about which period a sample
+/// belongs to: each plant counts its own (one that started or restarted later is behind
+/// its neighbours for good). Whether the plant already gave a sample this period does.
+#[derive(Debug)]
+struct Period {
+    /// Each plant's place in `present`.
+    index: HashMap<String, usize>,
+    /// The plants that gave a sample this period (sent in a part already, or pending).
+    present: Vec<bool>,
+    count: usize,
+    /// Samples not sent yet.
+    pending: Vec<pb::Sample>,
+}
+
+impl Period {
+    fn new<'a>(devices: impl IntoIterator<Item = &'a str>) -> Self {
+        let index: HashMap<String, usize> = devices
+            .into_iter()
+            .enumerate()
+            .map(|(i, d)| (d.to_string(), i))
+            .collect();
+        let n = index.len();
+        Self {
+            index,
+            present: vec![false; n],
+            count: 0,
+            pending: Vec::with_capacity(n),
+        }
+    }
+
+    /// Add a plant's sample. If the plant already gave one this period, its next period
+    /// began before the others gave theirs: that period ends, and what it had not sent
+    /// comes back, to be sent first.
+    fn add(&mut self, sample: pb::Sample) -> Option<Vec<pb::Sample>> {
+        let slot = self.index.get(sample.device_id.as_str()).copied();
+        let mut out = None;
+        if slot.is_some_and(|i| self.present[i]) {
+            out = Some(self.end()).filter(|b| !b.is_empty());
+        }
+        if let Some(i) = slot {
+            self.present[i] = true;
+            self.count += 1;
+        }
+        self.pending.push(sample);
+        out
+    }
+
+    /// Whether every plant gave its sample this period.
+    fn complete(&self) -> bool {
+        self.count >= self.present.len()
+    }
+
+    fn is_empty(&self) -> bool {
+        self.pending.is_empty()
+    }
+
+    /// Samples waiting since the first of them.
+    fn waiting(&self) -> usize {
+        self.pending.len()
+    }
+
+    /// What the period has not sent yet; the period goes on (its plants have given their
+    /// sample: the rest will follow in another part).
+    fn part(&mut self) -> Vec<pb::Sample> {
+        std::mem::replace(&mut self.pending, Vec::with_capacity(self.present.len()))
+    }
+
+    /// What the period has not sent yet; the next period begins.
+    fn end(&mut self) -> Vec<pb::Sample> {
+        self.present.fill(false);
+        self.count = 0;
+        self.part()
+    }
+}
+
+/// Collect the plants' samples and send one batch per period, or its parts when a plant
+/// is late: what came by [`FLUSH_AFTER`] after the first sample, and the rest as it comes.
 async fn batcher(
     publisher: &zenoh::pubsub::Publisher<'_>,
     gateway: &str,
     key: Option<&Key>,
-    plants: usize,
+    devices: &[String],
     mut rx: mpsc::Receiver<pb::Sample>,
 ) {
-    let mut pending: Vec<pb::Sample> = Vec::with_capacity(plants);
-    let mut seq: Option<u64> = None;
+    let mut period = Period::new(devices.iter().map(String::as_str));
+    let plants = u32::try_from(devices.len()).unwrap_or(u32::MAX);
     let mut deadline = Instant::now();
     let send = |batch: Vec<pb::Sample>| {
         let payload = encode(&pb::SampleBatch {
             version: PROTOCOL_VERSION,
             gateway_id: gateway.to_string(),
             samples: batch,
+            plants,
             mac: Vec::new(),
         });
         let payload = match key {
@@ -331,38 +417,106 @@ async fn batcher(
         }
     };
     loop {
-        let next = if pending.is_empty() {
+        let next = if period.is_empty() {
             rx.recv().await
         } else {
             match tokio::time::timeout_at(deadline, rx.recv()).await {
                 Ok(s) => s,
                 Err(_) => {
-                    send(std::mem::take(&mut pending)).await;
-                    seq = None;
+                    send(period.part()).await;
                     continue;
                 }
             }
         };
         let Some(sample) = next else {
-            if !pending.is_empty() {
-                send(std::mem::take(&mut pending)).await;
+            if !period.is_empty() {
+                send(period.end()).await;
             }
             // Every loop ended: nothing more will come.
             std::future::pending::<()>().await;
             return;
         };
-        if seq.is_some_and(|s| s != sample.seq) {
-            // A new period began before the last one filled: send what it has.
-            send(std::mem::take(&mut pending)).await;
+        if let Some(earlier) = period.add(sample) {
+            send(earlier).await;
         }
-        if pending.is_empty() {
+        if period.waiting() == 1 {
             deadline = Instant::now() + FLUSH_AFTER;
         }
-        seq = Some(sample.seq);
-        pending.push(sample);
-        if pending.len() >= plants {
-            send(std::mem::take(&mut pending)).await;
-            seq = None;
+        if period.complete() {
+            send(period.end()).await;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample(device: &str, seq: u64) -> pb::Sample {
+        pb::Sample {
+            device_id: device.into(),
+            seq,
+            ..Default::default()
+        }
+    }
+
+    fn ids(batch: &[pb::Sample]) -> Vec<(&str, u64)> {
+        batch
+            .iter()
+            .map(|s| (s.device_id.as_str(), s.seq))
+            .collect()
+    }
+
+    #[test]
+    fn a_period_is_complete_with_each_plants_sample_whatever_their_sequences() {
+        let mut p = Period::new(["a", "b", "c"]);
+        // c started later than its neighbours: its sequence is behind theirs for good.
+        assert!(p.add(sample("a", 40)).is_none());
+        assert!(p.add(sample("c", 7)).is_none());
+        assert!(!p.complete());
+        assert!(p.add(sample("b", 40)).is_none());
+        assert!(p.complete());
+        assert_eq!(ids(&p.end()), [("a", 40), ("c", 7), ("b", 40)]);
+        assert!(p.is_empty() && !p.complete());
+    }
+
+    #[test]
+    fn a_late_plant_completes_its_period_in_a_part_of_its_own() {
+        let mut p = Period::new(["a", "b", "c"]);
+        p.add(sample("a", 1));
+        p.add(sample("b", 1));
+        // The deadline: a and b leave; c is late.
+        assert_eq!(ids(&p.part()), [("a", 1), ("b", 1)]);
+        assert!(p.add(sample("c", 1)).is_none());
+        assert!(p.complete(), "c completes the period: sent at once");
+        assert_eq!(ids(&p.end()), [("c", 1)]);
+        // Next period, in one batch.
+        for d in ["b", "a", "c"] {
+            assert!(p.add(sample(d, 2)).is_none());
+        }
+        assert!(p.complete());
+        assert_eq!(ids(&p.end()), [("b", 2), ("a", 2), ("c", 2)]);
+    }
+
+    #[test]
+    fn a_plants_next_sample_ends_the_period_it_missed() {
+        let mut p = Period::new(["a", "b", "c"]);
+        p.add(sample("a", 1));
+        p.add(sample("b", 1));
+        // c gives nothing this period: a's next sample ends it, a and b's leave first.
+        let rest = p.add(sample("a", 2)).expect("a and b's samples");
+        assert_eq!(ids(&rest), [("a", 1), ("b", 1)]);
+        assert!(
+            p.add(sample("c", 1)).is_none(),
+            "c's late sample joins the next period"
+        );
+        assert!(p.add(sample("b", 2)).is_none());
+        assert!(p.complete());
+        assert_eq!(ids(&p.end()), [("a", 2), ("c", 1), ("b", 2)]);
+        // After a part, a plant's next sample ends the period with nothing left to send.
+        p.add(sample("a", 3));
+        assert_eq!(p.part().len(), 1);
+        assert!(p.add(sample("a", 4)).is_none());
+        assert_eq!(ids(&p.part()), [("a", 4)]);
     }
 }

@@ -177,6 +177,9 @@ pub struct SampleBatchView {
     /// The samples, each an encoded [`pb::Sample`].
     #[prost(bytes = "bytes", repeated, tag = "3")]
     pub samples: Vec<Bytes>,
+    /// As in [`pb::SampleBatch`]: how many plants the gateway hosts.
+    #[prost(uint32, tag = "4")]
+    pub plants: u32,
     /// As in [`pb::SampleBatch`].
     #[prost(bytes = "vec", tag = "100")]
     pub mac: Vec<u8>,
@@ -190,6 +193,13 @@ impl Versioned for SampleBatchView {
 }
 
 impl SampleBatchView {
+    /// Whether the batch holds a sample of each of the gateway's plants (it says how many
+    /// it hosts, and holds that many): then it holds a newer sample of every plant than
+    /// any earlier batch of the gateway.
+    pub fn is_complete(&self) -> bool {
+        self.plants > 0 && self.samples.len() == self.plants as usize
+    }
+
     /// Decode one of [`Self::samples`] into `into`, replacing what it held (its buffers
     /// are reused). Never panics. The sample's own version is not checked, as in a decoded
     /// [`pb::SampleBatch`]: the batch's is.
@@ -322,6 +332,7 @@ mod tests {
                 sample(2, vec![4.0], ""),
                 sample(3, vec![], "other"),
             ],
+            plants: 3,
             mac: Vec::new(),
         };
         let payload = Bytes::from(encode(&batch));
@@ -329,6 +340,16 @@ mod tests {
         let view: SampleBatchView = decode_from(payload.clone()).unwrap();
         assert_eq!((view.version, view.gateway_id.as_str()), (1, "gw-1"));
         assert_eq!(view.samples.len(), 3);
+        assert!(view.is_complete(), "a sample of each of its three plants");
+        let part = SampleBatchView {
+            samples: view.samples[..2].to_vec(),
+            ..view.clone()
+        };
+        let unknown = SampleBatchView {
+            plants: 0,
+            ..view.clone()
+        };
+        assert!(!part.is_complete() && !unknown.is_complete());
         let mut s = pb::Sample::default();
         for (k, want) in batch.samples.iter().enumerate() {
             assert!(

@@ -263,11 +263,31 @@ async fn a_gateway_hosts_plants_behind_servers_beside_a_driver() {
     )
     .await
     .unwrap();
+    let status: protocol::pb::ServiceStatus = system_tests::query(
+        &session,
+        protocol::keys::service_status("controller-1"),
+        None,
+    )
+    .await
+    .unwrap();
     let _ = session.close().await;
     service.stop().await.unwrap();
-    for (run, id) in runs.into_iter().zip(&ids) {
-        let r = run.unwrap().report;
-        eprintln!("{}", r.headline());
+    // Everything first, so that a failure shows every plant's counts and the service's.
+    eprintln!(
+        "service: {} batches superseded, {} dropped for a full queue; lost per device: {:?}",
+        status.superseded_batches,
+        status.queue_full,
+        status
+            .devices
+            .iter()
+            .map(|d| (d.device_id.as_str(), d.lost))
+            .collect::<Vec<_>>()
+    );
+    let reports: Vec<_> = runs.into_iter().map(|r| r.unwrap().report).collect();
+    for r in &reports {
+        eprintln!("{}: {:?}", r.headline(), r.counters);
+    }
+    for (r, id) in reports.iter().zip(&ids) {
         assert_eq!(&r.device_id, id);
         assert!(r.completed() && r.safe_stop_applied, "{r:?}");
         assert_eq!(r.link, plant_agent::agent::ControllerLink::Kept, "{r:?}");

@@ -15,7 +15,7 @@ use super::intake::Drops;
 use super::keyring::{sealed, Keyring};
 use super::log::{throttled, Warnings};
 use super::{lock, GATEWAY_PUBLISHERS};
-use crate::inbox::{Inbox, Taken};
+use crate::inbox::{Inbox, Parts, Taken};
 use crate::observe::{thread_cpu, DeviceHistograms, ServiceMetrics};
 use crate::registry::{Registry, Served, Via};
 use telemetry::{Recording, Topic};
@@ -60,9 +60,10 @@ pub(super) struct Shared {
     pub(super) core: Mutex<Core>,
     /// Samples waiting for the worker: the latest per device.
     pub(super) inbox: Mutex<Inbox<pb::Sample>>,
-    /// Gateway batches waiting for the worker: the latest per gateway, its samples still
-    /// encoded (the worker decodes them one at a time, [`Core::serve_batch`]).
-    pub(super) gateways: Mutex<Inbox<SampleBatchView>>,
+    /// Gateway batches waiting for the worker: the unread ones of each gateway (a complete
+    /// batch, or the parts of a split period), their samples still encoded (the worker
+    /// decodes them one at a time, [`Core::serve_batch`]).
+    pub(super) gateways: Mutex<Inbox<Parts<SampleBatchView>>>,
     pub(super) masks: Masks,
     /// Drops counted in the callbacks, before the worker sees anything.
     pub(super) drops: Drops,
@@ -206,22 +207,21 @@ impl Core {
     /// are written into the pool's, and the samples decoded into the samples', both kept
     /// from batch to batch, so that answering thousands of samples a period allocates
     /// nothing. A sample that does not decode is dropped (counted as undecodable), the
-    /// others answered. Returns the gateway and the encoded batch to send, if this worker
+    /// others answered. Returns the encoded batch to send to gateway `gw`, if this worker
     /// answers it.
     pub(super) fn serve_batch(
         &mut self,
         answers: bool,
         (inbox, drops): (&Mutex<Inbox<pb::Sample>>, &Drops),
-        taken: Taken<SampleBatchView>,
-    ) -> Option<(String, Vec<u8>)> {
-        let gw = taken.id;
-        let home = protocol::shard_of(&gw);
-        let batch = taken.item;
+        gw: &str,
+        batch: SampleBatchView,
+    ) -> Option<Vec<u8>> {
+        let home = protocol::shard_of(gw);
         let mut samples = std::mem::take(&mut self.samples);
         let mut commands = std::mem::take(&mut self.pool);
         let mut sends = std::mem::take(&mut self.sends);
         let mut good = std::mem::take(&mut self.good);
-        self.read_batch(&gw, &batch, &mut samples, &mut good, drops);
+        self.read_batch(gw, &batch, &mut samples, &mut good, drops);
         let mut n = 0;
         // One clock read for the batch: its time is shared by its samples (reading the
         // clock per sample would cost as much as a step).
@@ -243,7 +243,7 @@ impl Core {
             let served = self
                 .registry
                 .handle_sample(via, sample, log_ns, &mut commands[n]);
-            let provisioned = self.note_served(dev, Some(&gw), served, &commands[n]);
+            let provisioned = self.note_served(dev, Some(gw), served, &commands[n]);
             if provisioned {
                 lock(inbox).serve(dev);
             }
@@ -282,21 +282,21 @@ impl Core {
         let spare = commands.split_off(sent);
         let out = pb::CommandBatch {
             version: protocol::PROTOCOL_VERSION,
-            gateway_id: gw.clone(),
+            gateway_id: gw.to_string(),
             commands,
             controller_id: self.registry.controller_id().to_string(),
             mac: Vec::new(),
         };
         let payload = (sent > 0).then(|| {
             sealed(self.keys.as_deref(), encode(&out), |k, b| {
-                k.seal_batch(&gw, b)
+                k.seal_batch(gw, b)
             })
         });
         self.pool = out.commands;
         self.pool.extend(spare);
         keep_small(&mut samples, &batch.samples);
         self.samples = samples;
-        payload.map(|p| (gw, p))
+        payload
     }
 
     /// Decode a batch's samples into `samples` (kept from batch to batch) and list in

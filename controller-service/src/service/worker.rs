@@ -274,16 +274,22 @@ impl Worker {
             }
         }
         for _ in 0..GATEWAY_TURN {
-            let out = {
-                let mut c = lock(&shared.core);
-                let Some(taken) = lock(&shared.gateways).pop() else {
-                    break;
-                };
-                let answers = shared.masks.answers(protocol::shard_of(&taken.id));
-                c.serve_batch(answers, (&shared.inbox, &shared.drops), taken)
+            let Some(taken) = lock(&shared.gateways).pop() else {
+                break;
             };
-            if let Some((gw, payload)) = out {
-                publish_batch(&self.session, &shared.core, gw, payload).await;
+            let gw = taken.id;
+            let answers = shared.masks.answers(protocol::shard_of(&gw));
+            // A split period's parts in the order they came: each plant's samples in order.
+            for batch in taken.item.into_vec() {
+                let out = lock(&shared.core).serve_batch(
+                    answers,
+                    (&shared.inbox, &shared.drops),
+                    &gw,
+                    batch,
+                );
+                if let Some(payload) = out {
+                    publish_batch(&self.session, &shared.core, gw.clone(), payload).await;
+                }
             }
         }
         if !lock(&shared.inbox).is_empty() || !lock(&shared.gateways).is_empty() {
