@@ -259,7 +259,7 @@ const SERVICE_COUNTERS: &[(&str, &str, Field<pb::ServiceStatus>)] = &[
     ),
     (
         "mfc_service_superseded_batches_total",
-        "Gateway batches replaced by a newer one.",
+        "Gateway batches dropped unserved (replaced by a complete one, or beyond the parts a gateway may have waiting).",
         |s| s.superseded_batches,
     ),
     (
