@@ -20,8 +20,8 @@
 //!
 //! A gateway's batches wait here too, one entry per gateway, but there a newer batch does
 //! not always hold a newer sample of every plant: a gateway sends a period in parts when a
-//! plant is late. So a gateway's entry is its unread [`Parts`], which a complete batch
-//! replaces and a part joins.
+//! plant is late. So a gateway's entry is its unread [`Parts`], up to one period's worth
+//! of samples: a part joins them, a complete batch replaces them.
 //!
 //! Pure data: the service wraps it in a mutex that is held only to push or pop.
 
@@ -191,46 +191,72 @@ impl<T> Inbox<T> {
 }
 
 /// Most unread batches a gateway keeps side by side: a period split in two or three by
-/// late plants, and room for the worker to fall a period behind. Bounded, so a gateway
-/// sending parts faster than it is served costs a fixed amount.
+/// late plants, and a little room. Bounded, so a gateway sending many small parts costs
+/// a fixed amount.
 pub const PARTS: usize = 4;
 
-/// A gateway's unread batches, oldest first (at most [`PARTS`]).
+/// What a gateway's unread batches may hold in all: beyond it, the oldest go.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Cap {
+    /// Samples: the plants the gateway hosts. A gateway's period holds one sample of each,
+    /// so more than that holds an older sample of some plant than a newer batch does.
+    pub samples: usize,
+    /// Encoded bytes: one batch's bound, so that a gateway's entry costs no more memory
+    /// than one batch did.
+    pub bytes: usize,
+}
+
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Parts<T>(Vec<T>);
+struct Part<T> {
+    item: T,
+    samples: usize,
+    bytes: usize,
+}
+
+/// A gateway's unread batches, oldest first.
+///
+/// A gateway sends a period in parts when plants are late, so a newer batch does not
+/// always hold a newer sample of every plant than the unread ones. The parts are kept
+/// side by side, within a [`Cap`] of one period's samples (and [`PARTS`] batches, and one
+/// batch's bytes): a complete batch (one sample of each plant) leaves room for nothing
+/// older, and a worker a period behind serves one period's worth, not every part it
+/// missed. What the oldest parts held beyond the cap is what the worker would have served
+/// late, if at all.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Parts<T>(Vec<Part<T>>);
 
 impl<T> Parts<T> {
-    /// One batch.
-    pub fn one(item: T) -> Self {
-        Self(vec![item])
+    /// One batch of `samples` samples, `bytes` long.
+    pub fn one(item: T, samples: usize, bytes: usize) -> Self {
+        Self(vec![Part {
+            item,
+            samples,
+            bytes,
+        }])
     }
 
-    /// Take in the gateway's newer batches (one, as pushed: [`Parts::one`]), `complete`
-    /// if it holds a sample of each of the gateway's plants: then it holds a newer sample
-    /// of every plant than the unread batches, and replaces them. A part joins them
-    /// instead; if [`PARTS`] already wait, the oldest one goes. Returns how many went.
-    pub fn join(&mut self, newer: Self, complete: bool) -> u64 {
-        newer.0.into_iter().map(|b| self.add(b, complete)).sum()
-    }
-
-    fn add(&mut self, item: T, complete: bool) -> u64 {
-        let dropped = if complete {
-            let n = self.0.len();
-            self.0.clear();
-            n
-        } else if self.0.len() >= PARTS {
-            self.0.remove(0);
-            1
-        } else {
-            0
-        };
-        self.0.push(item);
-        dropped as u64
+    /// Take in the gateway's newer batches (one, as pushed: [`Parts::one`]), then let the
+    /// oldest go while more than `cap` or [`PARTS`] batches wait (the newest always
+    /// stays). Returns how many went.
+    pub fn join(&mut self, newer: Self, cap: Cap) -> u64 {
+        self.0.extend(newer.0);
+        let mut samples: usize = self.0.iter().map(|p| p.samples).sum();
+        let mut bytes: usize = self.0.iter().map(|p| p.bytes).sum();
+        let mut gone = 0;
+        while self.0.len() > gone + 1
+            && (self.0.len() - gone > PARTS || samples > cap.samples || bytes > cap.bytes)
+        {
+            samples -= self.0[gone].samples;
+            bytes -= self.0[gone].bytes;
+            gone += 1;
+        }
+        self.0.drain(..gone);
+        gone as u64
     }
 
     /// The batches, oldest first.
     pub fn into_vec(self) -> Vec<T> {
-        self.0
+        self.0.into_iter().map(|p| p.item).collect()
     }
 }
 
@@ -292,47 +318,69 @@ mod tests {
     }
 
     #[test]
-    fn a_period_in_parts_loses_no_part_and_a_complete_batch_replaces_them() {
+    fn a_period_in_parts_loses_no_part_and_a_newer_period_replaces_it() {
         let mut inbox: Inbox<Parts<&str>> = Inbox::new(4);
         inbox.serve("gw");
-        let add = |complete| move |p: &mut Parts<&str>, new| p.join(new, complete);
-        // A late plant's sample leaves alone, then the next period's others: both kept.
-        assert_eq!(inbox.push("gw", Parts::one("late")), Push::Queued);
-        assert_eq!(
-            inbox.push_merged("gw", Parts::one("others"), add(false)),
-            Push::Joined
-        );
+        // A gateway of four plants.
+        let cap = Cap {
+            samples: 4,
+            bytes: 1000,
+        };
+        let push = |inbox: &mut Inbox<Parts<&str>>, name, samples| {
+            inbox.push_merged("gw", Parts::one(name, samples, 10), |p, new| {
+                p.join(new, cap)
+            })
+        };
+        // Three plants on time, then the late one's sample alone: both kept, in order.
+        assert_eq!(push(&mut inbox, "abc", 3), Push::Queued);
+        assert_eq!(push(&mut inbox, "d", 1), Push::Joined);
         let t = inbox.pop().unwrap();
-        assert_eq!(
-            (t.item.into_vec(), t.superseded),
-            (vec!["late", "others"], 0)
-        );
-        // Parts beyond the bound push the oldest out, counted.
-        inbox.push("gw", Parts::one("p0"));
-        for p in ["p1", "p2", "p3"] {
-            assert_eq!(
-                inbox.push_merged("gw", Parts::one(p), add(false)),
-                Push::Joined
-            );
+        assert_eq!((t.item.into_vec(), t.superseded), (vec!["abc", "d"], 0));
+        // One plant silent: each period is a part of three. The worker a period behind
+        // finds the newer period's, not both.
+        push(&mut inbox, "abc-1", 3);
+        assert_eq!(push(&mut inbox, "abc-2", 3), Push::Superseded);
+        assert_eq!(inbox.pop().unwrap().item.into_vec(), ["abc-2"]);
+        // A late plant's part, then the next period's parts: the late sample stays as long
+        // as the period's samples fit.
+        push(&mut inbox, "d-1", 1);
+        assert_eq!(push(&mut inbox, "abc-2", 3), Push::Joined);
+        assert_eq!(push(&mut inbox, "d-2", 1), Push::Superseded);
+        assert_eq!(inbox.pop().unwrap().item.into_vec(), ["abc-2", "d-2"]);
+        // A complete batch leaves room for nothing older.
+        push(&mut inbox, "a", 1);
+        push(&mut inbox, "b", 1);
+        assert_eq!(push(&mut inbox, "abcd", 4), Push::Superseded);
+        let t = inbox.pop().unwrap();
+        assert_eq!((t.item.into_vec(), t.superseded), (vec!["abcd"], 2));
+        assert_eq!(inbox.superseded(), 4);
+    }
+
+    #[test]
+    fn parts_are_bounded_in_count_and_bytes_and_the_newest_always_stays() {
+        let wide = Cap {
+            samples: 100,
+            bytes: 100,
+        };
+        let mut p = Parts::one(0, 1, 10);
+        for k in 1..=PARTS {
+            p.join(Parts::one(k, 1, 10), wide);
         }
-        assert_eq!(
-            inbox.push_merged("gw", Parts::one("p4"), add(false)),
-            Push::Superseded
-        );
-        assert_eq!(
-            inbox.pop().unwrap().item.into_vec(),
-            ["p1", "p2", "p3", "p4"]
-        );
-        // A complete batch holds a newer sample of every plant: it replaces the parts.
-        inbox.push("gw", Parts::one("a"));
-        inbox.push_merged("gw", Parts::one("b"), add(false));
-        assert_eq!(
-            inbox.push_merged("gw", Parts::one("all"), add(true)),
-            Push::Superseded
-        );
-        let t = inbox.pop().unwrap();
-        assert_eq!((t.item.into_vec(), t.superseded), (vec!["all"], 2));
-        assert_eq!(inbox.superseded(), 3);
+        assert_eq!(p.clone().into_vec(), (1..=PARTS).collect::<Vec<_>>());
+        // Bytes: a part of 95 leaves room for nothing older.
+        assert_eq!(p.join(Parts::one(9, 1, 95), wide), PARTS as u64);
+        assert_eq!(p.clone().into_vec(), [9]);
+        // The newest stays even beyond the cap (a batch is bounded where it is taken in).
+        assert_eq!(p.join(Parts::one(10, 500, 500), wide), 1);
+        assert_eq!(p.into_vec(), [10]);
+        // No plant count (a gateway older than the field): a newer batch replaces.
+        let old = Cap {
+            samples: 0,
+            bytes: 100,
+        };
+        let mut p = Parts::one("x", 3, 10);
+        assert_eq!(p.join(Parts::one("y", 1, 10), old), 1);
+        assert_eq!(p.into_vec(), ["y"]);
     }
 
     #[test]

@@ -29,7 +29,7 @@ pub struct Scraped {
     pub tally: Tally,
     /// Devices with a sample waiting in its inbox.
     pub inbox: usize,
-    /// Gateway batches waiting.
+    /// Gateways with batches waiting.
     pub gateways: usize,
     /// Requests and internal messages waiting in its queue.
     pub queue: usize,
@@ -259,7 +259,7 @@ const SERVICE_COUNTERS: &[(&str, &str, Field<pb::ServiceStatus>)] = &[
     ),
     (
         "mfc_service_superseded_batches_total",
-        "Gateway batches dropped unserved (replaced by a complete one, or beyond the parts a gateway may have waiting).",
+        "Gateway batches dropped unserved (the oldest, when a gateway's unread ones held more than a period's worth).",
         |s| s.superseded_batches,
     ),
     (
@@ -385,7 +385,7 @@ impl ServiceMetrics {
         metrics.describe(
             "mfc_service_gateway_depth",
             None,
-            "Gateway batches waiting to be served.",
+            "Gateways with batches waiting to be served.",
         );
         metrics.describe(
             "mfc_service_queue_depth",

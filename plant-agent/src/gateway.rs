@@ -13,8 +13,8 @@
 //! The batcher sends a period's batch as soon as every plant has given its sample, or
 //! [`FLUSH_AFTER`] after the first, whichever comes first: a plant whose driver is slow
 //! delays its neighbours by at most that, and its sample follows in a part of its own as
-//! soon as it comes (the service keeps a gateway's parts side by side, and lets only a
-//! complete batch replace them: `SampleBatch.plants` says how many make one).
+//! soon as it comes (the service keeps a gateway's parts side by side, up to one period's
+//! worth of samples: `SampleBatch.plants` says how many plants that is).
 //!
 //! ```toml
 //! gateway = "cell-1"      # gateway id (key chunk); required
@@ -180,6 +180,17 @@ pub async fn run_gateway(
 ) -> Result<Vec<Result<AgentRun, AgentError>>, AgentError> {
     keys::check_id(gateway).map_err(|e| AgentError::Config(e.to_string()))?;
     let n = plants.len();
+    // Commands are routed and periods told apart by device id: one plant per id.
+    let mut ids = std::collections::HashSet::new();
+    if let Some((_, c)) = plants
+        .iter()
+        .find(|(_, c)| !ids.insert(c.device_id.as_str()))
+    {
+        return Err(AgentError::Config(format!(
+            "device {:?} appears twice in gateway {gateway}",
+            c.device_id
+        )));
+    }
     let forged = Arc::new(AtomicU64::new(0));
     if key.is_some() {
         tracing::info!(gateway, "auth: gateway key (batches sealed and checked)");
@@ -306,8 +317,9 @@ async fn command_router(
 }
 
 /// A period's samples as the plants give them: each plant's sample at most once per
-/// period, so that a batch with every plant's is complete (the service lets it replace the
-/// gateway's unread batches whole), and a plant's next sample begins the next period.
+/// period, so that no batch holds more samples than the gateway has plants (the service
+/// keeps a gateway's unread batches up to that many samples: a complete one replaces the
+/// rest), and a plant's next sample begins the next period.
 ///
 /// A period may leave in parts: what came by [`FLUSH_AFTER`] after its first sample
 /// ([`Period::part`]), then the late plants' samples, sent as soon as the last of them
@@ -343,17 +355,21 @@ impl Period {
 
     /// Add a plant's sample. If the plant already gave one this period, its next period
     /// began before the others gave theirs: that period ends, and what it had not sent
-    /// comes back, to be sent first.
+    /// comes back, to be sent first. A sample of a device the gateway does not host is
+    /// dropped (its plants' loops are the only senders: none can come), so that a batch
+    /// never holds more samples than plants.
     fn add(&mut self, sample: pb::Sample) -> Option<Vec<pb::Sample>> {
-        let slot = self.index.get(sample.device_id.as_str()).copied();
-        let mut out = None;
-        if slot.is_some_and(|i| self.present[i]) {
-            out = Some(self.end()).filter(|b| !b.is_empty());
-        }
-        if let Some(i) = slot {
-            self.present[i] = true;
-            self.count += 1;
-        }
+        let Some(&i) = self.index.get(sample.device_id.as_str()) else {
+            debug_assert!(false, "a sample of {:?}, not hosted", sample.device_id);
+            return None;
+        };
+        let out = if self.present[i] {
+            Some(self.end()).filter(|b| !b.is_empty())
+        } else {
+            None
+        };
+        self.present[i] = true;
+        self.count += 1;
         self.pending.push(sample);
         out
     }

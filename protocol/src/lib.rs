@@ -193,13 +193,6 @@ impl Versioned for SampleBatchView {
 }
 
 impl SampleBatchView {
-    /// Whether the batch holds a sample of each of the gateway's plants (it says how many
-    /// it hosts, and holds that many): then it holds a newer sample of every plant than
-    /// any earlier batch of the gateway.
-    pub fn is_complete(&self) -> bool {
-        self.plants > 0 && self.samples.len() == self.plants as usize
-    }
-
     /// Decode one of [`Self::samples`] into `into`, replacing what it held (its buffers
     /// are reused). Never panics. The sample's own version is not checked, as in a decoded
     /// [`pb::SampleBatch`]: the batch's is.
@@ -340,16 +333,7 @@ mod tests {
         let view: SampleBatchView = decode_from(payload.clone()).unwrap();
         assert_eq!((view.version, view.gateway_id.as_str()), (1, "gw-1"));
         assert_eq!(view.samples.len(), 3);
-        assert!(view.is_complete(), "a sample of each of its three plants");
-        let part = SampleBatchView {
-            samples: view.samples[..2].to_vec(),
-            ..view.clone()
-        };
-        let unknown = SampleBatchView {
-            plants: 0,
-            ..view.clone()
-        };
-        assert!(!part.is_complete() && !unknown.is_complete());
+        assert_eq!(view.plants, 3);
         let mut s = pb::Sample::default();
         for (k, want) in batch.samples.iter().enumerate() {
             assert!(

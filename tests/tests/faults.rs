@@ -673,18 +673,22 @@ async fn a_paused_owner_is_fenced_by_the_plant_lease() {
     // never commands while ctl-b holds. It may hold again only as any member may: once
     // ctl-b's lease lapsed (ctl-b silent for half the hold: a stall of a loaded host),
     // under a higher epoch (checked above). Both are preferred (no fleet), so the lease,
-    // not a ranking, decides who claims a vacant one first.
+    // not a ranking, decides who claims a vacant one first. The lease lapses at the start
+    // of the period after `lapse` silent ones, so a new holder's first command comes more
+    // than `lapse` periods after the last holder's (ctl-b's takeover too).
     let taken = spans
         .iter()
         .position(|x| x.holder == "ctl-b")
         .expect("ctl-b never held the lease");
     let lapse = u64::from(hold.div_ceil(2));
-    for w in spans[taken..].windows(2) {
+    for w in spans[taken - 1..].windows(2) {
         let silent = w[1].first - w[0].last;
         assert!(
-            w[1].holder != "ctl-a" || silent >= lapse,
-            "the resumed owner commanded while ctl-b held the lease ({silent} periods after \
-             ctl-b's last command, the lease lapses after {lapse}): {spans:?}"
+            silent > lapse,
+            "{} commanded while {} held the lease ({silent} periods after its last \
+             command, the lease lapses after {lapse} silent ones): {spans:?}",
+            w[1].holder,
+            w[0].holder
         );
     }
     let gap = spans[taken].first - spans[taken - 1].last;

@@ -60,8 +60,8 @@ pub(super) struct Shared {
     pub(super) core: Mutex<Core>,
     /// Samples waiting for the worker: the latest per device.
     pub(super) inbox: Mutex<Inbox<pb::Sample>>,
-    /// Gateway batches waiting for the worker: the unread ones of each gateway (a complete
-    /// batch, or the parts of a split period), their samples still encoded (the worker
+    /// Gateway batches waiting for the worker: the unread ones of each gateway (up to a
+    /// period's worth: a complete batch, or parts), their samples still encoded (the worker
     /// decodes them one at a time, [`Core::serve_batch`]).
     pub(super) gateways: Mutex<Inbox<Parts<SampleBatchView>>>,
     pub(super) masks: Masks,

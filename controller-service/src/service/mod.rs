@@ -62,13 +62,16 @@ const OTHERS: usize = 64;
 /// Samples the worker serves before it looks at its other inputs again, so requests and
 /// heartbeats are never starved by a busy fleet.
 const BATCH: usize = 64;
-/// Gateways whose batches may wait at once (one unread batch each): a flood of new gateway
-/// ids fills these and is dropped as `queue_full`, never growing the service.
+/// Gateways whose batches may wait at once (each at most one batch's bytes in all,
+/// `crate::inbox::Parts`): a flood of new gateway ids fills these and is dropped as
+/// `queue_full`, never growing the service.
 const GATEWAYS_PENDING: usize = 256;
 /// Gateways with a publisher of their own; commands to any beyond go through the session
 /// (same options, one declaration less), so the table is bounded whatever arrives.
 const GATEWAY_PUBLISHERS: usize = 1024;
-/// Gateway batches the worker serves per turn (each may hold thousands of samples).
+/// Gateway batches the worker serves per turn (each may hold thousands of samples); it
+/// finishes a gateway's parts once it began them, so a turn may serve up to
+/// `crate::inbox::PARTS - 1` more.
 const GATEWAY_TURN: usize = 4;
 /// Throttled warnings: at most one line per kind per interval.
 const LOG_INTERVAL: Duration = Duration::from_secs(5);

@@ -273,7 +273,8 @@ impl Worker {
                 publish(&self.session, &shared.core, &dev, &cmd).await;
             }
         }
-        for _ in 0..GATEWAY_TURN {
+        let mut served = 0;
+        while served < GATEWAY_TURN {
             let Some(taken) = lock(&shared.gateways).pop() else {
                 break;
             };
@@ -281,6 +282,7 @@ impl Worker {
             let answers = shared.masks.answers(protocol::shard_of(&gw));
             // A split period's parts in the order they came: each plant's samples in order.
             for batch in taken.item.into_vec() {
+                served += 1;
                 let out = lock(&shared.core).serve_batch(
                     answers,
                     (&shared.inbox, &shared.drops),
