@@ -90,7 +90,7 @@ async fn exchange(
 /// value it gets back (all must lie inside the envelope).
 struct Gateway {
     s: Session,
-    replies: zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+    replies: Replies,
     every_v: Vec<f64>,
 }
 
@@ -279,8 +279,13 @@ fn judge_counters(st: &pb::ServiceStatus) {
     assert_eq!(st.devices.len(), 8, "the table never grew past max_devices");
 }
 
-/// The service of [`CONFIG`] in a process of its own, and a session to it once it is up.
-async fn start_service(name: &str) -> (Reaped, Session) {
+/// What gw-1's command batches arrive on.
+type Replies =
+    zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>;
+
+/// The service of [`CONFIG`] in a process of its own, a session to it once it is up, and
+/// gw-1's command subscriber on it.
+async fn start_service(name: &str) -> (Reaped, Session, Replies) {
     let dir = scratch_dir(name);
     std::fs::write(dir.join("service.toml"), CONFIG).unwrap();
     let port = transport::free_local_port().unwrap();
@@ -303,17 +308,17 @@ async fn start_service(name: &str) -> (Reaped, Session) {
             .await,
         "the service came up"
     );
-    (service, s)
+    let replies = s
+        .declare_subscriber(keys::gateway_commands("gw-1"))
+        .await
+        .unwrap();
+    (service, s, replies)
 }
 
 #[tokio::test(flavor = "multi_thread")]
 async fn every_rule_holds_per_device_inside_a_batch() {
     let _s = SERIAL.lock().await;
-    let (_service, s) = start_service("gateway").await;
-    let replies = s
-        .declare_subscriber(keys::gateway_commands("gw-1"))
-        .await
-        .unwrap();
+    let (_service, s, replies) = start_service("gateway").await;
     let solo = s.declare_subscriber(keys::command("solo-1")).await.unwrap();
     // Declarations travel in order on the one link: a query after them finds them in place.
     let _: pb::ServiceStatus = query(&s, keys::service_status("c-gw"), None).await.unwrap();
@@ -339,18 +344,15 @@ async fn every_rule_holds_per_device_inside_a_batch() {
 /// A period sent in parts, as a gateway does when plants are late: cell-0's sample, then
 /// cell-1's, then cell-2's and cell-3's, back to back, each part before the service could
 /// have served the one before. Every plant is answered every period, in order, and no
-/// batch is counted superseded: a part joins the gateway's unread ones and never replaces
-/// them (it once did, and a late plant got no command). A batch with more samples than
-/// the plants its gateway hosts is refused.
+/// batch is counted superseded: a part joins the gateway's unread ones while they hold no
+/// more than a period's samples (it once replaced them, and a late plant got no command).
+/// A batch with more samples than the plants its gateway hosts is refused.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_period_in_parts_loses_no_sample() {
     const PERIODS: u64 = 40;
     let _s = SERIAL.lock().await;
-    let (_service, s) = start_service("gateway-parts").await;
-    let replies = s
-        .declare_subscriber(keys::gateway_commands("gw-1"))
-        .await
-        .unwrap();
+    let (_service, s, replies) = start_service("gateway-parts").await;
+    // Declarations travel in order on the one link: a query after them finds them in place.
     let _: pb::ServiceStatus = query(&s, keys::service_status("c-gw"), None).await.unwrap();
     let cells: Vec<String> = (0..4).map(|i| format!("cell-{i}")).collect();
     let part = |k: u64, of: &[String]| {
