@@ -193,6 +193,15 @@ pub struct Channel<const CAP: usize = DEFAULT_CAPACITY> {
 }
 
 impl<const CAP: usize> Channel<CAP> {
+    /// [`crate::MimoController::prefetch`] for one channel.
+    #[cfg(feature = "alloc")]
+    #[inline]
+    pub(crate) fn prefetch(&self) {
+        if let Law::Intelligent(c) = &self.law {
+            c.estimator.prefetch();
+        }
+    }
+
     /// A channel with a checked configuration.
     pub fn new(config: &ChannelConfig) -> Result<Self> {
         let map = OutputMap::new(config.output)?;

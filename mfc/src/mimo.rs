@@ -111,6 +111,18 @@ impl<const CAP: usize> MimoController<CAP> {
         Ok(())
     }
 
+    /// Ask the processor for the memory the next step reads outside this value (the
+    /// estimators' windows, on the heap), without waiting for it: a caller that holds
+    /// thousands of controllers calls it before other work on the same plant, so that
+    /// the fetch overlaps that work. A hint only: it changes nothing, and does nothing
+    /// off x86_64.
+    #[inline]
+    pub fn prefetch(&self) {
+        for c in self.channels.iter() {
+            c.prefetch();
+        }
+    }
+
     /// Step every channel at time `t`. All inputs are checked before any channel moves, so
     /// an error leaves every channel untouched. Allocation-free.
     pub fn step(

@@ -624,3 +624,45 @@ async fn a_gateway_agent_serves_its_plants_in_one_batch_per_period() {
         100.0 * bound
     );
 }
+
+/// `run_gateway` refuses a gateway that names a device twice, before it declares
+/// anything: its commands are routed, and its periods told apart, by device id. (Without
+/// the check the gateway would run until its stop, two seconds here, and this test fail.)
+#[tokio::test(flavor = "multi_thread")]
+async fn a_gateway_naming_a_device_twice_is_refused() {
+    use mfc_lab::harness::default_safety;
+    use plant::scenario::{load_scenario, shipped_controller};
+    use plant_agent::agent::{open_plant, AgentError, LoopConfig};
+
+    let sc = load_scenario("1").unwrap();
+    let c = shipped_controller("ipd").unwrap();
+    let session = transport::ZenohArgs::loopback(None, Vec::new())
+        .open()
+        .await
+        .unwrap();
+    let mut plants = Vec::new();
+    for id in ["cell-a", "cell-b", "cell-a"] {
+        let plant = open_plant(&sc, sc.seed).await.unwrap();
+        plants.push((plant, LoopConfig::new(&sc, &c, id, default_safety(&sc))));
+    }
+    let run = plant_agent::gateway::run_gateway(
+        &session,
+        "cell-t",
+        plants,
+        None,
+        plant::run_id,
+        tokio::time::sleep(Duration::from_secs(2)),
+    )
+    .await;
+    let _ = session.close().await;
+    match run {
+        Err(AgentError::Config(why)) => assert!(
+            why.contains("\"cell-a\" appears twice in gateway cell-t"),
+            "{why}"
+        ),
+        other => panic!(
+            "a device named twice was not refused: {:?}",
+            other.map(|r| r.len())
+        ),
+    }
+}

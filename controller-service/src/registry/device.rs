@@ -49,7 +49,7 @@ pub(super) const REJECTED_KEPT: usize = 64;
 /// The last CONTROL or WARMING_UP answer, kept to send again verbatim for a duplicate: the
 /// values of the command without its ids (the device's key and the controller's own),
 /// inline rather than a whole [`pb::Command`] with five allocations of its own.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub(super) struct Answer {
     pub(super) seq: u64,
     pub(super) mode: i32,
@@ -137,10 +137,13 @@ impl ShortId {
 
     pub(super) fn as_str(&self) -> &str {
         match self {
-            // Whole bytes of a `&str`: always UTF-8, so never the empty fallback.
-            Self::Inline { len, bytes } => {
-                std::str::from_utf8(&bytes[..*len as usize]).unwrap_or("")
-            }
+            // Not checked again: on every comparison in the device table, that was 2 %
+            // of the registry benchmark's profile.
+            // SAFETY: `new` is the only constructor, and the first `len` bytes it keeps
+            // are a whole `&str`'s, so UTF-8.
+            Self::Inline { len, bytes } => unsafe {
+                std::str::from_utf8_unchecked(&bytes[..*len as usize])
+            },
             Self::Heap(s) => s,
         }
     }

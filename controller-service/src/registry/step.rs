@@ -66,6 +66,10 @@ pub(super) fn answer(
     out: &mut pb::Command,
 ) -> Option<bool> {
     let (me, policy, view) = ((cx.controller_id, cx.instance), cx.lease, cx.view);
+    // The device's own lines were asked for ahead (`Device::prefetch`); the estimators'
+    // windows, behind pointers in them, are asked for now, to arrive while the checks
+    // below run.
+    d.mimo.prefetch();
     let silent = cx.now_unix_ns.saturating_sub(d.heard_unix_ns);
     let gap = d.heard_unix_ns > 0 && silent > GAP_NS;
     d.heard_unix_ns = cx.now_unix_ns;
@@ -250,22 +254,26 @@ fn admit(d: &mut Device, key_id: &str, s: &pb::Sample, ordered: bool) -> Result<
 }
 
 /// Rule 5, checked before anything moves: the step's inputs (a new run is checked against
-/// the fresh state it would start from, which is returned).
+/// the fresh state it would start from, which is returned). Boxed: a new run is rare, and
+/// a controller of a few hundred bytes returned inline was copied twice on every sample
+/// (8 % of the registry benchmark's profile, `docs/scale.md`).
 fn check_inputs(
     d: &mut Device,
     s: &pb::Sample,
     new_run: bool,
-) -> Result<Option<MimoController>, String> {
+) -> Result<Option<Box<MimoController>>, String> {
     for (r, pieces) in d.refs.iter_mut().zip(&d.reference) {
         *r = evaluate(pieces, s.plant_time - d.reference_start);
     }
     let fresh = if new_run {
-        Some(MimoController::new(&d.configs()).map_err(|e| e.to_string())?)
+        Some(Box::new(
+            MimoController::new(&d.configs()).map_err(|e| e.to_string())?,
+        ))
     } else {
         None
     };
     fresh
-        .as_ref()
+        .as_deref()
         .unwrap_or(&d.mimo)
         .check(s.plant_time, &s.outputs, &d.refs)
         .map_err(|e| e.to_string())?;
@@ -284,9 +292,9 @@ struct Pace {
 
 /// Take an admitted sample in: a new run, the round trip, the plant's flags, the samples
 /// lost (and recovered from the copies it carries), what the plant applied.
-fn take_in(d: &mut Device, s: &pb::Sample, fresh: Option<MimoController>) -> Pace {
+fn take_in(d: &mut Device, s: &pb::Sample, fresh: Option<Box<MimoController>>) -> Pace {
     if let Some(m) = fresh {
-        d.start_run(s.run_id, m);
+        d.start_run(s.run_id, *m);
     }
     d.settle();
     if s.last_rtt_us > 0 {
@@ -412,7 +420,13 @@ fn keep_answer(
         *f = o.f_est.unwrap_or(f64::NAN);
     }
     let control = !d.outputs.iter().any(|o| o.warming_up);
-    let buffer = d.last_command.take().map(|a| a.horizon).unwrap_or_default();
+    // The last answer is written over in place: building a new one (its values
+    // collected, cloned, the whole moved in) was 9 % of the registry benchmark's profile.
+    let buffer = d
+        .last_command
+        .as_mut()
+        .map(|a| std::mem::take(&mut a.horizon))
+        .unwrap_or_default();
     // A commissioning run's square wave is not predicted: a plant that misses a sample
     // holds its level.
     let commissioning = d.commission.as_ref().is_some_and(|c| c.exciting());
@@ -421,26 +435,33 @@ fn keep_answer(
     } else {
         Vec::new()
     };
-    let answer = Answer {
-        seq: s.seq,
-        mode: if control {
-            pb::Mode::Control
-        } else {
-            pb::Mode::WarmingUp
-        } as i32,
-        controller_unix_ns: now_unix_ns,
-        sample_sent_unix_ns: s.sent_unix_ns,
-        u: d.outputs.iter().map(|o| o.u).collect(),
-        v,
-        f_est: d.f_est.clone(),
-        horizon,
-        reference: d.refs.iter().map(|r| r.y).collect(),
-    };
+    let answer = d.last_command.get_or_insert_with(Answer::default);
+    answer.horizon = horizon;
+    answer.seq = s.seq;
+    answer.mode = if control {
+        pb::Mode::Control
+    } else {
+        pb::Mode::WarmingUp
+    } as i32;
+    answer.controller_unix_ns = now_unix_ns;
+    answer.sample_sent_unix_ns = s.sent_unix_ns;
+    refill(&mut answer.u, d.outputs.iter().map(|o| o.u));
+    answer.v = v;
+    refill(&mut answer.f_est, d.f_est.iter().copied());
+    refill(&mut answer.reference, d.refs.iter().map(|r| r.y));
     d.commands += 1;
-    if answer.mode == pb::Mode::Control as i32 {
-        d.held = Some(answer.v.clone());
+    if control {
+        match &mut d.held {
+            Some(held) => refill(held, answer.v.iter().copied()),
+            None => d.held = Some(PerChannel::from_slice(&answer.v)),
+        }
     }
-    d.last_command = Some(answer);
+}
+
+/// `to` now holds `from`'s values, in its own buffer.
+fn refill(to: &mut PerChannel<f64>, from: impl Iterator<Item = f64>) {
+    to.clear();
+    to.extend(from);
 }
 
 /// The samples lost between the last answered one and `s`, from the copies `s` carries
