@@ -28,27 +28,42 @@ fn samples(devices: usize, k: u64) -> Vec<pb::Sample> {
 /// the devices' state costs once it no longer fits the caches.
 #[divan::bench(args = [1000, 10000])]
 fn every_device_once(b: divan::Bencher, devices: usize) {
-    each_device_stepped::<false>(b, devices);
+    each_device_stepped::<PLAIN>(b, devices);
 }
 
 /// [`every_device_once`] with the next sample's device asked for before each step
-/// (`Registry::prefetch`), as the service serves a gateway's batch: its state arrives
-/// while the sample before it is stepped.
+/// (`Registry::prefetch`), as the service served a gateway's batch until it found them by
+/// slot: its state arrives while the sample before it is stepped.
 #[divan::bench(args = [1000, 10000])]
 fn every_device_once_ahead(b: divan::Bencher, devices: usize) {
-    each_device_stepped::<true>(b, devices);
+    each_device_stepped::<AHEAD>(b, devices);
 }
 
-/// Each device's sample once per iteration; with `AHEAD`, the next one's device asked for
-/// first (a constant, so that the plain form's code is the plain loop).
-fn each_device_stepped<const AHEAD: bool>(b: divan::Bencher, devices: usize) {
+/// [`every_device_once_ahead`] with each position's device found in the slot it was
+/// found in the iteration before (`Registry::handle_sample_at`, `prefetch_at`), as the
+/// service serves a gateway's batch: no table lookup once the order is known.
+#[divan::bench(args = [1000, 10000])]
+fn every_device_once_by_slot(b: divan::Bencher, devices: usize) {
+    each_device_stepped::<BY_SLOT>(b, devices);
+}
+
+/// How [`each_device_stepped`] finds each sample's device (a constant, so that each
+/// form's code is its own loop): looked up, looked up with the next one asked for
+/// first, or found in the slot remembered for its position, the next one asked for first.
+const PLAIN: u8 = 0;
+const AHEAD: u8 = 1;
+const BY_SLOT: u8 = 2;
+
+/// Each device's sample once per iteration, its device found as `MODE` says.
+fn each_device_stepped<const MODE: u8>(b: divan::Bencher, devices: usize) {
     let mut r = Registry::new(ServiceConfig::parse("bench", CONFIG).unwrap()).unwrap();
     // One command written over and over, as the service's batches reuse theirs.
     let mut out = pb::Command::default();
+    let mut slots = vec![None; devices];
     let mut k = 1;
     for _ in 0..20 {
-        for s in samples(devices, k) {
-            r.handle_sample(Via::key(&s.device_id), &s, 0, &mut out);
+        for (s, slot) in samples(devices, k).iter().zip(&mut slots) {
+            r.handle_sample_at(slot, Via::key(&s.device_id), s, 0, &mut out);
         }
         k += 1;
     }
@@ -59,12 +74,19 @@ fn each_device_stepped<const AHEAD: bool>(b: divan::Bencher, devices: usize) {
             s.plant_time = k as f64 * 0.01;
         }
         for (i, s) in batch.iter().enumerate() {
-            if AHEAD {
-                if let Some(next) = batch.get(i + 1) {
-                    r.prefetch(&next.device_id);
+            if let Some(next) = batch.get(i + 1) {
+                match MODE {
+                    AHEAD => r.prefetch(&next.device_id),
+                    BY_SLOT => r.prefetch_at(&mut slots[i + 1], &next.device_id),
+                    _ => {}
                 }
             }
-            divan::black_box(r.handle_sample(Via::key(&s.device_id), s, k, &mut out));
+            let via = Via::key(&s.device_id);
+            divan::black_box(if MODE == BY_SLOT {
+                r.handle_sample_at(&mut slots[i], via, s, k, &mut out)
+            } else {
+                r.handle_sample(via, s, k, &mut out)
+            });
         }
         k += 1;
     });

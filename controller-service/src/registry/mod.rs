@@ -43,12 +43,13 @@
 
 mod commission;
 mod device;
+mod devices;
 mod rare;
 mod requests;
 mod shards;
 mod step;
 
-use std::collections::{BTreeSet, HashMap, VecDeque};
+use std::collections::{BTreeSet, VecDeque};
 
 use protocol::{pb, printable, PROTOCOL_VERSION};
 
@@ -56,6 +57,8 @@ use crate::config::ServiceConfig;
 use crate::lease::{LeasePolicy, Seen, Standing};
 pub use commission::{MAX_CYCLES, MAX_PERIOD, MAX_RUNNING, SILENT_NS};
 use device::{reply, Device, ShortId};
+use devices::Devices;
+pub use devices::Slot;
 pub use shards::Restored;
 
 /// Unknown device ids listed in the status; samples from further unknown ids are still
@@ -243,12 +246,10 @@ pub struct Registry {
     /// copy in recordings.
     secret: Option<protocol::auth::Secret>,
     config: ServiceConfig,
-    /// A hash map: a gateway's batch looks up thousands of devices a period. Whatever
-    /// lists them sorts them first, so listings stay in id order.
-    ///
-    /// Each device is boxed: the table itself stays small enough for the caches (its slots
-    /// hold the key and a pointer), and a lookup reads only it.
-    devices: HashMap<ShortId, Box<Device>>,
+    /// By id through a hash table, or by slot (`devices.rs`): a gateway's batch finds
+    /// thousands of devices a period. Whatever lists them sorts them first, so listings
+    /// stay in id order.
+    devices: Devices,
     /// Samples whose id is neither declared nor matched by a template.
     unknown_samples: u64,
     /// The first `UNKNOWN_KEPT` of those ids.
@@ -273,7 +274,7 @@ pub struct Registry {
 impl Registry {
     /// Build every declared device from a checked configuration.
     pub fn new(config: ServiceConfig) -> Result<Self, RegistryError> {
-        let mut devices = HashMap::new();
+        let mut devices = Devices::default();
         for d in &config.devices {
             let mut dev = Device::new(&d.channels, d.prediction, false).map_err(|reason| {
                 RegistryError::Device {
@@ -340,11 +341,8 @@ impl Registry {
 
     /// The devices in id order.
     fn sorted(&self) -> Vec<(&str, &Device)> {
-        let mut v: Vec<(&str, &Device)> = self
-            .devices
-            .iter()
-            .map(|(k, d)| (k.as_str(), &**d))
-            .collect();
+        let mut v: Vec<(&str, &Device)> =
+            self.devices.iter().map(|(k, d)| (k.as_str(), d)).collect();
         v.sort_unstable_by(|a, b| a.0.cmp(b.0));
         v
     }
@@ -465,19 +463,25 @@ impl Registry {
         now_unix_ns: u64,
         out: &mut pb::Command,
     ) -> Served {
-        // One lookup for a device already served: the common case.
-        if let Some(d) = self.devices.get_mut(via.key_id) {
-            d.prefetch();
-            let cx = step::Context {
-                controller_id: &self.controller_id,
-                rejected: &mut self.rejected,
-                now_unix_ns,
-                lease: &self.lease_policy,
-                view: self.view.as_ref(),
-                instance: self.instance,
-                ordered_runs: self.secret.is_some(),
-            };
-            return served(step::answer((cx, &mut self.handing), d, via, s, out), false);
+        self.handle_sample_at(&mut None, via, s, now_unix_ns, out)
+    }
+
+    /// [`Self::handle_sample`] for a device the caller may have found before, in `slot`
+    /// (a position of a gateway's batch, whose plants come in the same order every
+    /// period): served from that slot if it still holds the device's id, without a
+    /// lookup; otherwise looked up, and `slot` set to where it was found (`None` if it is
+    /// not served).
+    pub fn handle_sample_at(
+        &mut self,
+        slot: &mut Option<Slot>,
+        via: Via<'_>,
+        s: &pb::Sample,
+        now_unix_ns: u64,
+        out: &mut pb::Command,
+    ) -> Served {
+        // A device already served: the common case.
+        if let Some(answered) = self.serve_in(slot, via, s, (now_unix_ns, false), out) {
+            return answered;
         }
         // Not served yet (the rare path): a template may provision it, and then it is
         // served as any other.
@@ -485,9 +489,23 @@ impl Registry {
             self.count_unserved(via.key_id, why);
             return why;
         }
-        let Some(d) = self.devices.get_mut(via.key_id) else {
-            return Served::Unknown;
-        };
+        self.serve_in(slot, via, s, (now_unix_ns, true), out)
+            .unwrap_or(Served::Unknown)
+    }
+
+    /// Step the device served under `via`'s id, found from `slot` as
+    /// [`Devices::find_mut`] finds it (`None` if it is not served), at `now_unix_ns`,
+    /// `provisioned` by this sample or not.
+    fn serve_in(
+        &mut self,
+        slot: &mut Option<Slot>,
+        via: Via<'_>,
+        s: &pb::Sample,
+        (now_unix_ns, provisioned): (u64, bool),
+        out: &mut pb::Command,
+    ) -> Option<Served> {
+        let d = self.devices.find_mut(slot, via.key_id)?;
+        d.prefetch();
         let cx = step::Context {
             controller_id: &self.controller_id,
             rejected: &mut self.rejected,
@@ -497,14 +515,24 @@ impl Registry {
             instance: self.instance,
             ordered_runs: self.secret.is_some(),
         };
-        served(step::answer((cx, &mut self.handing), d, via, s, out), true)
+        Some(served(
+            step::answer((cx, &mut self.handing), d, via, s, out),
+            provisioned,
+        ))
     }
 
     /// Ask the processor for a served device's state ahead of its sample (a batch's next
-    /// one): its table entry and the lines of the device a step reads arrive while the
-    /// sample before it is stepped. Changes nothing; an unknown id does nothing.
+    /// one): the lines of the device a step reads arrive while the sample before it is
+    /// stepped. Changes nothing; an unknown id does nothing.
     pub fn prefetch(&self, key_id: &str) {
-        if let Some(d) = self.devices.get(key_id) {
+        self.prefetch_at(&mut None, key_id);
+    }
+
+    /// [`Self::prefetch`] for a device the caller may have found before, in `slot`, as
+    /// [`Self::handle_sample_at`]: from the slot if it holds the id, else looked up, and
+    /// `slot` set to where it was found.
+    pub fn prefetch_at(&self, slot: &mut Option<Slot>, key_id: &str) {
+        if let Some(d) = self.devices.find(slot, key_id) {
             d.prefetch();
         }
     }
@@ -628,7 +656,7 @@ impl Registry {
     /// round trips, estimates, envelope or strings), in no order: a metrics scrape sums
     /// them over ten thousand devices without holding up the worker for long.
     pub fn for_each_counters(&self, mut f: impl FnMut(&str, &pb::DeviceStatus)) {
-        for (k, d) in &self.devices {
+        for (k, d) in self.devices.iter() {
             f(k.as_str(), &d.counters_pb());
         }
     }
@@ -653,7 +681,7 @@ impl Registry {
         let mut devices: Vec<(&str, &Device)> = self
             .devices
             .iter()
-            .map(|(k, d)| (k.as_str(), &**d))
+            .map(|(k, d)| (k.as_str(), d))
             .filter(|(id, _)| keep(id))
             .collect();
         devices.sort_unstable_by(|a, b| a.0.cmp(b.0));

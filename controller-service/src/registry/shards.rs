@@ -49,7 +49,7 @@ impl Registry {
             shard,
             devices: ids
                 .iter()
-                .filter_map(|id| Self::handed(id, self.devices.get(*id)?))
+                .filter_map(|id| Self::handed(id, self.devices.get(id)?))
                 .collect(),
         }
     }
@@ -313,9 +313,7 @@ impl Registry {
                     return Err(format!("device {:?}: the device table is full", snap.id));
                 }
                 let d = Device::new(&t.channels, t.prediction, true)?;
-                self.devices
-                    .entry(ShortId::new(&snap.id))
-                    .or_insert(Box::new(d))
+                self.devices.or_insert(ShortId::new(&snap.id), Box::new(d))
             }
             None => return Err(format!("device {:?} is no longer configured", snap.id)),
         };

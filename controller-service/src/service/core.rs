@@ -17,7 +17,7 @@ use super::log::{throttled, Warnings};
 use super::{lock, GATEWAY_PUBLISHERS};
 use crate::inbox::{Inbox, Parts, Taken};
 use crate::observe::{thread_cpu, DeviceHistograms, ServiceMetrics};
-use crate::registry::{Registry, Served, Via};
+use crate::registry::{Registry, Served, Slot, Via};
 use telemetry::{Recording, Topic};
 
 /// Which shards this member steps and answers, read by zenoh's callbacks (bit `s` for
@@ -73,6 +73,10 @@ pub(super) struct Shared {
     pub(super) keys: Option<Arc<Keyring>>,
 }
 
+/// Positions of gateways' batches whose device slots are remembered, in all: 8 MiB at
+/// most, whatever gateways send (a hundred times ten thousand plants).
+const KEPT_SLOTS: usize = 1 << 20;
+
 /// What the answer to a sample needs: the device state, its observers and the publishers
 /// of its commands. Shared by the worker's task and zenoh's callbacks: a callback that
 /// finds the core free and nothing queued answers its sample at once, on its own thread,
@@ -102,6 +106,13 @@ pub(super) struct Core {
     sends: Vec<bool>,
     /// Which of a batch's samples decoded with a valid device id, kept for the next batch.
     good: Vec<usize>,
+    /// Per gateway, where each position of its last batch found its device in the
+    /// registry ([`Registry::handle_sample_at`]): a gateway names the same plants in the
+    /// same order every period, so its next batch finds them without a lookup. At most
+    /// [`GATEWAY_PUBLISHERS`] gateways and [`KEPT_SLOTS`] positions in all.
+    slots: HashMap<String, Vec<Option<Slot>>>,
+    /// Positions in `slots`.
+    slots_kept: usize,
     /// The fleet's keys, to seal commands (`None`: open).
     keys: Option<Arc<Keyring>>,
     /// Who may change what, and the audit trail every decision goes to.
@@ -127,6 +138,8 @@ impl Core {
             samples: Vec::new(),
             sends: Vec::new(),
             good: Vec::new(),
+            slots: HashMap::new(),
+            slots_kept: 0,
         }
     }
 
@@ -222,6 +235,9 @@ impl Core {
         let mut sends = std::mem::take(&mut self.sends);
         let mut good = std::mem::take(&mut self.good);
         self.read_batch(gw, &batch, &mut samples, &mut good, drops);
+        let mut slots = self.slots.remove(gw).unwrap_or_default();
+        self.slots_kept -= slots.len();
+        slots.resize(samples.len(), None);
         let mut n = 0;
         // One clock read for the batch: its time is shared by its samples (reading the
         // clock per sample would cost as much as a step).
@@ -232,7 +248,8 @@ impl Core {
             if let Some(&next) = good.get(j + 1) {
                 // The next sample's device comes from memory while this one is stepped:
                 // with thousands of devices, each one's state is a cache miss otherwise.
-                self.registry.prefetch(&samples[next].device_id);
+                self.registry
+                    .prefetch_at(&mut slots[next], &samples[next].device_id);
             }
             let sample = &samples[k];
             let dev = sample.device_id.as_str();
@@ -240,9 +257,13 @@ impl Core {
                 commands.push(pb::Command::default());
             }
             let via = Via::gateway(dev, home).preferred(answers);
-            let served = self
-                .registry
-                .handle_sample(via, sample, log_ns, &mut commands[n]);
+            let served = self.registry.handle_sample_at(
+                &mut slots[k],
+                via,
+                sample,
+                log_ns,
+                &mut commands[n],
+            );
             let provisioned = self.note_served(dev, Some(gw), served, &commands[n]);
             if provisioned {
                 lock(inbox).serve(dev);
@@ -279,6 +300,7 @@ impl Core {
         sends.clear();
         self.sends = sends;
         self.good = good;
+        self.keep_slots(gw, slots);
         let spare = commands.split_off(sent);
         let out = pb::CommandBatch {
             version: protocol::PROTOCOL_VERSION,
@@ -297,6 +319,17 @@ impl Core {
         keep_small(&mut samples, &batch.samples);
         self.samples = samples;
         payload
+    }
+
+    /// Keep where `gw`'s batch found its devices, for its next batch, within the bounds
+    /// (beyond them, a gateway's batches look their devices up, as before).
+    fn keep_slots(&mut self, gw: &str, slots: Vec<Option<Slot>>) {
+        let room =
+            self.slots.len() < GATEWAY_PUBLISHERS && self.slots_kept + slots.len() <= KEPT_SLOTS;
+        if room && slots.iter().any(Option::is_some) {
+            self.slots_kept += slots.len();
+            self.slots.insert(gw.to_string(), slots);
+        }
     }
 
     /// Decode a batch's samples into `samples` (kept from batch to batch) and list in
