@@ -934,3 +934,46 @@ fn rejected_samples_are_not_counted_as_lost() {
     let st = r.device_status("aero-1").unwrap();
     assert_eq!((st.rejected, st.lost), (10, 1), "{st:?}");
 }
+
+/// A slot remembered for a position of a gateway's batch serves only the device it holds
+/// now: a hint that names another device's slot, or no slot at all, finds the sample's
+/// own device by its id, and the hint is set to that device's slot.
+#[test]
+fn a_remembered_slot_serves_only_its_own_device() {
+    use controller_service::registry::Via;
+
+    let mut r = registry();
+    let mut out = pb::Command::default();
+    let (mut one, mut two) = (None, None);
+    for (k, (id, slot)) in [("sim-1", &mut one), ("sim-2", &mut two)]
+        .into_iter()
+        .enumerate()
+    {
+        let s = sample(id, 1, 0.01, &[0.0]);
+        let served = r.handle_sample_at(slot, Via::key(id), &s, k as u64, &mut out);
+        assert!(
+            matches!(served, Served::Answered { .. }),
+            "{id}: {served:?}"
+        );
+    }
+    let (one_slot, two_slot) = (one.unwrap(), two.unwrap());
+    assert_ne!(one_slot, two_slot);
+    // sim-1's sample with sim-2's slot, then with a slot that does not exist.
+    for (seq, hint) in [(2, Some(two_slot)), (3, Some(u32::MAX))] {
+        let mut hint = hint;
+        let s = sample("sim-1", seq, 0.01 * seq as f64, &[0.0]);
+        let served = r.handle_sample_at(&mut hint, Via::key("sim-1"), &s, 0, &mut out);
+        assert!(matches!(served, Served::Answered { .. }), "{served:?}");
+        assert_eq!(hint, Some(one_slot), "the hint set to sim-1's own slot");
+        assert_eq!(out.device_id, "sim-1");
+        assert_eq!(out.seq, seq);
+    }
+    let samples = |id| r.device_status(id).unwrap().samples;
+    assert_eq!((samples("sim-1"), samples("sim-2")), (3, 1));
+    // A hint for an id that is not served stays unset, and the sample is refused.
+    let mut hint = Some(one_slot);
+    let s = sample("nobody", 1, 0.01, &[0.0]);
+    let served = r.handle_sample_at(&mut hint, Via::key("nobody"), &s, 0, &mut out);
+    assert!(matches!(served, Served::Unknown), "{served:?}");
+    assert_eq!(hint, None);
+}

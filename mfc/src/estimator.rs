@@ -678,8 +678,8 @@ impl<const CAP: usize> Estimator<CAP> {
     }
 
     /// Ask the processor for the ring's slots the next [`Self::record`] reads and writes
-    /// (the oldest two, and the one before them that the newest interval takes), without
-    /// reading them. The ring is on the heap, so a caller that holds many estimators
+    /// once the window is full (the oldest, which the newest interval then takes, and
+    /// the one after it, the window's new start), without reading them. The ring is on the heap, so a caller that holds many estimators
     /// (a service's ten thousand devices) can start the fetch early, and overlap it with
     /// other work, where a step's own read would wait for it. On x86_64; elsewhere nothing.
     #[cfg(feature = "alloc")]
@@ -692,8 +692,7 @@ impl<const CAP: usize> Estimator<CAP> {
             if n == 0 || self.head >= n {
                 return;
             }
-            let before = if self.head == 0 { n - 1 } else { self.head - 1 };
-            for i in [before, self.head, self.wrap(self.head + 1)] {
+            for i in [self.head, self.wrap(self.head + 1)] {
                 let at = core::ptr::from_ref(&self.ring[i]).cast::<i8>();
                 // SAFETY: a prefetch is a hint that reads nothing and never faults, and
                 // SSE (its target feature) is part of every x86_64.

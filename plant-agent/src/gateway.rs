@@ -333,8 +333,8 @@ struct Period {
     /// The plants that gave a sample this period (sent in a part already, or pending).
     present: Vec<bool>,
     count: usize,
-    /// Samples not sent yet.
-    pending: Vec<pb::Sample>,
+    /// Samples not sent yet, each with its plant's place.
+    pending: Vec<(usize, pb::Sample)>,
 }
 
 impl Period {
@@ -370,7 +370,7 @@ impl Period {
         };
         self.present[i] = true;
         self.count += 1;
-        self.pending.push(sample);
+        self.pending.push((i, sample));
         out
     }
 
@@ -388,10 +388,15 @@ impl Period {
         self.pending.len()
     }
 
-    /// What the period has not sent yet; the period goes on (its plants have given their
-    /// sample: the rest will follow in another part).
+    /// What the period has not sent yet, in the order the gateway hosts its plants
+    /// (whatever order their samples came in: the service then finds each position's
+    /// device where it found it the period before); the period goes on (its plants have
+    /// given their sample: the rest will follow in another part).
     fn part(&mut self) -> Vec<pb::Sample> {
-        std::mem::replace(&mut self.pending, Vec::with_capacity(self.present.len()))
+        let mut pending =
+            std::mem::replace(&mut self.pending, Vec::with_capacity(self.present.len()));
+        pending.sort_unstable_by_key(|(i, _)| *i);
+        pending.into_iter().map(|(_, s)| s).collect()
     }
 
     /// What the period has not sent yet; the next period begins.
@@ -492,7 +497,8 @@ mod tests {
         assert!(!p.complete());
         assert!(p.add(sample("b", 40)).is_none());
         assert!(p.complete());
-        assert_eq!(ids(&p.end()), [("a", 40), ("c", 7), ("b", 40)]);
+        // In the order the gateway hosts its plants, not the order they came in.
+        assert_eq!(ids(&p.end()), [("a", 40), ("b", 40), ("c", 7)]);
         assert!(p.is_empty() && !p.complete());
     }
 
@@ -506,12 +512,12 @@ mod tests {
         assert!(p.add(sample("c", 1)).is_none());
         assert!(p.complete(), "c completes the period: sent at once");
         assert_eq!(ids(&p.end()), [("c", 1)]);
-        // Next period, in one batch.
-        for d in ["b", "a", "c"] {
+        // Next period, in one batch, in the order the gateway hosts its plants.
+        for d in ["b", "c", "a"] {
             assert!(p.add(sample(d, 2)).is_none());
         }
         assert!(p.complete());
-        assert_eq!(ids(&p.end()), [("b", 2), ("a", 2), ("c", 2)]);
+        assert_eq!(ids(&p.end()), [("a", 2), ("b", 2), ("c", 2)]);
     }
 
     #[test]
@@ -528,7 +534,7 @@ mod tests {
         );
         assert!(p.add(sample("b", 2)).is_none());
         assert!(p.complete());
-        assert_eq!(ids(&p.end()), [("a", 2), ("c", 1), ("b", 2)]);
+        assert_eq!(ids(&p.end()), [("a", 2), ("b", 2), ("c", 1)]);
         // After a part, a plant's next sample ends the period with nothing left to send.
         p.add(sample("a", 3));
         assert_eq!(p.part().len(), 1);

@@ -111,9 +111,13 @@ pub(super) enum Answered {
 /// table and nothing else, and checking who holds its lease reads the device and nothing
 /// else: with the id behind a pointer, each missed the caches once more for the comparison
 /// (a sixth of stepping a thousand devices went to the holder's). Longer ids are kept on
-/// the heap and work the same.
+/// the heap and work the same. The representation is private to this module, so that
+/// [`ShortId::new`] is the only way to make one (what `as_str` relies on).
 #[derive(Debug, Clone)]
-pub(super) enum ShortId {
+pub(super) struct ShortId(Repr);
+
+#[derive(Debug, Clone)]
+enum Repr {
     Inline { len: u8, bytes: [u8; INLINE_ID] },
     Heap(Box<str>),
 }
@@ -126,25 +130,28 @@ impl ShortId {
         if id.len() <= INLINE_ID {
             let mut bytes = [0; INLINE_ID];
             bytes[..id.len()].copy_from_slice(id.as_bytes());
-            Self::Inline {
+            Self(Repr::Inline {
                 len: id.len() as u8,
                 bytes,
-            }
+            })
         } else {
-            Self::Heap(id.into())
+            Self(Repr::Heap(id.into()))
         }
     }
 
     pub(super) fn as_str(&self) -> &str {
-        match self {
+        match &self.0 {
             // Not checked again: on every comparison in the device table, that was 2 %
             // of the registry benchmark's profile.
-            // SAFETY: `new` is the only constructor, and the first `len` bytes it keeps
-            // are a whole `&str`'s, so UTF-8.
-            Self::Inline { len, bytes } => unsafe {
-                std::str::from_utf8_unchecked(&bytes[..*len as usize])
-            },
-            Self::Heap(s) => s,
+            Repr::Inline { len, bytes } => {
+                let bytes = &bytes[..usize::from(*len)];
+                debug_assert!(std::str::from_utf8(bytes).is_ok());
+                // SAFETY: `new` is the only constructor (the representation is private
+                // to this module, which changes no id once made), and the first `len`
+                // bytes it keeps are a whole `&str`'s, so UTF-8.
+                unsafe { std::str::from_utf8_unchecked(bytes) }
+            }
+            Repr::Heap(s) => s,
         }
     }
 }
@@ -929,9 +936,9 @@ mod tests {
         let short = "load-1234";
         let edge = "a".repeat(INLINE_ID);
         let long = "cell-7/a-rather-long-device-id-9";
-        assert!(matches!(ShortId::new(short), ShortId::Inline { .. }));
-        assert!(matches!(ShortId::new(&edge), ShortId::Inline { .. }));
-        assert!(matches!(ShortId::new(long), ShortId::Heap(_)));
+        assert!(matches!(ShortId::new(short).0, Repr::Inline { .. }));
+        assert!(matches!(ShortId::new(&edge).0, Repr::Inline { .. }));
+        assert!(matches!(ShortId::new(long).0, Repr::Heap(_)));
         let mut table: HashMap<ShortId, u32> = HashMap::new();
         for (i, id) in [short, edge.as_str(), long, "é-ü", ""].iter().enumerate() {
             table.insert(ShortId::new(id), i as u32);

@@ -7,9 +7,10 @@
 //! entries (the id and where the device lives) ten thousand devices take out of the caches
 //! between one period and the next: that lookup was a fifth of the registry's time at ten
 //! thousand devices (`docs/scale.md`, "The gateway path today"). A slot is only a hint: it
-//! serves a device only if the slot holds that very id now, so a slot remembered from
-//! before a device was removed, replaced or moved finds nothing (or another id), and the
-//! caller looks the id up as before.
+//! serves a device only if the slot holds that very id now. A device replaced under its
+//! id takes its predecessor's slot (the hint then serves the new one, as the id would);
+//! a slot remembered from before its device was removed holds nothing or another id, and
+//! the caller looks the id up as before. Devices never move from their slot.
 
 use std::collections::HashMap;
 
@@ -99,6 +100,13 @@ impl Devices {
             let old = self.slots[slot as usize].replace(Entry { id, device });
             return old.map(|e| e.device);
         }
+        self.put(id, device);
+        None
+    }
+
+    /// Serve `device` under `id`, which is not served yet, in a free slot (or a new one):
+    /// its slot.
+    fn put(&mut self, id: ShortId, device: Box<Device>) -> Slot {
         let slot = match self.free.pop() {
             Some(slot) => slot,
             None => {
@@ -112,17 +120,18 @@ impl Devices {
         };
         self.index.insert(id.clone(), slot);
         self.slots[slot as usize] = Some(Entry { id, device });
-        None
+        slot
     }
 
     /// The device served under `id`, inserting `device` first if there is none.
     pub(super) fn or_insert(&mut self, id: ShortId, device: Box<Device>) -> &mut Device {
-        let key = id.as_str().to_string();
-        if !self.contains_key(&key) {
-            self.insert(id, device);
-        }
-        // Just found or inserted.
-        self.get_mut(&key).expect("a device just inserted")
+        let slot = match self.slot(id.as_str()) {
+            Some(slot) => slot,
+            None => self.put(id, device),
+        };
+        let e = self.slots[slot as usize].as_mut();
+        // The table names only slots that hold their device.
+        &mut e.expect("a slot the table names holds its device").device
     }
 
     pub(super) fn remove(&mut self, id: &str) -> Option<Box<Device>> {

@@ -74,7 +74,7 @@ pub(super) struct Shared {
 }
 
 /// Positions of gateways' batches whose device slots are remembered, in all: 8 MiB at
-/// most, whatever gateways send (a hundred times ten thousand plants).
+/// most, whatever gateways send (a thousand gateways of a thousand plants).
 const KEPT_SLOTS: usize = 1 << 20;
 
 /// What the answer to a sample needs: the device state, its observers and the publishers
@@ -108,8 +108,11 @@ pub(super) struct Core {
     good: Vec<usize>,
     /// Per gateway, where each position of its last batch found its device in the
     /// registry ([`Registry::handle_sample_at`]): a gateway names the same plants in the
-    /// same order every period, so its next batch finds them without a lookup. At most
-    /// [`GATEWAY_PUBLISHERS`] gateways and [`KEPT_SLOTS`] positions in all.
+    /// same order every period (the agent's batcher sends them in the order it hosts
+    /// them), so its next batch finds them without a lookup. At most
+    /// [`GATEWAY_PUBLISHERS`] gateways and [`KEPT_SLOTS`] positions in all; when a
+    /// gateway finds them full, every gateway's are forgotten, and each is kept again
+    /// at its next batch.
     slots: HashMap<String, Vec<Option<Slot>>>,
     /// Positions in `slots`.
     slots_kept: usize,
@@ -237,7 +240,8 @@ impl Core {
         self.read_batch(gw, &batch, &mut samples, &mut good, drops);
         let mut slots = self.slots.remove(gw).unwrap_or_default();
         self.slots_kept -= slots.len();
-        slots.resize(samples.len(), None);
+        // This batch's positions: `samples` keeps the longest batch's buffers.
+        slots.resize(batch.samples.len(), None);
         let mut n = 0;
         // One clock read for the batch: its time is shared by its samples (reading the
         // clock per sample would cost as much as a step).
@@ -321,15 +325,20 @@ impl Core {
         payload
     }
 
-    /// Keep where `gw`'s batch found its devices, for its next batch, within the bounds
-    /// (beyond them, a gateway's batches look their devices up, as before).
+    /// Keep where `gw`'s batch found its devices, for its next batch, within the bounds:
+    /// when they are full, every gateway's are forgotten first (gateways that stopped
+    /// sending would otherwise hold the room for good), and each is kept again at its
+    /// next batch, which looks its devices up meanwhile.
     fn keep_slots(&mut self, gw: &str, slots: Vec<Option<Slot>>) {
-        let room =
-            self.slots.len() < GATEWAY_PUBLISHERS && self.slots_kept + slots.len() <= KEPT_SLOTS;
-        if room && slots.iter().any(Option::is_some) {
-            self.slots_kept += slots.len();
-            self.slots.insert(gw.to_string(), slots);
+        if !slots.iter().any(Option::is_some) {
+            return;
         }
+        if self.slots.len() >= GATEWAY_PUBLISHERS || self.slots_kept + slots.len() > KEPT_SLOTS {
+            self.slots.clear();
+            self.slots_kept = 0;
+        }
+        self.slots_kept += slots.len();
+        self.slots.insert(gw.to_string(), slots);
     }
 
     /// Decode a batch's samples into `samples` (kept from batch to batch) and list in
