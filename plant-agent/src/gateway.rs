@@ -393,10 +393,8 @@ impl Period {
     /// device where it found it the period before); the period goes on (its plants have
     /// given their sample: the rest will follow in another part).
     fn part(&mut self) -> Vec<pb::Sample> {
-        let mut pending =
-            std::mem::replace(&mut self.pending, Vec::with_capacity(self.present.len()));
-        pending.sort_unstable_by_key(|(i, _)| *i);
-        pending.into_iter().map(|(_, s)| s).collect()
+        self.pending.sort_unstable_by_key(|(i, _)| *i);
+        self.pending.drain(..).map(|(_, s)| s).collect()
     }
 
     /// What the period has not sent yet; the next period begins.

@@ -72,8 +72,10 @@ impl Devices {
         if let Some(d) = slot.and_then(|k| self.at(k, id)) {
             return Some(d);
         }
+        // One hash: the slot found is read directly.
         *slot = self.slot(id);
-        self.get(id)
+        let e = self.slots.get((*slot)? as usize)?.as_ref()?;
+        Some(&e.device)
     }
 
     /// [`Self::find`], mutable.
