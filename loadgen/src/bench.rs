@@ -590,13 +590,17 @@ pub fn markdown(r: &Results) -> String {
         cap(r.capacity_echo),
         ratio(r.capacity_service, r.capacity_echo)
     );
-    s += &format!(
-        "Capacity through gateways ({} plants each): service {}, echo {} (ratio {}).\n",
-        r.per_gateway,
-        cap(r.gateway_capacity_service),
-        cap(r.gateway_capacity_echo),
-        ratio(r.gateway_capacity_service, r.gateway_capacity_echo)
-    );
+    if r.points.iter().any(|p| p.path == "gateway") {
+        s += &format!(
+            "Capacity through gateways ({} plants each): service {}, echo {} (ratio {}).\n",
+            r.per_gateway,
+            cap(r.gateway_capacity_service),
+            cap(r.gateway_capacity_echo),
+            ratio(r.gateway_capacity_service, r.gateway_capacity_echo)
+        );
+    } else {
+        s += "Capacity through gateways: not measured (no gateway sizes).\n";
+    }
     if let Some((a, b)) = p99_pair(r) {
         s += &format!(
             "p99 at {} devices (median of the rounds): service {a:.0} us, echo {b:.0} us (ratio {:.2}x).\n",
@@ -646,6 +650,34 @@ pub fn rss_slope(r: &Results, target: Target) -> Option<(usize, usize, f64)> {
     let (a, b) = (sizes().min()?, sizes().max()?);
     (b > a).then_some(())?;
     Some((a, b, (at(b)? - at(a)?) / (b - a) as f64))
+}
+
+/// The runs of `loadgen bench --repeat`: each run's p99 at [`Results::p99_at`] devices,
+/// the service's over the echo's, and their median (the figure the goal is set on: one
+/// run's ratio moves with the machine's tail by more than the service does). A run
+/// without both p99s is listed and left out of the median.
+pub fn repeated_markdown(runs: &[Results]) -> String {
+    let pairs: Vec<Option<(f64, f64)>> = runs.iter().map(p99_pair).collect();
+    let at = runs.first().map_or(0, |r| r.p99_at);
+    let mut s = format!(
+        "p99 round trip at {at} devices per device, {} runs:\n\n| run | service us | echo us | ratio |\n|---:|---:|---:|---:|\n",
+        runs.len()
+    );
+    for (k, p) in pairs.iter().enumerate() {
+        s += &match p {
+            Some((a, b)) => format!("| {} | {a:.0} | {b:.0} | {:.2} |\n", k + 1, a / b),
+            None => format!("| {} | - | - | - |\n", k + 1),
+        };
+    }
+    let ratios: Vec<f64> = pairs.iter().flatten().map(|(a, b)| a / b).collect();
+    s += &match median(ratios.clone()) {
+        Some(m) => format!(
+            "\nMedian ratio over the {} runs with both: {m:.2}x.\n",
+            ratios.iter().filter(|r| r.is_finite()).count()
+        ),
+        None => "\nNo run measured both p99s.\n".to_string(),
+    };
+    s
 }
 
 /// The service's and the anchor's median p99 at [`Results::p99_at`] devices, per device.
@@ -744,6 +776,47 @@ mod tests {
             gateway_capacity_echo: None,
             auth: false,
         }
+    }
+
+    fn with_p99(service: Option<f64>, echo: f64) -> Results {
+        let mut r = empty_results();
+        for (target, p99) in [(Target::Service, service), (Target::Echo, Some(echo))] {
+            r.points.push(BenchPoint {
+                target,
+                path: "per-device",
+                devices: 100,
+                valid_rounds: 3,
+                within: Some(1.0),
+                p99_us: p99,
+                cpu_us_per_sample: None,
+                holds: true,
+            });
+        }
+        r
+    }
+
+    /// `--repeat`: every run's ratio listed, the median over those with both p99s.
+    #[test]
+    fn repeated_runs_report_the_median_ratio() {
+        let runs = [
+            with_p99(Some(300.0), 200.0), // 1.50
+            with_p99(Some(100.0), 200.0), // 0.50
+            with_p99(None, 200.0),        // no service p99: left out
+            with_p99(Some(220.0), 200.0), // 1.10
+        ];
+        let md = repeated_markdown(&runs);
+        assert!(md.contains("| 1 | 300 | 200 | 1.50 |"), "{md}");
+        assert!(md.contains("| 3 | - | - | - |"), "{md}");
+        assert!(
+            md.contains("Median ratio over the 3 runs with both: 1.10x."),
+            "{md}"
+        );
+        assert!(
+            markdown(&runs[0]).contains("Capacity through gateways: not measured"),
+            "no gateway sweep is not a capacity of none"
+        );
+        let none = repeated_markdown(&[with_p99(None, 1.0)]);
+        assert!(none.contains("No run measured both p99s."), "{none}");
     }
 
     #[test]

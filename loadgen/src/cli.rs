@@ -75,10 +75,12 @@ pub enum Cmd {
         /// Fleet sizes of the per-device sweep.
         #[arg(long, value_delimiter = ',', default_value = "50,75,100,150")]
         per_device: Vec<usize>,
-        /// Fleet sizes of the gateway sweep.
+        /// Fleet sizes of the gateway sweep; given with no sizes, no gateway sweep (to
+        /// measure only the per-device path, as `--repeat` for the p99 does).
         #[arg(
             long,
             value_delimiter = ',',
+            num_args = 0..,
             default_value = "5000,7500,10000,12500,15000,17500,20000"
         )]
         gateway_devices: Vec<usize>,
@@ -102,6 +104,12 @@ pub enum Cmd {
         /// echo anchor stays open), to measure what the proof of origin costs.
         #[arg(long)]
         auth: bool,
+        /// Run the whole benchmark this many times in a row, each into its own
+        /// `run-K` directory under `--out`, and report the median over the runs of the
+        /// service's p99 over the echo's at `--p99-at` devices (one run's p99 ratio moves
+        /// with the machine by more than the service does); written to `repeated.md`.
+        #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=100))]
+        repeat: u32,
     },
     /// A real Prometheus server scraping the service while it serves plants through
     /// gateways: series, exposition size and scrape time for the default metrics and
@@ -239,6 +247,7 @@ async fn run(cli: LoadgenCli) -> Result<()> {
             rounds,
             p99_at,
             auth,
+            repeat,
         } => {
             let me = std::env::current_exe().context("locating this program")?;
             let service_bin =
@@ -260,12 +269,35 @@ async fn run(cli: LoadgenCli) -> Result<()> {
                 out: out.clone(),
                 auth,
             };
-            let r = crate::bench::run(&spec).await?;
-            println!("{}", crate::bench::markdown(&r));
+            if repeat == 1 {
+                let r = crate::bench::run(&spec).await?;
+                println!("{}", crate::bench::markdown(&r));
+            } else {
+                bench_repeated(spec, repeat).await?;
+            }
             eprintln!("results in {}", out.display());
         }
         Cmd::Scrape(args) => scrape(args).await?,
     }
+    Ok(())
+}
+
+/// `loadgen bench --repeat N`: the benchmark `n` times, each run into `run-K` under the
+/// spec's `out`, then the runs' p99 ratios and their median into `repeated.md` there.
+async fn bench_repeated(mut spec: crate::bench::BenchSpec, n: u32) -> Result<()> {
+    let out = spec.out.clone();
+    let mut runs = Vec::new();
+    for k in 1..=n {
+        spec.out = out.join(format!("run-{k}"));
+        eprintln!("run {k} of {n}, into {}", spec.out.display());
+        let r = crate::bench::run(&spec).await?;
+        println!("{}", crate::bench::markdown(&r));
+        runs.push(r);
+    }
+    let md = crate::bench::repeated_markdown(&runs);
+    std::fs::write(out.join("repeated.md"), &md)
+        .with_context(|| format!("writing {}", out.join("repeated.md").display()))?;
+    println!("{md}");
     Ok(())
 }
 
