@@ -669,12 +669,15 @@ pub fn repeated_markdown(runs: &[Results]) -> String {
             None => format!("| {} | - | - | - |\n", k + 1),
         };
     }
-    let ratios: Vec<f64> = pairs.iter().flatten().map(|(a, b)| a / b).collect();
-    s += &match median(ratios.clone()) {
-        Some(m) => format!(
-            "\nMedian ratio over the {} runs with both: {m:.2}x.\n",
-            ratios.iter().filter(|r| r.is_finite()).count()
-        ),
+    let ratios: Vec<f64> = pairs
+        .iter()
+        .flatten()
+        .map(|(a, b)| a / b)
+        .filter(|r| r.is_finite())
+        .collect();
+    let n = ratios.len();
+    s += &match median(ratios) {
+        Some(m) => format!("\nMedian ratio over the {n} runs with both: {m:.2}x.\n"),
         None => "\nNo run measured both p99s.\n".to_string(),
     };
     s
