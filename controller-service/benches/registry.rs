@@ -143,6 +143,61 @@ fn thousand_decode_encode(b: divan::Bencher, authenticated: bool) {
     });
 }
 
+/// A thousand-sample gateway batch served the way the service's worker serves one
+/// (`service::core`'s `serve_batch`, without the network and the metrics): the batch read
+/// as a view, each sample decoded into a buffer kept from batch to batch, its device
+/// found by slot and stepped (`Registry::handle_sample_at`, the next one asked for
+/// ahead), and the answers encoded into one command batch. Beside
+/// [`thousand_decode_encode`] (what the echo does with a batch), the difference is the
+/// service's own work per sample; `docs/scale.md` counts both in instructions.
+#[divan::bench]
+fn thousand_served(b: divan::Bencher) {
+    let mut r = Registry::new(ServiceConfig::parse("bench", CONFIG).unwrap()).unwrap();
+    let mut slots = vec![None; 1000];
+    let mut commands = vec![pb::Command::default(); 1000];
+    let mut k = 1;
+    for _ in 0..20 {
+        for ((s, slot), out) in samples(1000, k).iter().zip(&mut slots).zip(&mut commands) {
+            r.handle_sample_at(slot, Via::key(&s.device_id), s, 0, out);
+        }
+        k += 1;
+    }
+    let bytes = protocol::encode(&pb::SampleBatch {
+        version: PROTOCOL_VERSION,
+        gateway_id: "gw".into(),
+        samples: samples(1000, k),
+        ..Default::default()
+    });
+    let mut decoded = vec![pb::Sample::default(); 1000];
+    b.bench_local(|| {
+        let view: protocol::SampleBatchView = protocol::decode(&bytes[..]).unwrap();
+        for (raw, s) in view.samples.iter().zip(&mut decoded) {
+            protocol::SampleBatchView::read_sample(raw, s).unwrap();
+            // The same bytes every time: each iteration is the devices' next period.
+            (s.seq, s.plant_time) = (k, k as f64 * 0.01);
+            protocol::keys::check_id(&s.device_id).unwrap();
+        }
+        for (i, s) in decoded.iter().enumerate() {
+            if let Some(next) = decoded.get(i + 1) {
+                r.prefetch_at(&mut slots[i + 1], &next.device_id);
+            }
+            let via = Via::key(&s.device_id);
+            r.handle_sample_at(&mut slots[i], via, s, k, &mut commands[i]);
+        }
+        let out = pb::CommandBatch {
+            version: PROTOCOL_VERSION,
+            gateway_id: view.gateway_id,
+            commands: std::mem::take(&mut commands),
+            controller_id: "load".into(),
+            ..Default::default()
+        };
+        let bytes = protocol::encode(&out);
+        commands = out.commands;
+        k += 1;
+        divan::black_box(bytes)
+    });
+}
+
 /// One lone sample (a device on its own key) decoded and its command encoded; with
 /// `true`, the sample's MAC checked and the command sealed under the device's key: what
 /// the proof of origin adds per sample where there is no batch to share it.
