@@ -134,7 +134,7 @@ fn thousand_decode_encode(b: divan::Bencher, authenticated: bool) {
             controller_id: String::new(),
             ..Default::default()
         };
-        let bytes = protocol::encode(&out);
+        let bytes = protocol::encode_command_batch(&out);
         divan::black_box(if authenticated {
             key.seal(Kind::CommandBatch, bytes)
         } else {
@@ -191,7 +191,7 @@ fn thousand_served(b: divan::Bencher) {
             controller_id: "load".into(),
             ..Default::default()
         };
-        let bytes = protocol::encode(&out);
+        let bytes = protocol::encode_command_batch(&out);
         commands = out.commands;
         k += 1;
         divan::black_box(bytes)

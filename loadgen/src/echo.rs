@@ -7,7 +7,7 @@
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
-use protocol::{decode, encode, keys, pb, PROTOCOL_VERSION};
+use protocol::{decode, encode, encode_command_batch, keys, pb, PROTOCOL_VERSION};
 use zenoh::pubsub::Publisher;
 use zenoh::qos::{CongestionControl, Priority};
 use zenoh::{Session, Wait};
@@ -98,7 +98,10 @@ pub async fn serve(
                 controller_id: "echo".into(),
                 mac: Vec::new(),
             };
-            answer(&session2, &pubs, keys::gateway_commands(gw), encode(&out));
+            // The service's own batch encoder: the anchor is not made dearer than the
+            // service by the codec.
+            let payload = encode_command_batch(&out);
+            answer(&session2, &pubs, keys::gateway_commands(gw), payload);
         }
     };
     // The keys with and without a shard segment, as the service takes them.

@@ -34,7 +34,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use protocol::auth::{Key, Kind};
-use protocol::{decode, encode, keys, pb, PROTOCOL_VERSION};
+use protocol::{decode, encode, encode_sample_batch, keys, pb, PROTOCOL_VERSION};
 use serde::{Deserialize, Serialize};
 use tokio::sync::{mpsc, watch};
 use tokio::time::Instant;
@@ -418,7 +418,7 @@ async fn batcher(
     let plants = u32::try_from(devices.len()).unwrap_or(u32::MAX);
     let mut deadline = Instant::now();
     let send = |batch: Vec<pb::Sample>| {
-        let payload = encode(&pb::SampleBatch {
+        let payload = encode_sample_batch(&pb::SampleBatch {
             version: PROTOCOL_VERSION,
             gateway_id: gateway.to_string(),
             samples: batch,

@@ -6,7 +6,7 @@ use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
-use protocol::{encode, keys, pb, printable, SampleBatchView};
+use protocol::{encode, encode_command_batch, keys, pb, printable, SampleBatchView};
 use tokio::sync::Notify;
 use zenoh::pubsub::Publisher;
 use zenoh::{Session, Wait};
@@ -314,7 +314,7 @@ impl Core {
             mac: Vec::new(),
         };
         let payload = (sent > 0).then(|| {
-            sealed(self.keys.as_deref(), encode(&out), |k, b| {
+            sealed(self.keys.as_deref(), encode_command_batch(&out), |k, b| {
                 k.seal_batch(gw, b)
             })
         });
