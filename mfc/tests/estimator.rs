@@ -417,10 +417,11 @@ fn first_window_is_checked() {
 /// at -0.1 rad"): one encoder count `q`, a step of the measurement while the plant is
 /// still, is read as `F` rising then falling as the step crosses the window, with peaks of
 /// `±(10/√3) q/T²` (the kernel's weight `T² - 6Tσ + 6σ²` integrated from the step's place
-/// to the window's end is `σ(T-σ)(T-2σ)`, largest at `σ = T(3 ∓ √3)/6`), and nothing once
-/// it has left. For the AERO's pitch (q = 2π/2048, a 20-interval window of 10 ms) that is
-/// ±0.44 rad/s², ±2.2 of the command at alpha 0.2: a count moves the command more than a
-/// hold near 0 V needs. Order one reads the same step as a velocity, `±1.5 q/T` at most.
+/// `σ` to the window's end is `-σ(T-σ)(T-2σ)`, largest in size at `σ = T(3 ∓ √3)/6`), and
+/// nothing once it has left. For the AERO's pitch (q = 2π/2048, a 20-interval window of
+/// 10 ms) that is ±0.44 rad/s², up to 2.2 of the command at alpha 0.2: a count moves the
+/// command more than a hold near 0 V needs. Order one reads the same step as a velocity,
+/// `1.5 q/T` at most, and never as a deceleration.
 #[test]
 fn one_count_is_read_as_a_burst_of_acceleration() {
     let q = 2.0 * std::f64::consts::PI / 2048.0;
@@ -438,15 +439,22 @@ fn one_count_is_read_as_a_burst_of_acceleration() {
             order,
         )
         .unwrap();
-        let (mut high, mut low, mut last) = (f64::MIN, f64::MAX, f64::NAN);
+        let (mut high, mut low, mut last) = ((f64::MIN, 0), (f64::MAX, 0), f64::NAN);
         for k in 0..3 * window {
             let y = if k < window + 3 { 0.0 } else { q };
             est.push(k as f64 * h, y, 0.0).unwrap();
             if let Ok(f) = est.estimate(order) {
                 let f = f.at(1.0);
-                (high, low, last) = (high.max(f), low.min(f), f);
+                if f > high.0 {
+                    high = (f, k);
+                }
+                if f < low.0 {
+                    low = (f, k);
+                }
+                last = f;
             }
         }
+        let ((high, rose), (low, fell)) = (high, low);
         // The step lasts one interval (the samples are joined by straight lines), which
         // rounds the peaks off a little: within 5 % of the continuous step's.
         assert!(
@@ -457,6 +465,10 @@ fn one_count_is_read_as_a_burst_of_acceleration() {
             assert!(
                 (-bound..=-0.95 * bound).contains(&low),
                 "{order:?}: trough {low}, bound {bound}"
+            );
+            assert!(
+                rose < fell,
+                "{order:?}: the step read as a rise (sample {rose}) before a fall ({fell})"
             );
         } else {
             assert!(

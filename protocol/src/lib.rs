@@ -236,9 +236,10 @@ pub fn encode<M: prost::Message>(m: &M) -> Vec<u8> {
 /// [`encode`] for a service's batch of commands, the same bytes with each command's length
 /// computed once. prost sizes the buffer from the batch's length, which adds up its
 /// commands' lengths, then computes each command's length again for its prefix: a
-/// second pass over every field of a thousand commands, about a fifth of encoding the
-/// batch (`docs/scale.md`, "Counted in instructions"). The buffer is sized from the first
-/// command's length instead, and grows if the others are longer.
+/// second pass over every field of a thousand commands, a sixth of encoding the batch
+/// (`docs/scale.md`, "Counted in instructions"). The buffer is sized from the first
+/// command's length instead (at most [`MAX_BATCH_PAYLOAD`]), and grows if the others are
+/// longer.
 pub fn encode_command_batch(batch: &pb::CommandBatch) -> Vec<u8> {
     // Every field named, none left to `..`: a field added to the message does not compile
     // here until it is encoded too.
@@ -283,7 +284,12 @@ pub fn encode_sample_batch(batch: &pb::SampleBatch) -> Vec<u8> {
 /// most 3 bytes each, and its other fields' bytes with their keys.
 fn batch_capacity<M: prost::Message>(items: &[M], other_bytes: usize) -> usize {
     let first = items.first().map_or(0, prost::Message::encoded_len);
-    items.len() * (first + 6) + other_bytes + 32
+    items
+        .len()
+        .saturating_mul(first.saturating_add(6))
+        .saturating_add(other_bytes)
+        .saturating_add(32)
+        .min(MAX_BATCH_PAYLOAD)
 }
 
 /// The fields of a batch, each as prost's derived encoding writes it: a proto3 scalar at
