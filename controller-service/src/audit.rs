@@ -125,8 +125,14 @@ pub fn next_number(last: u64, unix_ns: u64) -> u64 {
     unix_ns.max(last + 1)
 }
 
-/// One line of the audit file (JSON, without its newline).
+/// One line of the audit file (JSON, without its newline), as an older build wrote it: an
+/// entry alone, without the state and CRC that `crate::journal::to_line` adds.
 pub fn to_line(e: &pb::AuditEntry) -> String {
+    entry_json(e).to_string()
+}
+
+/// An entry's fields as the audit file's JSON object.
+pub fn entry_json(e: &pb::AuditEntry) -> serde_json::Value {
     let changes: Vec<serde_json::Value> = e
         .changes
         .iter()
@@ -146,12 +152,16 @@ pub fn to_line(e: &pb::AuditEntry) -> String {
         "accepted": e.accepted,
         "reason": e.reason,
     })
-    .to_string()
 }
 
-/// An entry from one line of the audit file (`None` if the line is not one).
+/// An entry from one line of the audit file (`None` if the line is not one). Fields it
+/// does not know (a journal line's `state` and `crc`) are ignored.
 pub fn from_line(line: &str) -> Option<pb::AuditEntry> {
-    let v: serde_json::Value = serde_json::from_str(line).ok()?;
+    entry_from_json(&serde_json::from_str(line).ok()?)
+}
+
+/// An entry from the audit file's JSON object (`None` if it is not one).
+pub fn entry_from_json(v: &serde_json::Value) -> Option<pb::AuditEntry> {
     let s = |k: &str| v.get(k).and_then(|x| x.as_str()).map(str::to_string);
     let changes = v
         .get("changes")?

@@ -3,6 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
+use crate::journal::{Record, Replayed, Write};
 use crate::observe::{Observers, ServiceMetrics};
 use crate::{service, Registry, ServiceConfig};
 use anyhow::{Context, Result};
@@ -142,16 +143,14 @@ pub async fn run(cli: ServiceCli) -> Result<()> {
         }
         None => None,
     };
-    let configs = config.worker_configs();
-    let mut registries = Vec::with_capacity(configs.len());
-    for c in configs {
-        let mut r = Registry::new(c).context("building the devices")?;
-        r.set_secret(secret.clone());
-        for e in &earlier {
-            r.audit(e.clone());
-        }
-        registries.push(r);
-    }
+    let registries = registries(
+        config.worker_configs(),
+        secret,
+        &observers,
+        &earlier,
+        &cli.config,
+    )
+    .await?;
     // A client of a router retries until the router answers (start order must not matter):
     // a stop meanwhile ends the service at once instead of waiting for the router.
     let session = tokio::select! {
@@ -208,10 +207,95 @@ pub async fn run(cli: ServiceCli) -> Result<()> {
     result
 }
 
-/// The recording, the metrics and the audit file the file asks for, and the entries the
-/// audit file already holds. The recording starts with the configuration itself attached
-/// (`service-config.toml`), which is what a replay needs.
-pub fn observers(config: &ServiceConfig) -> Result<(Observers, Vec<protocol::pb::AuditEntry>)> {
+/// One registry per worker configuration, each with the audit file's decisions and its
+/// devices' journaled states back in force ([`recover`]); the changes an edited `file`
+/// makes are recorded before this returns (an error if they cannot be: the service does
+/// not serve a configuration it cannot record).
+pub async fn registries(
+    configs: Vec<ServiceConfig>,
+    secret: Option<protocol::auth::Secret>,
+    observers: &Observers,
+    earlier: &Replayed,
+    file: &Path,
+) -> Result<Vec<Registry>> {
+    let mut registries = Vec::with_capacity(configs.len());
+    let mut records = Vec::new();
+    for c in configs {
+        let mut r = Registry::new(c).context("building the devices")?;
+        r.set_secret(secret.clone());
+        for e in &earlier.entries {
+            r.audit(e.clone());
+        }
+        records.extend(recover(&mut r, earlier, file));
+        registries.push(r);
+    }
+    if let Some(trail) = &observers.audit {
+        let n = records.len();
+        trail.write_all(records).await.map_err(|e| {
+            anyhow::anyhow!("the audit file {} could not record the changes the edited configuration makes ({e}): not serving a configuration it cannot record", trail.path().display())
+        })?;
+        if n > 0 {
+            tracing::info!(
+                changes = n,
+                "the file's edits since the last start are recorded as changes"
+            );
+        }
+    }
+    Ok(registries)
+}
+
+/// Put the journaled states back in force on `r`'s devices ([`Registry::recover`]), logging
+/// what was done; the records of the changes an edited file makes, for the audit file
+/// (each also kept with its device).
+pub fn recover(r: &mut Registry, replayed: &Replayed, file: &Path) -> Vec<Write> {
+    let rec = r.recover(&replayed.states);
+    let mine = rec.restored + rec.file_changes.len();
+    if mine > 0 || !rec.dropped.is_empty() {
+        tracing::info!(controller = %r.controller_id(), restored = rec.restored, changed_by_the_file = rec.file_changes.len(), dropped = rec.dropped.len(), "acknowledged changes put back in force from the audit file");
+    }
+    for (dev, why) in &rec.dropped {
+        tracing::warn!(device = %dev, "journaled state not put back: {why}");
+    }
+    let actor = crate::access::Actor {
+        name: format!("file {}", file.display()),
+        verified: true,
+        role: None,
+    };
+    let mut last = 0;
+    rec.file_changes
+        .into_iter()
+        .map(|fc| {
+            let unix_ns = protocol::unix_ns();
+            last = crate::audit::next_number(last, unix_ns);
+            let entry = protocol::pb::AuditEntry {
+                unix_ns,
+                member: r.controller_id().to_string(),
+                n: last,
+                device_id: fc.device.clone(),
+                operator: actor.name.clone(),
+                verified: actor.verified,
+                role: "file".into(),
+                action: "configuration file".into(),
+                changes: fc.changes,
+                asked: String::new(),
+                accepted: true,
+                reason: fc.how,
+            };
+            tracing::info!(device = %fc.device, changes = entry.changes.len(), "{}", entry.reason);
+            r.audit(entry.clone());
+            Write::Record(Record {
+                entry,
+                state: Some(fc.state),
+            })
+        })
+        .collect()
+}
+
+/// The recording, the metrics and the audit file the file asks for, and what the audit
+/// file already holds (its decisions and every device's latest state). The recording
+/// starts with the configuration itself attached (`service-config.toml`), which is what a
+/// replay needs.
+pub fn observers(config: &ServiceConfig) -> Result<(Observers, Replayed)> {
     let recording = match &config.record {
         Some(spec) => {
             let r = Recording::create(spec, "controller-service")?;
@@ -237,12 +321,15 @@ pub fn observers(config: &ServiceConfig) -> Result<(Observers, Vec<protocol::pb:
         Some(spec) => {
             let (trail, earlier) = crate::service::AuditTrail::open(spec)
                 .with_context(|| format!("audit file {}", spec.path.display()))?;
-            tracing::info!(path = %spec.path.display(), entries = earlier.len(), "audit trail: every operator's change is appended and fsynced");
+            tracing::info!(path = %spec.path.display(), entries = earlier.entries.len(), devices = earlier.states.len(), "audit trail: every operator's change is fsynced with its record before it is in force");
+            if earlier.torn > 0 {
+                tracing::warn!(path = %spec.path.display(), lines = earlier.torn, "audit file lines dropped: torn or corrupted (a crash or a full disk while they were written; none was acknowledged)");
+            }
             (Some(trail), earlier)
         }
         None => {
-            tracing::warn!("audit trail in memory only (no audit file in the configuration): the latest 64 decisions per device, lost with the process");
-            (None, Vec::new())
+            tracing::warn!("no audit file in the configuration: changes are in memory only and lost with the process (every reply says durable = false), and so are the latest 64 decisions per device");
+            (None, Replayed::default())
         }
     };
     Ok((

@@ -9,7 +9,10 @@
 //! * [`lease`]: the plant's command lease seen from a member: answer, claim, yield, or
 //!   stay silent because another holds it (the plant decides who commands it);
 //! * [`access`]: operators, their roles and devices; [`audit`]: what an audit entry
-//!   says, a change's old and new values, entries handed over with a device.
+//!   says, a change's old and new values, entries handed over with a device;
+//! * [`journal`]: the audit file as the durable record of every change: its lines (an
+//!   entry, the state it left, a CRC), a file read back into each device's latest state,
+//!   and batches written all or nothing on a disk passed in.
 //!
 //! Around them:
 //! * [`config`]: the TOML file (declared devices, templates, envelopes, fleet, standby);
@@ -22,11 +25,13 @@
 pub mod access;
 pub mod audit;
 pub mod bounds;
+pub mod changes;
 pub mod cli;
 pub mod config;
 pub mod envelope;
 pub mod fleet;
 pub mod inbox;
+pub mod journal;
 pub mod lease;
 pub mod observe;
 pub mod registry;

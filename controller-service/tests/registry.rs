@@ -284,12 +284,26 @@ fn snapshots_restore_state_and_reference_phase() {
     assert_eq!(answered(c.answer("aero-1", &next)).seq, 50);
     // Once this service has answered a sample, a duplicate of it gets that answer again.
     assert_eq!(answered(c.answer("aero-1", &next)).seq, 50);
-    // Corrupt files and a changed configuration are refused, with the device left as is.
+    // A corrupt file is refused. A configuration changed since the snapshot stays in
+    // force: the snapshot brings the control state back (its counts, its estimators), never
+    // the configuration, which the file (or the journal, `Registry::recover`) decides.
     std::fs::write(dir.join("junk.snap"), b"not a snapshot").unwrap();
     let changed = CONFIG.replace("kp = 2.0", "kp = 3.0");
     let mut c = Registry::new(ServiceConfig::parse("test.toml", &changed).unwrap()).unwrap();
-    assert_eq!(loaded(&mut c, &dir), (0, 2));
-    assert_eq!(c.device_status("aero-1").unwrap().samples, 0);
+    let file = c.config_of("aero-1").unwrap();
+    assert_eq!(loaded(&mut c, &dir), (1, 1));
+    assert_eq!(
+        c.config_of("aero-1").unwrap(),
+        file,
+        "the file's configuration in force"
+    );
+    assert_eq!(
+        c.device_status("aero-1").unwrap().samples,
+        a.device_status("aero-1").unwrap().samples - 30,
+        "the snapshot's control state"
+    );
+    let next = sample("aero-1", 50, 0.50, &[5.0, 0.2]);
+    assert_eq!(answered(c.answer("aero-1", &next)).seq, 50);
 }
 
 /// A device whose commands carry a horizon: an iPD (n = 2) with a smooth dead-zone map on

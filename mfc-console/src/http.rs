@@ -402,10 +402,14 @@ async fn gains(
         assignments.join(" ")
     );
     match ops::update(&op, &id, update, c.timeout()).await {
-        Ok(ops::Changed { config, held_by }) => {
+        Ok(ops::Changed {
+            config,
+            held_by,
+            durable,
+        }) => {
             let views = fleet::channel_views(&config);
             c.fleet().apply_config(&id, config, c.now());
-            Json(json!({ "accepted": true, "changed": change.fields, "channel": change.channel, "config": views, "held_by": held_by }))
+            Json(json!({ "accepted": true, "changed": change.fields, "channel": change.channel, "config": views, "held_by": held_by, "durable": durable }))
                 .into_response()
         }
         Err(e) => {
@@ -447,9 +451,13 @@ async fn reference(
     tracing::info!(user = %who.name, "reference of {id}: constant {:?}", change.values);
     let r = protocol::convert::reference_to_pb(&pieces, 0.0);
     match ops::set_reference(&op, &id, r, c.timeout()).await {
-        Ok(ops::Changed { config, held_by }) => {
+        Ok(ops::Changed {
+            config,
+            held_by,
+            durable,
+        }) => {
             c.fleet().apply_config(&id, config, c.now());
-            Json(json!({ "accepted": true, "values": change.values, "held_by": held_by }))
+            Json(json!({ "accepted": true, "values": change.values, "held_by": held_by, "durable": durable }))
                 .into_response()
         }
         Err(e) => op_failed(e),
@@ -521,11 +529,15 @@ async fn commission(
     };
     tracing::info!(user = %who.name, "commissioning of {id} channel {}: {}", change.channel, change.action);
     match ops::commission(&op, &id, req, c.timeout()).await {
-        Ok(ops::Changed { config, held_by }) => {
+        Ok(ops::Changed {
+            config,
+            held_by,
+            durable,
+        }) => {
             c.fleet().apply_config(&id, config, c.now());
             let status = ops::device_status(&op, &id, c.timeout()).await.ok();
             let run = status.and_then(|s| s.commission);
-            Json(json!({ "accepted": true, "commission": run, "held_by": held_by })).into_response()
+            Json(json!({ "accepted": true, "commission": run, "held_by": held_by, "durable": durable })).into_response()
         }
         Err(e) => op_failed(e),
     }

@@ -3,8 +3,9 @@
 //! demo, the fault campaign, the system tests and the benchmarks all use it, so there is
 //! one way to set up a networked run.
 
+use anyhow::Context as _;
 use controller_service::config::{DeviceChannel, DeviceSpec, ServiceConfig};
-use controller_service::{service, Registry};
+use controller_service::service;
 use plant::scenario::{ControllerSet, Scenario};
 use plant_agent::agent::{self, AgentRun, LoopConfig};
 use plant_agent::safety::{FallbackPolicy, SafetyConfig};
@@ -148,11 +149,16 @@ impl ServiceHandle {
             metrics = Some(addr);
             metrics_stop = Some((tx, task));
         }
-        let mut registry = Registry::new(config)?;
-        registry.set_secret(secret.clone());
-        for e in earlier {
-            registry.audit(e);
-        }
+        let file = std::path::Path::new("service-config.toml");
+        let mut registries = controller_service::cli::registries(
+            vec![config],
+            secret.clone(),
+            &observers,
+            &earlier,
+            file,
+        )
+        .await?;
+        let registry = registries.pop().context("one registry")?;
         // As the service's own binary: no message larger than it would count is reassembled.
         let mut zc = loopback_config(Some(endpoint.clone()), vec![], gossip)?;
         transport::bound_messages(&mut zc, protocol::MAX_TRANSPORT_MESSAGE)?;

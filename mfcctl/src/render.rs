@@ -265,15 +265,28 @@ fn law(c: &pb::ChannelConfig) -> String {
     }
 }
 
-/// A device's configuration: each channel's law, output map and envelope, the reference.
-/// An accepted change: the configuration in force, then who holds it. One name means the
-/// change lives only as long as that member (a single service, or a fleet without standbys).
+/// An accepted change: the configuration in force, then where it is kept. One name means
+/// the change lives only as long as that member (a single service, or a fleet without
+/// standbys), or its audit file if it is durable there; not durable, a restart loses it.
 pub fn changed(c: &ops::Changed) -> String {
     let mut out = config(&c.config);
-    let _ = match c.held_by.as_slice() {
-        [] => writeln!(out, "acknowledged"),
-        [one] => writeln!(out, "acknowledged: held by {one} only"),
-        all => writeln!(out, "acknowledged: held by {}", all.join(", ")),
+    let first = c.held_by.first().map_or("the service", String::as_str);
+    let _ = match (c.held_by.as_slice(), c.durable) {
+        ([] | [_], true) => writeln!(out, "acknowledged: on {first}'s disk (its audit file, fsynced)"),
+        (all, true) => writeln!(
+            out,
+            "acknowledged: on {first}'s disk (its audit file, fsynced), held by {}",
+            all.join(", ")
+        ),
+        ([] | [_], false) => writeln!(
+            out,
+            "in force on {first}, NOT durable: it has no audit file, so a restart of it loses this change"
+        ),
+        (all, false) => writeln!(
+            out,
+            "acknowledged: held by {} (NOT on {first}'s disk: it has no audit file)",
+            all.join(", ")
+        ),
     };
     out
 }

@@ -440,13 +440,20 @@ pub struct Changed {
     pub config: pb::DeviceConfig,
     /// The fleet members holding the change (the one commanding the plant first): the
     /// change outlives any one of them. One name in a fleet without standbys or a single
-    /// service: then it lives as long as that member does.
+    /// service: then it lives as long as that member does, or its audit file.
     pub held_by: Vec<String>,
+    /// Whether the change and its audit entry were on the answering member's stable
+    /// storage (its audit file) before it was put in force: a restart keeps it.
+    pub durable: bool,
 }
 
 fn changed(key: &str, reply: pb::ConfigReply) -> Result<Changed, OpError> {
-    let held_by = reply.held_by.clone();
-    accepted(key, reply).map(|config| Changed { config, held_by })
+    let (held_by, durable) = (reply.held_by.clone(), reply.durable);
+    accepted(key, reply).map(|config| Changed {
+        config,
+        held_by,
+        durable,
+    })
 }
 
 fn accepted(key: &str, reply: pb::ConfigReply) -> Result<pb::DeviceConfig, OpError> {

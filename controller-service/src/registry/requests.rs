@@ -206,6 +206,7 @@ fn refused(reason: String, config: Option<pb::DeviceConfig>) -> pb::ConfigReply 
     pb::ConfigReply {
         version: PROTOCOL_VERSION,
         held_by: Vec::new(),
+        durable: false,
         accepted: false,
         reason,
         config,
@@ -227,6 +228,7 @@ fn conclude(
         Ok(()) => pb::ConfigReply {
             version: PROTOCOL_VERSION,
             held_by: Vec::new(),
+            durable: false,
             accepted: true,
             reason: String::new(),
             config: Some(d.config_pb(id)),
@@ -241,7 +243,7 @@ fn conclude(
 }
 
 /// Wire limits to core, checked; `i` names the channel in errors.
-fn limits_from_pb(l: &pb::ChannelLimits, i: usize) -> Result<Limits, String> {
+pub(super) fn limits_from_pb(l: &pb::ChannelLimits, i: usize) -> Result<Limits, String> {
     let out = Limits {
         min: l.min.unwrap_or(f64::NEG_INFINITY),
         max: l.max.unwrap_or(f64::INFINITY),

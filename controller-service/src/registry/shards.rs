@@ -287,20 +287,22 @@ impl Registry {
         })
     }
 
-    /// Restore a device from its snapshot. Refused (and the device left as configured) if
-    /// the snapshot's laws differ from the configuration in force: a changed configuration
-    /// wins over an old state.
+    /// Restore a device from its snapshot file: its control state (estimators, integrals,
+    /// sequence, run, counters), never its configuration. The laws, output maps, envelope
+    /// and reference in force stay (the file's, or the journal's put back by
+    /// [`Registry::recover`] before the snapshots are read), and the restored controller is
+    /// moved to them bumplessly: a snapshot older than an acknowledged change cannot roll it
+    /// back, one newer than the file cannot undo an edit of the file.
     pub fn restore(&mut self, snap: &DeviceSnapshot) -> Result<(), String> {
         self.restore_with(snap, false)
     }
 
-    /// [`Registry::restore`]; with `live_config`, a declared device takes the snapshot's
-    /// laws even where they differ from the file's (a handover from a member on which they
-    /// were changed remotely). The output maps must still lie inside the envelope.
+    /// [`Registry::restore`]; with `live_config` (a handover from another member, on which
+    /// the laws may have been changed remotely), the snapshot's laws and reference are
+    /// taken instead. The output maps must still lie inside the envelope.
     fn restore_with(&mut self, snap: &DeviceSnapshot, live_config: bool) -> Result<(), String> {
-        let mimo: MimoController =
+        let mut mimo: MimoController =
             mfc::snapshot::from_bytes(&snap.mimo).map_err(|e| e.to_string())?;
-        let configs: Vec<ChannelConfig> = mimo.channels().iter().map(|c| c.config()).collect();
         let d = match self.devices.get_mut(snap.id.as_str()) {
             Some(d) => d,
             None if snap.from_template => {
@@ -317,22 +319,19 @@ impl Registry {
             }
             None => return Err(format!("device {:?} is no longer configured", snap.id)),
         };
-        if configs.len() != d.channels() {
+        if mimo.channels().len() != d.channels() {
             return Err(format!(
                 "device {:?}: the snapshot has {} channels, the device {}",
                 snap.id,
-                configs.len(),
+                mimo.channels().len(),
                 d.channels()
             ));
         }
-        if !snap.from_template && !live_config && configs != d.configs() {
-            return Err(format!(
-                "device {:?}: configuration changed since the snapshot",
-                snap.id
-            ));
+        if !live_config {
+            mimo.reconfigure(&d.configs())
+                .map_err(|e| format!("device {:?}: {e}", snap.id))?;
         }
-        // A template device's laws may have been changed remotely; its maps must still lie
-        // inside the envelope it has now.
+        let configs: Vec<ChannelConfig> = mimo.channels().iter().map(|c| c.config()).collect();
         for (i, (c, l)) in configs.iter().zip(&d.envelope).enumerate() {
             if *c
                 != (ChannelConfig {
@@ -356,8 +355,10 @@ impl Registry {
         d.refs = smallvec::smallvec![Reference::default(); configs.len()];
         d.f_est = smallvec::smallvec![f64::NAN; configs.len()];
         d.mimo = mimo;
-        d.reference = snap.reference.iter().cloned().collect();
-        d.reference_start = snap.reference_start;
+        if live_config {
+            d.reference = snap.reference.iter().cloned().collect();
+            d.reference_start = snap.reference_start;
+        }
         d.run_id = snap.run_id;
         d.last_seq = snap.last_seq;
         d.last_time = snap.last_time;

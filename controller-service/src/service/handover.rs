@@ -162,7 +162,6 @@ impl Worker {
                         state,
                         partners,
                         devices: devs.iter().map(|d| d.to_string()).collect(),
-                        written: None,
                     })
                 })
                 .collect()
@@ -271,9 +270,25 @@ impl Worker {
         };
         // The entries handed with the devices that this member did not have go to its
         // own audit file: its history of a device survives the member it came from.
+        // And the states taken are kept there too, so that a restart of this member puts
+        // back what it held for its partners (nothing waits for it: the partner that
+        // asked keeps the change in its own file before it is acknowledged).
         if let Some(t) = &c.gate.trail {
             for e in &r.audit {
                 t.append(e.clone());
+            }
+            for d in &st.devices {
+                let id = d.snapshot.id.as_str();
+                if let (Some((config, version)), Some(file)) =
+                    (c.registry.state_of(id), c.registry.file_config_of(id))
+                {
+                    let state = crate::journal::State {
+                        config,
+                        version,
+                        file,
+                    };
+                    t.keep(id, state);
+                }
             }
         }
         let mut ib = lock(&self.shared.inbox);

@@ -47,8 +47,6 @@ pub(super) struct HoldJob {
     /// For states sent without a change: the devices, whose holder learns whether its
     /// partners are in step with it ([`Msg::HandedOver`]).
     pub(super) devices: Vec<String>,
-    /// Resolves once the change's audit entry is fsynced: the reply waits for it too.
-    pub(super) written: Option<tokio::sync::oneshot::Receiver<()>>,
 }
 
 /// Who this member is, and how it reaches its partners.
@@ -107,9 +105,6 @@ impl Replicator {
             )
         });
         acknowledge(&mut reply, &self.me, held, why.as_deref());
-        if let Some(w) = job.written {
-            let _ = w.await;
-        }
         let key = query.key_expr().as_str().to_string();
         let bytes = match &self.keys {
             Some(k) => k.seal_reply(&key, &request, encode(&reply)),

@@ -1,26 +1,22 @@
-//! The worker's handlers of operators' requests: configuration, envelope and reference
-//! changes (as queries, and the reference as a put), device and service status. The
-//! registry decides; here a request is matched to a served device, decoded, applied with
-//! the core held, logged, recorded, replied to, and an accepted change is sent on to the
-//! shard's standby.
+//! The worker's handlers of operators' requests: configuration, envelope, reference and
+//! commissioning changes (as queries, and the reference as a put), device and service
+//! status. Here a request is matched to a served device and decoded; a change then goes
+//! the way of [`super::operators`], and once made it is sent on to the shard's partners
+//! before it is acknowledged.
 
-use protocol::{decode, encode, keys, pb, printable, Versioned};
-use telemetry::Topic;
+use protocol::{decode, encode, keys, pb};
 use zenoh::query::Query;
 
-use super::core::Core;
 use super::hold::{self, HoldJob};
 use super::lock;
-use super::log::throttled;
-use super::operators::{reply_key, Asked};
+use super::operators::{reply_key, Change, Request};
 use super::worker::Worker;
-use crate::access::Action;
 use crate::lease::Holder;
 use crate::snapshot::encode_shard;
 use crate::Registry;
 
 /// Who must hold an accepted change before it is acknowledged.
-enum ToHold {
+pub(super) enum ToHold {
     /// This member only: no fleet, or a fleet without standbys (whose takeovers start
     /// afresh from the file anyway).
     Here,
@@ -35,7 +31,12 @@ impl Worker {
     /// A live reference update (put). A put reaches every service, and every fleet
     /// member: one that does not serve the device, or does not step its shard, lets it
     /// pass, uncounted, as it does a request for a device served elsewhere.
-    pub(super) fn handle_reference_put(&mut self, dev: &str, bytes: &[u8], who: Option<&str>) {
+    pub(super) async fn handle_reference_put(
+        &mut self,
+        dev: &str,
+        bytes: &[u8],
+        who: Option<&str>,
+    ) {
         let home = lock(&self.shared.core).registry.home_of(dev);
         let stepped = match (&self.member, home) {
             (_, None) => false,
@@ -49,169 +50,49 @@ impl Worker {
             Ok(u) => u,
             Err(e) => return self.undecodable("reference", dev, &e),
         };
-        let reply = {
-            let mut c = lock(&self.shared.core);
-            let asked = Asked {
-                dev,
-                who,
-                action: Action::Change,
-                what: "reference",
-                asked: &u,
-            };
-            let reply = c.decide(asked, |core, _| {
-                let Core {
-                    registry, watch, ..
-                } = core;
-                let reply = registry.set_reference(dev, &u);
-                if reply.accepted {
-                    watch.changed(
-                        registry,
-                        dev,
-                        Topic::ReferenceUpdate,
-                        bytes,
-                        "reference changed",
-                    );
-                }
-                reply
-            });
-            // A put is not answered: nothing waits for its entry.
-            drop(c.gate.written());
-            reply
+        let change = Change {
+            dev: dev.to_string(),
+            who: who.map(str::to_string),
+            request: Request::Reference(u),
+            bytes: bytes.to_vec(),
+            query: None,
         };
-        if !reply.accepted {
-            self.refused(dev, "reference", &reply.reason);
-        }
+        self.submit(change).await;
     }
 
     /// A configuration query: a read, or a change of laws, gains, maps or reference.
     pub(super) async fn handle_config(&mut self, q: Query) {
-        self.change_query(
-            q,
-            "configuration",
-            |_, _, _: &pb::ConfigRequest| Action::Change,
-            |core, (dev, _), req: &pb::ConfigRequest, bytes| {
-                let r = core.registry.configure(dev, req);
-                if r.accepted {
-                    let warn = &mut core.warn;
-                    throttled!(warn.changed, info, device = %dev, "configuration changed");
-                    core.watch.changed(
-                        &core.registry,
-                        dev,
-                        Topic::ConfigRequest,
-                        bytes,
-                        "configuration changed",
-                    );
-                }
-                r
-            },
-        )
-        .await;
+        self.change_query(q, |b| decode(b).map(Request::Config))
+            .await;
     }
 
     /// An envelope query: a read, or a change (narrowing; widening where the file allows).
     pub(super) async fn handle_envelope(&mut self, q: Query) {
-        let action = |r: &Registry, dev: &str, req: &pb::EnvelopeRequest| {
-            if r.widens(dev, req) {
-                Action::Widen
-            } else {
-                Action::Change
-            }
-        };
-        self.change_query(q, "envelope", action, |core, (dev, _), req: &pb::EnvelopeRequest, bytes| {
-            let before = core.registry.envelope_of(dev);
-            let r = core.registry.change_envelope(dev, req);
-            if !r.accepted {
-                return r;
-            }
-            let after = core.registry.envelope_of(dev);
-            let widened = before
-                .iter()
-                .flatten()
-                .zip(after.iter().flatten())
-                .any(|(b, a)| b.is_widened_by(a));
-            let by = printable(&req.reason);
-            let what = format!("envelope {} by {by}", if widened { "WIDENED" } else { "narrowed" });
-            core.watch
-                .changed(&core.registry, dev, Topic::EnvelopeRequest, bytes, &what);
-            let envelope = r.config.as_ref().and_then(|c| c.envelope.clone());
-            if widened {
-                // Every widening has its own line: it is rare (the file must allow it) and
-                // it is what an audit looks for.
-                tracing::warn!(device = %dev, by = %by, envelope = ?envelope, "envelope WIDENED");
-            } else {
-                let warn = &mut core.warn;
-                throttled!(warn.envelope, info, device = %dev, by = %by, envelope = ?envelope, "envelope narrowed");
-            }
-            r
-        })
-        .await;
+        self.change_query(q, |b| decode(b).map(Request::Envelope))
+            .await;
     }
 
     /// A reference update sent as a query, to be answered.
     pub(super) async fn handle_reference_query(&mut self, q: Query) {
-        self.change_query(
-            q,
-            "reference",
-            |_, _, _: &pb::ReferenceUpdate| Action::Change,
-            |core, (dev, _), u: &pb::ReferenceUpdate, bytes| {
-                let r = core.registry.set_reference(dev, u);
-                if r.accepted {
-                    core.watch.changed(
-                        &core.registry,
-                        dev,
-                        Topic::ReferenceUpdate,
-                        bytes,
-                        "reference changed",
-                    );
-                }
-                r
-            },
-        )
-        .await;
+        self.change_query(q, |b| decode(b).map(Request::Reference))
+            .await;
     }
 
     /// A commissioning query (`crate::registry` decides): a start, a confirmation (the
     /// proposed law put in force like a configuration change) or an abort.
     pub(super) async fn handle_commission(&mut self, q: Query) {
-        self.change_query(
-            q,
-            "commission",
-            |_, _, _: &pb::CommissionRequest| Action::Change,
-            |core, (dev, who), req: &pb::CommissionRequest, bytes| {
-                let r = core.registry.commission(dev, req, who, protocol::unix_ns());
-                if r.accepted {
-                    let action = pb::CommissionAction::try_from(req.action)
-                        .map_or("?", |a| a.as_str_name());
-                    tracing::info!(device = %dev, by = %printable(who), channel = req.channel, action, "commissioning");
-                    core.watch.changed(
-                        &core.registry,
-                        dev,
-                        Topic::CommissionRequest,
-                        bytes,
-                        "commissioning",
-                    );
-                }
-                r
-            },
-        )
-        .await;
+        self.change_query(q, |b| decode(b).map(Request::Commission))
+            .await;
     }
 
-    /// A configuration, envelope or reference query on a device this member answers for:
-    /// no payload reads the configuration in force; a payload is decoded as `R` and
-    /// applied by `apply` with the core held. A refusal is logged and replied to at once;
-    /// an accepted change is acknowledged once the member's partners hold it
-    /// ([`super::hold`]).
-    ///
-    /// Who asks (the operator its key names) must be allowed to read, or to make the
-    /// change `action_of` says it is; every change is decided through the audit trail
-    /// ([`Core::decide`]).
-    async fn change_query<R: Versioned + std::fmt::Debug>(
+    /// A configuration, envelope, reference or commissioning query on a device this member
+    /// answers for: no payload reads the configuration in force (who asks must be allowed
+    /// to read it); a payload is decoded by `decode` and goes the way of every change
+    /// ([`super::operators`]).
+    async fn change_query(
         &mut self,
         q: Query,
-        what: &'static str,
-        action_of: impl FnOnce(&Registry, &str, &R) -> Action,
-        apply: impl FnOnce(&mut Core, (&str, &str), &R, &[u8]) -> pb::ConfigReply,
+        decode: impl FnOnce(&[u8]) -> Result<Request, protocol::DecodeError>,
     ) {
         let Some(dev) = self.served(&q).await else {
             return;
@@ -219,49 +100,54 @@ impl Worker {
         let Some(who) = self.named(&q).await else {
             return;
         };
-        let body = q.payload().map(|p| p.to_bytes().into_owned());
-        if body.is_none() && !self.may_read(&q, who.as_deref(), &dev).await {
+        let Some(bytes) = q.payload().map(|p| p.to_bytes().into_owned()) else {
+            if !self.may_read(&q, who.as_deref(), &dev).await {
+                return;
+            }
+            let reply = read_config(&lock(&self.shared.core).registry, &dev);
+            let bytes = self.sealed_reply(q.key_expr().as_str(), None, encode(&reply));
+            let _ = q.reply(q.key_expr().clone(), bytes).await;
             return;
-        }
-        let (mut reply, hold, written) = {
-            let mut c = lock(&self.shared.core);
-            let reply = match &body {
-                None => read_config(&c.registry, &dev),
-                Some(bytes) => match decode::<R>(bytes) {
-                    Ok(r) => {
-                        let asked = Asked {
-                            dev: &dev,
-                            who: who.as_deref(),
-                            action: action_of(&c.registry, &dev, &r),
-                            what,
-                            asked: &r,
-                        };
-                        c.decide(asked, |core, actor| {
-                            apply(core, (&dev, &actor.name), &r, bytes)
-                        })
-                    }
-                    Err(e) => undecodable_request(&mut c.registry, &dev, e),
-                },
-            };
-            // The state to hold is taken with the change, under the same lock: what the
-            // partners hold is exactly what is in force here.
-            let hold = (reply.accepted && body.is_some()).then(|| self.to_hold(&c.registry, &dev));
-            let written = body.as_ref().and_then(|_| c.gate.written());
-            (reply, hold, written)
         };
-        if !reply.accepted {
-            self.refused(&dev, what, &reply.reason);
-        }
+        let request = match decode(&bytes) {
+            Ok(r) => r,
+            Err(e) => {
+                let reply = undecodable_request(&mut lock(&self.shared.core).registry, &dev, e);
+                self.refused(&dev, "request", &reply.reason);
+                let key = q.key_expr().as_str().to_string();
+                let sealed = self.sealed_reply(&key, Some(&bytes), encode(&reply));
+                let _ = q.reply(q.key_expr().clone(), sealed).await;
+                return;
+            }
+        };
+        let change = Change {
+            dev,
+            who,
+            request,
+            bytes,
+            query: Some(q),
+        };
+        self.submit(change).await;
+    }
+
+    /// Reply to a change made: at once (held here, or not acknowledged with why), or once
+    /// the partners `hold` names hold it.
+    pub(super) async fn reply_held(
+        &mut self,
+        q: Query,
+        request: Vec<u8>,
+        mut reply: pb::ConfigReply,
+        hold: ToHold,
+    ) {
         match hold {
-            Some(ToHold::Partners(shard, state, partners)) => {
+            ToHold::Partners(shard, state, partners) => {
                 let Some(m) = &self.member else { return };
                 let job = HoldJob {
-                    answer: Some((q, body.unwrap_or_default(), reply)),
+                    answer: Some((q, request, reply)),
                     shard,
                     state,
                     partners,
                     devices: Vec::new(),
-                    written,
                 };
                 if let Err(e) = m.holds.try_send(job) {
                     let Some((q, request, mut reply)) = e.into_inner().answer else {
@@ -275,18 +161,21 @@ impl Worker {
                 }
                 return;
             }
-            Some(ToHold::Not(why)) => {
+            ToHold::Not(why) => {
                 hold::acknowledge(&mut reply, &self.id, vec![self.id.clone()], Some(&why));
             }
-            Some(ToHold::Here) => reply.held_by = vec![self.id.clone()],
-            None => {}
+            ToHold::Here => reply.held_by = vec![self.id.clone()],
         }
-        let bytes = self.sealed_reply(q.key_expr().as_str(), body.as_deref(), encode(&reply));
-        reply_once_written(q, bytes, written).await;
+        let bytes = self.sealed_reply(q.key_expr().as_str(), Some(&request), encode(&reply));
+        let _ = q.reply(q.key_expr().clone(), bytes).await;
     }
 
-    /// Who must hold an accepted change to `dev` before it is acknowledged.
-    fn to_hold(&self, registry: &Registry, dev: &str) -> ToHold {
+    /// Who must hold an accepted change to `dev` before it is acknowledged. The state to
+    /// hold is taken under the same lock as the answer: what the partners hold is exactly
+    /// what is in force here.
+    pub(super) fn to_hold(&self, dev: &str) -> ToHold {
+        let c = lock(&self.shared.core);
+        let registry = &c.registry;
         let Some(m) = &self.member else {
             return ToHold::Here;
         };
@@ -508,31 +397,12 @@ impl Worker {
     }
 }
 
-/// Send `bytes` to `q` once `written` resolves (the decision's audit entry is fsynced), at
-/// once without it; the worker does not wait for the disk.
-async fn reply_once_written(
-    q: Query,
-    bytes: Vec<u8>,
-    written: Option<tokio::sync::oneshot::Receiver<()>>,
-) {
-    match written {
-        None => {
-            let _ = q.reply(q.key_expr().clone(), bytes).await;
-        }
-        Some(w) => {
-            tokio::spawn(async move {
-                let _ = w.await;
-                let _ = q.reply(q.key_expr().clone(), bytes).await;
-            });
-        }
-    }
-}
-
 fn read_config(registry: &Registry, dev: &str) -> pb::ConfigReply {
     match registry.config_of(dev) {
         Some(c) => pb::ConfigReply {
             version: protocol::PROTOCOL_VERSION,
             held_by: Vec::new(),
+            durable: false,
             accepted: true,
             reason: String::new(),
             config: Some(c),
@@ -540,6 +410,7 @@ fn read_config(registry: &Registry, dev: &str) -> pb::ConfigReply {
         None => pb::ConfigReply {
             version: protocol::PROTOCOL_VERSION,
             held_by: Vec::new(),
+            durable: false,
             accepted: false,
             reason: format!("unknown device \"{dev}\""),
             config: None,
@@ -556,6 +427,7 @@ fn undecodable_request(
     pb::ConfigReply {
         version: protocol::PROTOCOL_VERSION,
         held_by: Vec::new(),
+        durable: false,
         accepted: false,
         reason: e.to_string(),
         config: registry.config_of(dev),

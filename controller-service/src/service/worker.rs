@@ -54,6 +54,8 @@ pub(super) struct Worker {
     pub(super) tx: mpsc::Sender<Msg>,
     pub(super) member: Option<Member>,
     pub(super) standby: HotStandby,
+    /// Operators' changes on their way ([`super::operators`]).
+    pub(super) changes: super::operators::Changes,
     snapshots: Option<SnapshotSpec>,
     /// Throttles for what the worker logs (the core keeps its own).
     pub(super) warn: Warnings,
@@ -65,6 +67,8 @@ pub(super) struct Worker {
 /// What the worker waits on besides its own fields.
 pub(super) struct Inputs {
     rx: mpsc::Receiver<Msg>,
+    /// The audit file's writer's word on this worker's records.
+    written: mpsc::Receiver<super::trail::Written>,
     heartbeats: mpsc::Receiver<Vec<u8>>,
     scrapes: Option<mpsc::Receiver<ScrapeRequest>>,
     heartbeat_tick: Interval,
@@ -94,19 +98,10 @@ impl Worker {
             restore_snapshots(&mut registry, sn, &observers);
         }
         let (fleet_spec, standby_spec) = (registry.fleet().cloned(), registry.standby().cloned());
-        let watch = Watch {
-            controller: id.clone(),
-            recording: observers.recording.clone(),
-            metrics: observers.metrics.clone(),
-            histograms: HashMap::new(),
-        };
-        if let Some(r) = &watch.recording {
-            for d in registry.device_ids() {
-                record_config(r, &registry, d, "recording starts");
-            }
-        }
+        let watch = Watch::of(&registry, &observers);
         let (tx, rx) = mpsc::channel::<Msg>(QUEUE);
         let (hb_tx, hb_rx) = mpsc::channel::<Vec<u8>>(HEARTBEATS);
+        let (written_tx, written_rx) = mpsc::channel(super::trail::WAITING);
         let templates = registry.template_patterns();
         let keys = Keyring::of(&registry);
         let gate = super::operators::Gate::of(&registry, observers.audit.clone());
@@ -151,6 +146,7 @@ impl Worker {
         let standby = HotStandby::new(standby_spec.as_ref(), Instant::now());
         let inputs = Inputs {
             rx,
+            written: written_rx,
             heartbeats: hb_rx,
             scrapes: observers.metrics.as_ref().map(|m| m.join()),
             heartbeat_tick: ticker(standby.heartbeat),
@@ -173,6 +169,7 @@ impl Worker {
             tx,
             member,
             standby,
+            changes: super::operators::Changes::new(written_tx),
             snapshots,
             warn: Warnings::default(),
             reported: [0; 8],
@@ -204,6 +201,7 @@ impl Worker {
                     None => break,
                 },
                 Some(bytes) = inputs.heartbeats.recv() => self.handle_heartbeat(&bytes),
+                Some(w) = inputs.written.recv() => self.handle_written(w).await,
                 _ = inputs.heartbeat_tick.tick(), if self.standby_routes.is_some() => {
                     self.on_heartbeat_tick().await;
                 }
@@ -228,6 +226,7 @@ impl Worker {
             } => self.handle_refused(&dev, &sample, reason).await,
             Msg::Reference(dev, bytes, who) => {
                 self.handle_reference_put(&dev, &bytes, who.as_deref())
+                    .await;
             }
             Msg::Config(q) => self.handle_config(q).await,
             Msg::Envelope(q) => self.handle_envelope(q).await,
@@ -460,6 +459,25 @@ impl Worker {
     pub(super) fn undecodable(&mut self, what: &str, dev: &str, e: &protocol::DecodeError) {
         lock(&self.shared.core).registry.note_undecodable();
         throttled!(self.warn.undecodable, warn, device = %printable(dev), "undecodable {what}: {e}");
+    }
+}
+
+impl Watch {
+    /// What `registry`'s worker feeds `observers`; a recording starts with every device's
+    /// configuration.
+    fn of(registry: &Registry, observers: &Observers) -> Self {
+        let watch = Self {
+            controller: registry.controller_id().to_string(),
+            recording: observers.recording.clone(),
+            metrics: observers.metrics.clone(),
+            histograms: HashMap::new(),
+        };
+        if let Some(r) = &watch.recording {
+            for d in registry.device_ids() {
+                record_config(r, registry, d, "recording starts");
+            }
+        }
+        watch
     }
 }
 
