@@ -307,6 +307,7 @@ const SERVICE_GAUGES: &[(&str, Field<Scraped>)] = &[
         w.status.devices.len() as u64
     }),
     ("mfc_service_active", |w| u64::from(w.status.active)),
+    ("mfc_service_twins", |w| w.status.twins.len() as u64),
     ("mfc_service_inbox_depth", |w| w.inbox as u64),
     ("mfc_service_gateway_depth", |w| w.gateways as u64),
     ("mfc_service_queue_depth", |w| w.queue as u64),
@@ -376,6 +377,11 @@ impl ServiceMetrics {
             "mfc_service_active",
             None,
             "1 if this worker answers (hot standby: the active member).",
+        );
+        metrics.describe(
+            "mfc_service_twins",
+            None,
+            "Other processes seen carrying this service's controller id (a copied bundle, a service started twice): should be 0.",
         );
         metrics.describe(
             "mfc_service_inbox_depth",

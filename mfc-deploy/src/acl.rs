@@ -11,7 +11,7 @@
 //! | role | sends (ingress) | receives (egress) |
 //! |---|---|---|
 //! | device `d` | put `device/d/sample` and `shard/{s}/device/d/sample` (`s` its shard, where the agent publishes); subscribe `device/d/command`; token `alive/plant/d` | put `device/d/command`; the services' subscriptions `device/*/sample`, `shard/*/device/*/sample` |
-//! | service `s` | put `device/*/command`, `gateway/*/commands`, `group/**`; subscribe `device/*/sample`, `device/*/reference/**`, `shard/*/device/*/sample`, `gateway/*/samples`, `group/**`, the members `fleet/*/member/*`; serve and reply on `device/*/{leaf}/**` for each of `config,status,envelope,reference,audit` (the leaf and the operators' `…/by/{o}` below it) and the same under `shard/*/` (no wildcard leaf); query other members' `fleet/*/member/*/shard/*`; tokens `alive/controller/s` and `fleet/*/member/s`, handover queryable `fleet/*/member/s/shard/*` and status queryable `service/s/status`, under its own name only | samples, batches, references, heartbeats, fleet traffic, queries, the agents' and operators' declarations |
+//! | service `s` | put `device/*/command`, `gateway/*/commands`, `group/**`; subscribe `device/*/sample`, `device/*/reference/**`, `shard/*/device/*/sample`, `gateway/*/samples`, `group/**`, the members `fleet/*/member/*`; serve and reply on `device/*/{leaf}/**` for each of `config,status,envelope,reference,audit` (the leaf and the operators' `…/by/{o}` below it) and the same under `shard/*/` (no wildcard leaf); query other members' `fleet/*/member/*/shard/*`; tokens `alive/controller/s`, `alive/instance/s/*` (one per process, watched: two processes of one name see each other) and `fleet/*/member/s`, handover queryable `fleet/*/member/s/shard/*` and status queryable `service/s/status`, under its own name only | samples, batches, references, heartbeats, fleet traffic, queries, the agents' and operators' declarations |
 //! | gateway `g` hosting plants `p…` | put `gateway/g/samples` and `shard/{s}/gateway/g/samples` (`s` its shard); subscribe `gateway/g/commands`; tokens `alive/plant/p` for each of its plants | put `gateway/g/commands`; the services' subscriptions `gateway/*/samples`, `shard/*/gateway/*/samples` |
 //! | operator `o` | query `device/*/{config,status,envelope,reference,audit}/by/o` (and under `shard/*/`), `service/*/status`; put `device/*/reference/by/o` (not a viewer): under its own name only; subscribe samples and commands (watch); liveliness queries | replies, samples, commands, tokens |
 //!
@@ -385,6 +385,24 @@ fn service_own_rules(s: &str) -> Vec<Value> {
             &["ingress"],
             &["liveliness_token"],
             vec![format!("{P}/alive/controller/{s}")],
+        ),
+        // One token per process under its own name, and the watch on the others: two
+        // processes with this name (a copied bundle) see each other and warn.
+        rule(
+            format!("service-{s}-instance"),
+            &["ingress"],
+            &[
+                "liveliness_token",
+                "declare_liveliness_subscriber",
+                "liveliness_query",
+            ],
+            vec![protocol::keys::alive_instances(s)],
+        ),
+        rule(
+            format!("service-{s}-twins"),
+            &["egress"],
+            &["liveliness_token", "reply"],
+            vec![protocol::keys::alive_instances(s)],
         ),
     ]
 }

@@ -361,8 +361,10 @@ async fn command(
             out(json, &both, |b| render::devices(&b.services, &b.plants_up))?
         }
         Command::Status { device } => {
-            let s = ops::device_status(operator, device, timeout).await?;
-            out(json, &s, render::status)?
+            let all = ops::device_statuses(operator, device, timeout).await?;
+            out(json, &all[0], |s| {
+                render::status(s) + &render::answered(&all)
+            })?
         }
         Command::Config { device } => {
             let c = ops::config(operator, device, timeout).await?;

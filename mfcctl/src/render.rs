@@ -24,8 +24,8 @@ pub fn services(list: &[pb::ServiceStatus], alive: &[String]) -> String {
     let mut out = String::new();
     let _ = writeln!(
         out,
-        "{:<20} {:<8} {:>5} {:>8} {:>9} {:<5}  drops",
-        "controller", "role", "term", "devices", "uptime s", "auth"
+        "{:<20} {:<16} {:<8} {:>5} {:>8} {:>9} {:<5}  drops",
+        "controller", "process", "role", "term", "devices", "uptime s", "auth"
     );
     for s in list {
         let drops = [
@@ -47,8 +47,9 @@ pub fn services(list: &[pb::ServiceStatus], alive: &[String]) -> String {
         .join(", ");
         let _ = writeln!(
             out,
-            "{:<20} {:<8} {:>5} {:>8} {:>9.0} {:<5}  {}",
+            "{:<20} {:<16} {:<8} {:>5} {:>8} {:>9.0} {:<5}  {}",
             s.controller_id,
+            instance(s.instance),
             if s.active { "active" } else { "standby" },
             s.term,
             s.devices.len(),
@@ -62,12 +63,36 @@ pub fn services(list: &[pb::ServiceStatus], alive: &[String]) -> String {
             }
         );
     }
+    out += &twins(list);
     let silent: Vec<&String> = alive
         .iter()
         .filter(|a| !list.iter().any(|s| &s.controller_id == *a))
         .collect();
     if !silent.is_empty() {
         let _ = writeln!(out, "alive but not answering status: {silent:?}");
+    }
+    out
+}
+
+/// A warning for each controller id carried by more than one process: the replies of
+/// several, or one that sees others (`ServiceStatus.twins`).
+fn twins(list: &[pb::ServiceStatus]) -> String {
+    let mut by_id: std::collections::BTreeMap<&str, std::collections::BTreeSet<u64>> =
+        std::collections::BTreeMap::new();
+    for s in list {
+        let seen = by_id.entry(&s.controller_id).or_default();
+        seen.insert(s.instance);
+        seen.extend(&s.twins);
+    }
+    let mut out = String::new();
+    for (id, seen) in by_id.iter().filter(|(_, seen)| seen.len() > 1) {
+        let all: Vec<String> = seen.iter().map(|&i| instance(i)).collect();
+        let _ = writeln!(
+            out,
+            "WARNING: {id} runs in {} processes ({}): a copied bundle, or a service started twice; stop all but one",
+            seen.len(),
+            all.join(", ")
+        );
     }
     out
 }
@@ -151,7 +176,11 @@ pub fn status(d: &pb::DeviceStatus) -> String {
     let holder = match d.lease_holder.as_str() {
         "" if d.lease_epoch == 0 => "none (or a plant without leases)".to_string(),
         "" => format!("vacant after epoch {}", d.lease_epoch),
-        h => format!("{h} (epoch {})", d.lease_epoch),
+        h => format!(
+            "{h} (process {}, epoch {})",
+            instance(d.lease_instance),
+            d.lease_epoch
+        ),
     };
     let _ = writeln!(
         out,
@@ -169,6 +198,44 @@ pub fn status(d: &pb::DeviceStatus) -> String {
     }
     if let Some(c) = &d.commission {
         out += &commission(c);
+    }
+    out
+}
+
+/// A process's instance, as the services' logs print it (16 hex digits).
+fn instance(i: u64) -> String {
+    format!("{i:016x}")
+}
+
+/// Who answered a device's status and how old its word on the plant is; the other
+/// members that answered too, each with its age (a member paused or cut off believes what
+/// the plant said before: its word is older).
+pub fn answered(all: &[pb::DeviceStatus]) -> String {
+    let age = |d: &pb::DeviceStatus| match d.heard_ms_ago {
+        0 => "never heard the plant".to_string(),
+        ms => format!("heard the plant {:.2} s ago", ms as f64 / 1000.0),
+    };
+    let mut out = String::new();
+    let Some(first) = all.first() else {
+        return out;
+    };
+    let _ = writeln!(
+        out,
+        "  answered by {} (process {}), which {}",
+        first.answered_by,
+        instance(first.answered_by_instance),
+        age(first)
+    );
+    for d in &all[1..] {
+        let _ = writeln!(
+            out,
+            "  also answered by {} (process {}), which {}: it says the lease is {} at epoch {} (older word)",
+            d.answered_by,
+            instance(d.answered_by_instance),
+            age(d),
+            if d.lease_holder.is_empty() { "vacant" } else { &d.lease_holder },
+            d.lease_epoch
+        );
     }
     out
 }

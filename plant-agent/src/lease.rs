@@ -90,6 +90,11 @@ pub const MAX_SPANS: usize = 1024;
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Span {
     pub holder: String,
+    /// The holder's process (random per start, `Credentials::instance`): two processes
+    /// carrying one controller id make two spans, told apart here. Absent in reports of
+    /// older builds (read as 0).
+    #[serde(default)]
+    pub instance: u64,
     pub epoch: u64,
     /// The first and last period in which a command of this holder was applied.
     pub first: u64,
@@ -250,10 +255,10 @@ impl Lease {
     }
 
     fn record(&mut self, holder: &str, k: u64) {
-        let epoch = self.epoch;
+        let (epoch, instance) = (self.epoch, self.instance);
         let full = self.spans.len() >= MAX_SPANS;
         match self.spans.last_mut() {
-            Some(s) if s.holder == holder && s.epoch == epoch => {
+            Some(s) if s.holder == holder && s.epoch == epoch && s.instance == instance => {
                 s.last = k;
                 s.commands = s.commands.saturating_add(1);
             }
@@ -266,6 +271,7 @@ impl Lease {
             }
             _ => self.spans.push(Span {
                 holder: holder.to_owned(),
+                instance,
                 epoch,
                 first: k,
                 last: k,
@@ -378,6 +384,27 @@ mod tests {
         assert_eq!(l.counters().other_run, 2);
     }
 
+    /// Two processes carrying one controller id (a copied bundle): the plant's record
+    /// tells their spans apart by the process.
+    #[test]
+    fn two_processes_of_one_id_are_two_spans() {
+        let mut l = Lease::new(7);
+        grant(&mut l, "c-1");
+        let first = cred("c-1", 1, false);
+        l.accepted(Pass::Holder, &first, Some(1));
+        l.lapse();
+        let mut twin = cred("c-1", 2, true);
+        twin.instance = 9;
+        assert_eq!(l.check(&twin), Ok(Pass::Claim));
+        l.accepted(Pass::Claim, &twin, Some(5));
+        let spans = l.report().spans;
+        let who: Vec<(&str, u64, u64)> = spans
+            .iter()
+            .map(|s| (s.holder.as_str(), s.instance, s.epoch))
+            .collect();
+        assert_eq!(who, [("c-1", 3, 1), ("c-1", 9, 2)]);
+    }
+
     #[test]
     fn release_vacates_after_the_command() {
         let mut l = Lease::new(7);
@@ -392,6 +419,7 @@ mod tests {
             l.report().spans,
             [Span {
                 holder: "a".into(),
+                instance: 3,
                 epoch: 1,
                 first: 3,
                 last: 3,

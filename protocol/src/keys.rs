@@ -86,6 +86,20 @@ pub fn heartbeat(group: &str) -> String {
 pub fn alive_controller(controller: &str) -> String {
     format!("{PREFIX}/alive/controller/{controller}")
 }
+/// `mfc/v1/alive/instance/{controller}/{instance}` (the instance in 16 hex digits): one
+/// token per process, so that two processes carrying one controller id see each other.
+pub fn alive_instance(controller: &str, instance: u64) -> String {
+    format!("{PREFIX}/alive/instance/{controller}/{instance:016x}")
+}
+/// Every process's token of `controller` ([`alive_instance`]).
+pub fn alive_instances(controller: &str) -> String {
+    format!("{PREFIX}/alive/instance/{controller}/*")
+}
+/// The instance an [`alive_instance`] key names, if it is one of `controller`'s.
+pub fn instance_of(controller: &str, key: &str) -> Option<u64> {
+    let rest = key.strip_prefix(&format!("{PREFIX}/alive/instance/{controller}/"))?;
+    (rest.len() == 16).then(|| u64::from_str_radix(rest, 16).ok())?
+}
 /// `mfc/v1/alive/plant/{id}`.
 pub fn alive_plant(id: &str) -> String {
     format!("{PREFIX}/alive/plant/{id}")

@@ -218,28 +218,11 @@ async fn one<M: protocol::Versioned>(
     payload: Option<Vec<u8>>,
     timeout: Duration,
 ) -> Result<M, OpError> {
-    let all = replies::<M>(session, key, payload, timeout).await?;
-    let mut first_err = None;
-    for r in all {
-        match r {
-            Ok(m) => return Ok(m),
-            // A proven error (a controller's) over an unproven one, whichever came first.
-            Err(e) if first_err.is_none() || first_err.as_deref() == Some(UNPROVEN) => {
-                first_err = Some(e);
-            }
-            Err(_) => {}
-        }
+    let mut all = replies::<M>(session, key, payload, timeout).await?;
+    match all.iter().position(Result::is_ok) {
+        Some(i) => Ok(all.swap_remove(i).expect("a good reply")),
+        None => Err(first_error(key, all, timeout)),
     }
-    Err(match first_err {
-        Some(reason) => OpError::Refused {
-            what: format!("query {key}"),
-            reason,
-        },
-        None => OpError::NoAnswer {
-            what: format!("query {key}"),
-            timeout_ms: timeout.as_millis() as u64,
-        },
-    })
 }
 
 /// The status of every controller that answers, by controller id.
@@ -281,14 +264,57 @@ pub async fn alive(session: &Session, what: &str) -> Result<Vec<String>, OpError
     Ok(ids)
 }
 
-/// One device's status, from the controller that serves it.
+/// One device's status, from the controller that serves it: where several members
+/// answer (one resumed after a pause still believing it holds the plant, say), the one
+/// that heard the plant last ([`device_statuses`]).
 pub async fn device_status(
     session: &impl Asker,
     id: &str,
     timeout: Duration,
 ) -> Result<pb::DeviceStatus, OpError> {
+    let mut all = device_statuses(session, id, timeout).await?;
+    Ok(all.remove(0))
+}
+
+/// Every member's status of a device that answers for it, the one that heard the plant
+/// last first (`DeviceStatus.heard_ms_ago`, each member's own clock; never heard comes
+/// last): what the plant said last, whichever member heard it. At least one, or the
+/// error [`one`] gives.
+pub async fn device_statuses(
+    session: &impl Asker,
+    id: &str,
+    timeout: Duration,
+) -> Result<Vec<pb::DeviceStatus>, OpError> {
     check(id)?;
-    one(session, &keys::status(id), None, timeout).await
+    let key = keys::status(id);
+    let all = replies::<pb::DeviceStatus>(session, &key, None, timeout).await?;
+    let mut good: Vec<pb::DeviceStatus> = all.iter().filter_map(|r| r.clone().ok()).collect();
+    if good.is_empty() {
+        return Err(first_error(&key, all, timeout));
+    }
+    good.sort_by_key(|s| (s.heard_ms_ago == 0, s.heard_ms_ago));
+    Ok(good)
+}
+
+/// The error of a query whose replies held no good one: the first proven error (a
+/// controller's), else an unproven one, else no answer.
+fn first_error<M>(key: &str, all: Vec<Result<M, String>>, timeout: Duration) -> OpError {
+    let mut first_err: Option<String> = None;
+    for e in all.into_iter().filter_map(Result::err) {
+        if first_err.is_none() || first_err.as_deref() == Some(UNPROVEN) {
+            first_err = Some(e);
+        }
+    }
+    match first_err {
+        Some(reason) => OpError::Refused {
+            what: format!("query {key}"),
+            reason,
+        },
+        None => OpError::NoAnswer {
+            what: format!("query {key}"),
+            timeout_ms: timeout.as_millis() as u64,
+        },
+    }
 }
 
 /// One device's configuration in force (laws, output maps, envelope, reference).

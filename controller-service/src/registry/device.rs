@@ -252,8 +252,6 @@ pub(super) struct Device {
     pub(super) refs: PerChannel<Reference>,
     /// Reference pieces per channel, evaluated at `plant_time - reference_start`.
     pub(super) reference: PerChannel<Vec<Piece>>,
-    /// Runs started (the first sample's included).
-    pub(super) restarts: u64,
     /// The plant's round-trip reports (µs), oldest first, at most `RTT_WINDOW`; a report of
     /// 0 (no round trip yet) is not kept.
     pub(super) rtts: VecDeque<u32>,
@@ -290,7 +288,10 @@ pub(super) struct Device {
     /// epoch, and the plant's count of refused commands.
     pub(super) lease_holder: ShortId,
     pub(super) lease_epoch: u64,
-    pub(super) lease_refused: u64,
+    /// The holder's process (two processes may carry one id): what tells them apart.
+    pub(super) lease_instance: u64,
+    /// Saturating at `u32::MAX` (497 days of refusals at 100 Hz): room for the instance.
+    pub(super) lease_refused: u32,
     /// This member's side of the plant's command lease ([`crate::lease`]).
     pub(super) claimer: Claimer,
     /// With delay compensation: what the plant will apply in each coming period, as this
@@ -458,6 +459,7 @@ impl Device {
             version: Version::default(),
             lease_holder: ShortId::new(""),
             lease_epoch: 0,
+            lease_instance: 0,
             lease_refused: 0,
             restored: false,
             from_template,
@@ -471,7 +473,6 @@ impl Device {
             last_time: f64::NEG_INFINITY,
             last_command: None,
             rare: RareState::default(),
-            restarts: 0,
             held: None,
             intervals: [0.0; PERIOD_WINDOW],
             intervals_len: 0,
@@ -531,7 +532,10 @@ impl Device {
             rare.astray = None;
         }
         self.unsettled = false;
-        self.restarts += 1;
+        if self.run_id.is_some() {
+            // A run after the first is a rare event; the first one is counted by `run_id`.
+            self.rare.get_mut().restarts += 1;
+        }
         self.mimo = fresh;
         self.run_id = Some(run_id);
         self.run_samples = 0;
@@ -802,11 +806,12 @@ impl Device {
             envelope_changes: rare.envelope_changes,
             clamped: self.clamped,
             references_refused: rare.references_refused,
-            restarts: self.restarts,
+            restarts: u64::from(self.run_id.is_some()) + rare.restarts,
             recovered: rare.recovered,
             last_flags: self.last_flags,
             lease_epoch: self.lease_epoch,
-            lease_refused: self.lease_refused,
+            lease_refused: u64::from(self.lease_refused),
+            lease_instance: self.lease_instance,
             lease_fenced: self.claimer.fenced,
             lease_claims: self.claimer.claims,
             lease_yields: self.claimer.yields,

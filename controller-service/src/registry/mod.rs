@@ -668,6 +668,32 @@ impl Registry {
         self.devices.get(id).map(|d| d.status_pb(id))
     }
 
+    /// Status of one device as this member answers it at `now_unix_ns`: who answers, and
+    /// how old what it says of the plant is ([`Registry::stamp`]).
+    pub fn device_status_at(&self, id: &str, now_unix_ns: u64) -> Option<pb::DeviceStatus> {
+        let mut s = self.device_status(id)?;
+        self.stamp(&mut s, now_unix_ns);
+        Some(s)
+    }
+
+    /// Say in `s` which member answers (id and process) and how long ago it last heard the
+    /// device (0: never), at `now_unix_ns`.
+    pub fn stamp(&self, s: &mut pb::DeviceStatus, now_unix_ns: u64) {
+        let heard = self.heard_unix_ns(&s.device_id);
+        s.heard_ms_ago = if heard == 0 {
+            0
+        } else {
+            now_unix_ns.saturating_sub(heard).div_ceil(1_000_000).max(1)
+        };
+        s.answered_by.clone_from(&self.controller_id);
+        s.answered_by_instance = self.instance;
+    }
+
+    /// This process, as the plants' leases name it ([`Registry::set_instance`]).
+    pub fn instance(&self) -> u64 {
+        self.instance
+    }
+
     /// Status of the whole service, `uptime` in seconds. It reports `active` true and term
     /// 0, and none of the inbox's drops: the caller fills those in.
     pub fn service_status(&self, uptime: f64) -> pb::ServiceStatus {

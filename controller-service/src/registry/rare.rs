@@ -48,6 +48,8 @@ pub(super) struct Rare {
     pub(super) references_refused: u64,
     /// Lost samples recovered from the copy the next one carried.
     pub(super) recovered: u64,
+    /// Runs started after the device's first (a plant restarted).
+    pub(super) restarts: u64,
 }
 
 impl Rare {
@@ -82,6 +84,7 @@ static NONE: Rare = Rare {
     envelope_changes: 0,
     references_refused: 0,
     recovered: 0,
+    restarts: 0,
 };
 
 /// A device's rare state, allocated on the first write (see the module documentation).

@@ -80,7 +80,8 @@ pub(super) fn answer(
     if d.lease_holder.as_str() != seen.holder {
         d.lease_holder = ShortId::new(&protocol::printable(seen.holder));
     }
-    (d.lease_epoch, d.lease_refused) = (seen.epoch, s.lease_refused);
+    (d.lease_epoch, d.lease_instance) = (seen.epoch, seen.instance);
+    d.lease_refused = u32::try_from(s.lease_refused).unwrap_or(u32::MAX);
     let warm = out.mode == pb::Mode::Control as i32;
     let st = Standing {
         preferred: via.preferred,

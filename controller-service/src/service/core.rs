@@ -71,6 +71,9 @@ pub(super) struct Shared {
     pub(super) wake: Notify,
     /// The fleet's keys (`None`: the service runs open).
     pub(super) keys: Option<Arc<Keyring>>,
+    /// Other processes seen carrying this service's controller id, by instance
+    /// ([`super::routes::Twins`]).
+    pub(super) twins: Mutex<std::collections::BTreeSet<u64>>,
 }
 
 /// Positions of gateways' batches whose device slots are remembered, in all: 8 MiB at

@@ -245,7 +245,8 @@ impl Worker {
             return;
         };
         if q.key_expr().as_str().contains('*') {
-            let status = |r: &Registry, d: &str| r.device_status(d).map(|s| encode(&s));
+            let now = protocol::unix_ns();
+            let status = |r: &Registry, d: &str| r.device_status_at(d, now).map(|s| encode(&s));
             return self
                 .reply_matching(&q, who.as_deref(), "status", status)
                 .await;
@@ -259,7 +260,7 @@ impl Worker {
                 // Another member's device: its owner answers, the others stay silent.
                 return;
             }
-            c.registry.device_status(d)
+            c.registry.device_status_at(d, protocol::unix_ns())
         };
         let Some(status) = status else {
             let why = format!("controller {} does not serve device \"{d}\"", self.id);

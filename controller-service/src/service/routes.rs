@@ -310,3 +310,54 @@ impl ShardRoutes {
         }
     }
 }
+
+/// This process's own token among those carrying its controller id
+/// (`keys::alive_instance`), and the watch on the others': a process that sees another
+/// instance of its id (a copied bundle, a service started twice) says so once in its log,
+/// and its status and metrics list it until it goes (`ServiceStatus.twins`).
+pub(super) struct Twins {
+    _token: LivelinessToken,
+    _watch: Subscriber<()>,
+}
+
+impl Twins {
+    pub(super) async fn declare(
+        session: &Session,
+        shared: &Arc<super::core::Shared>,
+        (controller, instance): (&str, u64),
+    ) -> Result<Self, ServiceError> {
+        let id = controller.to_string();
+        let seen = shared.clone();
+        let watch = session
+            .liveliness()
+            .declare_subscriber(keys::alive_instances(controller))
+            .history(true)
+            .callback(move |s| {
+                let Some(other) = keys::instance_of(&id, s.key_expr().as_str()) else {
+                    return;
+                };
+                if other == instance {
+                    return;
+                }
+                let alive = s.kind() == zenoh::sample::SampleKind::Put;
+                let mut twins = super::lock(&seen.twins);
+                if alive && twins.insert(other) {
+                    tracing::warn!(controller = %id, this = format!("{instance:016x}"), other = format!("{other:016x}"),
+                        "another process carries this controller id (a copied bundle, or this service started twice): only one should run; the plants' leases keep them from commanding at once, but operators reach either");
+                } else if !alive && twins.remove(&other) {
+                    tracing::info!(controller = %id, other = format!("{other:016x}"), "the other process carrying this controller id is gone");
+                }
+            })
+            .await
+            .map_err(declare_err("instance watch"))?;
+        let token = session
+            .liveliness()
+            .declare_token(keys::alive_instance(controller, instance))
+            .await
+            .map_err(declare_err("instance token"))?;
+        Ok(Self {
+            _token: token,
+            _watch: watch,
+        })
+    }
+}

@@ -17,7 +17,7 @@ use super::core::{publish, publish_batch, record_config, Core, Masks, Shared, Wa
 use super::intake::{Drops, Intake, Msg, UNKNOWN_NAMED};
 use super::keyring::Keyring;
 use super::log::{throttled, Warnings};
-use super::routes::{FleetRoutes, Routes, ShardRoutes, StandbyRoutes};
+use super::routes::{FleetRoutes, Routes, ShardRoutes, StandbyRoutes, Twins};
 use super::{declare_err, lock, ServiceError};
 use super::{
     BATCH, FLEET_TICK, GATEWAYS_PENDING, GATEWAY_TURN, HEARTBEATS, LOG_INTERVAL, OTHERS, QUEUE,
@@ -42,6 +42,7 @@ pub(super) struct Member {
 /// rules.
 pub(super) struct Worker {
     _token: LivelinessToken,
+    _twins: super::routes::Twins,
     pub(super) standby_routes: Option<StandbyRoutes>,
     _routes: Routes,
     _fleet_routes: Option<FleetRoutes>,
@@ -93,6 +94,7 @@ impl Worker {
     ) -> Result<(Self, Inputs), ServiceError> {
         let started = Instant::now();
         let id = registry.controller_id().to_string();
+        let instance = registry.instance();
         let snapshots = registry.snapshot_spec().cloned();
         if let Some(sn) = &snapshots {
             restore_snapshots(&mut registry, sn, &observers);
@@ -118,6 +120,7 @@ impl Worker {
             drops: Drops::default(),
             keys,
             wake: Notify::new(),
+            twins: std::sync::Mutex::default(),
         });
         let intake = Arc::new(Intake {
             shared: shared.clone(),
@@ -138,6 +141,7 @@ impl Worker {
             Some(sb) => Some(StandbyRoutes::declare(&session, &intake, &sb.group).await?),
             None => None,
         };
+        let twins = Twins::declare(&session, &shared, (&id, instance)).await?;
         let token = session
             .liveliness()
             .declare_token(keys::alive_controller(&id))
@@ -158,6 +162,7 @@ impl Worker {
         };
         let mut worker = Self {
             _token: token,
+            _twins: twins,
             standby_routes,
             _routes: routes,
             _fleet_routes: fleet_routes,
@@ -427,6 +432,12 @@ impl Worker {
         s.superseded = superseded;
         s.active = self.standby.active;
         s.term = self.standby.term;
+        s.instance = registry.instance();
+        s.twins = lock(&shared.twins).iter().copied().collect();
+        let now = protocol::unix_ns();
+        for d in &mut s.devices {
+            registry.stamp(d, now);
+        }
         // A fleet member (a worker among several too) keeps every device's state warm but
         // answers only for its shards: the others are not its to report.
         let answers = |id: &str| {
