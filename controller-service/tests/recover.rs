@@ -90,9 +90,10 @@ fn a_tried_change_changes_nothing_and_is_made_as_tried() {
     assert_eq!(param(&trial.after.0, 0, "kp"), 7.0);
     assert_eq!(trial.changes.len(), 1);
     assert_eq!(trial.changes[0].what, "channel 0 kp");
-    // A refusal is a refusal, and no trial.
+    // A refusal is a refusal, and no trial; it is counted as any refusal is.
     let (reply, none) = r.trial("rig", |r| set(r, "rig", 0, "kp", 1e9));
     assert!(!reply.accepted && none.is_none());
+    assert_eq!(r.device_status("rig").unwrap().last_error, reply.reason);
     // Made, it leaves what was tried.
     let made = r
         .commit("rig", &trial, |r| set(r, "rig", 0, "kp", 7.0))

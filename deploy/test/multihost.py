@@ -52,6 +52,7 @@ failed check (all are reported). Logs and records: $MFC_MULTIHOST_LOGS (default
 
 import argparse
 import csv
+import datetime
 import json
 import math
 import os
@@ -738,6 +739,8 @@ def run_test(env, args):
     for d in ["aero-1", "aero-2"]:
         shutil.move(f"/var/lib/mfc/{d}", env.logs / f"phase2-{d}")
 
+    router_outages(env, bg, results)
+
     # ---------------- day two: adding a device and rotating one touch nothing else
     for b in blocks:
         if b["attrs"].get("phase") != "day2" or "skip" in b["attrs"]:
@@ -761,10 +764,97 @@ def run_test(env, args):
     takeover_figures(results)
 
 
+# Router outages (s): short, longer than the clients' lease (3 s), and long.
+OUTAGES = [2.0, 6.0, 15.0]
+
+# The operator's query during a fault: the timeout it gives, and how much longer the whole
+# command (a process started, a session opened, the query, the exit) may take on a busy
+# machine: the product's promise is the timeout; the margin is the machine.
+QUERY_TIMEOUT_MS = 1500
+QUERY_MARGIN_S = float(os.environ.get("MFC_TEST_MULTIHOST_QUERY_MARGIN_S", "1.0"))
+
+
+def timed_status(env, device):
+    """`mfcctl --timeout-ms QUERY_TIMEOUT_MS --json status DEVICE` from the operator's host:
+    (seconds it took, exit code, the status or the error)."""
+    t0 = time.time()
+    r = env.run("operator", f"mfcctl --zenoh-config {env.op_config} --key-file /etc/mfc/alice.auth "
+                f"--timeout-ms {QUERY_TIMEOUT_MS} --json status {device}", timeout=60)
+    took = time.time() - t0
+    if r.returncode != 0:
+        return took, r.returncode, r.stderr.strip()[-300:]
+    try:
+        return took, 0, json.loads(r.stdout)
+    except json.JSONDecodeError:
+        return took, 0, r.stdout[:300]
+
+
+def log_time(line):
+    """The wall-clock time a log line of ours starts with (tracing's RFC 3339, UTC)."""
+    try:
+        return datetime.datetime.fromisoformat(line.split()[0]).timestamp()
+    except (ValueError, IndexError):
+        return None
+
+
+def resumed_after(env, name, offset, since):
+    """Seconds from `since` (wall clock) to the first 'remote control resumes' line that
+    `name`'s log has after `offset` bytes, or None."""
+    with open(env.procs[name][4], errors="replace") as f:
+        f.seek(offset)
+        for line in f:
+            if "remote control resumes" in line:
+                t = log_time(line)
+                if t is not None and t >= since:
+                    return round(t - since, 3)
+    return None
+
+
+def router_outages(env, bg, results):
+    """The router killed for each of OUTAGES while both plants run: the time from its
+    return to each plant's first remote command again, and an operator's query during the
+    outage (it must end within its timeout, with an error that says what it waited for)."""
+    log(f"router outages of {', '.join(f'{s:.0f}' for s in OUTAGES)} s")
+    for d in ["aero-1", "aero-2"]:
+        env.start(bg[d][0], d, f"{bg[d][1]} --duration {10 + sum(OUTAGES) + 15 * len(OUTAGES):.0f}")
+    for secs in OUTAGES:
+        ok, last = wait_devices(env, {"aero-1", "aero-2"}, 30)
+        check(ok, f"both plants served before the {secs:.0f} s router outage", str(last))
+        time.sleep(2)
+        offsets = {d: Path(env.procs[d][4]).stat().st_size for d in ["aero-1", "aero-2"]}
+        env.stop("router", sig=signal.SIGKILL)
+        t_kill = time.time()
+        took, rc, said = timed_status(env, "aero-1")
+        results[f"router_outage_{secs:.0f}s_query"] = {"took_s": round(took, 3), "exit": rc, "said": said}
+        check(rc != 0 and took <= QUERY_TIMEOUT_MS / 1000 + QUERY_MARGIN_S,
+              f"router down {secs:.0f} s: the operator's query ends within its timeout, with an error",
+              f"{took:.2f} s (timeout {QUERY_TIMEOUT_MS} ms), exit {rc}: {said}")
+        time.sleep(max(0.0, t_kill + secs - time.time()))
+        env.start(bg["router"][0], "router", bg["router"][1])
+        t_back = time.time()
+        deadline = t_back + 20
+        got = {}
+        while time.time() < deadline and len(got) < 2:
+            time.sleep(0.2)
+            for d in ["aero-1", "aero-2"]:
+                if d not in got:
+                    r = resumed_after(env, d, offsets[d], t_back)
+                    if r is not None:
+                        got[d] = r
+        for d in ["aero-1", "aero-2"]:
+            results[f"router_outage_{secs:.0f}s_{d}_remote_after_return_s"] = got.get(d)
+            check(d in got, f"router down {secs:.0f} s: {d} is under remote control again",
+                  f"{got.get(d)} s after the router's return")
+        log(f"router back after {secs:.0f} s: remote control {got} s after its return")
+    for d in ["aero-1", "aero-2"]:
+        env.stop(d)
+
+
 # SIGSTOP of the member holding the plants' leases: (seconds stopped, the pause's start and
-# end on this clock). 3 s is shorter than zenoh's liveliness lease (the fleet still sees the
-# member); 12 s longer (the fleet sees it leave, and come back).
-PAUSES = [3.0, 12.0]
+# end on this clock). 0.5 s is shorter than zenoh's link lease (1 s in the generated
+# configs: the fleet still sees the member); 4 s and 12 s longer (the fleet sees it leave,
+# and come back).
+PAUSES = [0.5, 4.0, 12.0]
 
 
 # A one-way partition first: controller-1's host drops what it sends to the router for this
@@ -804,8 +894,26 @@ def pause_the_holder(env):
         plants_running(env, f"before a {secs:.0f} s pause of the holder")
         log(f"SIGSTOP controller-1 for {secs:.0f} s")
         os.kill(pid, signal.SIGSTOP)
-        time.sleep(secs)
+        t_stop = time.time()
+        # The operator asks while the holder is stopped: the answer (the member that took
+        # over, with fresh word of the plant) or an error, within the timeout.
+        time.sleep(min(1.0, secs / 3))
+        took, rc, said = timed_status(env, "aero-1")
+        key = f"pause_{secs:.0f}s_query"
+        results[key] = {"took_s": round(took, 3), "exit": rc, "said": said}
+        check(took <= QUERY_TIMEOUT_MS / 1000 + QUERY_MARGIN_S,
+              f"the operator's query during a {secs:.0f} s pause of the holder ends within its timeout",
+              f"{took:.2f} s (timeout {QUERY_TIMEOUT_MS} ms), exit {rc}")
+        time.sleep(max(0.0, t_stop + secs - time.time()))
         os.kill(pid, signal.SIGCONT)
+        # Just after the resume: whoever answers, the word on the lease is the freshest.
+        took, rc, said = timed_status(env, "aero-1")
+        results[f"pause_{secs:.0f}s_query_after_resume"] = {"took_s": round(took, 3), "exit": rc, "said": said}
+        if rc == 0 and isinstance(said, dict):
+            check(said.get("heard_ms_ago", 0) <= 1000,
+                  f"just after a {secs:.0f} s pause, the status is the freshest word of the plant",
+                  f"answered by {said.get('answered_by')}, heard {said.get('heard_ms_ago')} ms ago, "
+                  f"lease {said.get('lease_holder')} epoch {said.get('lease_epoch')}")
         done.append(f"SIGSTOP {secs:.0f} s")
     time.sleep(4)
     return done

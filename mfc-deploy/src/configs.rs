@@ -8,11 +8,20 @@ use serde_json::{json, Value};
 use crate::inventory::{IdentityKind, Inventory, Protocol};
 
 /// Link lease (ms), on the router and every client: how long a silent link lives. A
-/// router killed outright sends nothing over QUIC (no TCP reset), so its clients notice
-/// only when the lease runs out, and reconnect after that: zenoh's 10 s default kept the
-/// plants on their fallback for 10 s after a 2 s router outage. Keep-alives go 4 times a
-/// lease (every 750 ms), far below the control traffic.
-pub const LEASE_MS: u64 = 3_000;
+/// router killed outright sends nothing over QUIC (no TCP reset), and a new router process
+/// knows nothing of the old links, so its clients notice only when the lease runs out, and
+/// reconnect after that: an outage shorter than the lease costs the rest of the lease
+/// (zenoh's 10 s default kept the plants on their fallback for 10 s after a 2 s outage;
+/// 3 s, 1 s after it). With 1 s, remote control is back within about a second of the
+/// router's return whatever the outage (`deploy/test/multihost.py`, router outages).
+/// Keep-alives go 4 times a lease (every 250 ms), far below the control traffic; a process
+/// starved of CPU for a whole second loses its link, and its plants are on their fallback
+/// anyway by then.
+pub const LEASE_MS: u64 = 1_000;
+
+/// The wait between two attempts to reach the router (ms): with the inventory's
+/// `open_timeout_ms`, what a client may take to come back after the router did.
+pub const RETRY_MAX_MS: u64 = 100;
 
 /// How long an operator's tool waits for the router before it gives up (ms): a script
 /// wants an error, not a hang.
@@ -79,8 +88,9 @@ pub fn client(inv: &Inventory, role: IdentityKind, name: &str) -> Value {
             "endpoints": [with_link_options(inv, inv.router_endpoint())],
             "timeout_ms": timeout,
             "exit_on_failure": exit,
-            // Back within a second of the router's return.
-            "retry": { "period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2 },
+            // Back within a second of the router's return: an attempt every 100 ms, each
+            // given up after `open_timeout_ms` (below).
+            "retry": { "period_init_ms": RETRY_MAX_MS, "period_max_ms": RETRY_MAX_MS, "period_increase_factor": 1.0 },
         },
         // Who this client is (zenoh shows it in its admin space): `mfcctl` and the console
         // name an operator's requests after it, the name the router holds it to.
@@ -88,7 +98,7 @@ pub fn client(inv: &Inventory, role: IdentityKind, name: &str) -> Value {
         // A client that listens could be reached around the router and its access control.
         "listen": { "endpoints": [] },
         "scouting": { "multicast": { "enabled": false }, "gossip": { "enabled": false } },
-        "transport": { "link": { "tx": { "lease": LEASE_MS, "queue": { "size": { "real_time": REAL_TIME_QUEUE } } }, "tls": {
+        "transport": { "unicast": { "open_timeout": inv.router.open_timeout_ms }, "link": { "tx": { "lease": LEASE_MS, "queue": { "size": { "real_time": REAL_TIME_QUEUE } } }, "tls": {
             "root_ca_certificate": path(inv, "ca.pem"),
             // Without it the client presents no certificate and the router refuses it.
             "enable_mtls": true,
@@ -132,6 +142,9 @@ mod tests {
             "quic/10.0.0.1:7447#segmentation_offload=false"
         );
         assert_eq!(c["connect"]["timeout_ms"], -1);
+        // Back soon after the router: attempts 100 ms apart, each at most 500 ms.
+        assert_eq!(c["connect"]["retry"]["period_max_ms"], RETRY_MAX_MS);
+        assert_eq!(c["transport"]["unicast"]["open_timeout"], 500);
         assert_eq!(c["listen"]["endpoints"].as_array().unwrap().len(), 0);
         assert_eq!(c["scouting"]["multicast"]["enabled"], false);
         let tls = &c["transport"]["link"]["tls"];

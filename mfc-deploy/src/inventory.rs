@@ -180,6 +180,19 @@ pub struct Router {
     /// `protocol`.
     #[serde(default)]
     pub listen: Option<String>,
+    /// How long each client's attempt to reach the router may take (ms, default 500),
+    /// handshakes included: about three round trips, so 500 ms serves a router up to
+    /// about 150 ms of round trip away; raise it for a farther one. While the router is
+    /// down, an attempt waits this long for an answer that does not come (QUIC hears no
+    /// refusal), so a client is back at most about this long plus `retry` (100 ms) after
+    /// the router: zenoh's default of 10 s kept plants on their fallback for 4 s after a
+    /// 6 s outage.
+    #[serde(default = "default_open_timeout_ms")]
+    pub open_timeout_ms: u64,
+}
+
+fn default_open_timeout_ms() -> u64 {
+    500
 }
 
 fn default_install_dir() -> String {

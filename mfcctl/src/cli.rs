@@ -39,7 +39,10 @@ pub struct MfcctlCli {
     /// Print JSON (the protobuf messages, field names as in `mfc.proto`) instead of text.
     #[arg(long, global = true)]
     pub json: bool,
-    /// How long to wait for answers (ms).
+    /// How long a command may take in all (ms): opening the session and every answer it
+    /// waits for. A command ends by then whatever the network or a controller does (a
+    /// router down, a member paused or cut off), with an error that says what it waited
+    /// for. `commission` (which follows a run) bounds each of its queries by it instead.
     #[arg(long, default_value_t = 2000, global = true)]
     pub timeout_ms: u64,
     /// The operators' key file (`mfc-deploy` writes `keys/operator.key`): only replies
@@ -220,7 +223,11 @@ where
             return std::process::ExitCode::FAILURE;
         }
     };
-    match runtime.block_on(run(cli)) {
+    let result = runtime.block_on(run(cli));
+    // Whatever zenoh's tasks still wait for (a reconnection, a close), they are not waited
+    // for: the command has its answer, or its error.
+    runtime.shutdown_background();
+    match result {
         Ok(text) => {
             print!("{text}");
             std::process::ExitCode::SUCCESS
@@ -322,16 +329,42 @@ pub async fn run(cli: MfcctlCli) -> Result<String> {
         ),
         None => ops::default_name(&cli.zenoh),
     };
-    let session = cli.zenoh.open().await?;
+    let deadline = tokio::time::Instant::now() + timeout;
+    let session = tokio::time::timeout_at(deadline, cli.zenoh.open())
+        .await
+        .map_err(|_| {
+            anyhow::anyhow!(
+                "no zenoh session within {} ms: the router (or the peers given) did not answer (is it up and reachable from here?)",
+                timeout.as_millis()
+            )
+        })??;
     let operator = ops::Operator {
         session: session.clone(),
         key,
         name,
     };
-    let result = command(&operator, &cli.command, cli.json, timeout).await;
-    let _ = session.close().await;
+    let result = match &cli.command {
+        // A commissioning run is followed for as long as it runs: each query is bounded.
+        Command::Commission(_) => command(&operator, &cli.command, cli.json, timeout).await,
+        c => {
+            let run = command(&operator, c, cli.json, timeout);
+            tokio::time::timeout_at(deadline, run)
+                .await
+                .unwrap_or_else(|_| {
+                    Err(anyhow::anyhow!(
+                        "no answer within {} ms (is a controller up and reachable?)",
+                        timeout.as_millis()
+                    ))
+                })
+        }
+    };
+    // Closing says goodbye to the router; a router that does not answer is not waited for.
+    let _ = tokio::time::timeout(CLOSE_WAIT, session.close()).await;
     result
 }
+
+/// How long `mfcctl` waits for its session to close before it exits anyway.
+const CLOSE_WAIT: Duration = Duration::from_millis(200);
 
 async fn command(
     operator: &ops::Operator,

@@ -132,14 +132,24 @@ impl Asker for Operator {
 /// What an operator is told of a reply that does not prove it came from a controller.
 pub const UNPROVEN: &str = "a reply without a valid proof of origin (ignored)";
 
+/// How long a query on one device waits for other members' replies once a good one came:
+/// the members that answer do so within milliseconds; one that is paused or cut off never
+/// does, and the operator should not wait out the whole timeout for it.
+pub const SETTLE: Duration = Duration::from_millis(300);
+
 /// Every reply to a query on `key` (good ones decoded as `M`, errors as text), waiting at
-/// most `timeout`: a wildcard gets one reply per service. With the asker's key, a reply
-/// not sealed for its key expression and this request is an error ([`UNPROVEN`]).
+/// most `timeout`, or `settle` after the first good one: a wildcard gets one reply per
+/// service. With the asker's key, a reply not sealed for its key expression and this
+/// request is an error ([`UNPROVEN`]).
+///
+/// The query is dropped rather than queued where a link is congested: a router forwarding
+/// it to a member that stopped reading (paused, its link stuck) would otherwise block, and
+/// hold the query back from the member that could answer.
 async fn replies<M: protocol::Versioned>(
     asker: &impl Asker,
     key: &str,
     payload: Option<Vec<u8>>,
-    timeout: Duration,
+    (timeout, settle): (Duration, Option<Duration>),
 ) -> Result<Vec<Result<M, String>>, OpError> {
     // A request on a device's key names its operator; the reply comes back on that key.
     let named;
@@ -158,6 +168,7 @@ async fn replies<M: protocol::Versioned>(
         // Every reply, not one per key: zenoh's default consolidation keeps a single
         // reply per key expression, which can be a forger's in place of the controller's.
         .consolidation(zenoh::query::ConsolidationMode::None)
+        .congestion_control(zenoh::qos::CongestionControl::Drop)
         .timeout(timeout);
     let request = payload.clone().unwrap_or_default();
     if let Some(p) = payload {
@@ -168,7 +179,16 @@ async fn replies<M: protocol::Versioned>(
         reason: e.to_string(),
     })?;
     let mut out = Vec::new();
-    while let Ok(reply) = rx.recv_async().await {
+    let mut until = None;
+    loop {
+        let next = match until {
+            None => rx.recv_async().await,
+            Some(t) => match tokio::time::timeout_at(t, rx.recv_async()).await {
+                Ok(r) => r,
+                Err(_) => break,
+            },
+        };
+        let Ok(reply) = next else { break };
         let item = match reply.result() {
             Ok(s) => {
                 let bytes = s.payload().to_bytes();
@@ -205,6 +225,9 @@ async fn replies<M: protocol::Versioned>(
                 })
             }
         };
+        if item.is_ok() && until.is_none() {
+            until = settle.map(|d| tokio::time::Instant::now() + d);
+        }
         out.push(item);
     }
     Ok(out)
@@ -218,7 +241,7 @@ async fn one<M: protocol::Versioned>(
     payload: Option<Vec<u8>>,
     timeout: Duration,
 ) -> Result<M, OpError> {
-    let mut all = replies::<M>(session, key, payload, timeout).await?;
+    let mut all = replies::<M>(session, key, payload, (timeout, Some(SETTLE))).await?;
     match all.iter().position(Result::is_ok) {
         Some(i) => Ok(all.swap_remove(i).expect("a good reply")),
         None => Err(first_error(key, all, timeout)),
@@ -231,7 +254,7 @@ pub async fn services(
     timeout: Duration,
 ) -> Result<Vec<pb::ServiceStatus>, OpError> {
     let key = format!("{}/service/*/status", keys::PREFIX);
-    let mut out: Vec<pb::ServiceStatus> = replies(session, &key, None, timeout)
+    let mut out: Vec<pb::ServiceStatus> = replies(session, &key, None, (timeout, None))
         .await?
         .into_iter()
         .filter_map(Result::ok)
@@ -287,7 +310,7 @@ pub async fn device_statuses(
 ) -> Result<Vec<pb::DeviceStatus>, OpError> {
     check(id)?;
     let key = keys::status(id);
-    let all = replies::<pb::DeviceStatus>(session, &key, None, timeout).await?;
+    let all = replies::<pb::DeviceStatus>(session, &key, None, (timeout, Some(SETTLE))).await?;
     let mut good: Vec<pb::DeviceStatus> = all.iter().filter_map(|r| r.clone().ok()).collect();
     if good.is_empty() {
         return Err(first_error(&key, all, timeout));
@@ -339,7 +362,7 @@ pub async fn audit(
         check(id)?;
         return Ok(vec![one(asker, &keys::audit(id), None, timeout).await?]);
     }
-    let mut logs: Vec<pb::AuditLog> = replies(asker, &keys::audit("*"), None, timeout)
+    let mut logs: Vec<pb::AuditLog> = replies(asker, &keys::audit("*"), None, (timeout, None))
         .await?
         .into_iter()
         .filter_map(Result::ok)

@@ -82,8 +82,8 @@ impl Registry {
 
     /// Try a change on `id`: `apply` makes it as it would be made, then the device is put
     /// back as it was. Returns `apply`'s reply and, for an accepted change, what it would
-    /// leave ([`Trial`]). Nothing about the device changes here; the registry's counters
-    /// count a refusal as `apply` does.
+    /// leave ([`Trial`]). An accepted change changes nothing here; a refusal is counted as
+    /// `apply` counts it (the registry's and the device's refusals, its last error).
     pub fn trial(
         &mut self,
         id: &str,
@@ -95,16 +95,19 @@ impl Registry {
         let before = (saved.config_pb(id), saved.version);
         let settings = saved.settings();
         let reply = apply(self);
-        let trial = reply.accepted.then(|| {
-            let d = self.devices.get(id).expect("tried on a served device");
-            Trial {
-                before,
-                after: (d.config_pb(id), d.version),
-                changes: crate::audit::diff(&settings, &d.settings()),
-            }
-        });
+        if !reply.accepted {
+            // A refusal changes nothing but what counts it (the device's refusals, its last
+            // error): those stay, as they would for any refusal.
+            return (reply, None);
+        }
+        let d = self.devices.get(id).expect("tried on a served device");
+        let trial = Trial {
+            before,
+            after: (d.config_pb(id), d.version),
+            changes: crate::audit::diff(&settings, &d.settings()),
+        };
         self.put_back(id, saved);
-        (reply, trial)
+        (reply, Some(trial))
     }
 
     /// Make a change tried earlier, now that its record is durable: `apply` must find the
