@@ -891,30 +891,30 @@ def pause_the_holder(env):
     pid = env.procs["controller"][0].pid
     for secs in PAUSES:
         holder_back(env, done[-1])
-        plants_running(env, f"before a {secs:.0f} s pause of the holder")
-        log(f"SIGSTOP controller-1 for {secs:.0f} s")
+        plants_running(env, f"before a {secs:g} s pause of the holder")
+        log(f"SIGSTOP controller-1 for {secs:g} s")
         os.kill(pid, signal.SIGSTOP)
         t_stop = time.time()
         # The operator asks while the holder is stopped: the answer (the member that took
         # over, with fresh word of the plant) or an error, within the timeout.
         time.sleep(min(1.0, secs / 3))
         took, rc, said = timed_status(env, "aero-1")
-        key = f"pause_{secs:.0f}s_query"
+        key = f"pause_{secs:g}s_query"
         results[key] = {"took_s": round(took, 3), "exit": rc, "said": said}
         check(took <= QUERY_TIMEOUT_MS / 1000 + QUERY_MARGIN_S,
-              f"the operator's query during a {secs:.0f} s pause of the holder ends within its timeout",
+              f"the operator's query during a {secs:g} s pause of the holder ends within its timeout",
               f"{took:.2f} s (timeout {QUERY_TIMEOUT_MS} ms), exit {rc}")
         time.sleep(max(0.0, t_stop + secs - time.time()))
         os.kill(pid, signal.SIGCONT)
         # Just after the resume: whoever answers, the word on the lease is the freshest.
         took, rc, said = timed_status(env, "aero-1")
-        results[f"pause_{secs:.0f}s_query_after_resume"] = {"took_s": round(took, 3), "exit": rc, "said": said}
+        results[f"pause_{secs:g}s_query_after_resume"] = {"took_s": round(took, 3), "exit": rc, "said": said}
         if rc == 0 and isinstance(said, dict):
             check(said.get("heard_ms_ago", 0) <= 1000,
-                  f"just after a {secs:.0f} s pause, the status is the freshest word of the plant",
+                  f"just after a {secs:g} s pause, the status is the freshest word of the plant",
                   f"answered by {said.get('answered_by')}, heard {said.get('heard_ms_ago')} ms ago, "
                   f"lease {said.get('lease_holder')} epoch {said.get('lease_epoch')}")
-        done.append(f"SIGSTOP {secs:.0f} s")
+        done.append(f"SIGSTOP {secs:g} s")
     time.sleep(4)
     return done
 

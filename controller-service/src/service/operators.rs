@@ -491,6 +491,7 @@ impl Worker {
             let reply = core.registry.refuse_request(&c.dev, why);
             let mut entry = t.entry.clone();
             entry.n = core.gate.last_n_next();
+            entry.unix_ns = protocol::unix_ns();
             (entry.accepted, entry.reason) = (false, reply.reason.clone());
             entry.changes.clear();
             core.registry.audit(entry.clone());
