@@ -470,7 +470,7 @@ impl Req {
 struct Tried {
     dev: &'static str,
     req: Req,
-    trial: controller_service::registry::Trial,
+    trial: controller_service::registry::ChangeTrial,
     write: Write,
     sets: Option<(Setting, f64)>,
 }

@@ -28,7 +28,7 @@ use crate::lease::Version;
 /// A change tried on a device ([`Registry::trial`]): the configuration it was tried on,
 /// the one it would leave, and what it moves, by setting.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Trial {
+pub struct ChangeTrial {
     pub before: (pb::DeviceConfig, Version),
     pub after: (pb::DeviceConfig, Version),
     pub changes: Vec<pb::AuditChange>,
@@ -82,13 +82,13 @@ impl Registry {
 
     /// Try a change on `id`: `apply` makes it as it would be made, then the device is put
     /// back as it was. Returns `apply`'s reply and, for an accepted change, what it would
-    /// leave ([`Trial`]). An accepted change changes nothing here; a refusal is counted as
+    /// leave ([`ChangeTrial`]). An accepted change changes nothing here; a refusal is counted as
     /// `apply` counts it (the registry's and the device's refusals, its last error).
     pub fn trial(
         &mut self,
         id: &str,
         apply: impl FnOnce(&mut Self) -> pb::ConfigReply,
-    ) -> (pb::ConfigReply, Option<Trial>) {
+    ) -> (pb::ConfigReply, Option<ChangeTrial>) {
         let Some(saved) = self.devices.get(id).cloned() else {
             return (apply(self), None);
         };
@@ -101,7 +101,7 @@ impl Registry {
             return (reply, None);
         }
         let d = self.devices.get(id).expect("tried on a served device");
-        let trial = Trial {
+        let trial = ChangeTrial {
             before,
             after: (d.config_pb(id), d.version),
             changes: crate::audit::diff(&settings, &d.settings()),
@@ -112,12 +112,12 @@ impl Registry {
 
     /// Make a change tried earlier, now that its record is durable: `apply` must find the
     /// device in the state it was tried on and leave the state recorded
-    /// ([`Trial::after`]); otherwise the device is left as it was and why is returned (the
+    /// ([`ChangeTrial::after`]); otherwise the device is left as it was and why is returned (the
     /// caller withdraws the change). `apply` is the same change as tried.
     pub fn commit(
         &mut self,
         id: &str,
-        trial: &Trial,
+        trial: &ChangeTrial,
         apply: impl FnOnce(&mut Self) -> pb::ConfigReply,
     ) -> Result<pb::ConfigReply, String> {
         if self.state_of(id).as_ref() != Some(&trial.before) {

@@ -60,7 +60,7 @@ pub use commission::{MAX_CYCLES, MAX_PERIOD, MAX_RUNNING, SILENT_NS};
 use device::{reply, Device, ShortId};
 use devices::Devices;
 pub use devices::Slot;
-pub use durable::{merge, FileChange, Recovery, Trial};
+pub use durable::{merge, ChangeTrial, FileChange, Recovery};
 pub use shards::Restored;
 
 /// Unknown device ids listed in the status; samples from further unknown ids are still

@@ -32,7 +32,7 @@ use super::worker::Worker;
 use crate::access::{Access, Action, Actor};
 use crate::changes::{Arrival, Serial};
 use crate::journal::{Record, State, Write};
-use crate::registry::Trial;
+use crate::registry::ChangeTrial;
 use crate::Registry;
 
 /// The access rules and the audit trail of one worker.
@@ -159,7 +159,7 @@ enum Decision {
 
 /// An accepted change waiting for its record.
 struct Tried {
-    trial: Trial,
+    trial: ChangeTrial,
     entry: pb::AuditEntry,
     /// The name it is made as (commissioning records who runs it).
     actor: String,
