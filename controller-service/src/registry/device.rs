@@ -11,6 +11,7 @@ use protocol::convert::{
 };
 use protocol::{pb, PROTOCOL_VERSION};
 
+use super::commission::Commission;
 use super::rare::RareState;
 use super::{latency, REORDER_WINDOW, RESYNC_AFTER};
 use crate::bounds::ChannelBounds;
@@ -260,7 +261,7 @@ pub(super) struct Device {
     pub(super) restored: bool,
     /// The last commissioning run (`super::commission`), kept until the next starts; not
     /// in snapshots (a run does not survive its member).
-    pub(super) commission: Option<Box<super::commission::Commission>>,
+    pub(super) commission: Option<Box<Commission>>,
     /// Each step's outputs per channel, a buffer reused from sample to sample.
     pub(super) outputs: PerChannel<ChannelOutput>,
     /// The safety envelope per channel. Every output map in force ([`Device::config`])
@@ -905,6 +906,21 @@ impl Device {
                 .map_err(|e| format!("reference.channels[{i}]: {e}"))?;
         }
         Ok(())
+    }
+
+    /// End a run in force, or dismiss a proposal waiting for its confirmation, for `why`
+    /// (a restart, a restore, a change of configuration, envelope or reference, the
+    /// lease): a proposal made for the law before the change must not overwrite it.
+    pub(super) fn abort_commission(&mut self, why: &str) {
+        let live = |c: &&mut Box<Commission>| {
+            matches!(
+                c.phase,
+                pb::CommissionPhase::CommissionRunning | pb::CommissionPhase::CommissionProposed
+            )
+        };
+        if let Some(c) = self.commission.as_mut().filter(live) {
+            c.abort("service", why.into());
+        }
     }
 }
 

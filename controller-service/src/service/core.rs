@@ -11,12 +11,12 @@ use tokio::sync::Notify;
 use zenoh::pubsub::Publisher;
 use zenoh::{Session, Wait};
 
-use super::intake::Drops;
+use super::drops::Drops;
 use super::keyring::{sealed, Keyring};
+use super::locks::lock;
 use super::log::{throttled, Warnings};
-use super::{lock, GATEWAY_PUBLISHERS};
 use crate::inbox::{Inbox, Parts, Taken};
-use crate::observe::{thread_cpu, DeviceHistograms, ServiceMetrics};
+use crate::observe::{thread_cpu, DeviceHistograms, Observers, ServiceMetrics};
 use crate::registry::{Registry, Served, Slot, Via};
 use telemetry::{Recording, Topic};
 
@@ -80,6 +80,10 @@ pub(super) struct Shared {
 /// most, whatever gateways send (a thousand gateways of a thousand plants).
 const KEPT_SLOTS: usize = 1 << 20;
 
+/// Gateways with a publisher of their own; commands to any beyond go through the session
+/// (same options, one declaration less), so the table is bounded whatever arrives.
+const GATEWAY_PUBLISHERS: usize = 1024;
+
 /// What the answer to a sample needs: the device state, its observers and the publishers
 /// of its commands. Shared by the worker's task and zenoh's callbacks: a callback that
 /// finds the core free and nothing queued answers its sample at once, on its own thread,
@@ -122,7 +126,7 @@ pub(super) struct Core {
     /// The fleet's keys, to seal commands (`None`: open).
     keys: Option<Arc<Keyring>>,
     /// Who may change what, and the audit trail every decision goes to.
-    pub(super) gate: super::operators::Gate,
+    pub(super) gate: super::trail::Gate,
 }
 
 impl Core {
@@ -130,7 +134,7 @@ impl Core {
         registry: Registry,
         watch: Watch,
         keys: Option<Arc<Keyring>>,
-        gate: super::operators::Gate,
+        gate: super::trail::Gate,
     ) -> Self {
         Self {
             keys,
@@ -613,6 +617,25 @@ impl Watch {
 }
 
 /// The device's configuration in force, and an event saying why it is recorded.
+impl Watch {
+    /// What `registry`'s worker feeds `observers`; a recording starts with every device's
+    /// configuration.
+    pub(super) fn of(registry: &Registry, observers: &Observers) -> Self {
+        let watch = Self {
+            controller: registry.controller_id().to_string(),
+            recording: observers.recording.clone(),
+            metrics: observers.metrics.clone(),
+            histograms: HashMap::new(),
+        };
+        if let Some(r) = &watch.recording {
+            for d in registry.device_ids() {
+                record_config(r, registry, d, "recording starts");
+            }
+        }
+        watch
+    }
+}
+
 pub(super) fn record_config(r: &Recording, registry: &Registry, dev: &str, why: &str) {
     if let Some(c) = registry.config_of(dev) {
         let now = protocol::unix_ns();

@@ -17,7 +17,7 @@ use super::hold;
 use super::hold::HoldJob;
 use super::intake::Msg;
 use super::keyring::Keyring;
-use super::lock;
+use super::locks::lock;
 use super::log::throttled;
 use super::worker::Worker;
 use crate::fleet::{Got, Reply, Request, RequestKind, ShardAction};

@@ -11,7 +11,7 @@ use std::sync::Mutex;
 
 use protocol::auth::{Key, Kind, Secret};
 
-use super::lock;
+use super::locks::lock;
 
 /// Keys kept at most; beyond, the table starts again.
 const KEPT: usize = 8192;

@@ -3,7 +3,8 @@
 
 use std::time::{Duration, Instant};
 
-use super::LOG_INTERVAL;
+/// Throttled warnings: at most one line per kind per interval.
+pub(super) const LOG_INTERVAL: Duration = Duration::from_secs(5);
 
 /// Throttled logging of one kind of event: the first at once, then at most one line per
 /// interval saying how many were not logged. Pure: the caller passes the time.
@@ -82,7 +83,7 @@ impl Warnings {
 /// Log through a throttle: `throttled!(throttle, level, fields..., "fmt", args)`.
 macro_rules! throttled {
     ($t:expr, $level:ident, $($arg:tt)+) => {
-        if let Some(n) = $t.hit(std::time::Instant::now(), $crate::service::LOG_INTERVAL) {
+        if let Some(n) = $t.hit(std::time::Instant::now(), $crate::service::log::LOG_INTERVAL) {
             if n > 0 {
                 tracing::$level!(suppressed = n, $($arg)+);
             } else {

@@ -17,79 +17,50 @@
 //!   (requests, reference updates, fleet messages) goes to a bounded queue, and heartbeats
 //!   to a queue of their own, so that a flood of requests cannot make a standby take over.
 //! * [`core`]: what answering needs, shared by the worker and the callbacks: the registry,
-//!   the observers, the command publishers.
-//! * [`worker`]: the worker's loop and its handlers; [`requests`]: the handlers of
-//!   operators' queries; [`handover`]: the fleet's and the hot standby's wiring around
-//!   their pure rules ([`crate::fleet`], [`crate::standby`]).
+//!   the observers, the command publishers; [`drops`] counts what the callbacks drop.
+//! * [`run`]: the worker's start and loop, one handler per event, over the worker's state
+//!   ([`worker`]). The handlers: [`requests`] for operators' queries, [`operators`] for a
+//!   change's way to its acknowledgment (its pieces in [`change`], its record in
+//!   [`trail`]), [`replies`] for what they share, [`handover`] and [`hold`] for the
+//!   fleet's and the hot standby's wiring around their pure rules ([`crate::fleet`],
+//!   [`crate::standby`]).
 //! * [`routes`]: every Zenoh declaration, owned by a struct that undeclares it on drop.
 //! * [`log`]: throttled warnings. Every message the service does not serve lands in
 //!   exactly one counter of the service status, and warnings about them are throttled:
 //!   the first of each kind at once, then one line per interval with a count.
+//!
+//! The files build on each other in that order, from [`locks`] and [`log`] up to [`run`],
+//! never in a circle (`.ci/layout` checks it): a handler may use the worker's state and
+//! the handlers below it, never the loop.
 //!
 //! [`Registry`]: crate::Registry
 //! [`Inbox`]: crate::inbox::Inbox
 //! [`precheck`]: crate::registry::precheck
 //! [`MAX_PAYLOAD`]: protocol::MAX_PAYLOAD
 
+mod change;
 mod core;
+mod drops;
 mod handover;
 mod hold;
 mod intake;
 mod keyring;
+mod locks;
 mod log;
 mod operators;
+mod replies;
 mod requests;
 mod routes;
+mod run;
 mod trail;
 mod worker;
 
-use std::sync::{Mutex, MutexGuard, PoisonError};
-use std::time::Duration;
-
 pub use log::Throttle;
+pub use routes::ServiceError;
 pub use trail::{AuditTrail, TrailStats};
 
 use crate::observe::Observers;
 use crate::Registry;
-
-/// Depth of the request queue (messages); when it is full new requests are dropped and
-/// counted as `queue_full`.
-const QUEUE: usize = 1024;
-/// Depth of the heartbeat queue.
-const HEARTBEATS: usize = 64;
-/// Pending samples of devices not served (yet) share this many inbox slots.
-const OTHERS: usize = 64;
-/// Samples the worker serves before it looks at its other inputs again, so requests and
-/// heartbeats are never starved by a busy fleet.
-const BATCH: usize = 64;
-/// Gateways whose batches may wait at once (each at most one batch's bytes in all,
-/// `crate::inbox::Parts`): a flood of new gateway ids fills these and is dropped as
-/// `queue_full`, never growing the service.
-const GATEWAYS_PENDING: usize = 256;
-/// Gateways with a publisher of their own; commands to any beyond go through the session
-/// (same options, one declaration less), so the table is bounded whatever arrives.
-const GATEWAY_PUBLISHERS: usize = 1024;
-/// Gateway batches the worker serves per turn (each may hold thousands of samples); it
-/// finishes a gateway's parts once it began them, so a turn may serve up to
-/// `crate::inbox::PARTS - 1` more.
-const GATEWAY_TURN: usize = 4;
-/// Throttled warnings: at most one line per kind per interval.
-const LOG_INTERVAL: Duration = Duration::from_secs(5);
-/// How often a fleet member looks at its releases and unanswered requests.
-const FLEET_TICK: Duration = Duration::from_millis(20);
-
-/// Why the service stopped with an error.
-#[derive(Debug, thiserror::Error)]
-pub enum ServiceError {
-    /// A zenoh declaration failed.
-    #[error("declaring {what}: {reason}")]
-    Declare {
-        /// What was being declared, e.g. `sample subscriber`, `liveliness token`.
-        what: String,
-        /// zenoh's reason.
-        reason: String,
-    },
-}
 
 /// Run a controller service for `registry` on `session` until `shutdown` resolves,
 /// feeding `observers` (the metrics scrape its status, the recording gets its devices'
@@ -117,18 +88,4 @@ fn random_instance() -> u64 {
     std::collections::hash_map::RandomState::new()
         .hash_one(std::process::id())
         .max(1)
-}
-
-/// One of the service's locks: a panic elsewhere while it was held leaves plain data
-/// behind, still usable, so a poisoned lock is taken as it is.
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(PoisonError::into_inner)
-}
-
-fn declare_err(what: impl Into<String>) -> impl FnOnce(zenoh::Error) -> ServiceError {
-    let what = what.into();
-    move |e| ServiceError::Declare {
-        what,
-        reason: e.to_string(),
-    }
 }

@@ -13,8 +13,28 @@ use zenoh::query::Queryable;
 use zenoh::Session;
 
 use super::intake::Intake;
-use super::{declare_err, ServiceError};
 use crate::fleet::Fleet;
+
+/// Why the service stopped with an error.
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    /// A zenoh declaration failed.
+    #[error("declaring {what}: {reason}")]
+    Declare {
+        /// What was being declared, e.g. `sample subscriber`, `liveliness token`.
+        what: String,
+        /// zenoh's reason.
+        reason: String,
+    },
+}
+
+pub(super) fn declare_err(what: impl Into<String>) -> impl FnOnce(zenoh::Error) -> ServiceError {
+    let what = what.into();
+    move |e| ServiceError::Declare {
+        what,
+        reason: e.to_string(),
+    }
+}
 
 /// The declarations every worker makes: samples, reference puts, gateway batches, the
 /// device queries and the service status. Without a fleet, also the keys of every shard
@@ -340,7 +360,7 @@ impl Twins {
                     return;
                 }
                 let alive = s.kind() == zenoh::sample::SampleKind::Put;
-                let mut twins = super::lock(&seen.twins);
+                let mut twins = super::locks::lock(&seen.twins);
                 if alive && twins.insert(other) {
                     tracing::warn!(controller = %id, this = format!("{instance:016x}"), other = format!("{other:016x}"),
                         "another process carries this controller id (a copied bundle, or this service started twice): only one should run; the plants' leases keep them from commanding at once, but operators reach either");
