@@ -6,8 +6,7 @@
 //! queue orders everything on virtual instants, so a run of minutes takes milliseconds
 //! and the same seed gives the same run.
 
-use std::cmp::Reverse;
-use std::collections::{BTreeSet, BinaryHeap};
+use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
 use controller_service::config::{StandbyRole, StandbySpec};
@@ -16,31 +15,15 @@ use controller_service::fleet::{
 };
 use controller_service::standby::{HotStandby, STANDBY_GRACE};
 use protocol::{pb, PROTOCOL_VERSION, SHARDS};
+use simulation::{Events, Rng};
 
 fn ms(x: u64) -> Duration {
     Duration::from_millis(x)
 }
 
-/// SplitMix64: a tiny seeded generator, so a failing seed replays exactly.
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in `lo..=hi` milliseconds.
-    fn ms(&mut self, lo: u64, hi: u64) -> Duration {
-        ms(lo + self.next() % (hi - lo + 1))
-    }
-
-    fn chance(&mut self, p: f64) -> bool {
-        (self.next() >> 11) as f64 / (1u64 << 53) as f64 > 1.0 - p
-    }
+/// Uniform in `lo..=hi` milliseconds.
+fn draw_ms(rng: &mut Rng, lo: u64, hi: u64) -> Duration {
+    ms(rng.between(lo, hi))
 }
 
 /// What travels between members, or happens to one.
@@ -81,9 +64,7 @@ enum Asked {
 struct Sim {
     t0: Instant,
     now: Duration,
-    queue: BinaryHeap<Reverse<(Duration, u64, usize)>>,
-    events: Vec<Event>,
-    seq: u64,
+    queue: Events<Duration, Event>,
     names: Vec<String>,
     fleets: Vec<Option<Fleet>>,
     /// Pairs that cannot reach each other.
@@ -102,13 +83,11 @@ impl Sim {
         Self {
             t0: Instant::now(),
             now: Duration::ZERO,
-            queue: BinaryHeap::new(),
-            events: Vec::new(),
-            seq: 0,
+            queue: Events::new(),
             names: names.iter().map(|s| s.to_string()).collect(),
             fleets: names.iter().map(|_| None).collect(),
             cut: BTreeSet::new(),
-            rng: Rng(seed),
+            rng: Rng::new(seed),
             delay: (1, 3),
             loss: 0.0,
             timeout: ms(500),
@@ -117,10 +96,7 @@ impl Sim {
     }
 
     fn at(&mut self, after: Duration, e: Event) {
-        let i = self.events.len();
-        self.events.push(e);
-        self.seq += 1;
-        self.queue.push(Reverse((self.now + after, self.seq, i)));
+        self.queue.push(self.now + after, e);
     }
 
     fn reachable(&self, a: usize, b: usize) -> bool {
@@ -144,7 +120,7 @@ impl Sim {
         // before it looks).
         for m in self.alive() {
             if m != i && self.reachable(m, i) {
-                let d = self.rng.ms(self.delay.0, self.delay.1);
+                let d = draw_ms(&mut self.rng, self.delay.0, self.delay.1);
                 self.at(
                     d,
                     Event::View {
@@ -154,7 +130,7 @@ impl Sim {
                     },
                 );
                 if !others.contains(&m) {
-                    let d = self.rng.ms(self.delay.0, self.delay.1);
+                    let d = draw_ms(&mut self.rng, self.delay.0, self.delay.1);
                     self.at(
                         d,
                         Event::View {
@@ -210,7 +186,7 @@ impl Sim {
         if self.fleets[a].is_none() || self.fleets[b].is_none() {
             return;
         }
-        let (d1, d2) = (self.rng.ms(1, 20), self.rng.ms(1, 20));
+        let (d1, d2) = (draw_ms(&mut self.rng, 1, 20), draw_ms(&mut self.rng, 1, 20));
         self.at(
             d1,
             Event::View {
@@ -258,7 +234,7 @@ impl Sim {
                     },
                 );
             } else {
-                let d = self.rng.ms(self.delay.0, self.delay.1);
+                let d = draw_ms(&mut self.rng, self.delay.0, self.delay.1);
                 self.at(
                     d,
                     Event::Request {
@@ -356,7 +332,7 @@ impl Sim {
         self.carry_out(to, actions);
         let back = self.reachable(from, to) && !self.rng.chance(self.loss);
         let d = if back {
-            self.rng.ms(self.delay.0, self.delay.1)
+            draw_ms(&mut self.rng, self.delay.0, self.delay.1)
         } else {
             self.timeout
         };
@@ -406,11 +382,7 @@ impl Sim {
 
     /// Run until `until`, accumulating per shard the time answered twice or more.
     fn run_until(&mut self, until: Duration) {
-        while let Some(Reverse((t, _, i))) = self.queue.peek().copied() {
-            if t > until {
-                break;
-            }
-            self.queue.pop();
+        while let Some((t, e)) = self.queue.pop_until(until) {
             let counts = self.answering();
             for (s, n) in counts.iter().enumerate() {
                 if *n > 1 {
@@ -418,7 +390,6 @@ impl Sim {
                 }
             }
             self.now = t;
-            let e = self.events[i].clone();
             self.deliver(e);
         }
         self.now = until;
@@ -563,9 +534,9 @@ fn random_run(seed: u64) -> (Sim, Duration) {
     let mut t = ms(100);
     for _ in 0..8 {
         sim.run_until(t);
-        let k = (sim.rng.next() % 4) as usize;
+        let k = (sim.rng.next_u64() % 4) as usize;
         let alive = sim.alive();
-        match sim.rng.next() % 4 {
+        match sim.rng.next_u64() % 4 {
             0 if sim.fleets[k].is_none() => {
                 let others: Vec<usize> =
                     alive.into_iter().filter(|&o| sim.reachable(o, k)).collect();
@@ -584,7 +555,7 @@ fn random_run(seed: u64) -> (Sim, Duration) {
                 }
             }
         }
-        t += sim.rng.ms(50, 1_500);
+        t += draw_ms(&mut sim.rng, 50, 1_500);
     }
     sim.run_until(t);
     for (a, b) in sim.cut.clone() {
@@ -685,7 +656,7 @@ fn hot_standby_takes_over_after_silence_and_steps_down_for_a_higher_term() {
 #[test]
 fn a_standby_group_keeps_one_active_member() {
     for seed in 0..200 {
-        let mut rng = Rng(seed);
+        let mut rng = Rng::new(seed);
         let t0 = Instant::now();
         let ids = ["m1", "m2", "m3"];
         let mut m: Vec<HotStandby> = ids
@@ -710,7 +681,7 @@ fn a_standby_group_keeps_one_active_member() {
                 let beat = m[k].heartbeat_of(ids[k]);
                 for j in (0..3).filter(|&j| j != k && alive[j]) {
                     if rng.chance(0.9) {
-                        m[j].on_heartbeat(ids[j], &beat, now + rng.ms(0, 3));
+                        m[j].on_heartbeat(ids[j], &beat, now + draw_ms(&mut rng, 0, 3));
                     }
                 }
             }

@@ -10,8 +10,7 @@
 //! the fault campaign (`mfc-lab campaign`) measures the real thing, through a real relay,
 //! in real time.
 
-use std::cmp::Reverse;
-use std::collections::{BinaryHeap, VecDeque};
+use std::collections::VecDeque;
 
 use controller_service::config::Prediction;
 use controller_service::registry::{Registry, Via};
@@ -27,6 +26,7 @@ use protocol::{pb, PROTOCOL_VERSION};
 use rand_xoshiro::rand_core::{Rng as _, SeedableRng};
 use rand_xoshiro::Xoshiro256StarStar;
 use serde::{Deserialize, Serialize};
+use simulation::Events;
 
 use crate::harness::service_config;
 use crate::offline::RunError;
@@ -359,9 +359,8 @@ fn sample(
 struct InFlight {
     link: LinkModel,
     rng: Xoshiro256StarStar,
-    /// (arrival in ns, index into `events`): the smallest first.
-    queue: BinaryHeap<Reverse<(u64, u64)>>,
-    events: Vec<Option<Event>>,
+    /// By arrival (ns), the earliest first, ties in the order sent.
+    queue: Events<u64, Event>,
     samples_lost: u64,
     commands_lost: u64,
 }
@@ -371,8 +370,7 @@ impl InFlight {
         Self {
             link: *link,
             rng: Xoshiro256StarStar::seed_from_u64(link.seed),
-            queue: BinaryHeap::new(),
-            events: Vec::new(),
+            queue: Events::new(),
             samples_lost: 0,
             commands_lost: 0,
         }
@@ -390,8 +388,7 @@ impl InFlight {
     }
 
     fn push(&mut self, at: u64, event: Event) {
-        self.queue.push(Reverse((at, self.events.len() as u64)));
-        self.events.push(Some(event));
+        self.queue.push(at, event);
     }
 
     /// The agent sends a sample at plant time `t`.
@@ -416,15 +413,6 @@ impl InFlight {
 
     /// The next message to arrive before `end` (ns), with its arrival time.
     fn next_before(&mut self, end: u64) -> Option<(u64, Event)> {
-        while let Some(Reverse((at, i))) = self.queue.peek().copied() {
-            if at >= end {
-                return None;
-            }
-            self.queue.pop();
-            if let Some(event) = self.events[i as usize].take() {
-                return Some((at, event));
-            }
-        }
-        None
+        self.queue.pop_before(end)
     }
 }

@@ -15,6 +15,7 @@
 //! valid samples of a new run, which is access control's business (the deployment issue),
 //! so run-id churn is aimed at the hostile client's own device.
 
+use simulation::Rng;
 use std::collections::HashSet;
 use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex};
@@ -58,17 +59,6 @@ pattern = "hostile-$*"
 law = { law = "pid", params = { kp = 2.0 } }
 output = { min = -5.0, max = 5.0 }
 "#;
-
-/// A small deterministic generator (xorshift64*), so a failure replays.
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
-    }
-}
 
 /// `v` is a number inside `[-limit, limit]` (NaN is not).
 fn within(v: f64, limit: f64) -> bool {
@@ -296,8 +286,8 @@ impl Attacker {
     /// 1. Garbage (a first byte no protobuf message can start with) and wrong versions.
     async fn garbage(&mut self, base: &pb::ServiceStatus) {
         for _ in 0..2000 {
-            let n = 1 + (self.rng.next() % 200) as usize;
-            let mut bytes: Vec<u8> = (0..n).map(|_| self.rng.next() as u8).collect();
+            let n = 1 + (self.rng.next_u64() % 200) as usize;
+            let mut bytes: Vec<u8> = (0..n).map(|_| self.rng.next_u64() as u8).collect();
             bytes[0] = 0x07;
             self.put(keys::sample("good-1"), bytes).await;
         }
@@ -321,7 +311,7 @@ impl Attacker {
     async fn refused_samples(&mut self) {
         let before = device(&self.status().await, "good-1").rejected;
         for k in 0..300u64 {
-            let run = self.rng.next() | 1;
+            let run = self.rng.next_u64() | 1;
             let s = sample("good-1", run, 1_000_000_000_000 + k, 1e6, f64::NAN);
             self.put(keys::sample("good-1"), encode(&s)).await;
         }
@@ -444,7 +434,7 @@ impl Attacker {
         self.one(sample("hostile-1", 1, self.seq, self.t, 0.0), sent)
             .await;
         for _ in 0..100 {
-            let jump = self.seq + (1 << 40) + (self.rng.next() % 1000);
+            let jump = self.seq + (1 << 40) + (self.rng.next_u64() % 1000);
             sent += 1;
             self.one(sample("hostile-1", 1, jump, self.t + 1.0, 0.0), sent)
                 .await;
@@ -455,7 +445,7 @@ impl Attacker {
         for _ in 0..100 {
             self.seq += 1;
             self.t += 0.01;
-            let run = self.rng.next() | 1;
+            let run = self.rng.next_u64() | 1;
             sent += 1;
             self.one(sample("hostile-1", run, self.seq, self.t, 0.0), sent)
                 .await;
@@ -731,7 +721,7 @@ async fn a_hostile_client_cannot_harm_a_plant_or_starve_another() {
     let rss_start = rss_kb(pid);
     let mut a = Attacker {
         h: h.clone(),
-        rng: Rng(0x5eed_1234_abcd_0001),
+        rng: Rng::new(0x5eed_1234_abcd_0001),
         seq: 1,
         t: 0.0,
     };

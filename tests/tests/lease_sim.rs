@@ -37,6 +37,7 @@
 //! shard's ownership itself (handover requests) is the fleet's own simulation's
 //! (`controller-service/tests/virtual_time.rs`).
 
+use simulation::Rng;
 use std::collections::{BTreeSet, HashMap};
 use std::io::Write;
 
@@ -69,28 +70,6 @@ const OPERATOR_TIMEOUT: u64 = 2000;
 /// How recently the member commanding a device must have heard it to acknowledge (ms):
 /// five periods (`Registry::live_ns`).
 const LIVE: u64 = 5 * H;
-
-/// SplitMix64, so that a seed replays exactly.
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-    fn below(&mut self, n: u64) -> u64 {
-        self.next() % n.max(1)
-    }
-    fn chance(&mut self, p: f64) -> bool {
-        (self.next() >> 11) as f64 / (1u64 << 53) as f64 > 1.0 - p
-    }
-    fn pick<T: Copy>(&mut self, xs: &[T]) -> T {
-        xs[self.below(xs.len() as u64) as usize]
-    }
-}
 
 #[derive(Debug, Clone)]
 struct SampleMsg {
@@ -349,7 +328,7 @@ fn supervisor(run_id: u64) -> Supervisor {
 
 impl Sim {
     fn new(seed: u64) -> Self {
-        let mut rng = Rng(seed);
+        let mut rng = Rng::new(seed);
         let horizon = FAULTY * H;
         let mut windows = Vec::new();
         for _ in 0..1 + rng.below(5) {
@@ -368,7 +347,7 @@ impl Sim {
             let to = (from + H * (1 + rng.below(300))).min(horizon);
             windows.push(Window { fault, from, to });
         }
-        let run_id = (rng.next() >> 2) | 1;
+        let run_id = (rng.next_u64() >> 2) | 1;
         let rogue = rng.below(3) == 0;
         Self {
             rogue,
