@@ -319,7 +319,7 @@ pub fn observers(config: &ServiceConfig) -> Result<(Observers, Replayed)> {
     });
     let (audit, earlier) = match &config.audit {
         Some(spec) => {
-            let (trail, earlier) = crate::service::AuditTrail::open(spec)
+            let (trail, earlier) = crate::trail::AuditTrail::open(spec)
                 .with_context(|| format!("audit file {}", spec.path.display()))?;
             tracing::info!(path = %spec.path.display(), entries = earlier.entries.len(), devices = earlier.states.len(), "audit trail: every operator's change is fsynced with its record before it is in force");
             if earlier.torn > 0 {

@@ -20,6 +20,7 @@
 //!   flood cannot delay another's;
 //! * [`service`]: the Zenoh wiring and the worker, [`service::serve`] its entry point;
 //! * [`snapshot`]: the snapshots' format and files; [`replay`]: a recording played again;
+//! * [`trail`]: the audit file on the real disk, its writer thread (a [`journal`] store);
 //! * [`observe`]: metrics; [`cli`]: the command line (the binary is a one-line `main`).
 
 pub mod access;
@@ -39,6 +40,7 @@ pub mod replay;
 pub mod service;
 pub mod snapshot;
 pub mod standby;
+pub mod trail;
 
 pub use config::ServiceConfig;
 pub use registry::Registry;

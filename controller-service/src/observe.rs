@@ -87,7 +87,7 @@ pub struct Observers {
     /// The recording of this process.
     pub recording: Option<Recording>,
     /// The audit trail's file of this process (absent: entries in memory only).
-    pub audit: Option<crate::service::AuditTrail>,
+    pub audit: Option<crate::trail::AuditTrail>,
 }
 
 /// A device's histograms, registered at its first sample.

@@ -15,14 +15,14 @@ use controller_service::fleet::{
 };
 use controller_service::standby::{HotStandby, STANDBY_GRACE};
 use protocol::{pb, PROTOCOL_VERSION, SHARDS};
-use simulation::{Events, Rng};
+use simulation::{Events, SplitMix};
 
 fn ms(x: u64) -> Duration {
     Duration::from_millis(x)
 }
 
 /// Uniform in `lo..=hi` milliseconds.
-fn draw_ms(rng: &mut Rng, lo: u64, hi: u64) -> Duration {
+fn draw_ms(rng: &mut SplitMix, lo: u64, hi: u64) -> Duration {
     ms(rng.between(lo, hi))
 }
 
@@ -69,7 +69,7 @@ struct Sim {
     fleets: Vec<Option<Fleet>>,
     /// Pairs that cannot reach each other.
     cut: BTreeSet<(usize, usize)>,
-    rng: Rng,
+    rng: SplitMix,
     /// One-way delay of a message, and how often a request or answer is lost.
     delay: (u64, u64),
     loss: f64,
@@ -87,7 +87,7 @@ impl Sim {
             names: names.iter().map(|s| s.to_string()).collect(),
             fleets: names.iter().map(|_| None).collect(),
             cut: BTreeSet::new(),
-            rng: Rng::new(seed),
+            rng: SplitMix::new(seed),
             delay: (1, 3),
             loss: 0.0,
             timeout: ms(500),
@@ -656,7 +656,7 @@ fn hot_standby_takes_over_after_silence_and_steps_down_for_a_higher_term() {
 #[test]
 fn a_standby_group_keeps_one_active_member() {
     for seed in 0..200 {
-        let mut rng = Rng::new(seed);
+        let mut rng = SplitMix::new(seed);
         let t0 = Instant::now();
         let ids = ["m1", "m2", "m3"];
         let mut m: Vec<HotStandby> = ids

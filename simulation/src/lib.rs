@@ -1,6 +1,6 @@
 //! What every seeded simulation of the project shares, so that they are written once:
 //!
-//! * [`Rng`]: one generator (SplitMix64). A seed replays exactly, on every machine, and a
+//! * [`SplitMix`]: one generator (SplitMix64). A seed replays exactly, on every machine, and a
 //!   failing seed printed by a test is all it takes to run the same schedule again.
 //! * [`Events`]: one queue of timed events, the earliest first and, at one instant, in
 //!   the order they were queued, so that two simulations given the same inputs take the
@@ -18,9 +18,9 @@ use std::collections::BinaryHeap;
 /// SplitMix64 (Steele, Lea and Flood, 2014): 64 bits of state, every seed usable (0
 /// included), and a full period of 2^64. Small and fast; not for anything secret.
 #[derive(Debug, Clone)]
-pub struct Rng(u64);
+pub struct SplitMix(u64);
 
-impl Rng {
+impl SplitMix {
     /// The generator of `seed`.
     pub fn new(seed: u64) -> Self {
         Self(seed)
@@ -163,7 +163,7 @@ mod tests {
     #[test]
     fn splitmix64_gives_its_published_sequence() {
         // The reference implementation's first outputs for seed 1234567.
-        let mut r = Rng::new(1_234_567);
+        let mut r = SplitMix::new(1_234_567);
         let got: Vec<u64> = (0..3).map(|_| r.next_u64()).collect();
         assert_eq!(
             got,
@@ -178,15 +178,15 @@ mod tests {
     #[test]
     fn a_seed_replays_and_two_seeds_differ() {
         let a: Vec<u64> = {
-            let mut r = Rng::new(7);
+            let mut r = SplitMix::new(7);
             (0..100).map(|_| r.next_u64()).collect()
         };
         let b: Vec<u64> = {
-            let mut r = Rng::new(7);
+            let mut r = SplitMix::new(7);
             (0..100).map(|_| r.next_u64()).collect()
         };
         let c: Vec<u64> = {
-            let mut r = Rng::new(8);
+            let mut r = SplitMix::new(8);
             (0..100).map(|_| r.next_u64()).collect()
         };
         assert_eq!(a, b);
@@ -195,7 +195,7 @@ mod tests {
 
     #[test]
     fn draws_stay_in_their_ranges_and_chance_follows_p() {
-        let mut r = Rng::new(0);
+        let mut r = SplitMix::new(0);
         let mut hits = 0;
         for _ in 0..100_000 {
             assert!(r.below(7) < 7);

@@ -15,7 +15,7 @@
 //! valid samples of a new run, which is access control's business (the deployment issue),
 //! so run-id churn is aimed at the hostile client's own device.
 
-use simulation::Rng;
+use simulation::SplitMix;
 use std::collections::HashSet;
 use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex};
@@ -263,7 +263,7 @@ async fn good_plant(endpoint: String) -> GoodReport {
 /// stands.
 struct Attacker {
     h: Session,
-    rng: Rng,
+    rng: SplitMix,
     seq: u64,
     t: f64,
 }
@@ -721,7 +721,7 @@ async fn a_hostile_client_cannot_harm_a_plant_or_starve_another() {
     let rss_start = rss_kb(pid);
     let mut a = Attacker {
         h: h.clone(),
-        rng: Rng::new(0x5eed_1234_abcd_0001),
+        rng: SplitMix::new(0x5eed_1234_abcd_0001),
         seq: 1,
         t: 0.0,
     };

@@ -37,7 +37,7 @@
 //! shard's ownership itself (handover requests) is the fleet's own simulation's
 //! (`controller-service/tests/virtual_time.rs`).
 
-use simulation::Rng;
+use simulation::SplitMix;
 use std::collections::{BTreeSet, HashMap};
 use std::io::Write;
 
@@ -260,7 +260,7 @@ struct Tally {
 
 struct Sim {
     seed: u64,
-    rng: Rng,
+    rng: SplitMix,
     t: u64,
     members: Vec<Member>,
     windows: Vec<Window>,
@@ -328,7 +328,7 @@ fn supervisor(run_id: u64) -> Supervisor {
 
 impl Sim {
     fn new(seed: u64) -> Self {
-        let mut rng = Rng::new(seed);
+        let mut rng = SplitMix::new(seed);
         let horizon = FAULTY * H;
         let mut windows = Vec::new();
         for _ in 0..1 + rng.below(5) {

@@ -10,10 +10,10 @@ use zenoh::query::Query;
 
 use super::core::Core;
 use super::log::throttled;
-use super::trail::{AuditTrail, Pending, Written};
 use crate::access::{Action, Actor};
 use crate::changes::Serial;
 use crate::registry::ChangeTrial;
+use crate::trail::{AuditTrail, Pending, Written};
 use crate::Registry;
 
 /// A change as asked, decoded.
@@ -146,7 +146,7 @@ impl Core {
                 None => {
                     let why = format!(
                         "the audit trail is full ({} records wait to be written to {}); nothing changed, send it again",
-                        super::trail::WAITING,
+                        crate::trail::WAITING,
                         t.path().display()
                     );
                     return (

@@ -126,7 +126,7 @@ pub(super) struct Core {
     /// The fleet's keys, to seal commands (`None`: open).
     keys: Option<Arc<Keyring>>,
     /// Who may change what, and the audit trail every decision goes to.
-    pub(super) gate: super::trail::Gate,
+    pub(super) gate: super::gate::Gate,
 }
 
 impl Core {
@@ -134,7 +134,7 @@ impl Core {
         registry: Registry,
         watch: Watch,
         keys: Option<Arc<Keyring>>,
-        gate: super::trail::Gate,
+        gate: super::gate::Gate,
     ) -> Self {
         Self {
             keys,

@@ -21,17 +21,17 @@
 //! * [`run`]: the worker's start and loop, one handler per event, over the worker's state
 //!   ([`worker`]). The handlers: [`requests`] for operators' queries, [`operators`] for a
 //!   change's way to its acknowledgment (its pieces in [`change`], its record in
-//!   [`trail`]), [`replies`] for what they share, [`handover`] and [`hold`] for the
-//!   fleet's and the hot standby's wiring around their pure rules ([`crate::fleet`],
-//!   [`crate::standby`]).
+//!   [`crate::trail`], its entries numbered by [`gate`]), [`replies`] for what they
+//!   share, [`handover`] and [`hold`] for the fleet's and the hot standby's wiring around
+//!   their pure rules ([`crate::fleet`], [`crate::standby`]).
 //! * [`routes`]: every Zenoh declaration, owned by a struct that undeclares it on drop.
 //! * [`log`]: throttled warnings. Every message the service does not serve lands in
 //!   exactly one counter of the service status, and warnings about them are throttled:
 //!   the first of each kind at once, then one line per interval with a count.
 //!
-//! The files build on each other in that order, from [`locks`] and [`log`] up to [`run`],
-//! never in a circle (`.ci/layout` checks it): a handler may use the worker's state and
-//! the handlers below it, never the loop.
+//! The files build on each other from [`locks`] and [`log`] up to [`run`], never in a
+//! circle (`.ci/layout` checks it; the floors are in `docs/architecture.md`): a handler
+//! may use the worker's state and the handlers below it, never the loop.
 //!
 //! [`Registry`]: crate::Registry
 //! [`Inbox`]: crate::inbox::Inbox
@@ -41,6 +41,7 @@
 mod change;
 mod core;
 mod drops;
+mod gate;
 mod handover;
 mod hold;
 mod intake;
@@ -52,12 +53,10 @@ mod replies;
 mod requests;
 mod routes;
 mod run;
-mod trail;
 mod worker;
 
 pub use log::Throttle;
 pub use routes::ServiceError;
-pub use trail::{AuditTrail, TrailStats};
 
 use crate::observe::Observers;
 use crate::Registry;

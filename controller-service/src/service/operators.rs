@@ -6,7 +6,7 @@
 //! 2. it is decided ([`super::core::Core::decide`], in [`super::change`]): who asks must be allowed ([`crate::access`]), the
 //!    audit file must have room for its record, and the registry tries it
 //!    ([`crate::Registry::trial`]): refused, or the state it would leave;
-//! 3. its record goes to the audit file ([`super::trail`]): the decision and, if accepted,
+//! 3. its record goes to the audit file ([`crate::trail`]): the decision and, if accepted,
 //!    that state ([`crate::journal`]); nothing is in force yet;
 //! 4. once the record is durable, the change is made ([`super::core::Core::commit`]) and must leave the
 //!    state recorded, or it is withdrawn (recorded too); a record that could not be written
@@ -22,10 +22,10 @@ use tokio::sync::mpsc;
 
 use super::change::{Change, Decision, Tried, Waiting};
 use super::locks::lock;
-use super::trail::{NotWritten, Pending, Written};
 use super::worker::Worker;
 use crate::changes::Arrival;
 use crate::journal::{Record, State, Write};
+use crate::trail::{NotWritten, Pending, Written};
 
 impl Worker {
     /// A change arrives: decided now, or queued behind its device's change being written,

@@ -14,6 +14,7 @@ use zenoh::Session;
 use super::change::Changes;
 use super::core::{publish, publish_batch, Core, Masks, Shared, Watch};
 use super::drops::Drops;
+use super::gate::Gate;
 use super::intake::{Intake, Msg};
 use super::keyring::Keyring;
 use super::locks::lock;
@@ -21,13 +22,13 @@ use super::log::{Warnings, LOG_INTERVAL};
 use super::routes::{
     declare_err, FleetRoutes, Routes, ServiceError, ShardRoutes, StandbyRoutes, Twins,
 };
-use super::trail::{Gate, Written, WAITING};
 use super::worker::{Member, Worker};
 use crate::config::{FleetSpec, SnapshotSpec};
 use crate::fleet::{Fleet, FleetTiming, ShardAction};
 use crate::inbox::Inbox;
 use crate::observe::{Observers, ScrapeRequest};
 use crate::standby::HotStandby;
+use crate::trail::{Written, WAITING};
 use crate::Registry;
 
 /// Depth of the request queue (messages); when it is full new requests are dropped and
