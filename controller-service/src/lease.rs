@@ -270,6 +270,14 @@ pub struct Claimer {
     /// It gave the lease up although its partners were not in step with it: it takes it
     /// back at the first vacant sample, under a new epoch.
     reclaim: bool,
+    /// It claimed the lease since this state was made. The plant grants a lease only to
+    /// a claim, so a lease that names this process while this state never claimed was
+    /// taken by a state since dropped: the member forgot the device (it stopped following
+    /// its shard, `Registry::forget_shard`) and made it fresh again. Commanding with the
+    /// fresh state would drop every change acknowledged under that lease, so it stays
+    /// silent while so named (the lease lapses, and a member in step claims it first),
+    /// and claims only as a member behind does.
+    claimed: bool,
 }
 
 impl Default for Claimer {
@@ -289,6 +297,7 @@ impl Default for Claimer {
             since_gap: 0,
             handed: false,
             reclaim: false,
+            claimed: false,
         }
     }
 }
@@ -414,11 +423,17 @@ impl Claimer {
                 return Decision::Quiet;
             }
             self.claims = self.claims.saturating_add(1);
+            self.claimed = true;
             return Decision::Send {
                 epoch: seen.epoch.saturating_add(1),
                 claim: true,
                 release: false,
             };
+        }
+        if !self.claimed && self.holder == Holder::Me {
+            // Its process holds the lease, with a state this device no longer has.
+            self.holder = Holder::Vacant;
+            return Decision::Quiet;
         }
         self.vacant = 0;
         self.reclaim = false;
@@ -483,6 +498,14 @@ mod tests {
             holder,
             instance: 0,
             epoch,
+        }
+    }
+
+    /// A member whose state claimed the lease (the plant names only a claimant holder).
+    fn claimed() -> Claimer {
+        Claimer {
+            claimed: true,
+            ..Claimer::default()
         }
     }
 
@@ -568,7 +591,7 @@ mod tests {
     #[test]
     fn a_member_that_is_not_the_holder_is_fenced_even_if_preferred() {
         let p = LeasePolicy::default();
-        let mut a = Claimer::default();
+        let mut a = claimed();
         assert_eq!(
             a.decide(&p, ("a", 0), Standing::plain(true, true), seen("b", 4)),
             Decision::Fenced
@@ -583,6 +606,43 @@ mod tests {
             }
         );
         assert!(held.sends() && !Decision::Fenced.sends() && !Decision::Quiet.sends());
+    }
+
+    #[test]
+    fn a_member_that_forgot_the_device_stays_silent_under_its_own_lease_and_claims_as_one_behind() {
+        let p = LeasePolicy::default();
+        let fleet = Standing {
+            preferred: true,
+            warm: true,
+            sees_holder: Some(true),
+            gap: false,
+        };
+        let mut c = Claimer::default();
+        for _ in 0..20 {
+            assert_eq!(
+                c.decide(&p, ("a", 0), fleet, seen("a", 4)),
+                Decision::Quiet,
+                "its process holds the lease, but not with this state"
+            );
+            assert_eq!(c.holder, Holder::Vacant, "it does not command the plant");
+        }
+        // The lease lapses: it claims, but only after a member in step would have.
+        let mut quiet = 0;
+        while c.decide(&p, ("a", 0), fleet, seen("", 4)) == Decision::Quiet {
+            quiet += 1;
+            assert!(quiet < 1000, "it never claims");
+        }
+        assert!(
+            quiet >= p.behind_delay,
+            "claimed after {quiet} vacant samples"
+        );
+        let held = c.decide(&p, ("a", 0), fleet, seen("a", 5));
+        assert!(matches!(held, Decision::Send { .. }), "{held:?}");
+        assert_eq!(
+            c.holder,
+            Holder::Me,
+            "once it claimed, its state is in force"
+        );
     }
 
     #[test]
@@ -609,7 +669,7 @@ mod tests {
             behind_delay: 30,
             unseen_limit: 5,
         };
-        let mut b = Claimer::default();
+        let mut b = claimed();
         let mut yields_at = Vec::new();
         for k in 0..40 {
             let d = b.decide(&p, ("b", 0), Standing::plain(false, true), seen("b", 1));
@@ -627,7 +687,7 @@ mod tests {
             sees_holder: Some(true),
             gap: false,
         };
-        let mut c = Claimer::default();
+        let mut c = claimed();
         c.decide(&p, ("c", 0), Standing { gap: true, ..fleet }, seen("c", 1));
         let mut yields_at = Vec::new();
         for k in 0..20 {
@@ -729,7 +789,7 @@ mod tests {
         // In step at epoch 1, it missed the state of epoch 2's holder: behind again.
         b.decide(&p, ("b", 0), st(true), seen("a", 2));
         assert!(b.behind(st(true)));
-        let mut b = Claimer::default();
+        let mut b = claimed();
         b.decide(&p, ("b", 0), st(true), seen("b", 1));
         assert!(!b.behind(st(true)));
         // At a run's start (epoch 0), a member in step at the end of the last run (or in
@@ -771,7 +831,7 @@ mod tests {
     #[test]
     fn an_unpreferred_holder_hands_its_state_over_halfway_to_its_yield() {
         let p = LeasePolicy::default();
-        let mut a = Claimer::default();
+        let mut a = claimed();
         let mut due = Vec::new();
         for k in 1..=p.yield_after {
             let d = a.decide(&p, ("a", 0), Standing::plain(false, true), seen("a", 1));

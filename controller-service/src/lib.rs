@@ -12,7 +12,9 @@
 //!   says, a change's old and new values, entries handed over with a device;
 //! * [`journal`]: the audit file as the durable record of every change: its lines (an
 //!   entry, the state it left, a CRC), a file read back into each device's latest state,
-//!   and batches written all or nothing on a disk passed in.
+//!   and batches written all or nothing on a disk passed in;
+//! * [`replication`]: the holds of a change by the partners that would take its device
+//!   over, and when it may be acknowledged.
 //!
 //! Around them:
 //! * [`config`]: the TOML file (declared devices, templates, envelopes, fleet, standby);
@@ -37,6 +39,7 @@ pub mod lease;
 pub mod observe;
 pub mod registry;
 pub mod replay;
+pub mod replication;
 pub mod service;
 pub mod snapshot;
 pub mod standby;

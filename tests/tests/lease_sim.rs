@@ -29,13 +29,14 @@
 //!   the change could have commanded in step through a behind member's whole wait (all
 //!   crashed, stopped, cut off, or unsure), which is counted and printed.
 //!
-//! The members' exchanges are modelled after the service's wiring: the holds of a change
-//! (one replicator queue per member, in order, with a timeout), the states a holder
-//! sends when it takes the lease, halfway to a yield and to a member that comes into its
-//! view, the copy a member asks for when it starts following the shard, and the
-//! versioned, holder-checked restore (`Registry::restore_shard`, `hold_shard`). The
-//! shard's ownership itself (handover requests) is the fleet's own simulation's
-//! (`controller-service/tests/virtual_time.rs`).
+//! The holds of a change are the service's own: each member's `Replication` (the rules of
+//! `controller-service/src/replication.rs`, which the service's hold task drives), given
+//! the partners' answers and the time, and carried out here over the simulated network.
+//! Still modelled after the service's wiring: the states a holder sends when it takes the
+//! lease, halfway to a yield and to a member that comes into its view, the copy a member
+//! asks for when it starts following the shard, and the versioned, holder-checked restore
+//! (`Registry::restore_shard`, `hold_shard`). The shard's ownership itself (handover
+//! requests) is the fleet's own simulation's (`controller-service/tests/virtual_time.rs`).
 
 use simulation::SplitMix;
 use std::collections::{BTreeSet, HashMap};
@@ -43,6 +44,7 @@ use std::io::Write;
 
 use controller_service::fleet::ranked;
 use controller_service::lease::{Claimer, Decision, Holder, LeasePolicy, Seen, Standing, Version};
+use controller_service::replication::{Answer, Effect, Job, Replication};
 use mfc::{ChannelConfig, ControllerKind, LawConfig, Order, OutputMapConfig, Reference};
 use plant_agent::lease::Credentials;
 use plant_agent::safety::{
@@ -66,6 +68,8 @@ const ZENOH_LEASE: u64 = 500;
 /// How long a member waits for its partners to hold a change (the fleet's
 /// `handover_timeout_ms`), and how long the operator waits for the reply, ms.
 const HOLD_TIMEOUT: u64 = 500;
+/// A millisecond of virtual time in the service's units (ns).
+const MS: u64 = 1_000_000;
 const OPERATOR_TIMEOUT: u64 = 2000;
 /// How recently the member commanding a device must have heard it to acknowledge (ms):
 /// five periods (`Registry::live_ns`).
@@ -106,7 +110,9 @@ enum Payload {
     Hold {
         from: usize,
         to: usize,
-        job: u64,
+        /// The asker's replication job (0: the answer to a copy), and its process: an
+        /// answer reaches the process that asked, not one restarted since.
+        job: (u64, u64),
         handed: Handed,
     },
     /// A member that starts stepping the shard asks another that steps it for a copy of
@@ -119,7 +125,7 @@ enum Payload {
     Held {
         to: usize,
         by: usize,
-        job: u64,
+        job: (u64, u64),
         ok: bool,
         /// The answering member is in step with the sender (`hold_state`).
         in_step: bool,
@@ -135,24 +141,6 @@ struct Handed {
     /// heard it.
     holds: Option<(u64, u64)>,
     heard: (u64, u64),
-}
-
-/// A member's change on its way to being held, as its replicator task carries it out:
-/// one at a time, in order.
-#[derive(Debug, Clone)]
-struct Job {
-    id: u64,
-    /// The change acknowledged if every partner holds it (none: states sent to a member
-    /// back in view), and when the operator asked.
-    change: Option<(u32, u64)>,
-    handed: Handed,
-    partners: Vec<usize>,
-    started: Option<u64>,
-    held: BTreeSet<usize>,
-    /// The partners that answered (a refusal ends the wait for one as an answer does).
-    answered: BTreeSet<usize>,
-    /// Some partner said it is behind.
-    behind: bool,
 }
 
 /// A fault over `[from, to)` ms.
@@ -204,8 +192,9 @@ struct Member {
     heard: u64,
     /// Which changes its state holds (`Device::version`).
     version: Version,
-    /// Its replicator's queue.
-    jobs: std::collections::VecDeque<Job>,
+    /// Its holds: the service's own rules (`Replication`), an operator's change and
+    /// when it was asked as what a job answers.
+    holds: Replication<(u32, u64), Handed>,
     /// The fleet it saw at the last tick, to tell who came into view.
     seen: BTreeSet<String>,
     /// Whether it stepped the device's shard at the last tick, to tell when it starts.
@@ -231,7 +220,7 @@ impl Member {
             epoch: 0,
             heard: 0,
             version: Version::default(),
-            jobs: std::collections::VecDeque::new(),
+            holds: Replication::new(HOLD_TIMEOUT * MS, 256),
             seen: BTreeSet::new(),
             stepping: false,
             ready_since: None,
@@ -296,7 +285,6 @@ struct Sim {
     acked: HashMap<u32, u64>,
     lost: BTreeSet<u32>,
     next_change: u32,
-    next_job: u64,
     /// When the operator sends its next change (ms).
     next_op: u64,
 }
@@ -363,7 +351,6 @@ impl Sim {
             acked: HashMap::new(),
             lost: BTreeSet::new(),
             next_change: 1,
-            next_job: 1,
             next_op: 300,
             rng,
             t: 0,
@@ -938,19 +925,20 @@ impl Sim {
     }
 
     fn queue_job(&mut self, m: usize, change: Option<(u32, u64)>, partners: Vec<usize>) {
-        let id = self.next_job;
-        self.next_job += 1;
-        let handed = self.handed(m);
-        self.members[m].jobs.push_back(Job {
-            id,
-            change,
-            handed,
-            partners,
-            started: None,
-            held: BTreeSet::new(),
-            answered: BTreeSet::new(),
-            behind: false,
-        });
+        let job = Job {
+            answer: change,
+            shard: 0,
+            state: self.handed(m),
+            partners: partners
+                .iter()
+                .map(|&o| self.members[o].name.clone())
+                .collect(),
+            devices: Vec::new(),
+        };
+        if self.members[m].holds.submit(job, self.t * MS).is_err() {
+            panic!("seed {}: m{m}'s holds are full", self.seed);
+        }
+        self.carry_out_holds(m);
     }
 
     /// Member `m`'s state as it hands it (`Registry::handed`).
@@ -964,15 +952,16 @@ impl Sim {
         }
     }
 
-    /// Each running member's replicator: the job at the head of its queue sends its holds,
-    /// then ends when every partner held it or the time is up. A member that sees another
+    /// Each running member's holds, given the time: a job ends when every partner
+    /// answered or its time is up ([`Replication::tick`]). A member that sees another
     /// come into view sends it the states of the devices it commands (`send_commanded`).
     fn replicate(&mut self) {
         for m in 0..MEMBERS {
             if self.crashed(m) || self.paused(m) {
                 continue;
             }
-            self.replicate_head(m);
+            self.members[m].holds.tick(self.t * MS);
+            self.carry_out_holds(m);
             // Changes of view, every 5 ms (a member hears of them through liveliness).
             if self.t % 5 != 0 {
                 continue;
@@ -983,13 +972,22 @@ impl Sim {
             let stepping = self.rank(m).is_some();
             if !stepping && self.members[m].stepping {
                 // It no longer follows the shard: its devices' state is dropped
-                // (`ShardAction::Unsubscribe`, `Registry::forget_shard`).
+                // (`ShardAction::Unsubscribe`, `Registry::forget_shard`), their run,
+                // lease and warm-up with it: a device made fresh warms up again.
+                if self.trace {
+                    eprintln!("t {} m{m} no longer steps the shard", self.t);
+                }
                 let member = &mut self.members[m];
                 member.claimer = Claimer::default();
                 member.state.clear();
                 member.version = Version::default();
+                (member.run, member.stepped, member.epoch) = (0, 0, 0);
+                member.holder.clear();
             }
             if stepping && !self.members[m].stepping {
+                if self.trace {
+                    eprintln!("t {} m{m} steps the shard, asks for copies", self.t);
+                }
                 for o in self.partners(m) {
                     let cut = !self.linked(m, o);
                     self.send(Payload::Copy { from: m, to: o }, cut);
@@ -1007,57 +1005,68 @@ impl Sim {
         }
     }
 
-    fn replicate_head(&mut self, m: usize) {
+    /// What member `m`'s holds say to do, carried out as the service's hold task does
+    /// (`service/hold.rs`).
+    fn carry_out_holds(&mut self, m: usize) {
         let t = self.t;
-        let Some(job) = self.members[m].jobs.front_mut() else {
-            return;
-        };
-        if job.started.is_none() {
-            job.started = Some(t);
-            let (id, handed, partners) = (job.id, job.handed.clone(), job.partners.clone());
-            for to in partners {
-                let cut = !self.linked(m, to);
-                let p = Payload::Hold {
-                    from: m,
-                    to,
-                    job: id,
-                    handed: handed.clone(),
-                };
-                self.send(p, cut);
-            }
-            return;
-        }
-        let done = job.partners.iter().all(|p| job.held.contains(p));
-        let answered = job.partners.iter().all(|p| job.answered.contains(p));
-        if !answered && t <= job.started.unwrap_or(t) + HOLD_TIMEOUT {
-            return;
-        }
-        let job = self.members[m].jobs.pop_front().expect("a head");
-        if job.change.is_none() {
-            // States sent without a change: the holder learns whether its partners are in
-            // step with it (`Msg::HandedOver`).
-            let in_step = done && !job.behind;
-            self.members[m].claimer.handed_over(in_step);
-        }
-        if let Some((change, asked)) = job.change {
-            if self.trace {
-                eprintln!("t {t} change {change} on m{m}: held by {:?}", job.held);
-            }
-            if done && t - asked <= OPERATOR_TIMEOUT {
-                self.acked.insert(change, t);
-                self.tally.acked += 1;
+        for effect in self.members[m].holds.take() {
+            match effect {
+                Effect::Ask {
+                    job,
+                    partner,
+                    state,
+                    ..
+                } => {
+                    let to = self.index(&partner);
+                    let cut = !self.linked(m, to);
+                    let job = (job, self.members[m].instance);
+                    let p = Payload::Hold {
+                        from: m,
+                        to,
+                        job,
+                        handed: state,
+                    };
+                    self.send(p, cut);
+                }
+                Effect::HandedOver { in_step, .. } => {
+                    // States sent without a change: the holder learns whether its
+                    // partners are in step with it (`Msg::HandedOver`).
+                    self.members[m].claimer.handed_over(in_step);
+                }
+                Effect::Answer {
+                    answer: (change, asked),
+                    held,
+                    missing,
+                } => {
+                    if self.trace {
+                        eprintln!(
+                            "t {t} change {change} on m{m}: held by {held:?}, not {missing:?}"
+                        );
+                    }
+                    if missing.is_empty() && t - asked <= OPERATOR_TIMEOUT {
+                        self.acked.insert(change, t);
+                        self.tally.acked += 1;
+                    }
+                }
             }
         }
     }
 
+    fn index(&self, name: &str) -> usize {
+        (0..MEMBERS)
+            .find(|&o| self.members[o].name == name)
+            .expect("a member")
+    }
+
     /// Member `to` is asked by `from` to hold `state` (`Fleet::hold`, `hold_state`,
     /// `from_holder`).
-    fn on_hold(&mut self, from: usize, to: usize, job: u64, handed: Handed) {
+    fn on_hold(&mut self, from: usize, to: usize, job: (u64, u64), handed: Handed) {
+        let copy = job.0 == 0;
         let sender = self.members[from].name.clone();
         // A hold is taken by a member that steps the shard, from a member in its view
         // (`Fleet::hold`); a copy's answer by one that steps it (`restore_handed`).
         let view = self.view(to);
-        let steps = self.rank(to).is_some() && (job == 0 || view.contains(&sender));
+        let steps = self.rank(to).is_some() && (copy || view.contains(&sender));
         let member = &mut self.members[to];
         // `Registry::restore_shard`: never an older configuration, nor the same one over
         // the holder's own; in step with a holder under an epoch not older than heard.
@@ -1068,7 +1077,7 @@ impl Sim {
             member.claimer.holder,
             Holder::Me | Holder::Other | Holder::Vacant
         );
-        let from_holder = job == 0
+        let from_holder = copy
             || !leased
             || handed
                 .holds
@@ -1094,7 +1103,7 @@ impl Sim {
             member.claimer.heard_of(handed.heard);
         }
         let ok = ok || same;
-        if job == 0 {
+        if copy {
             return;
         }
         let fleet = Standing {
@@ -1115,14 +1124,18 @@ impl Sim {
         self.send(p, cut);
     }
 
-    fn on_held(&mut self, to: usize, by: usize, job: u64, in_step: bool, ok: bool) {
-        if let Some(j) = self.members[to].jobs.front_mut().filter(|j| j.id == job) {
-            j.answered.insert(by);
-            if ok {
-                j.held.insert(by);
-                j.behind |= !in_step;
-            }
+    fn on_held(&mut self, to: usize, by: usize, job: (u64, u64), in_step: bool, ok: bool) {
+        let (job, asker) = job;
+        if asker != self.members[to].instance {
+            return;
         }
+        let answer = match ok {
+            true => Answer::Held { in_step },
+            false => Answer::Refused,
+        };
+        let by = self.members[by].name.clone();
+        self.members[to].holds.answer(job, &by, answer, self.t * MS);
+        self.carry_out_holds(to);
     }
 
     /// Whether no member but `sender` that holds change `ch` could have commanded the
@@ -1212,7 +1225,7 @@ impl Sim {
                     let p = Payload::Hold {
                         from: to,
                         to: from,
-                        job: 0,
+                        job: (0, 0),
                         handed,
                     };
                     self.send(p, cut);

@@ -5,9 +5,11 @@
 //! with the state from before the change, and the operator, told "accepted", would never
 //! learn that it was gone.
 //!
-//! One task per member carries the holds out, one after another, in the order the
-//! changes were accepted: two quick changes to one device reach a partner in that order,
-//! so a partner never ends holding the older one. The worker never waits: a partner that
+//! The rules of the holds (one job at a time, in order; all partners asked at once; one
+//! timeout) are [`crate::replication`]'s, a node that does no I/O, which the fleet's
+//! simulation runs too; here is its driver: one task per member that hands it the jobs
+//! and the partners' answers with the time, and carries out what it says (the queries to
+//! the partners, the replies to the operators). The worker never waits: a partner that
 //! does not answer delays the acknowledgments, not the samples, the handovers or the
 //! heartbeats.
 //!
@@ -21,33 +23,27 @@ use std::time::Duration;
 
 use protocol::{encode, keys, pb};
 use tokio::sync::mpsc;
+use tokio::time::Instant;
 use zenoh::query::Query;
 use zenoh::Session;
 
 use super::intake::Msg;
 use super::keyring::Keyring;
 use crate::lease::Holder;
+use crate::replication::{Answer, Effect, Job, Replication};
 
 /// Changes waiting for their holds at most; beyond, a change is answered at once as not
 /// acknowledged (the operator sends it again).
 pub(super) const PENDING: usize = 256;
 
+/// The operator's query, its payload (the reply is bound to it) and the reply as
+/// accepted here (`accepted`, `reason` and `held_by` are set from the holds).
+pub(super) type Answering = (Query, Vec<u8>, pb::ConfigReply);
+
 /// One accepted change on its way to being held, or the states of the devices this
-/// member commands on their way to a member that came (back) into its view.
-pub(super) struct HoldJob {
-    /// The operator's query, its payload (the reply is bound to it) and the reply as
-    /// accepted here (`accepted`, `reason` and `held_by` are set from the holds); none
-    /// for states sent to a member that came into view.
-    pub(super) answer: Option<(Query, Vec<u8>, pb::ConfigReply)>,
-    /// The devices' shard, and their state (`encode_shard`).
-    pub(super) shard: u32,
-    pub(super) state: Vec<u8>,
-    /// The members that must hold it.
-    pub(super) partners: Vec<String>,
-    /// For states sent without a change: the devices, whose holder learns whether its
-    /// partners are in step with it ([`Msg::HandedOver`]).
-    pub(super) devices: Vec<String>,
-}
+/// member commands on their way to a member that came (back) into its view; the state
+/// is the devices' `encode_shard`.
+pub(super) type HoldJob = Job<Answering, Vec<u8>>;
 
 /// Who this member is, and how it reaches its partners.
 #[derive(Clone)]
@@ -61,54 +57,113 @@ pub(super) struct Replicator {
     pub(super) tx: mpsc::Sender<Msg>,
 }
 
+/// A partner's answer on its way back to the driver: the job, the partner, the answer.
+type Answered = (u64, String, Answer);
+
 impl Replicator {
-    /// Start the task that carries the holds out; its queue closes with the worker.
+    /// Start the task that carries the holds out; it ends once the worker's queue closes
+    /// and what was queued is over.
     pub(super) fn spawn(self) -> mpsc::Sender<HoldJob> {
-        let (tx, mut rx) = mpsc::channel::<HoldJob>(PENDING);
-        tokio::spawn(async move {
-            while let Some(job) = rx.recv().await {
-                self.carry_out(job).await;
-            }
-        });
+        let (tx, rx) = mpsc::channel::<HoldJob>(PENDING);
+        tokio::spawn(self.drive(rx));
         tx
     }
 
-    async fn carry_out(&self, job: HoldJob) {
-        let mut held = vec![self.me.clone()];
-        let mut missing = Vec::new();
-        let mut in_step = true;
-        for p in &job.partners {
-            match self.hold(p, job.shard, &job.state).await {
-                Some(step) => {
-                    held.push(p.clone());
-                    in_step &= step;
+    async fn drive(self, mut jobs: mpsc::Receiver<HoldJob>) {
+        let origin = Instant::now();
+        let now = || origin.elapsed().as_nanos() as u64;
+        let timeout = self.timeout.as_nanos() as u64;
+        let mut node = Replication::new(timeout, PENDING);
+        // Each ask sends one answer back; the asks of a job that timed out end within
+        // the same timeout, so a few jobs' worth is room enough.
+        let (answers_tx, mut answers) = mpsc::channel::<Answered>(64);
+        let mut open = true;
+        while open || !node.is_empty() {
+            let deadline = node.deadline().map(|d| origin + Duration::from_nanos(d));
+            tokio::select! {
+                job = jobs.recv(), if open => match job {
+                    Some(job) => {
+                        if let Err(job) = node.submit(job, now()) {
+                            self.busy(job).await;
+                        }
+                    }
+                    None => open = false,
+                },
+                Some((job, partner, a)) = answers.recv() => node.answer(job, &partner, a, now()),
+                _ = tokio::time::sleep_until(deadline.unwrap_or(origin)), if deadline.is_some() => {
+                    node.tick(now());
                 }
-                None => missing.push(p.as_str()),
+            }
+            for effect in node.take() {
+                self.carry_out(effect, &answers_tx).await;
             }
         }
-        let Some((query, request, mut reply)) = job.answer else {
-            if !missing.is_empty() {
-                tracing::debug!(shard = job.shard, members = ?missing, "devices' states did not reach their partners");
+    }
+
+    async fn carry_out(
+        &self,
+        effect: Effect<Answering, Vec<u8>>,
+        answers: &mpsc::Sender<Answered>,
+    ) {
+        match effect {
+            Effect::Ask {
+                job,
+                partner,
+                shard,
+                state,
+            } => {
+                let (me, answers) = (self.clone(), answers.clone());
+                tokio::spawn(async move {
+                    let a = match me.hold(&partner, shard, &state).await {
+                        Some(in_step) => Answer::Held { in_step },
+                        None => Answer::Refused,
+                    };
+                    let _ = answers.send((job, partner, a)).await;
+                });
             }
-            let handed = Msg::HandedOver {
-                devices: job.devices,
-                in_step: in_step && missing.is_empty(),
-            };
-            let _ = self.tx.send(handed).await;
+            Effect::Answer {
+                answer: (query, request, mut reply),
+                held,
+                missing,
+            } => {
+                let why = (!missing.is_empty()).then(|| {
+                    format!(
+                        "{} did not confirm holding it within {} ms",
+                        missing.join(" and "),
+                        self.timeout.as_millis()
+                    )
+                });
+                let mut by = vec![self.me.clone()];
+                by.extend(held);
+                acknowledge(&mut reply, &self.me, by, why.as_deref());
+                self.reply(query, &request, &reply).await;
+            }
+            Effect::HandedOver { devices, in_step } => {
+                if !in_step {
+                    tracing::debug!(devices = ?devices, "devices' partners are not all in step");
+                }
+                let _ = self.tx.send(Msg::HandedOver { devices, in_step }).await;
+            }
+        }
+    }
+
+    /// A job the queue had no room for: a change is answered as not acknowledged, states
+    /// sent without a change are dropped (the next change of view sends them again).
+    async fn busy(&self, job: HoldJob) {
+        let Some((query, request, mut reply)) = job.answer else {
+            tracing::warn!(controller = %self.me, "too many changes waiting: devices' states not sent to their partners");
             return;
         };
-        let why = (!missing.is_empty()).then(|| {
-            format!(
-                "{} did not confirm holding it within {} ms",
-                missing.join(" and "),
-                self.timeout.as_millis()
-            )
-        });
-        acknowledge(&mut reply, &self.me, held, why.as_deref());
+        let busy = Some("too many changes are waiting for their partners");
+        acknowledge(&mut reply, &self.me, vec![self.me.clone()], busy);
+        self.reply(query, &request, &reply).await;
+    }
+
+    async fn reply(&self, query: Query, request: &[u8], reply: &pb::ConfigReply) {
         let key = query.key_expr().as_str().to_string();
         let bytes = match &self.keys {
-            Some(k) => k.seal_reply(&key, &request, encode(&reply)),
-            None => encode(&reply),
+            Some(k) => k.seal_reply(&key, request, encode(reply)),
+            None => encode(reply),
         };
         let _ = query.reply(query.key_expr().clone(), bytes).await;
     }
