@@ -40,7 +40,7 @@ pub struct Job<A, S> {
 
 /// A partner's answer to a hold.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Answer {
+pub enum PartnerAnswer {
     /// It holds the state; `in_step`: it is also in step with the sender's lease.
     Held { in_step: bool },
     /// It refused, or its query ended with no answer that says it holds the state.
@@ -78,7 +78,7 @@ struct Head<A, S> {
     /// When its asks left, ns.
     started: u64,
     /// Each partner's answer, in the job's order (`None`: none yet).
-    answers: Vec<Option<Answer>>,
+    answers: Vec<Option<PartnerAnswer>>,
 }
 
 /// One member's holds: a queue of jobs, carried out one at a time.
@@ -119,7 +119,7 @@ impl<A, S: Clone> Replication<A, S> {
 
     /// `partner`'s answer to job `job`. An answer to a job that is over, from a member
     /// not asked, or a second one from the same partner changes nothing.
-    pub fn answer(&mut self, job: u64, partner: &str, answer: Answer, now_ns: u64) {
+    pub fn answer(&mut self, job: u64, partner: &str, answer: PartnerAnswer, now_ns: u64) {
         let Some(head) = self.head.as_mut().filter(|h| h.id == job) else {
             return;
         };
@@ -201,7 +201,7 @@ fn outcome<A, S>(head: Head<A, S>) -> Effect<A, S> {
     let mut in_step = true;
     for (p, a) in head.job.partners.into_iter().zip(head.answers) {
         match a {
-            Some(Answer::Held { in_step: s }) => {
+            Some(PartnerAnswer::Held { in_step: s }) => {
                 held.push(p);
                 in_step &= s;
             }
@@ -252,9 +252,9 @@ mod tests {
         let mut r = Replication::new(500 * MS, 8);
         r.submit(change(1, &["b", "c"]), 0).unwrap();
         assert_eq!(asks(&r.take()), [(1, "b".into()), (1, "c".into())]);
-        r.answer(1, "b", Answer::Held { in_step: true }, 3 * MS);
+        r.answer(1, "b", PartnerAnswer::Held { in_step: true }, 3 * MS);
         assert!(r.take().is_empty(), "c has not answered");
-        r.answer(1, "c", Answer::Held { in_step: false }, 4 * MS);
+        r.answer(1, "c", PartnerAnswer::Held { in_step: false }, 4 * MS);
         let done = r.take();
         assert_eq!(
             done,
@@ -272,7 +272,7 @@ mod tests {
         let mut r = Replication::new(500 * MS, 8);
         r.submit(change(1, &["b", "c"]), 10 * MS).unwrap();
         r.take();
-        r.answer(1, "c", Answer::Held { in_step: true }, 12 * MS);
+        r.answer(1, "c", PartnerAnswer::Held { in_step: true }, 12 * MS);
         assert_eq!(r.deadline(), Some(510 * MS));
         r.tick(509 * MS);
         assert!(r.take().is_empty(), "not yet");
@@ -294,16 +294,16 @@ mod tests {
         r.submit(change(2, &["b"]), MS).unwrap();
         assert_eq!(asks(&r.take()), [(1, "b".into())], "the second waits");
         // A late or stray answer changes nothing.
-        r.answer(2, "b", Answer::Held { in_step: true }, 2 * MS);
-        r.answer(1, "z", Answer::Held { in_step: true }, 2 * MS);
+        r.answer(2, "b", PartnerAnswer::Held { in_step: true }, 2 * MS);
+        r.answer(1, "z", PartnerAnswer::Held { in_step: true }, 2 * MS);
         assert!(r.take().is_empty());
-        r.answer(1, "b", Answer::Refused, 3 * MS);
+        r.answer(1, "b", PartnerAnswer::Refused, 3 * MS);
         let e = r.take();
         assert_eq!(e.len(), 2, "{e:?}");
         assert!(matches!(&e[0], Effect::Answer { answer: 1, missing, .. } if missing == &["b"]));
         assert_eq!(asks(&e[1..]), [(2, "b".into())]);
         // The refused job's answer, sent again late, does not count for the next one.
-        r.answer(1, "b", Answer::Held { in_step: true }, 4 * MS);
+        r.answer(1, "b", PartnerAnswer::Held { in_step: true }, 4 * MS);
         assert!(r.take().is_empty());
         assert_eq!(
             r.deadline(),
@@ -317,9 +317,9 @@ mod tests {
         let mut r = Replication::new(500 * MS, 8);
         r.submit(change(1, &["b", "c"]), 0).unwrap();
         r.take();
-        r.answer(1, "b", Answer::Refused, MS);
-        r.answer(1, "b", Answer::Held { in_step: true }, MS);
-        r.answer(1, "c", Answer::Held { in_step: true }, MS);
+        r.answer(1, "b", PartnerAnswer::Refused, MS);
+        r.answer(1, "b", PartnerAnswer::Held { in_step: true }, MS);
+        r.answer(1, "c", PartnerAnswer::Held { in_step: true }, MS);
         assert!(matches!(&r.take()[..], [Effect::Answer { missing, .. }] if missing == &["b"]));
     }
 
@@ -334,10 +334,10 @@ mod tests {
             devices: vec!["d".into()],
         };
         r.submit(job(&["b", "c"]), 0).unwrap();
-        r.answer(1, "b", Answer::Held { in_step: true }, MS);
-        r.answer(1, "c", Answer::Held { in_step: false }, MS);
+        r.answer(1, "b", PartnerAnswer::Held { in_step: true }, MS);
+        r.answer(1, "c", PartnerAnswer::Held { in_step: false }, MS);
         r.submit(job(&["b"]), MS).unwrap();
-        r.answer(2, "b", Answer::Held { in_step: true }, MS);
+        r.answer(2, "b", PartnerAnswer::Held { in_step: true }, MS);
         r.submit(job(&["b"]), MS).unwrap();
         r.tick(600 * MS);
         let over: Vec<bool> = r

@@ -44,7 +44,7 @@ use std::io::Write;
 
 use controller_service::fleet::ranked;
 use controller_service::lease::{Claimer, Decision, Holder, LeasePolicy, Seen, Standing, Version};
-use controller_service::replication::{Answer, Effect, Job, Replication};
+use controller_service::replication::{Effect, Job, PartnerAnswer, Replication};
 use mfc::{ChannelConfig, ControllerKind, LawConfig, Order, OutputMapConfig, Reference};
 use plant_agent::lease::Credentials;
 use plant_agent::safety::{
@@ -1130,8 +1130,8 @@ impl Sim {
             return;
         }
         let answer = match ok {
-            true => Answer::Held { in_step },
-            false => Answer::Refused,
+            true => PartnerAnswer::Held { in_step },
+            false => PartnerAnswer::Refused,
         };
         let by = self.members[by].name.clone();
         self.members[to].holds.answer(job, &by, answer, self.t * MS);

@@ -30,7 +30,7 @@ use zenoh::Session;
 use super::intake::Msg;
 use super::keyring::Keyring;
 use crate::lease::Holder;
-use crate::replication::{Answer, Effect, Job, Replication};
+use crate::replication::{Effect, Job, PartnerAnswer, Replication};
 
 /// Changes waiting for their holds at most; beyond, a change is answered at once as not
 /// acknowledged (the operator sends it again).
@@ -58,7 +58,7 @@ pub(super) struct Replicator {
 }
 
 /// A partner's answer on its way back to the driver: the job, the partner, the answer.
-type Answered = (u64, String, Answer);
+type Answered = (u64, String, PartnerAnswer);
 
 impl Replicator {
     /// Start the task that carries the holds out; it ends once the worker's queue closes
@@ -115,8 +115,8 @@ impl Replicator {
                 let (me, answers) = (self.clone(), answers.clone());
                 tokio::spawn(async move {
                     let a = match me.hold(&partner, shard, &state).await {
-                        Some(in_step) => Answer::Held { in_step },
-                        None => Answer::Refused,
+                        Some(in_step) => PartnerAnswer::Held { in_step },
+                        None => PartnerAnswer::Refused,
                     };
                     let _ = answers.send((job, partner, a)).await;
                 });
