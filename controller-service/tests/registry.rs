@@ -700,8 +700,11 @@ fn a_newer_state_wins_and_a_change_is_held_only_from_the_holder() {
     };
     let shard = protocol::shard_of("aero-1");
     let (mut a, mut b, mut c) = (member("c1"), member("c2"), member("c3"));
+    // c1 claims the vacant lease (a lease names only a claimant: `Claimer` commands only
+    // with a state that claimed it), and the plant grants it.
+    step(&mut a, &leased(0, "", 0));
     for r in [&mut a, &mut b, &mut c] {
-        step(r, &leased(0, "c1", 1));
+        step(r, &leased(1, "c1", 1));
     }
     let before = a.devices_state(shard, &["aero-1"]);
     assert!(!b.in_step("aero-1"), "b never got the holder's state");
@@ -723,7 +726,7 @@ fn a_newer_state_wins_and_a_change_is_held_only_from_the_holder() {
     assert_eq!(forged.restored, 0);
     assert!(forged.refused[0].1.contains("does not hold"), "{forged:?}");
     // Nor is a change by the former holder once a later holder was heard.
-    step(&mut b, &leased(1, "c3", 2));
+    step(&mut b, &leased(2, "c3", 2));
     assert!(a.configure("aero-1", &kp(4.0)).accepted);
     let late = b.hold_shard(&a.devices_state(shard, &["aero-1"]));
     assert_eq!(late.restored, 0);
