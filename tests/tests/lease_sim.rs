@@ -1284,18 +1284,61 @@ impl Sim {
     }
 }
 
+/// The seeds to run: `MFC_LEASE_SEED` alone, or `MFC_LEASE_SEEDS` of them (10 000 by
+/// default) from `MFC_LEASE_FROM` (0 by default).
 fn seeds() -> std::ops::Range<u64> {
-    if let Some(seed) = std::env::var("MFC_LEASE_SEED")
-        .ok()
-        .and_then(|s| s.parse().ok())
-    {
+    let var = |k: &str| std::env::var(k).ok().and_then(|s| s.parse::<u64>().ok());
+    if let Some(seed) = var("MFC_LEASE_SEED") {
         return seed..seed + 1;
     }
-    let n = std::env::var("MFC_LEASE_SEEDS")
+    let from = var("MFC_LEASE_FROM").unwrap_or(0);
+    from..from.saturating_add(var("MFC_LEASE_SEEDS").unwrap_or(10_000))
+}
+
+/// The threads the schedules are spread over (`MFC_LEASE_THREADS`, else one per core).
+/// Each schedule is a world of its own, so the figures do not depend on how many.
+fn threads() -> u64 {
+    std::env::var("MFC_LEASE_THREADS")
         .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(10_000);
-    0..n
+        .and_then(|s| s.parse::<u64>().ok())
+        .or_else(|| {
+            std::thread::available_parallelism()
+                .ok()
+                .map(|n| n.get() as u64)
+        })
+        .unwrap_or(1)
+        .max(1)
+}
+
+impl Tally {
+    fn add(&mut self, t: Tally) {
+        self.applied += t.applied;
+        self.fenced += t.fenced;
+        self.grants += t.grants;
+        self.takeovers.extend(t.takeovers);
+        self.clean.extend(t.clean);
+        self.changes += t.changes;
+        self.acked += t.acked;
+        self.lost_with_holders += t.lost_with_holders;
+    }
+}
+
+/// Run every `step`th seed of `seeds` from the `first`: the schedules run and their sum.
+fn run_share(seeds: std::ops::Range<u64>, first: u64, step: u64) -> (u64, Tally) {
+    let (mut runs, mut total) = (0u64, Tally::default());
+    for seed in seeds.skip(first as usize).step_by(step as usize) {
+        if std::env::var_os("MFC_LEASE_SURVEY").is_some() {
+            // Count the failing seeds instead of stopping at the first (a survey).
+            let r = std::panic::catch_unwind(|| Sim::new(seed).run());
+            if r.is_err() {
+                eprintln!("SURVEY failed seed {seed}");
+            }
+            continue;
+        }
+        total.add(Sim::new(seed).run());
+        runs += 1;
+    }
+    (runs, total)
 }
 
 fn percentile(v: &mut [u64], q: f64) -> u64 {
@@ -1308,26 +1351,22 @@ fn percentile(v: &mut [u64], q: f64) -> u64 {
 #[test]
 fn one_holder_per_period_under_random_faults() {
     let started = std::time::Instant::now();
+    let k = threads();
+    // A failing schedule panics in its thread; the scope passes the panic (with the
+    // command that replays the seed) on to the test.
+    let shares: Vec<(u64, Tally)> = std::thread::scope(|scope| {
+        let handles: Vec<_> = (0..k)
+            .map(|i| scope.spawn(move || run_share(seeds(), i, k)))
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
+            .collect()
+    });
     let (mut runs, mut total) = (0u64, Tally::default());
-    for seed in seeds() {
-        if std::env::var_os("MFC_LEASE_SURVEY").is_some() {
-            // Count the failing seeds instead of stopping at the first (a survey).
-            let r = std::panic::catch_unwind(|| Sim::new(seed).run());
-            if r.is_err() {
-                eprintln!("SURVEY failed seed {seed}");
-            }
-            continue;
-        }
-        let t = Sim::new(seed).run();
-        runs += 1;
-        total.applied += t.applied;
-        total.fenced += t.fenced;
-        total.grants += t.grants;
-        total.takeovers.extend(t.takeovers);
-        total.clean.extend(t.clean);
-        total.changes += t.changes;
-        total.acked += t.acked;
-        total.lost_with_holders += t.lost_with_holders;
+    for (n, t) in shares {
+        runs += n;
+        total.add(t);
     }
     // Something was judged: commands were applied, and some were fenced off.
     assert!(total.applied > runs * (FAULTY + CALM) / 2);
@@ -1351,7 +1390,7 @@ fn one_holder_per_period_under_random_faults() {
     // Straight to stderr, past the test harness's capture: the figures show in CI's log.
     let _ = writeln!(
         std::io::stderr(),
-        "{runs} fault schedules in {:.1} s: {} commands applied, {} fenced, {} leases granted; \
+        "{runs} fault schedules (seeds {:?}, {k} threads) in {:.1} s: {} commands applied, {} fenced, {} leases granted; \
          {n} changes of holder after silence, periods from the first silent one to the new \
          holder's first command: p50 {p50}, p99 {p99}, max {max}; {m} takeovers of a \
          silenced holder with a healthy member in step and no loss, periods from the \
@@ -1360,6 +1399,7 @@ fn one_holder_per_period_under_random_faults() {
          changes: {} made, {} acknowledged, none lost but {} with every member that held \
          them (each crashed, stopped, cut off from the plant, or itself behind, for the \
          whole wait of a member behind)",
+        seeds(),
         started.elapsed().as_secs_f64(),
         total.applied,
         total.fenced,

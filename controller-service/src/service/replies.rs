@@ -247,7 +247,7 @@ impl Worker {
                     let Some((q, request, mut reply)) = e.into_inner().answer else {
                         return;
                     };
-                    let busy = Some("too many changes are waiting for their partners");
+                    let busy = Some(hold::BUSY);
                     hold::acknowledge(&mut reply, &self.id, vec![self.id.clone()], busy);
                     let key = q.key_expr().as_str();
                     let bytes = self.sealed_reply(key, Some(&request), encode(&reply));
