@@ -529,6 +529,9 @@ impl Sim {
         if self.trace && matches!(decision, Decision::Send { claim: true, .. }) {
             eprintln!("t {t} m{m} claims: {:?} {st:?}", member.claimer);
         }
+        if self.trace && s.holder == me && !matches!(decision, Decision::Send { .. }) {
+            eprintln!("t {t} m{m} named holder, quiet: {decision:?} {st:?}");
+        }
         let took = before != Holder::Me && member.claimer.holder == Holder::Me;
         if took || member.claimer.hand_over_due(&self.policy) {
             // Its state goes to its partners when it takes the lease and halfway to a
@@ -586,6 +589,12 @@ impl Sim {
         };
         let at = (self.t % H) as f64 / 1000.0;
         let (verdict, _) = self.sup.on_command(at, cmd);
+        if self.trace {
+            eprintln!(
+                "t {} command of {} seq {} epoch {} (sent at {}): {verdict:?}",
+                self.t, c.from, c.seq, c.epoch, c.sent_at
+            );
+        }
         if let Verdict::Apply { .. } = verdict {
             self.check_applied(c);
         }
@@ -593,9 +602,18 @@ impl Sim {
 
     fn fail(&self, what: String) -> ! {
         panic!(
-            "seed {}: {what} at t = {} ms, period {} (faults {:?}; replay: \
+            "seed {}: {what} at t = {} ms, period {} (faults {:?}; links: loss {}, \
+             duplicates {}, delay {:?} ms, rogue {}; replay: \
              MFC_LEASE_SEED={} cargo test -p system-tests --test lease_sim)",
-            self.seed, self.t, self.k, self.windows, self.seed
+            self.seed,
+            self.t,
+            self.k,
+            self.windows,
+            self.loss,
+            self.dup,
+            self.delay,
+            self.rogue,
+            self.seed
         );
     }
 
@@ -1328,10 +1346,14 @@ fn run_share(seeds: std::ops::Range<u64>, first: u64, step: u64) -> (u64, Tally)
     let (mut runs, mut total) = (0u64, Tally::default());
     for seed in seeds.skip(first as usize).step_by(step as usize) {
         if std::env::var_os("MFC_LEASE_SURVEY").is_some() {
-            // Count the failing seeds instead of stopping at the first (a survey).
-            let r = std::panic::catch_unwind(|| Sim::new(seed).run());
-            if r.is_err() {
-                eprintln!("SURVEY failed seed {seed}");
+            // A survey (the soak): list the failing seeds instead of stopping at the
+            // first, and sum the figures of the others.
+            match std::panic::catch_unwind(|| Sim::new(seed).run()) {
+                Ok(t) => {
+                    total.add(t);
+                    runs += 1;
+                }
+                Err(_) => eprintln!("SURVEY failed seed {seed}"),
             }
             continue;
         }
