@@ -224,6 +224,34 @@ pub enum Holder {
     Other,
 }
 
+/// Whether a change to a device whose lease stands as `holder` may be acknowledged by
+/// this member, which last heard the device at `heard_ns` (Unix ns; now `now_ns`), and
+/// if not, why. When the plant grants leases, only the member commanding it (holding its
+/// lease, and hearing it still) acknowledges: a member cut off from the plant, or one
+/// answering while the lease is vacant, could otherwise acknowledge a change that the
+/// member commanding the plant never holds.
+///
+/// The service asks twice: when it accepts a change, and again when the change's holds
+/// end, since the lease may have moved while the partners were asked (the fleet's
+/// simulation, seed 140593: a member acknowledged a change after its lease lapsed and
+/// another member took the device over without it).
+pub fn may_acknowledge(
+    holder: Holder,
+    (heard_ns, live_ns): (u64, u64),
+    now_ns: u64,
+) -> Result<(), String> {
+    match holder {
+        Holder::Me if now_ns.saturating_sub(heard_ns) > live_ns => Err(format!(
+            "the device has not been heard here for {:.1} s, so this member may no longer \
+             command it",
+            now_ns.saturating_sub(heard_ns) as f64 / 1e9
+        )),
+        Holder::Vacant => Err("the device's lease is vacant: no member commands it".into()),
+        Holder::Other => Err("another member commands the device".into()),
+        Holder::Me | Holder::Nobody | Holder::Unknown => Ok(()),
+    }
+}
+
 /// One member's lease state for one device (a few counters: it lives in every device).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Claimer {
@@ -490,6 +518,20 @@ impl Claimer {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn only_the_member_commanding_the_plant_acknowledges() {
+        let s = 1_000_000_000;
+        let live = s / 20;
+        assert!(may_acknowledge(Holder::Me, (10 * s, live), 10 * s + live / 2).is_ok());
+        let late = may_acknowledge(Holder::Me, (10 * s, live), 10 * s + 2 * live);
+        assert!(late.is_err(), "not heard for twice the window");
+        assert!(may_acknowledge(Holder::Vacant, (10 * s, live), 10 * s).is_err());
+        assert!(may_acknowledge(Holder::Other, (10 * s, live), 10 * s).is_err());
+        // A plant that grants no lease, or a device not heard yet: the fleet decides.
+        assert!(may_acknowledge(Holder::Nobody, (0, live), 10 * s).is_ok());
+        assert!(may_acknowledge(Holder::Unknown, (0, live), 10 * s).is_ok());
+    }
 
     fn seen(holder: &str, epoch: u64) -> Seen<'_> {
         Seen {

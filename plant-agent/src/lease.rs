@@ -18,9 +18,10 @@
 //!   supervisor would drop grants nothing). The new epoch is never granted again in the
 //!   run, and a run never reuses another's because commands carry the run's random id.
 //! * The lease lapses when its holder has been silent (neither a command nor a warm-up
-//!   answer of its own) for half the agent's `hold_periods` (timed on the agent's own
-//!   pacing, never on a wall clock): a holder that warms up keeps it while the fallback
-//!   runs, and otherwise another
+//!   answer of its own, nor an answer to a recent sample overtaken by a newer one of its
+//!   own) for half the agent's `hold_periods` (timed on the agent's own pacing, never on
+//!   a wall clock): a holder that warms up keeps it while the fallback runs, and
+//!   otherwise another
 //!   controller can then claim it while the plant still holds the last command, before
 //!   the fallback engages; and it lapses when the holder gives it up (`release`, once its
 //!   command is applied). Nobody claims: the fallback engages after the whole hold, as
@@ -278,6 +279,14 @@ impl Lease {
                 commands: 1,
             }),
         }
+    }
+
+    /// The holder's answer came but is not applied (the supervisor had applied a newer
+    /// one of the holder's): it is not silent in this period, so the lease is renewed.
+    /// The supervisor calls it only for an answer that passed [`Lease::check`] as the
+    /// holder's, to a sample of the last lapse's worth of periods.
+    pub fn heard(&mut self) {
+        self.renewed = true;
     }
 
     /// A period ended: the holder's silence grows unless it answered in it.

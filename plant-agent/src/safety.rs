@@ -50,7 +50,7 @@ use std::str::FromStr;
 
 use mfc::{ChannelConfig, ChannelOutput, MfcError, MimoController, Reference};
 
-use crate::lease::{Credentials, Fence, Lease};
+use crate::lease::{Credentials, Fence, Lease, Pass};
 use protocol::MAX_HORIZON;
 use serde::{Deserialize, Serialize};
 
@@ -662,6 +662,21 @@ impl Supervisor {
             None => None,
         };
         if let Some(why) = self.rule_out(k, &cmd) {
+            // The holder's answer to a recent sample, overtaken by its newer one (the
+            // network reordered them) or repeated: nothing to apply, but the holder is
+            // alive and commanding, so its silence ends. Without this, a round trip as
+            // long as the lapse, with jitter, lets a live holder's lease lapse on answers
+            // that all came in the wrong order, and the plant holds, then falls back,
+            // while it reclaims.
+            let recent = k
+                .checked_sub(seq)
+                .is_some_and(|age| age < u64::from(self.lease_lapse()));
+            let overtaken = matches!(why, Ignored::Superseded | Ignored::Duplicate);
+            if let (Some(lease), Some(Pass::Holder), true) =
+                (&mut self.lease, pass, recent && overtaken)
+            {
+                lease.heard();
+            }
             return self.ignore(why);
         }
         let Some(p) = self.period.as_mut() else {

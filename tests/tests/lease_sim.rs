@@ -43,7 +43,9 @@ use std::collections::{BTreeSet, HashMap};
 use std::io::Write;
 
 use controller_service::fleet::ranked;
-use controller_service::lease::{Claimer, Decision, Holder, LeasePolicy, Seen, Standing, Version};
+use controller_service::lease::{
+    may_acknowledge, Claimer, Decision, Holder, LeasePolicy, Seen, Standing, Version,
+};
 use controller_service::replication::{Effect, Job, PartnerAnswer, Replication};
 use mfc::{ChannelConfig, ControllerKind, LawConfig, Order, OutputMapConfig, Reference};
 use plant_agent::lease::Credentials;
@@ -925,11 +927,7 @@ impl Sim {
             member.version = member.version.next(member.run, member.epoch);
         }
         let member = &self.members[m];
-        let may = match member.claimer.holder {
-            Holder::Me => self.t.saturating_sub(member.heard) <= LIVE,
-            Holder::Vacant | Holder::Other => false,
-            Holder::Nobody | Holder::Unknown => true,
-        };
+        let may = self.may_acknowledge(m);
         let partners = self.partners(m);
         if self.trace {
             eprintln!(
@@ -940,6 +938,14 @@ impl Sim {
         if may && !partners.is_empty() {
             self.queue_job(m, Some((change, self.t)), partners);
         }
+    }
+
+    /// Whether member `m` may acknowledge a change now, by the service's own rule
+    /// (`lease::may_acknowledge`, asked when a change is accepted and when its holds end).
+    fn may_acknowledge(&self, m: usize) -> bool {
+        let member = &self.members[m];
+        let heard = (member.heard * MS, LIVE * MS);
+        may_acknowledge(member.claimer.holder, heard, self.t * MS).is_ok()
     }
 
     fn queue_job(&mut self, m: usize, change: Option<(u32, u64)>, partners: Vec<usize>) {
@@ -1061,7 +1067,10 @@ impl Sim {
                             "t {t} change {change} on m{m}: held by {held:?}, not {missing:?}"
                         );
                     }
-                    if missing.is_empty() && t - asked <= OPERATOR_TIMEOUT {
+                    // Asked again as the holds end, as the service's hold task does
+                    // (`Replicator::answer`): the lease may have moved meanwhile.
+                    let may = self.may_acknowledge(m);
+                    if missing.is_empty() && may && t - asked <= OPERATOR_TIMEOUT {
                         self.acked.insert(change, t);
                         self.tally.acked += 1;
                     }
@@ -1361,6 +1370,26 @@ fn run_share(seeds: std::ops::Range<u64>, first: u64, step: u64) -> (u64, Tally)
         runs += 1;
     }
     (runs, total)
+}
+
+/// Seeds past CI's 10 000 that the soak found failing, each on a defect since fixed: they
+/// run in every CI so that the defect cannot come back unseen. 140593: a member
+/// acknowledged a change after its lease lapsed while the holds waited
+/// (`lease::may_acknowledge` is now asked again when they end); the others: a live
+/// holder's lease lapsed on answers the network reordered (an overtaken answer of the
+/// holder now renews it, `plant_agent::lease::Lease::heard`). Five more seeds of the soak
+/// still fail (`docs/results-one-controller.md`, "The soak") and are not here.
+const SOAK_FOUND: [u64; 10] = [
+    21257, 51140, 60248, 63298, 68962, 87049, 103087, 134580, 140593, 196088,
+];
+
+#[test]
+fn the_seeds_the_soak_found_pass() {
+    let mut total = Tally::default();
+    for seed in SOAK_FOUND {
+        total.add(Sim::new(seed).run());
+    }
+    assert!(total.applied > SOAK_FOUND.len() as u64 * (FAULTY + CALM) / 2);
 }
 
 fn percentile(v: &mut [u64], q: f64) -> u64 {

@@ -542,6 +542,13 @@ impl Registry {
         self.devices.get(id).map_or(0, |d| d.heard_unix_ns)
     }
 
+    /// Whether this member may acknowledge a change to device `id` now (`now_ns`, Unix
+    /// ns), and if not, why ([`crate::lease::may_acknowledge`] on what it last heard).
+    pub fn may_acknowledge(&self, id: &str, now_ns: u64) -> Result<(), String> {
+        let heard = (self.heard_unix_ns(id), self.live_ns(id));
+        crate::lease::may_acknowledge(self.lease_holder(id), heard, now_ns)
+    }
+
     /// Who held device `id`'s lease at its last sample (`Unknown` for a device not
     /// served or not heard yet).
     pub fn lease_holder(&self, id: &str) -> crate::lease::Holder {

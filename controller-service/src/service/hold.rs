@@ -28,18 +28,28 @@ use tokio::time::Instant;
 use zenoh::query::Query;
 use zenoh::Session;
 
+use super::core::Shared;
 use super::intake::Msg;
 use super::keyring::Keyring;
-use crate::lease::Holder;
+use super::locks::lock;
 use crate::replication::{Effect, Job, PartnerAnswer, Replication};
 
 /// Changes waiting for their holds at most; beyond, a change is answered at once as not
 /// acknowledged (the operator sends it again).
 pub(super) const PENDING: usize = 256;
 
-/// The operator's query, its payload (the reply is bound to it) and the reply as
-/// accepted here (`accepted`, `reason` and `held_by` are set from the holds).
-pub(super) type Answering = (Query, Vec<u8>, pb::ConfigReply);
+/// An accepted change's operator, to be answered once its holds are over.
+pub(super) struct Answering {
+    pub(super) query: Query,
+    /// The query's payload: the reply is bound to it.
+    pub(super) request: Vec<u8>,
+    /// The reply as accepted here (`accepted`, `reason` and `held_by` are set from the
+    /// holds).
+    pub(super) reply: pb::ConfigReply,
+    /// The device changed: whether this member may still acknowledge is asked again
+    /// when the holds end.
+    pub(super) device: String,
+}
 
 /// One accepted change on its way to being held, or the states of the devices this
 /// member commands on their way to a member that came (back) into its view; the state
@@ -56,6 +66,9 @@ pub(super) struct Replicator {
     pub(super) timeout: Duration,
     /// The worker's queue, for [`Msg::HandedOver`].
     pub(super) tx: mpsc::Sender<Msg>,
+    /// The worker's state: whether this member still commands a device when its
+    /// change's holds end ([`crate::Registry::may_acknowledge`]).
+    pub(super) shared: Arc<Shared>,
 }
 
 /// A partner's answer on its way back to the driver: the job, the partner, the answer.
@@ -241,7 +254,21 @@ impl Partners for Replicator {
     }
 
     async fn answer(&self, to: Answering, held: Vec<String>, why_not: Option<String>) {
-        let (query, request, mut reply) = to;
+        let Answering {
+            query,
+            request,
+            mut reply,
+            device,
+        } = to;
+        // The lease may have moved while the partners were asked (this job may have
+        // waited behind another's timeout): a member that no longer commands the device
+        // must not say "acknowledged" for a change the new holder may not have.
+        let why_not = why_not.or_else(|| {
+            let c = lock(&self.shared.core);
+            let now = c.registry.may_acknowledge(&device, protocol::unix_ns());
+            now.err()
+                .map(|why| format!("by the time its partners held it, {why}"))
+        });
         let mut by = vec![self.me.clone()];
         by.extend(held);
         acknowledge(&mut reply, &self.me, by, why_not.as_deref());
@@ -272,29 +299,6 @@ pub(super) fn acknowledge(
             "not acknowledged: in force on {me}, but {why}, so a takeover could lose it; \
              send the same change again"
         );
-    }
-}
-
-/// Whether a change to a device whose lease stands as `holder` may be acknowledged by
-/// this member, which last heard the device at `heard_ns` (Unix ns; now `now_ns`), and
-/// if not, why. When the plant grants leases, only the member commanding it (holding its
-/// lease, and hearing it still) acknowledges: a member cut off from the plant, or one
-/// answering while the lease is vacant, could otherwise acknowledge a change that the
-/// member commanding the plant never holds.
-pub(super) fn may_acknowledge(
-    holder: Holder,
-    (heard_ns, live_ns): (u64, u64),
-    now_ns: u64,
-) -> Result<(), String> {
-    match holder {
-        Holder::Me if now_ns.saturating_sub(heard_ns) > live_ns => Err(format!(
-            "the device has not been heard here for {:.1} s, so this member may no longer \
-             command it",
-            now_ns.saturating_sub(heard_ns) as f64 / 1e9
-        )),
-        Holder::Vacant => Err("the device's lease is vacant: no member commands it".into()),
-        Holder::Other => Err("another member commands the device".into()),
-        Holder::Me | Holder::Nobody | Holder::Unknown => Ok(()),
     }
 }
 
@@ -358,20 +362,6 @@ mod tests {
             None,
             "a head that is not text"
         );
-    }
-
-    #[test]
-    fn only_the_member_commanding_the_plant_acknowledges() {
-        let s = 1_000_000_000;
-        let live = s / 20;
-        assert!(may_acknowledge(Holder::Me, (10 * s, live), 10 * s + live / 2).is_ok());
-        let late = may_acknowledge(Holder::Me, (10 * s, live), 10 * s + 2 * live);
-        assert!(late.is_err(), "not heard for twice the window");
-        assert!(may_acknowledge(Holder::Vacant, (10 * s, live), 10 * s).is_err());
-        assert!(may_acknowledge(Holder::Other, (10 * s, live), 10 * s).is_err());
-        // A plant that grants no lease, or a device not heard yet: the fleet decides.
-        assert!(may_acknowledge(Holder::Nobody, (0, live), 10 * s).is_ok());
-        assert!(may_acknowledge(Holder::Unknown, (0, live), 10 * s).is_ok());
     }
 
     #[test]

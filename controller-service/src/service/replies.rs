@@ -5,7 +5,7 @@
 use protocol::{encode, keys, pb};
 use zenoh::query::Query;
 
-use super::hold::{self, HoldJob};
+use super::hold::{self, Answering, HoldJob};
 use super::locks::lock;
 use super::worker::Worker;
 use crate::access::Action;
@@ -21,8 +21,8 @@ pub(super) enum ToHold {
     /// Not acknowledged, why: a fleet with standbys, and nobody else in view, or this
     /// member does not command the plant now.
     Not(String),
-    /// These partners, sent the device's state in shard `.0`.
-    Partners(u32, Vec<u8>, Vec<String>),
+    /// These partners, sent the device's state in shard `.1`: device `.0`'s change.
+    Partners(String, u32, Vec<u8>, Vec<String>),
 }
 
 impl Worker {
@@ -209,9 +209,7 @@ impl Worker {
         if !m.fleet.keeps_standbys() {
             return ToHold::Here;
         }
-        let holder = registry.lease_holder(dev);
-        let heard = (registry.heard_unix_ns(dev), registry.live_ns(dev));
-        if let Err(why) = hold::may_acknowledge(holder, heard, protocol::unix_ns()) {
+        if let Err(why) = registry.may_acknowledge(dev, protocol::unix_ns()) {
             return ToHold::Not(why);
         }
         let partners = m.fleet.partners(home);
@@ -219,7 +217,7 @@ impl Worker {
             return ToHold::Not("no other member in the fleet's view holds it".into());
         }
         match encode_shard(&registry.devices_state(home, &[dev])) {
-            Ok(state) => ToHold::Partners(home, state, partners),
+            Ok(state) => ToHold::Partners(dev.to_string(), home, state, partners),
             Err(e) => ToHold::Not(format!("its state could not be encoded: {e}")),
         }
     }
@@ -234,17 +232,28 @@ impl Worker {
         hold: ToHold,
     ) {
         match hold {
-            ToHold::Partners(shard, state, partners) => {
+            ToHold::Partners(device, shard, state, partners) => {
                 let Some(m) = &self.member else { return };
                 let job = HoldJob {
-                    answer: Some((q, request, reply)),
+                    answer: Some(Answering {
+                        query: q,
+                        request,
+                        reply,
+                        device,
+                    }),
                     shard,
                     state,
                     partners,
                     devices: Vec::new(),
                 };
                 if let Err(e) = m.holds.try_send(job) {
-                    let Some((q, request, mut reply)) = e.into_inner().answer else {
+                    let Some(Answering {
+                        query: q,
+                        request,
+                        mut reply,
+                        ..
+                    }) = e.into_inner().answer
+                    else {
                         return;
                     };
                     let busy = Some(hold::BUSY);

@@ -353,6 +353,7 @@ async fn join_fleet(
         keys: intake.shared.keys.clone(),
         timeout: Duration::from_millis(spec.handover_timeout_ms),
         tx: intake.tx.clone(),
+        shared: intake.shared.clone(),
     }
     .spawn();
     let member = Member {
