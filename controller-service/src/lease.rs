@@ -252,6 +252,28 @@ pub fn may_acknowledge(
     }
 }
 
+/// Whether a change accepted when this member saw the device's lease as `accepted` may
+/// still be acknowledged now that it stands as `holder`, when its holds end. As
+/// [`may_acknowledge`], and a device known at acceptance that is unknown now was
+/// forgotten meanwhile (this member stopped following its shard, and its state here was
+/// dropped): the member that takes it over was handed a state from before the change,
+/// so the change may be in force nowhere (the fleet's simulation, seed 225770).
+pub fn may_still_acknowledge(
+    accepted: Holder,
+    holder: Holder,
+    heard: (u64, u64),
+    now_ns: u64,
+) -> Result<(), String> {
+    if holder == Holder::Unknown && accepted != Holder::Unknown {
+        return Err(
+            "this member stopped following the device while its partners were \
+                    asked, so it no longer commands it"
+                .into(),
+        );
+    }
+    may_acknowledge(holder, heard, now_ns)
+}
+
 /// One member's lease state for one device (a few counters: it lives in every device).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Claimer {
@@ -531,6 +553,19 @@ mod tests {
         // A plant that grants no lease, or a device not heard yet: the fleet decides.
         assert!(may_acknowledge(Holder::Nobody, (0, live), 10 * s).is_ok());
         assert!(may_acknowledge(Holder::Unknown, (0, live), 10 * s).is_ok());
+    }
+
+    #[test]
+    fn a_device_forgotten_while_its_change_was_held_is_not_acknowledged() {
+        let s = 1_000_000_000;
+        let heard = (10 * s, s / 20);
+        let now = 10 * s + s / 100;
+        assert!(may_still_acknowledge(Holder::Me, Holder::Me, heard, now).is_ok());
+        assert!(may_still_acknowledge(Holder::Me, Holder::Unknown, (0, s / 20), now).is_err());
+        assert!(may_still_acknowledge(Holder::Nobody, Holder::Unknown, (0, 0), now).is_err());
+        assert!(may_still_acknowledge(Holder::Me, Holder::Other, heard, now).is_err());
+        // Never heard, then or now: the fleet decides, as at acceptance.
+        assert!(may_still_acknowledge(Holder::Unknown, Holder::Unknown, (0, 0), now).is_ok());
     }
 
     fn seen(holder: &str, epoch: u64) -> Seen<'_> {

@@ -549,6 +549,19 @@ impl Registry {
         crate::lease::may_acknowledge(self.lease_holder(id), heard, now_ns)
     }
 
+    /// Whether this member may still acknowledge a change to device `id`, accepted when
+    /// its lease stood as `accepted`, now that its holds end
+    /// ([`crate::lease::may_still_acknowledge`]).
+    pub fn may_still_acknowledge(
+        &self,
+        id: &str,
+        accepted: crate::lease::Holder,
+        now_ns: u64,
+    ) -> Result<(), String> {
+        let heard = (self.heard_unix_ns(id), self.live_ns(id));
+        crate::lease::may_still_acknowledge(accepted, self.lease_holder(id), heard, now_ns)
+    }
+
     /// Who held device `id`'s lease at its last sample (`Unknown` for a device not
     /// served or not heard yet).
     pub fn lease_holder(&self, id: &str) -> crate::lease::Holder {

@@ -32,6 +32,7 @@ use super::core::Shared;
 use super::intake::Msg;
 use super::keyring::Keyring;
 use super::locks::lock;
+use crate::lease::Holder;
 use crate::replication::{Effect, Job, PartnerAnswer, Replication};
 
 /// Changes waiting for their holds at most; beyond, a change is answered at once as not
@@ -49,6 +50,8 @@ pub(super) struct Answering {
     /// The device changed: whether this member may still acknowledge is asked again
     /// when the holds end.
     pub(super) device: String,
+    /// Who held its lease, as this member saw it, when the change was accepted.
+    pub(super) holder: Holder,
 }
 
 /// One accepted change on its way to being held, or the states of the devices this
@@ -259,13 +262,14 @@ impl Partners for Replicator {
             request,
             mut reply,
             device,
+            holder,
         } = to;
         // The lease may have moved while the partners were asked (this job may have
         // waited behind another's timeout): a member that no longer commands the device
         // must not say "acknowledged" for a change the new holder may not have.
         let why_not = why_not.or_else(|| {
             let c = lock(&self.shared.core);
-            let now = c.registry.may_acknowledge(&device, protocol::unix_ns());
+            let now = (c.registry).may_still_acknowledge(&device, holder, protocol::unix_ns());
             now.err()
                 .map(|why| format!("by the time its partners held it, {why}"))
         });

@@ -21,8 +21,15 @@ pub(super) enum ToHold {
     /// Not acknowledged, why: a fleet with standbys, and nobody else in view, or this
     /// member does not command the plant now.
     Not(String),
-    /// These partners, sent the device's state in shard `.1`: device `.0`'s change.
-    Partners(String, u32, Vec<u8>, Vec<String>),
+    /// These partners, sent the device's state in its shard.
+    Partners {
+        device: String,
+        /// Who held the device's lease when the change was accepted.
+        holder: Holder,
+        shard: u32,
+        state: Vec<u8>,
+        partners: Vec<String>,
+    },
 }
 
 impl Worker {
@@ -217,7 +224,13 @@ impl Worker {
             return ToHold::Not("no other member in the fleet's view holds it".into());
         }
         match encode_shard(&registry.devices_state(home, &[dev])) {
-            Ok(state) => ToHold::Partners(dev.to_string(), home, state, partners),
+            Ok(state) => ToHold::Partners {
+                device: dev.to_string(),
+                holder: registry.lease_holder(dev),
+                shard: home,
+                state,
+                partners,
+            },
             Err(e) => ToHold::Not(format!("its state could not be encoded: {e}")),
         }
     }
@@ -232,7 +245,13 @@ impl Worker {
         hold: ToHold,
     ) {
         match hold {
-            ToHold::Partners(device, shard, state, partners) => {
+            ToHold::Partners {
+                device,
+                holder,
+                shard,
+                state,
+                partners,
+            } => {
                 let Some(m) = &self.member else { return };
                 let job = HoldJob {
                     answer: Some(Answering {
@@ -240,6 +259,7 @@ impl Worker {
                         request,
                         reply,
                         device,
+                        holder,
                     }),
                     shard,
                     state,
