@@ -70,7 +70,7 @@ pub(super) struct Replicator {
     /// The worker's queue, for [`Msg::HandedOver`].
     pub(super) tx: mpsc::Sender<Msg>,
     /// The worker's state: whether this member still commands a device when its
-    /// change's holds end ([`crate::Registry::may_acknowledge`]).
+    /// change's holds end ([`crate::Registry::may_still_acknowledge`]).
     pub(super) shared: Arc<Shared>,
 }
 
@@ -269,7 +269,9 @@ impl Partners for Replicator {
         // must not say "acknowledged" for a change the new holder may not have.
         let why_not = why_not.or_else(|| {
             let c = lock(&self.shared.core);
-            let now = (c.registry).may_still_acknowledge(&device, holder, protocol::unix_ns());
+            let now = c
+                .registry
+                .may_still_acknowledge(&device, holder, protocol::unix_ns());
             now.err()
                 .map(|why| format!("by the time its partners held it, {why}"))
         });
