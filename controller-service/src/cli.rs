@@ -145,7 +145,7 @@ pub async fn run(cli: ServiceCli) -> Result<()> {
     };
     let registries = registries(
         config.worker_configs(),
-        secret,
+        (secret, transport::link_lease(&cli.zenoh.to_config()?)),
         &observers,
         &earlier,
         &cli.config,
@@ -213,7 +213,7 @@ pub async fn run(cli: ServiceCli) -> Result<()> {
 /// not serve a configuration it cannot record).
 pub async fn registries(
     configs: Vec<ServiceConfig>,
-    secret: Option<protocol::auth::Secret>,
+    (secret, lease): (Option<protocol::auth::Secret>, std::time::Duration),
     observers: &Observers,
     earlier: &Replayed,
     file: &Path,
@@ -223,6 +223,8 @@ pub async fn registries(
     for c in configs {
         let mut r = Registry::new(c).context("building the devices")?;
         r.set_secret(secret.clone());
+        // Its zenoh session's lease: how long a silence may hide changes made without it.
+        r.set_liveliness_lease(lease);
         for e in &earlier.entries {
             r.audit(e.clone());
         }

@@ -734,6 +734,72 @@ fn a_newer_state_wins_and_a_change_is_held_only_from_the_holder() {
     assert!(!b.in_step("aero-1"), "it missed epoch 2's holder");
 }
 
+/// A member silent for more than half its session's liveliness lease (paused, or no
+/// sample reached it) may have been dropped from the holder's view meanwhile, and the
+/// holder acknowledges changes without it then: it counts itself behind until a holder's
+/// state reaches it (the fleet's simulation, seed 138492: 680 ms under a 500 ms lease).
+#[test]
+fn a_silence_over_half_the_liveliness_lease_leaves_a_member_behind() {
+    use controller_service::registry::Via;
+    let ms = 1_000_000u64;
+    let run = |lease: Option<std::time::Duration>, silence_ms: u64| {
+        let mut cfg = ServiceConfig::parse("test.toml", CONFIG).unwrap();
+        cfg.controller_id = "c2".into();
+        let mut r = Registry::new(cfg).unwrap();
+        r.set_view(&["c1", "c2"].iter().map(|s| s.to_string()).collect());
+        if let Some(lease) = lease {
+            r.set_liveliness_lease(lease);
+        }
+        let mut t = ms;
+        let step = |r: &mut Registry, seq: u64, t: u64| {
+            let s = pb::Sample {
+                flags: pb::SampleFlags::Lease as u32,
+                lease_holder: "c1".into(),
+                lease_epoch: 1,
+                ..sample("aero-1", seq, seq as f64 * 0.01, &[0.0, 0.5])
+            };
+            r.handle_sample(Via::key("aero-1"), &s, t, &mut pb::Command::default());
+        };
+        step(&mut r, 0, t);
+        // The holder's state: in step under epoch 1.
+        let holder = {
+            let mut cfg = ServiceConfig::parse("test.toml", CONFIG).unwrap();
+            cfg.controller_id = "c1".into();
+            let mut a = Registry::new(cfg).unwrap();
+            a.set_view(&["c1", "c2"].iter().map(|s| s.to_string()).collect());
+            let vacant = pb::Sample {
+                flags: pb::SampleFlags::Lease as u32,
+                ..sample("aero-1", 0, 0.0, &[0.0, 0.5])
+            };
+            a.handle_sample(Via::key("aero-1"), &vacant, t, &mut pb::Command::default());
+            let granted = pb::Sample {
+                flags: pb::SampleFlags::Lease as u32,
+                lease_holder: "c1".into(),
+                lease_epoch: 1,
+                ..sample("aero-1", 1, 0.01, &[0.0, 0.5])
+            };
+            a.handle_sample(Via::key("aero-1"), &granted, t, &mut pb::Command::default());
+            a.devices_state(protocol::shard_of("aero-1"), &["aero-1"])
+        };
+        r.hold_shard(&holder);
+        assert!(r.in_step("aero-1"), "the holder's state puts it in step");
+        for seq in 1..10 {
+            t += 10 * ms;
+            step(&mut r, seq, t);
+        }
+        t += silence_ms * ms;
+        step(&mut r, 10 + silence_ms / 10, t);
+        r.in_step("aero-1")
+    };
+    // zenoh's default lease (10 s): a second of silence is the limit.
+    assert!(run(None, 900), "900 ms under the default");
+    assert!(!run(None, 1100), "1.1 s under the default");
+    // The deployment's 1 s lease: half of it.
+    let second = Some(std::time::Duration::from_secs(1));
+    assert!(run(second, 450), "450 ms under a 1 s lease");
+    assert!(!run(second, 680), "680 ms under a 1 s lease");
+}
+
 /// A device of two AERO-like channels (iP on a first-order model, iPD on a second-order
 /// one, +-24 V), after ten samples 10 ms apart: its period is known.
 fn aero_with_period() -> Registry {

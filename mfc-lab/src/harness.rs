@@ -152,7 +152,7 @@ impl ServiceHandle {
         let file = std::path::Path::new("service-config.toml");
         let mut registries = controller_service::cli::registries(
             vec![config],
-            secret.clone(),
+            (secret.clone(), transport::DEFAULT_LINK_LEASE),
             &observers,
             &earlier,
             file,

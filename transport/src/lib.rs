@@ -333,6 +333,20 @@ pub fn free_udp_port() -> std::io::Result<u16> {
     Ok(s.local_addr()?.port())
 }
 
+/// zenoh's lease when its configuration sets none (`transport/link/tx/lease`, ms).
+pub const DEFAULT_LINK_LEASE: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// The lease of `config`'s links (`transport/link/tx/lease`): how long a peer or router
+/// stays silent before the others drop it, with its liveliness tokens (a fleet's view of
+/// its members). zenoh's default when it is unset or unreadable.
+pub fn link_lease(config: &Config) -> std::time::Duration {
+    config
+        .get_json("transport/link/tx/lease")
+        .ok()
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .map_or(DEFAULT_LINK_LEASE, std::time::Duration::from_millis)
+}
+
 /// A free TCP port on 127.0.0.1 (bind to port 0, read it, release it), for tests and demos.
 /// It is released before it is returned, so another process may take it first.
 pub fn free_local_port() -> std::io::Result<u16> {
@@ -430,6 +444,14 @@ mod tests {
         assert!(
             matches!(missing.to_config(), Err(TransportError::Config(m)) if m.contains("nonexistent"))
         );
+    }
+
+    #[test]
+    fn reads_the_links_lease() {
+        let mut c = Config::default();
+        assert_eq!(link_lease(&c), DEFAULT_LINK_LEASE, "zenoh's own default");
+        c.insert_json5("transport/link/tx/lease", "1000").unwrap();
+        assert_eq!(link_lease(&c), std::time::Duration::from_secs(1));
     }
 
     #[test]

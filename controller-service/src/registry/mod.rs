@@ -338,6 +338,14 @@ impl Registry {
         self.instance = instance;
     }
 
+    /// The liveliness lease of this member's zenoh session (`transport/link/tx/lease`),
+    /// after which its fleet's partners drop it from their view if it falls silent: a
+    /// silence of half that makes it count itself behind
+    /// ([`LeasePolicy::for_liveliness_lease`]).
+    pub fn set_liveliness_lease(&mut self, lease: std::time::Duration) {
+        self.lease_policy = self.lease_policy.for_liveliness_lease(lease);
+    }
+
     /// Give this member the fleet's secret (`protocol::auth`): its samples are then
     /// checked and its commands and replies sealed. Without it the service runs open.
     pub fn set_secret(&mut self, secret: Option<protocol::auth::Secret>) {

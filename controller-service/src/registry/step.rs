@@ -40,11 +40,6 @@ pub(super) struct Context<'a> {
     pub(super) ordered_runs: bool,
 }
 
-/// A silence of the device this long (its samples stopped reaching this member, or this
-/// process was stopped) may have hidden changes of holder: the member is then behind
-/// until a holder's state reaches it ([`crate::lease::Claimer::behind`]).
-const GAP_NS: u64 = 1_000_000_000;
-
 /// Devices awaiting their hand-over at most; beyond, a yield goes without (the preferred
 /// member then claims late, or the holder takes the lease back).
 const MAX_HANDING: usize = 4096;
@@ -71,7 +66,7 @@ pub(super) fn answer(
     // below run.
     d.mimo.prefetch();
     let silent = cx.now_unix_ns.saturating_sub(d.heard_unix_ns);
-    let gap = d.heard_unix_ns > 0 && silent > GAP_NS;
+    let gap = d.heard_unix_ns > 0 && silent > policy.silence_ns;
     d.heard_unix_ns = cx.now_unix_ns;
     if !write_answer(cx, d, via, s, out) {
         return None;

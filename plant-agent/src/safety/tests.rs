@@ -1089,6 +1089,56 @@ fn answers_overtaken_by_the_holders_newer_ones_renew_its_lease() {
     assert_eq!(s.counters().superseded + s.counters().duplicates, 3);
 }
 
+/// A holder whose answers come three periods after their samples (a round trip of 30 ms
+/// or more at 100 Hz) keeps its lease through three silent periods in a row: the lapse
+/// waits one period more than its answers' lateness (the fleet's simulation, seed 31675:
+/// it lapsed, and the plant fell back while the holder claimed again). Still before
+/// the fallback, and back to half the hold once its answers are prompt for a while.
+#[test]
+fn a_holder_answering_late_keeps_its_lease_through_one_late_run_of_answers() {
+    let mut s = sup(8, 5, FallbackPolicy::LocalController);
+    s.grant_leases(9);
+    assert_eq!(s.lease_lapse(), 3, "half the hold, rounded up");
+    for k in 0..3 {
+        begin(&mut s, k);
+        s.end_period().unwrap();
+    }
+    for k in 3..20 {
+        begin(&mut s, k);
+        let (v, _) = command(&mut s, 0.1, leased(k - 3, &[1.0], "a", 1, k == 3));
+        assert!(matches!(v, Verdict::Apply { late: true, .. }), "{k}: {v:?}");
+        s.end_period().unwrap();
+    }
+    assert_eq!(s.lease_lapse(), 4, "three periods late, one more");
+    // Silent for periods 20, 21 and 22: still its lease.
+    for k in 20..23 {
+        begin(&mut s, k);
+        s.end_period().unwrap();
+    }
+    let b = begin(&mut s, 23);
+    assert_eq!(s.lease().unwrap().holder(), Some("a"));
+    assert_eq!(b.write, None);
+    let (v, _) = command(&mut s, 0.1, leased(20, &[1.0], "a", 1, false));
+    assert!(matches!(v, Verdict::Apply { .. }), "{v:?}");
+    s.end_period().unwrap();
+    // Prompt from now on: within about a hundred commands per period of lateness, the
+    // lapse is half the hold again.
+    for k in 24..400 {
+        begin(&mut s, k);
+        command(&mut s, 0.1, leased(k, &[1.0], "a", 1, false));
+        s.end_period().unwrap();
+    }
+    assert_eq!(s.lease_lapse(), 3);
+    // Four silent periods at most: the lease lapses before the fallback engages.
+    for k in 400..404 {
+        begin(&mut s, k);
+        s.end_period().unwrap();
+    }
+    let b = begin(&mut s, 404);
+    assert_eq!(s.lease().unwrap().holder(), None);
+    assert_eq!(b.write, None, "a lapse, not the fallback");
+}
+
 /// A holder that answers "warming up" (it took the lease cold) keeps it while the
 /// fallback runs: no lapse and new epoch every period until it is warm.
 #[test]
