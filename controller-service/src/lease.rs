@@ -31,8 +31,9 @@ use protocol::pb;
 pub struct LeasePolicy {
     /// Consecutive vacant samples after which a member that is not preferred claims: the
     /// preferred one gets this head start. The agent's lease lapses after half its
-    /// `hold_periods` (3 of 5 by default), so one sample of delay still lands the claim
-    /// before the fallback engages.
+    /// `hold_periods` (3 of 5 by default; up to one period short of the hold when its
+    /// holder's answers come late), so one sample of delay still lands the claim before
+    /// the fallback engages on a prompt link.
     pub standby_delay: u32,
     /// Samples a member holds the lease without being preferred before it yields it.
     pub yield_after: u32,

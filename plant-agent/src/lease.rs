@@ -19,7 +19,8 @@
 //!   run, and a run never reuses another's because commands carry the run's random id.
 //! * The lease lapses when its holder has been silent (neither a command nor a warm-up
 //!   answer of its own, nor an answer to a recent sample overtaken by a newer one of its
-//!   own) for half the agent's `hold_periods` (timed on the agent's own pacing, never on
+//!   own) for half the agent's `hold_periods`, or longer when the holder's answers come
+//!   late (`Supervisor::lease_lapse`; timed on the agent's own pacing, never on
 //!   a wall clock): a holder that warms up keeps it while the fallback runs, and
 //!   otherwise another
 //!   controller can then claim it while the plant still holds the last command, before

@@ -338,12 +338,14 @@ pub const DEFAULT_LINK_LEASE: std::time::Duration = std::time::Duration::from_se
 
 /// The lease of `config`'s links (`transport/link/tx/lease`): how long a peer or router
 /// stays silent before the others drop it, with its liveliness tokens (a fleet's view of
-/// its members). zenoh's default when it is unset or unreadable.
+/// its members). zenoh's default when it is unset, unreadable or 0 (a lease of 0 would make
+/// every pause of a member count as a silence that hid changes).
 pub fn link_lease(config: &Config) -> std::time::Duration {
     config
         .get_json("transport/link/tx/lease")
         .ok()
         .and_then(|v| v.trim().parse::<u64>().ok())
+        .filter(|&ms| ms > 0)
         .map_or(DEFAULT_LINK_LEASE, std::time::Duration::from_millis)
 }
 
@@ -452,6 +454,13 @@ mod tests {
         assert_eq!(link_lease(&c), DEFAULT_LINK_LEASE, "zenoh's own default");
         c.insert_json5("transport/link/tx/lease", "1000").unwrap();
         assert_eq!(link_lease(&c), std::time::Duration::from_secs(1));
+        c.insert_json5("transport/link/tx/lease", "0")
+            .unwrap_or_default();
+        assert_ne!(
+            link_lease(&c),
+            std::time::Duration::ZERO,
+            "never a lease of 0"
+        );
     }
 
     #[test]
