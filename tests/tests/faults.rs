@@ -697,22 +697,26 @@ async fn a_paused_owner_is_fenced_by_the_plant_lease() {
         gap <= u64::from(hold),
         "takeover after {gap} periods, hold {hold}"
     );
-    // The takeover keeps the plant on remote control: no period on the fallback from
-    // ctl-a's first command on. Before it the plant may fall back once, when its session
-    // reaches ctl-a later than the hold (a loaded host at start-up): that is the watchdog
-    // doing its job, and not what this test judges.
+    remote_from(&rec, &report, spans[0].first);
+    assert!(rec.traces[1].y.iter().all(|y| y.abs() < 1.0), "pitch stop");
+}
+
+/// The takeover keeps the plant on remote control: no period on the fallback from the
+/// first holder's first command (period `first`) on. Before it the plant may fall back
+/// once, when its session reaches the service later than the hold (a loaded host at
+/// start-up): that is the watchdog doing its job, and not what the takeover tests judge.
+fn remote_from(rec: &RunRecord, report: &plant_agent::agent::AgentReport, first: u64) {
     assert_eq!(
         rec.modes.len() as u64,
         report.counters.periods,
         "one mode a period"
     );
-    let fell_back: Vec<usize> = (spans[0].first as usize..rec.modes.len())
+    let fell_back: Vec<usize> = (first as usize..rec.modes.len())
         .filter(|&k| rec.modes[k].is_fallback())
         .collect();
     assert!(
         fell_back.is_empty(),
-        "the plant fell back in periods {fell_back:?} (ctl-a's first command in period {})",
-        spans[0].first
+        "the plant fell back in periods {fell_back:?} (the first holder's first command in \
+         period {first})"
     );
-    assert!(rec.traces[1].y.iter().all(|y| y.abs() < 1.0), "pitch stop");
 }
