@@ -7,9 +7,11 @@
 //! paused (their inbox fills and is served, stale, when they resume), crashed and
 //! restarted cold; the agent restarted with a new run while commands of the old one are
 //! still in flight and the last 300 commands of the old run played back into the new one
-//! at their sequence numbers; and, in one schedule in three, a rogue controller that answers every
-//! sample as if it held the lease. No clock is read and nothing is random but the seed: a failing seed
-//! prints the command that replays it.
+//! at their sequence numbers; in one schedule in three, a rogue controller that answers every
+//! sample as if it held the lease; and in one in eight, a member that now and then puts an
+//! epoch of its own making on its commands while it holds the lease (a bug of ours, or a
+//! forged command that passed the MACs). No clock is read and nothing is random but the
+//! seed: a failing seed prints the command that replays it.
 //!
 //! The invariants come from the plant's side, as the agent records them:
 //! * no period in which commands of two holders were applied;
@@ -74,6 +76,9 @@ const HOLD_TIMEOUT: u64 = 500;
 /// A millisecond of virtual time in the service's units (ns).
 const MS: u64 = 1_000_000;
 const OPERATOR_TIMEOUT: u64 = 2000;
+/// The stream of the miscounting member's draws (`Sim::miscount`), apart from the
+/// schedule's: adding it changed no other draw of any seed.
+const MISCOUNT_STREAM: u64 = 0x6d69_7363_6f75_6e74;
 /// How recently the member commanding a device must have heard it to acknowledge (ms):
 /// five periods (`Registry::live_ns`).
 const LIVE: u64 = 5 * H;
@@ -248,6 +253,8 @@ struct Tally {
     changes: u64,
     acked: u64,
     lost_with_holders: u64,
+    /// Commands sent under a miscounted epoch (`Sim::miscount`): each must be refused.
+    miscounted: u64,
 }
 
 struct Sim {
@@ -278,6 +285,10 @@ struct Sim {
     trace: bool,
     /// A rogue controller answers too (one seed in three).
     rogue: bool,
+    /// The member that miscounts the lease's epoch now and then, and the generator of its
+    /// draws (one seed in eight): the plant must refuse every such command
+    /// (`Fence::StaleEpoch`), which no other rule of the schedules reaches first.
+    miscount: Option<(usize, SplitMix)>,
     /// The members' last commands, as an eavesdropper keeps them for a replay.
     captured: std::collections::VecDeque<CommandMsg>,
     /// A silenced holder (its name) and the period it went silent, while a takeover is
@@ -345,6 +356,7 @@ impl Sim {
         let rogue = rng.below(3) == 0;
         Self {
             rogue,
+            miscount: miscount_of(seed),
             captured: std::collections::VecDeque::new(),
             watch: None,
             seed,
@@ -492,6 +504,27 @@ impl Sim {
         self.send(Payload::Command(cmd), false);
     }
 
+    /// The epoch member `m` puts on a command it sends as the holder: the lease's, unless
+    /// it is the schedule's miscounting member, one off in one command in ten while the
+    /// faults last.
+    fn miscounted(&mut self, m: usize, epoch: u64) -> u64 {
+        if !self.miscounts(m) {
+            return epoch;
+        }
+        let Some((_, rng)) = self.miscount.as_mut() else {
+            return epoch;
+        };
+        if !rng.chance(0.1) {
+            return epoch;
+        }
+        self.tally.miscounted += 1;
+        if epoch > 1 && rng.chance(0.5) {
+            epoch - 1
+        } else {
+            epoch + 1
+        }
+    }
+
     /// Member `m` steps sample `s` (if it follows the shard) and perhaps answers.
     fn on_sample(&mut self, m: usize, s: &SampleMsg) {
         let view = self.view(m);
@@ -548,7 +581,6 @@ impl Sim {
             let partners = self.partners(m);
             self.queue_job(m, None, partners);
         }
-        let member = &mut self.members[m];
         let Decision::Send {
             epoch,
             claim,
@@ -557,6 +589,12 @@ impl Sim {
         else {
             return;
         };
+        let epoch = if claim {
+            epoch
+        } else {
+            self.miscounted(m, epoch)
+        };
+        let member = &mut self.members[m];
         let cmd = CommandMsg {
             instance: member.instance,
             state: std::rc::Rc::new(member.state.clone()),
@@ -612,7 +650,7 @@ impl Sim {
     fn fail(&self, what: String) -> ! {
         panic!(
             "seed {}: {what} at t = {} ms, period {} (faults {:?}; links: loss {}, \
-             duplicates {}, delay {:?} ms, rogue {}; replay: \
+             duplicates {}, delay {:?} ms, rogue {}, miscounting member {:?}; replay: \
              MFC_LEASE_SEED={} cargo test -p system-tests --test lease_sim)",
             self.seed,
             self.t,
@@ -622,6 +660,7 @@ impl Sim {
             self.dup,
             self.delay,
             self.rogue,
+            self.miscount.as_ref().map(|m| m.0),
             self.seed
         );
     }
@@ -688,8 +727,11 @@ impl Sim {
             self.tally.clean.push(self.k - since);
             if (self.trace || std::env::var_os("MFC_LEASE_SLOW").is_some()) && self.k - since > 10 {
                 eprintln!(
-                    "slow takeover: seed {}, period {}, faults {:?}",
-                    self.seed, self.k, self.windows
+                    "slow takeover: seed {}, period {}, faults {:?}, miscounting member {:?}",
+                    self.seed,
+                    self.k,
+                    self.windows,
+                    self.miscount.as_ref().map(|m| m.0)
                 );
             }
         }
@@ -791,6 +833,11 @@ impl Sim {
     /// Whether member `m` is free of every fault.
     fn healthy(&self, m: usize) -> bool {
         !self.silenced(m) && !self.active(Fault::CutToMember(m)) && !self.active(Fault::Split(m))
+    }
+
+    /// Whether member `m` is the schedule's miscounting member, while the faults last.
+    fn miscounts(&self, m: usize) -> bool {
+        self.t < FAULTY * H && self.miscount.as_ref().is_some_and(|(who, _)| *who == m)
     }
 
     /// Start (or drop) the wait for a takeover of a silenced holder.
@@ -1329,6 +1376,15 @@ impl Sim {
     }
 }
 
+/// Seed `seed`'s miscounting member, if it has one (one in eight), with the generator of
+/// its draws. The seeds the soak found ([`SOAK_FOUND`]) have none: each stays the schedule
+/// that showed its defect.
+fn miscount_of(seed: u64) -> Option<(usize, SplitMix)> {
+    let mut rng = SplitMix::new(seed ^ MISCOUNT_STREAM);
+    let who = rng.below(MEMBERS as u64) as usize;
+    (rng.below(8) == 0 && !SOAK_FOUND.contains(&seed)).then_some((who, rng))
+}
+
 /// The seeds to run: `MFC_LEASE_SEED` alone, or `MFC_LEASE_SEEDS` of them (10 000 by
 /// default) from `MFC_LEASE_FROM` (0 by default).
 fn seeds() -> std::ops::Range<u64> {
@@ -1365,6 +1421,7 @@ impl Tally {
         self.changes += t.changes;
         self.acked += t.acked;
         self.lost_with_holders += t.lost_with_holders;
+        self.miscounted += t.miscounted;
     }
 }
 
@@ -1450,6 +1507,10 @@ fn one_holder_per_period_under_random_faults() {
         runs < 100 || total.acked > total.changes / 4,
         "changes were acknowledged"
     );
+    assert!(
+        runs < 100 || total.miscounted > 0,
+        "commands under a miscounted epoch were sent"
+    );
     let n = total.takeovers.len();
     let (p50, p99, max) = (
         percentile(&mut total.takeovers, 0.5),
@@ -1473,7 +1534,8 @@ fn one_holder_per_period_under_random_faults() {
          the new holder's first command: p50 {c50}, p99 {c99}, max {cmax}; operators' \
          changes: {} made, {} acknowledged, none lost but {} with every member that held \
          them (each crashed, stopped, cut off from the plant, or itself behind, for the \
-         whole wait of a member behind)",
+         whole wait of a member behind); {} commands under a miscounted epoch sent, none \
+         applied",
         seeds(),
         started.elapsed().as_secs_f64(),
         total.applied,
@@ -1481,6 +1543,7 @@ fn one_holder_per_period_under_random_faults() {
         total.grants,
         total.changes,
         total.acked,
-        total.lost_with_holders
+        total.lost_with_holders,
+        total.miscounted
     );
 }
