@@ -574,6 +574,12 @@ impl Sim {
         if self.trace && s.holder == me && !matches!(decision, Decision::Send { .. }) {
             eprintln!("t {t} m{m} named holder, quiet: {decision:?} {st:?}");
         }
+        if self.trace && s.holder.is_empty() && !matches!(decision, Decision::Send { .. }) {
+            eprintln!(
+                "t {t} m{m} quiet on a vacant lease: {:?} {st:?}",
+                member.claimer
+            );
+        }
         let took = before != Holder::Me && member.claimer.holder == Holder::Me;
         if took || member.claimer.hand_over_due(&self.policy) {
             // Its state goes to its partners when it takes the lease and halfway to a
