@@ -63,7 +63,8 @@ pub enum Pass {
 pub struct LeaseCounters {
     /// Leases granted (also the last epoch).
     pub grants: u64,
-    /// Leases that lapsed (their holder silent for half the hold).
+    /// Leases that lapsed (their holder silent for the lapse: half the hold, or longer
+    /// while its answers land late).
     pub lapses: u64,
     /// Leases given up by their holder.
     pub releases: u64,

@@ -619,7 +619,8 @@ impl Supervisor {
             elapsed: 0.0,
         };
         let due = self.missing_streak > 0 && self.missing_streak >= self.config.hold_periods;
-        // The holder has been silent for half the hold: the lease lapses, so that another
+        // The holder has been silent for half the hold (longer while its answers land late,
+        // `Self::lease_lapse`): the lease lapses, so that another
         // controller can claim it (a new epoch) while the plant still holds, before the
         // fallback engages. A holder that answers "warming up" is not silent: it keeps the
         // lease while the fallback runs (the watchdog counts those periods, the lease not).
