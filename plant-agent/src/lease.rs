@@ -27,6 +27,13 @@
 //!   the fallback engages; and it lapses when the holder gives it up (`release`, once its
 //!   command is applied). Nobody claims: the fallback engages after the whole hold, as
 //!   without leases.
+//! * A lease that lapsed while its holder was answering, only late, goes back to it: while
+//!   nobody has claimed since, the holder's answer to a sample published before the lapse,
+//!   under its epoch, reinstates it (`Pass::Resumed`; `LeaseCounters::resumed`). Nobody
+//!   else was granted anything meanwhile, so it is as if the lapse had come later; a claim
+//!   sent on the vacant samples then finds the lease held and is refused. Without this, a
+//!   spike of lateness past the lapse (a 10 ms loop, links of 2-15 ms each way) left the
+//!   plant on its fallback for a period while the holder claimed again.
 //!
 //! No I/O, no clock: the [`crate::safety::Supervisor`] owns one and calls it.
 
@@ -56,6 +63,10 @@ pub enum Pass {
     Holder,
     /// A valid claim of the vacant lease: granted if the supervisor applies the command.
     Claim,
+    /// The holder whose lease lapsed, answering late a sample of its own tenure under its
+    /// epoch while nobody has claimed since: reinstated if the supervisor accepts the
+    /// command.
+    Resumed,
 }
 
 /// The lease's counters over a run.
@@ -68,6 +79,10 @@ pub struct LeaseCounters {
     pub lapses: u64,
     /// Leases given up by their holder.
     pub releases: u64,
+    /// Lapsed leases that went back to their holder, whose late answer to a sample of its
+    /// tenure came before anyone claimed.
+    #[serde(default)]
+    pub resumed: u64,
     /// Commands refused, by reason.
     pub other_run: u64,
     pub not_holder: u64,
@@ -127,6 +142,9 @@ pub struct Lease {
     /// An answer of the holder was accepted in the open period.
     renewed: bool,
     epoch: u64,
+    /// The holder whose lease lapsed last, its process, and the first period after its
+    /// tenure, while nobody has claimed since (see [`Pass::Resumed`]).
+    lapsed: Option<(String, u64, u64)>,
     counters: LeaseCounters,
     spans: Vec<Span>,
     spans_dropped: u64,
@@ -161,6 +179,7 @@ impl Lease {
             idle: 0,
             renewed: false,
             epoch: 0,
+            lapsed: None,
             counters: LeaseCounters::default(),
             spans: Vec::new(),
             spans_dropped: 0,
@@ -197,9 +216,10 @@ impl Lease {
         &self.counters
     }
 
-    /// Whether a command with these credentials may be applied; counts a refusal.
-    pub fn check(&mut self, c: &Credentials<'_>) -> Result<Pass, Fence> {
-        let verdict = self.judge(c);
+    /// Whether a command with these credentials, answering the sample `seq`, may be
+    /// applied; counts a refusal.
+    pub fn check(&mut self, c: &Credentials<'_>, seq: u64) -> Result<Pass, Fence> {
+        let verdict = self.judge(c, seq);
         if let Err(why) = verdict {
             let n = &mut self.counters;
             let counter = match why {
@@ -214,7 +234,7 @@ impl Lease {
         verdict
     }
 
-    fn judge(&self, c: &Credentials<'_>) -> Result<Pass, Fence> {
+    fn judge(&self, c: &Credentials<'_>, seq: u64) -> Result<Pass, Fence> {
         if c.run_id != self.run_id {
             return Err(Fence::OtherRun);
         }
@@ -233,6 +253,7 @@ impl Lease {
                 Ok(Pass::Claim)
             }
             None if c.claim => Err(Fence::BadClaim),
+            None if self.resumes(c, seq) => Ok(Pass::Resumed),
             None => Err(Fence::Vacant),
         }
     }
@@ -241,12 +262,20 @@ impl Lease {
     /// period `applied_in`, if it was a control): a claim is granted now, the command goes
     /// into the holder's span, and a release gives the lease up after it.
     pub fn accepted(&mut self, pass: Pass, c: &Credentials<'_>, applied_in: Option<u64>) {
-        if pass == Pass::Claim {
-            self.epoch = c.epoch;
-            self.holder = Some(c.from.to_owned());
-            self.instance = c.instance;
-            self.counters.grants = self.counters.grants.saturating_add(1);
+        match pass {
+            Pass::Claim => {
+                self.epoch = c.epoch;
+                self.holder = Some(c.from.to_owned());
+                self.instance = c.instance;
+                self.counters.grants = self.counters.grants.saturating_add(1);
+            }
+            Pass::Resumed => {
+                self.holder = Some(c.from.to_owned());
+                self.counters.resumed = self.counters.resumed.saturating_add(1);
+            }
+            Pass::Holder => {}
         }
+        self.lapsed = None;
         self.renewed = true;
         if let Some(k) = applied_in {
             self.record(c.from, k);
@@ -307,11 +336,23 @@ impl Lease {
         self.idle
     }
 
-    /// The holder was silent too long: the lease lapses (if it was held).
-    pub fn lapse(&mut self) {
+    /// The holder was silent too long: the lease lapses (if it was held) at the start of
+    /// period `k`, the first after its tenure.
+    pub fn lapse(&mut self, k: u64) {
+        let holder = self.holder.clone();
         if self.holder.take().is_some() {
             self.counters.lapses = self.counters.lapses.saturating_add(1);
+            self.lapsed = holder.map(|h| (h, self.instance, k));
         }
+    }
+
+    /// Whether a command that does not claim the vacant lease comes from the holder whose
+    /// lease lapsed, under its epoch, for a sample published before the lapse, with nobody
+    /// granted since ([`Pass::Resumed`]).
+    fn resumes(&self, c: &Credentials<'_>, seq: u64) -> bool {
+        self.lapsed.as_ref().is_some_and(|(holder, instance, k)| {
+            holder == c.from && *instance == c.instance && seq < *k && c.epoch == self.epoch
+        })
     }
 }
 
@@ -332,7 +373,7 @@ mod tests {
 
     fn grant(l: &mut Lease, from: &str) -> u64 {
         let c = cred(from, l.epoch() + 1, true);
-        assert_eq!(l.check(&c), Ok(Pass::Claim));
+        assert_eq!(l.check(&c, 0), Ok(Pass::Claim));
         l.accepted(Pass::Claim, &c, None);
         l.epoch()
     }
@@ -340,18 +381,18 @@ mod tests {
     #[test]
     fn a_vacant_lease_goes_to_the_first_valid_claim_only() {
         let mut l = Lease::new(7);
-        assert_eq!(l.check(&cred("a", 0, false)), Err(Fence::Vacant));
-        assert_eq!(l.check(&cred("a", 0, true)), Err(Fence::BadClaim));
-        assert_eq!(l.check(&cred("a", 2, true)), Err(Fence::BadClaim));
+        assert_eq!(l.check(&cred("a", 0, false), 0), Err(Fence::Vacant));
+        assert_eq!(l.check(&cred("a", 0, true), 0), Err(Fence::BadClaim));
+        assert_eq!(l.check(&cred("a", 2, true), 0), Err(Fence::BadClaim));
         assert_eq!(grant(&mut l, "a"), 1);
         assert_eq!(l.holder(), Some("a"));
         // The loser of the race is refused, claim or not.
-        assert_eq!(l.check(&cred("b", 1, true)), Err(Fence::BadClaim));
-        assert_eq!(l.check(&cred("b", 1, false)), Err(Fence::NotHolder));
-        assert_eq!(l.check(&cred("a", 1, false)), Ok(Pass::Holder));
+        assert_eq!(l.check(&cred("b", 1, true), 0), Err(Fence::BadClaim));
+        assert_eq!(l.check(&cred("b", 1, false), 0), Err(Fence::NotHolder));
+        assert_eq!(l.check(&cred("a", 1, false), 0), Ok(Pass::Holder));
         // A holder's later claims of the same epoch (answers to samples sent before the
         // grant) pass as the holder's.
-        assert_eq!(l.check(&cred("a", 1, true)), Ok(Pass::Holder));
+        assert_eq!(l.check(&cred("a", 1, true), 0), Ok(Pass::Holder));
         assert_eq!(l.counters().refused(), 5);
     }
 
@@ -359,17 +400,53 @@ mod tests {
     fn epochs_only_go_up_and_a_stale_holder_is_fenced() {
         let mut l = Lease::new(7);
         grant(&mut l, "a");
-        l.lapse();
+        l.lapse(5);
         assert_eq!(l.holder(), None);
-        // The former holder wakes up: its old epoch is refused, it must claim again.
-        assert_eq!(l.check(&cred("a", 1, false)), Err(Fence::Vacant));
+        // The former holder wakes up: answering a sample that said the lease was vacant,
+        // its old epoch is refused, it must claim again.
+        assert_eq!(l.check(&cred("a", 1, false), 5), Err(Fence::Vacant));
         assert_eq!(grant(&mut l, "b"), 2);
-        assert_eq!(l.check(&cred("a", 1, false)), Err(Fence::NotHolder));
-        l.lapse();
+        // Its late answers to its own tenure's samples no longer count once b holds.
+        assert_eq!(l.check(&cred("a", 1, false), 4), Err(Fence::NotHolder));
+        l.lapse(9);
         assert_eq!(grant(&mut l, "a"), 3);
-        assert_eq!(l.check(&cred("a", 1, false)), Err(Fence::StaleEpoch));
+        assert_eq!(l.check(&cred("a", 1, false), 0), Err(Fence::StaleEpoch));
         assert_eq!(l.counters().lapses, 2);
         assert_eq!(l.counters().grants, 3);
+    }
+
+    /// The holder answered, only late: its answer to a sample of its tenure gives it the
+    /// lease back while nobody has claimed, under the same epoch and in the same span.
+    #[test]
+    fn a_lapsed_holder_answering_late_gets_its_lease_back_until_someone_claims() {
+        let mut l = Lease::new(7);
+        grant(&mut l, "a");
+        l.accepted(Pass::Holder, &cred("a", 1, false), Some(1));
+        l.lapse(5);
+        assert_eq!(l.check(&cred("a", 1, false), 4), Ok(Pass::Resumed));
+        // Not for a sample that said vacant, another process, or another epoch.
+        assert_eq!(l.check(&cred("a", 1, false), 5), Err(Fence::Vacant));
+        let mut twin = cred("a", 1, false);
+        twin.instance = 4;
+        assert_eq!(l.check(&twin, 4), Err(Fence::Vacant));
+        assert_eq!(l.check(&cred("a", 2, false), 4), Err(Fence::Vacant));
+        l.accepted(Pass::Resumed, &cred("a", 1, false), Some(6));
+        assert_eq!((l.holder(), l.epoch(), l.instance()), (Some("a"), 1, 3));
+        // A claim sent on the vacant samples finds it held.
+        assert_eq!(l.check(&cred("b", 2, true), 6), Err(Fence::BadClaim));
+        let c = l.counters();
+        assert_eq!((c.lapses, c.resumed, c.grants, c.vacant), (1, 1, 1, 3));
+        let spans: Vec<_> = l
+            .report()
+            .spans
+            .iter()
+            .map(|s| (s.epoch, s.first, s.last))
+            .collect();
+        assert_eq!(spans, [(1, 1, 6)], "one tenure");
+        // Once another holds it, the late answers are refused as anyone's.
+        l.lapse(8);
+        assert_eq!(grant(&mut l, "b"), 2);
+        assert_eq!(l.check(&cred("a", 1, false), 7), Err(Fence::NotHolder));
     }
 
     #[test]
@@ -378,7 +455,7 @@ mod tests {
         grant(&mut l, "a");
         let mut c = cred("a", 1, false);
         c.instance = 4;
-        assert_eq!(l.check(&c), Err(Fence::NotHolder));
+        assert_eq!(l.check(&c, 0), Err(Fence::NotHolder));
         assert_eq!(l.instance(), 3);
     }
 
@@ -388,10 +465,10 @@ mod tests {
         grant(&mut l, "a");
         let mut c = cred("a", 1, false);
         c.run_id = 8;
-        assert_eq!(l.check(&c), Err(Fence::OtherRun));
+        assert_eq!(l.check(&c, 0), Err(Fence::OtherRun));
         c.claim = true;
         c.epoch = 2;
-        assert_eq!(l.check(&c), Err(Fence::OtherRun));
+        assert_eq!(l.check(&c, 0), Err(Fence::OtherRun));
         assert_eq!(l.counters().other_run, 2);
     }
 
@@ -403,10 +480,10 @@ mod tests {
         grant(&mut l, "c-1");
         let first = cred("c-1", 1, false);
         l.accepted(Pass::Holder, &first, Some(1));
-        l.lapse();
+        l.lapse(2);
         let mut twin = cred("c-1", 2, true);
         twin.instance = 9;
-        assert_eq!(l.check(&twin), Ok(Pass::Claim));
+        assert_eq!(l.check(&twin, 0), Ok(Pass::Claim));
         l.accepted(Pass::Claim, &twin, Some(5));
         let spans = l.report().spans;
         let who: Vec<(&str, u64, u64)> = spans
@@ -422,7 +499,7 @@ mod tests {
         grant(&mut l, "a");
         let mut c = cred("a", 1, false);
         c.release = true;
-        assert_eq!(l.check(&c), Ok(Pass::Holder));
+        assert_eq!(l.check(&c, 0), Ok(Pass::Holder));
         l.accepted(Pass::Holder, &c, Some(3));
         assert_eq!((l.holder(), l.epoch()), (None, 1));
         assert_eq!(l.counters().releases, 1);
@@ -438,7 +515,7 @@ mod tests {
             }]
         );
         // Lapsing a vacant lease counts nothing.
-        l.lapse();
+        l.lapse(4);
         assert_eq!(l.counters().lapses, 0);
     }
 
@@ -448,12 +525,12 @@ mod tests {
         for k in 0..(MAX_SPANS as u64 + 10) {
             let who = if k % 2 == 0 { "a" } else { "b" };
             let c = cred(who, l.epoch() + 1, true);
-            let pass = l.check(&c).unwrap();
+            let pass = l.check(&c, 0).unwrap();
             l.accepted(pass, &c, Some(2 * k));
             // A second command of the same holder in the next period.
             let c = cred(who, l.epoch(), false);
-            l.accepted(l.clone().check(&c).unwrap(), &c, Some(2 * k + 1));
-            l.lapse();
+            l.accepted(l.clone().check(&c, 0).unwrap(), &c, Some(2 * k + 1));
+            l.lapse(2 * k + 2);
         }
         let r = l.report();
         assert_eq!(r.spans.len(), MAX_SPANS);
@@ -470,7 +547,7 @@ mod tests {
         let long = "x".repeat(65);
         for bad in [long.as_str(), "", "a/b", "a*", "ctl\n"] {
             assert_eq!(
-                l.check(&cred(bad, 1, true)),
+                l.check(&cred(bad, 1, true), 0),
                 Err(Fence::BadClaim),
                 "{bad:?}"
             );

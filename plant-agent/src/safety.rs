@@ -626,7 +626,7 @@ impl Supervisor {
         // lease while the fallback runs (the watchdog counts those periods, the lease not).
         let lapse = self.lease_lapse();
         if let Some(lease) = self.lease.as_mut().filter(|l| l.idle() >= lapse) {
-            lease.lapse();
+            lease.lapse(k);
         }
         let write = if self.mode.is_fallback() || due {
             let (mode, v) = match (self.config.fallback, local_ok) {
@@ -697,7 +697,7 @@ impl Supervisor {
         // The lease first: a command from anyone but the holder is refused as such,
         // whatever else is wrong with it.
         let pass = match self.lease.as_mut().filter(|_| seq <= k) {
-            Some(lease) => match lease.check(&cmd.lease) {
+            Some(lease) => match lease.check(&cmd.lease, seq) {
                 Ok(pass) => Some(pass),
                 Err(fence) => return self.ignore(Ignored::Fenced(fence)),
             },

@@ -1139,6 +1139,65 @@ fn a_holder_answering_late_keeps_its_lease_through_one_late_run_of_answers() {
     assert_eq!(b.write, None, "a lapse, not the fallback");
 }
 
+/// A holder's answers, prompt until then, land two periods late three times in a row
+/// (links of 2-15 ms each way: the fleet's simulation, seeds 540749 and 553219): the lease
+/// lapses before the first of them arrives, and that answer, to a sample of the holder's
+/// own tenure, gives it back while nobody has claimed. The plant never leaves remote
+/// control; without it, it held, fell back for a period, and the holder claimed again.
+#[test]
+fn a_lapse_that_came_too_early_is_undone_by_the_holders_late_answer() {
+    let mut s = sup(8, 5, FallbackPolicy::LocalController);
+    s.grant_leases(9);
+    begin(&mut s, 0);
+    command(&mut s, 0.1, leased(0, &[1.0], "a", 1, true));
+    s.end_period().unwrap();
+    for k in 1..200 {
+        begin(&mut s, k);
+        command(&mut s, 0.1, leased(k, &[1.0], "a", 1, false));
+        s.end_period().unwrap();
+    }
+    assert_eq!(s.lease_lapse(), 3);
+    // Samples 200, 201 and 202 go unanswered in their periods: a lapse at 203.
+    for k in 200..203 {
+        begin(&mut s, k);
+        s.end_period().unwrap();
+    }
+    begin(&mut s, 203);
+    assert_eq!(s.lease().unwrap().holder(), None);
+    let (v, _) = command(&mut s, 0.5, leased(201, &[1.0], "a", 1, false));
+    assert!(matches!(v, Verdict::Apply { late: true, .. }), "{v:?}");
+    let l = s.lease().unwrap();
+    assert_eq!(
+        (l.holder(), l.epoch(), l.counters().resumed),
+        (Some("a"), 1, 1)
+    );
+    s.end_period().unwrap();
+    // A claim made on the vacant sample 203 finds the lease held again.
+    begin(&mut s, 204);
+    assert_eq!(
+        ignored(&mut s, leased(203, &[2.0], "b", 2, true)),
+        Ignored::Fenced(Fence::BadClaim)
+    );
+    command(&mut s, 0.1, leased(204, &[1.0], "a", 1, false));
+    s.end_period().unwrap();
+    assert_eq!(s.counters().fallbacks, 0);
+    // Its answer to the vacant sample 203 is no answer of its tenure: refused, as before.
+    s.grant_leases(9);
+    begin(&mut s, 205);
+    command(&mut s, 0.1, leased(205, &[1.0], "a", 1, true));
+    s.end_period().unwrap();
+    for k in 206..209 {
+        begin(&mut s, k);
+        s.end_period().unwrap();
+    }
+    begin(&mut s, 209);
+    assert_eq!(s.lease().unwrap().holder(), None);
+    assert_eq!(
+        ignored(&mut s, leased(209, &[1.0], "a", 1, false)),
+        Ignored::Fenced(Fence::Vacant)
+    );
+}
+
 /// A holder that answers "warming up" (it took the lease cold) keeps it while the
 /// fallback runs: no lapse and new epoch every period until it is warm.
 #[test]
