@@ -1469,13 +1469,13 @@ fn run_share(seeds: std::ops::Range<u64>, first: u64, step: u64) -> (u64, Tally)
 /// liveliness lease claimed as in step (`LeasePolicy::silence_ns`); 31675, 51534 and
 /// 218981: a holder answering three periods late lost its lease to one run of late
 /// answers (the agent's lapse now waits out its answers' lateness,
-/// `Supervisor::lease_lapse`); 540749 and 553219: a holder's answers, prompt until then,
+/// `Supervisor::lease_lapse`); 150789, 540749 and 553219: a holder's answers, prompt until then,
 /// landed past the lapse, and the plant fell back for a period while it claimed again
 /// (its late answer to a sample of its tenure now undoes the lapse while nobody has
 /// claimed, `plant_agent::lease::Pass::Resumed`).
-const SOAK_FOUND: [u64; 17] = [
-    21257, 31675, 51140, 51534, 60248, 63298, 68962, 87049, 103087, 134580, 138492, 140593, 196088,
-    218981, 225770, 540749, 553219,
+const SOAK_FOUND: [u64; 18] = [
+    21257, 31675, 51140, 51534, 60248, 63298, 68962, 87049, 103087, 134580, 138492, 140593, 150789,
+    196088, 218981, 225770, 540749, 553219,
 ];
 
 #[test]
@@ -1514,8 +1514,9 @@ fn one_holder_per_period_under_random_faults() {
         runs += n;
         total.add(t);
     }
-    // Something was judged: commands were applied, and some were fenced off.
-    assert!(total.applied > runs * (FAULTY + CALM) / 2);
+    // Something was judged: commands were applied, and some were fenced off (over many
+    // schedules: one replayed alone may spend most of its faults on the fallback).
+    assert!(runs < 100 || total.applied > runs * (FAULTY + CALM) / 2);
     assert!(runs < 100 || total.fenced > 0);
     assert!(
         runs < 100 || total.acked > total.changes / 4,
