@@ -1469,13 +1469,13 @@ fn run_share(seeds: std::ops::Range<u64>, first: u64, step: u64) -> (u64, Tally)
 /// liveliness lease claimed as in step (`LeasePolicy::silence_ns`); 31675, 51534 and
 /// 218981: a holder answering three periods late lost its lease to one run of late
 /// answers (the agent's lapse now waits out its answers' lateness,
-/// `Supervisor::lease_lapse`); 150789, 540749 and 553219: a holder's answers, prompt until then,
+/// `Supervisor::lease_lapse`); 150789, 366081, 540749 and 553219: a holder's answers, prompt until then,
 /// landed past the lapse, and the plant fell back for a period while it claimed again
 /// (its late answer to a sample of its tenure now undoes the lapse while nobody has
 /// claimed, `plant_agent::lease::Pass::Resumed`).
-const SOAK_FOUND: [u64; 18] = [
+const SOAK_FOUND: [u64; 19] = [
     21257, 31675, 51140, 51534, 60248, 63298, 68962, 87049, 103087, 134580, 138492, 140593, 150789,
-    196088, 218981, 225770, 540749, 553219,
+    196088, 218981, 225770, 366081, 540749, 553219,
 ];
 
 #[test]
