@@ -35,7 +35,7 @@ run "epoch check skipped" plant-agent/src/lease.rs "            Some(h) if same(
 run "run check removed" plant-agent/src/lease.rs "        if c.run_id != self.run_id {
             return Err(Fence::OtherRun);
         }" ""
-run "lapse removed" plant-agent/src/lease.rs "        if self.holder.take().is_some() {" "        if self.holder.as_ref().is_none() {"
+run "lapse removed" plant-agent/src/lease.rs "        if let Some(holder) = self.holder.take() {" "        if let Some(holder) = None::<String> {"
 run "acknowledged before its partners hold it" controller-service/src/replication.rs "            _ => missing.push(p)," "            _ => held.push(p),"
 run "a state that never claimed commands under its process's lease" controller-service/src/lease.rs "        if !self.claimed && self.holder == Holder::Me {" "        if false && !self.claimed && self.holder == Holder::Me {"
 git status --short

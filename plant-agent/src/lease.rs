@@ -339,10 +339,9 @@ impl Lease {
     /// The holder was silent too long: the lease lapses (if it was held) at the start of
     /// period `k`, the first after its tenure.
     pub fn lapse(&mut self, k: u64) {
-        let holder = self.holder.clone();
-        if self.holder.take().is_some() {
+        if let Some(holder) = self.holder.take() {
             self.counters.lapses = self.counters.lapses.saturating_add(1);
-            self.lapsed = holder.map(|h| (h, self.instance, k));
+            self.lapsed = Some((holder, self.instance, k));
         }
     }
 

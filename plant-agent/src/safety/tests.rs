@@ -958,6 +958,15 @@ fn creds(from: &str, epoch: u64, claim: bool) -> Credentials<'_> {
     }
 }
 
+/// Periods `ks`, each answered within it by holder `from` under epoch 1.
+fn answered_in_time(s: &mut Supervisor, from: &str, ks: std::ops::Range<u64>) {
+    for k in ks {
+        begin(s, k);
+        command(s, 0.1, leased(k, &[1.0], from, 1, false));
+        s.end_period().unwrap();
+    }
+}
+
 fn leased<'a>(
     seq: u64,
     v: &'a [f64],
@@ -1123,16 +1132,11 @@ fn a_holder_answering_late_keeps_its_lease_through_one_late_run_of_answers() {
     s.end_period().unwrap();
     // Prompt from now on: within about a hundred commands per period of lateness, the
     // lapse is half the hold again.
-    for k in 24..400 {
-        begin(&mut s, k);
-        command(&mut s, 0.1, leased(k, &[1.0], "a", 1, false));
-        s.end_period().unwrap();
-    }
+    answered_in_time(&mut s, "a", 24..400);
     assert_eq!(s.lease_lapse(), 3);
     // Four silent periods at most: the lease lapses before the fallback engages.
     for k in 400..404 {
-        begin(&mut s, k);
-        s.end_period().unwrap();
+        period(&mut s, k, None);
     }
     let b = begin(&mut s, 404);
     assert_eq!(s.lease().unwrap().holder(), None);
@@ -1151,16 +1155,11 @@ fn a_lapse_that_came_too_early_is_undone_by_the_holders_late_answer() {
     begin(&mut s, 0);
     command(&mut s, 0.1, leased(0, &[1.0], "a", 1, true));
     s.end_period().unwrap();
-    for k in 1..200 {
-        begin(&mut s, k);
-        command(&mut s, 0.1, leased(k, &[1.0], "a", 1, false));
-        s.end_period().unwrap();
-    }
+    answered_in_time(&mut s, "a", 1..200);
     assert_eq!(s.lease_lapse(), 3);
     // Samples 200, 201 and 202 go unanswered in their periods: a lapse at 203.
     for k in 200..203 {
-        begin(&mut s, k);
-        s.end_period().unwrap();
+        period(&mut s, k, None);
     }
     begin(&mut s, 203);
     assert_eq!(s.lease().unwrap().holder(), None);
@@ -1187,8 +1186,7 @@ fn a_lapse_that_came_too_early_is_undone_by_the_holders_late_answer() {
     command(&mut s, 0.1, leased(205, &[1.0], "a", 1, true));
     s.end_period().unwrap();
     for k in 206..209 {
-        begin(&mut s, k);
-        s.end_period().unwrap();
+        period(&mut s, k, None);
     }
     begin(&mut s, 209);
     assert_eq!(s.lease().unwrap().holder(), None);
