@@ -166,6 +166,21 @@ pub fn simulate_timed(
     record: bool,
     timing: IoTiming,
 ) -> Result<Simulation, RunError> {
+    simulate_holding(scenario, controller, record, timing, &[])
+}
+
+/// [`simulate_timed`] with the periods where `held[k]` is true left without a write: the
+/// plant keeps the input it had, and the law is told so, as a live agent holds its last
+/// command when the period's own comes too late. A live run's twin holds where the run
+/// held (its record's modes), so a busy machine's missed deadlines are in both, and what
+/// is left between them is the loop. Periods past `held`'s end are written as usual.
+pub fn simulate_holding(
+    scenario: &Scenario,
+    controller: &ControllerSet,
+    record: bool,
+    timing: IoTiming,
+    held: &[bool],
+) -> Result<Simulation, RunError> {
     timing.check(scenario.period)?;
     scenario.check_controller(controller)?;
     let n = scenario.channels.len();
@@ -189,6 +204,8 @@ pub fn simulate_timed(
     let mut out = vec![ChannelOutput::default(); n];
     let mut refs = vec![Reference::default(); n];
     let mut v = vec![0.0; n];
+    // What the plant applies before the first write, and kept by a held period.
+    let mut last = vec![0.0; n];
     let mut failed = false;
     for k in 0..steps {
         let t = k as f64 * h;
@@ -208,7 +225,12 @@ pub fn simulate_timed(
             *vi = o.v;
         }
         pass(&mut *plant, timing.write_delay)?;
-        let applied = plant.write(&v)?;
+        let applied = if held.get(k).copied().unwrap_or(false) {
+            last.clone()
+        } else {
+            plant.write(&v)?
+        };
+        last.clone_from(&applied);
         if applied != v {
             // The plant limited the input: keep the estimator honest.
             let _ = mimo.report_applied(&applied);

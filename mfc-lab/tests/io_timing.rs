@@ -1,8 +1,9 @@
 //! The offline loop with its I/O off the sample instant (`IoTiming`): refused when it does
 //! not fit in a period, the lockstep run's figures when zero, and a late value or write
-//! costs tracking and is recorded in the summary.
+//! costs tracking and is recorded in the summary; held periods (a live run's missed
+//! deadlines, replayed) leave the plant's input as it was.
 
-use mfc_lab::offline::{simulate_timed, IoTiming, RunError};
+use mfc_lab::offline::{simulate_holding, simulate_timed, IoTiming, RunError};
 use plant::scenario::{load_scenario, Scenario};
 
 const ROOT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../plants/aero/scenarios");
@@ -83,4 +84,37 @@ fn a_later_value_or_write_tracks_worse_and_is_recorded() {
     );
     let late_write = run(timing(0.0, 6e-3));
     assert!(late_write > rms[0], "{late_write} against {}", rms[0]);
+}
+
+/// A held period writes nothing: the input recorded is the one before it, the run's other
+/// periods are written as usual, holding nothing is the timed run to the bit, and holding
+/// a stretch costs tracking.
+#[test]
+fn a_held_period_keeps_the_input_it_had() {
+    let s = scenario();
+    let t = timing(1e-3, 0.0);
+    let plain = simulate_timed(&s, &s.controller, true, t).unwrap();
+    let none = simulate_holding(&s, &s.controller, true, t, &[]).unwrap();
+    assert_eq!(plain.summary.channels, none.summary.channels);
+    let n = plain.record.t.len();
+    // Every fourth period from 5 s to 6 s held, as a starved host might.
+    let held: Vec<bool> = (0..n)
+        .map(|k| (500..600).contains(&k) && k % 4 == 0)
+        .collect();
+    let run = simulate_holding(&s, &s.controller, true, t, &held).unwrap();
+    for (k, _) in held.iter().enumerate().filter(|(_, h)| **h) {
+        for tr in &run.record.traces {
+            assert_eq!(tr.v[k], tr.v[k - 1], "period {k} wrote");
+        }
+    }
+    let moved = (0..n)
+        .filter(|&k| !held[k] && k > 0)
+        .any(|k| run.record.traces.iter().any(|tr| tr.v[k] != tr.v[k - 1]));
+    assert!(moved, "the other periods were written");
+    assert!(
+        run.summary.channels[1].rms > plain.summary.channels[1].rms,
+        "holding cost nothing: {} against {}",
+        run.summary.channels[1].rms,
+        plain.summary.channels[1].rms
+    );
 }

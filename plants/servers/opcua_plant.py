@@ -3,7 +3,8 @@
 hosting one of the example plants' physics, in real time.
 
 The physics are the example drivers' own (plants/heater/heater.py, plants/dc-motor/
-dc_motor.py), advanced to the wall clock every millisecond and whenever a client writes;
+dc_motor.py), advanced to the wall clock every millisecond and whenever a client reads
+or writes (a Read answers with the plant as it is when the request arrives);
 a write acts from the moment it arrives, its value clamped to the actuator's range, as an
 actuator would.
 
@@ -150,23 +151,46 @@ async def serve(args, plant_argv):
 
     server.subscribe_server_callback(CallbackType.PostWrite, on_write)
     vanished = False
-    async with server:
-        print(f"listening {args.port}", flush=True)
-        while True:
-            rt.catch_up()
-            if rt.misbehaving("silent_after"):
-                time.sleep(3600)  # blocks the event loop: nothing is answered any more
-            if rt.misbehaving("vanish_after") and not vanished:
-                await server.delete_nodes([output])
-                vanished = True
-            if not vanished:
-                (y,) = rt.plant.read()
-                if rt.misbehaving("nan_after"):
-                    y = float("nan")
-                await server.write_attribute_value(output.nodeid, ua.DataValue(ua.Variant(float(y), ua.VariantType.Double)))
+    published = {"applied": 0.0}  # the node's initial value
+
+    async def publish():
+        """The plant as it is now into the address space."""
+        nonlocal vanished
+        rt.catch_up()
+        if rt.misbehaving("silent_after"):
+            time.sleep(3600)  # blocks the event loop: nothing is answered any more
+        if rt.misbehaving("vanish_after") and not vanished:
+            await server.delete_nodes([output])
+            vanished = True
+        if not vanished:
+            (y,) = rt.plant.read()
+            if rt.misbehaving("nan_after"):
+                y = float("nan")
+            await server.write_attribute_value(output.nodeid, ua.DataValue(ua.Variant(float(y), ua.VariantType.Double)))
+        if rt.applied != published["applied"]:
+            # Only on a change: every write costs asyncua's data-change machinery, and the
+            # server's CPU is what a busy host's subscribers wait on.
+            published["applied"] = rt.applied
             await server.write_attribute_value(
                 applied.nodeid, ua.DataValue(ua.Variant(float(rt.applied), ua.VariantType.Double))
             )
+
+    async def on_read(event, _dispatcher):
+        # A Read answers with the plant as it is when the request arrives (as the Modbus
+        # server does, and a PLC's process image nearly does), not as the 1 ms loop below
+        # last left it: that loop shares the event loop with the requests, and on a busy
+        # host its "1 ms" stretched to several, a value of random age that no client's
+        # timing could account for.
+        read = {rv.NodeId for rv in event.request_params.NodesToRead}
+        if output.nodeid in read or applied.nodeid in read:
+            await publish()
+
+    server.subscribe_server_callback(CallbackType.PreRead, on_read)
+    async with server:
+        print(f"listening {args.port}", flush=True)
+        while True:
+            # Subscriptions see the values this loop writes (their data changes).
+            await publish()
             await asyncio.sleep(0.001)
 
 

@@ -5,11 +5,12 @@
 //! old as a subscription makes them) does, and are left with their safe value in the server.
 
 use mfc_lab::harness::{run_fleet, service_config};
-use mfc_lab::offline::{simulate_timed, IoTiming};
+use mfc_lab::offline::{simulate_holding, IoTiming};
 use plant::modbus::RegisterKind;
 use plant::scenario::{load_scenario, PlantSource, Scenario};
+use plant::LoopMode;
 use plant_agent::agent::End;
-use system_tests::{max_held_fraction, rms_ratio_bound, served_plant, SERIAL};
+use system_tests::{rms_ratio_bound, served_plant, SERIAL};
 
 #[path = "../../plant-agent/tests/support/plant_server.rs"]
 mod plant_server;
@@ -61,10 +62,27 @@ enum Writes {
 /// that writes after it absorbs the delay, so the delay itself is judged here.
 const MAX_RTT_P50_US: f64 = 2000.0;
 
+/// The largest fraction of a run's ticks that may come more than half a period late for
+/// its tracking to be judged: beyond it the host, not the loop, is what the run measured.
+const MAX_OVERRUNS: f64 = 0.02;
+
 /// The plant behind `protocol`'s server (its file `file`, changed by `adapt`) tracks
 /// through the service within the usual bound of its offline twin, run with the I/O
-/// timing `timing` (and `writes`): the median of `judged` runs' RMS ratios (a run whose
-/// commands came late too often is not judged).
+/// timing `timing` (and `writes`) and holding where the run held: the median of `judged`
+/// runs' RMS ratios.
+///
+/// Until 12-03 a run holding more than 2 % of its periods was not judged, and the test
+/// failed when fewer than three of five were: a CI run on a busy host held 2.2 to 6.8 %
+/// of the Modbus runs' periods (commands back after the period's end) and judged one. A
+/// held period is a deadline missed, which the lockstep twin never does; the twin now
+/// misses the same ones, and the served-periods count still fails a loop that holds for
+/// want of a controller. What no twin can replay is a host that starves the loop itself:
+/// ticks more than half a period late ([`MAX_OVERRUNS`]). On 12-03, on a host with 14 %
+/// of its CPU stolen, such runs of the subscription's loop (5 to 21 % of periods
+/// overrun, commands 2 to 5 ms late) fell into a ±12 V limit cycle after a step (ratios
+/// 20 to 85), which this law does with a few milliseconds more delay; those runs are
+/// reported and not judged, and the test fails if fewer than `judged` of `judged + 2`
+/// kept time.
 async fn tracks_as_its_twin(
     protocol: ServerKind,
     file: &str,
@@ -72,10 +90,10 @@ async fn tracks_as_its_twin(
     (timing, writes): (IoTiming, Writes),
     judged: usize,
 ) {
-    let attempts = judged + 2;
     let _serial = SERIAL.lock().await;
     let twin = load("plants/dc-motor/scenarios/motor-steps.toml");
     let mut ratios = Vec::with_capacity(judged);
+    let attempts = judged + 2;
     for attempt in 1..=attempts {
         let server = Server::start_as(protocol, free_port(), &[]);
         let mut s = pointed(load(file), &server);
@@ -92,20 +110,28 @@ async fn tracks_as_its_twin(
         assert_eq!(rep.end, End::Completed, "{rep:?}");
         assert!(rep.safe_stop_applied && rep.controller_reached, "{rep:?}");
         let k = &rep.counters;
+        if rep.overruns as f64 > MAX_OVERRUNS * k.periods as f64 {
+            eprintln!(
+                "attempt {attempt}: {} of {} ticks overran: the host starved the loop, not \
+                 judged ({k:?})",
+                rep.overruns, k.periods
+            );
+            continue;
+        }
         assert!(
             (k.commands + k.warming_up) as f64 >= 0.95 * k.periods as f64,
             "served: {k:?}"
         );
         assert_eq!(k.fallbacks, 0, "{k:?}");
         assert_eq!(input_now(&server), SAFE, "the safe value was left");
-        let held = k.holding_periods as f64 / k.periods.max(1) as f64;
-        if held > max_held_fraction() {
-            eprintln!(
-                "attempt {attempt}: {:.1} % of periods held: not judged",
-                100.0 * held
-            );
-            continue;
-        }
+        // The twin holds where the run held: a busy machine's late commands are in both.
+        let held: Vec<bool> = run
+            .record
+            .modes
+            .iter()
+            .map(|m| *m == LoopMode::Holding)
+            .collect();
+        assert_eq!(held.len() as u64, k.periods, "one mode per period");
         assert!(
             rep.rtt_p50_us < MAX_RTT_P50_US,
             "median round trip {} us",
@@ -118,14 +144,19 @@ async fn tracks_as_its_twin(
                 ..timing
             },
         };
-        let offline = simulate_timed(&twin, &twin.controller, false, timing)
+        let offline = simulate_holding(&twin, &twin.controller, false, timing, &held)
             .unwrap()
             .summary;
         let ratio = rep.channels[0].rms / offline.channels[0].rms;
         eprintln!(
             "{protocol:?} attempt {attempt}: RMS {:.3e} through the server, {:.3e} offline \
-             ({timing:?}): ratio {ratio:.3}; rtt p50 {:.0} us, overruns {}",
-            rep.channels[0].rms, offline.channels[0].rms, rep.rtt_p50_us, rep.overruns
+             ({timing:?}, holding the run's {} held periods): ratio {ratio:.3}; rtt p50 {:.0} \
+             us, overruns {}",
+            rep.channels[0].rms,
+            offline.channels[0].rms,
+            k.holding_periods,
+            rep.rtt_p50_us,
+            rep.overruns
         );
         ratios.push(ratio);
         if ratios.len() == judged {
@@ -139,8 +170,8 @@ async fn tracks_as_its_twin(
         }
     }
     panic!(
-        "{} of {attempts} attempts had their commands in time, {judged} needed: this machine \
-         cannot judge tracking now",
+        "{} of {attempts} attempts kept time, {judged} needed: this host cannot judge \
+         tracking now",
         ratios.len()
     );
 }
