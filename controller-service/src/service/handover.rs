@@ -13,7 +13,7 @@ use tokio::sync::mpsc;
 use zenoh::query::Query;
 use zenoh::Session;
 
-use super::hold;
+use super::ask::{self, ask_member};
 use super::hold::HoldJob;
 use super::intake::Msg;
 use super::keyring::Keyring;
@@ -185,7 +185,7 @@ impl Worker {
             .payload()
             .map(|p| p.to_bytes().into_owned())
             .unwrap_or_default();
-        let opened = hold::open(self.shared.keys.as_deref(), &key, &payload);
+        let opened = ask::open(self.shared.keys.as_deref(), &key, &payload);
         let parsed = keys::last_shard(&key)
             .zip(opened.and_then(|(head, rest)| Some((Request::parse(head)?, rest))));
         let Some((shard, (request, rest))) = parsed else {
@@ -404,7 +404,7 @@ impl Worker {
 }
 
 /// Make one request to another member on a task of its own; what came back (the reply's
-/// payload, or nothing if no good reply came within `timeout`) returns as
+/// payload, or nothing if no reply sealed by a member came within `timeout`) returns as
 /// [`Msg::Answer`]. Whether to ask again is the fleet's decision, not this task's.
 fn spawn_request(
     (session, tx, keys): (Session, mpsc::Sender<Msg>, Option<Arc<Keyring>>),
@@ -413,26 +413,8 @@ fn spawn_request(
     timeout: Duration,
 ) {
     tokio::spawn(async move {
-        let mut reply = None;
-        let payload = hold::seal(keys.as_deref(), &key, &body, &[]);
-        let asked = session.get(&key).payload(payload.clone()).timeout(timeout);
-        if let Ok(replies) = asked.await {
-            while let Ok(r) = replies.recv_async().await {
-                let Ok(s) = r.result() else { continue };
-                let bytes = s.payload().to_bytes();
-                // With keys, only a member's sealed answer counts: a forged state is
-                // never restored, a forged "owned" never stops this member answering.
-                let opened = match &keys {
-                    Some(k) => k.open_handover(&[key.as_bytes(), &payload], &bytes),
-                    None => Some(&bytes[..]),
-                };
-                if let Some(b) = opened {
-                    reply = Some(b.to_vec());
-                    break;
-                }
-                tracing::warn!(key = %key, "a handover answer not sealed by a member: ignored");
-            }
-        }
+        let query = (&session, keys.as_deref(), key.as_str());
+        let reply = ask_member(query, (&body, &[]), timeout, |b| Some(b.to_vec())).await;
         let msg = Msg::Answer {
             shard,
             kind,

@@ -28,6 +28,7 @@ use tokio::time::Instant;
 use zenoh::query::Query;
 use zenoh::Session;
 
+use super::ask::ask_member;
 use super::core::Shared;
 use super::intake::Msg;
 use super::keyring::Keyring;
@@ -218,31 +219,16 @@ impl Replicator {
     async fn hold(&self, partner: &str, shard: u32, state: &[u8]) -> Option<bool> {
         let key = keys::fleet_handover(&self.fleet, partner, shard);
         let head = format!("hold:{}", self.me);
-        let payload = seal(self.keys.as_deref(), &key, &head, state);
-        let Ok(replies) = self
-            .session
-            .get(&key)
-            .payload(payload.clone())
-            .timeout(self.timeout)
-            .await
-        else {
-            return None;
-        };
         let want = format!("held:{partner}");
-        while let Ok(r) = replies.recv_async().await {
-            let Ok(s) = r.result() else { continue };
-            let bytes = s.payload().to_bytes();
-            let body = match &self.keys {
-                Some(k) => k.open_handover(&[key.as_bytes(), &payload], &bytes),
-                None => Some(&bytes[..]),
-            };
-            match body.map(|b| b.strip_prefix(want.as_bytes())) {
-                Some(Some(b"")) => return Some(true),
-                Some(Some(b":behind")) => return Some(false),
-                _ => {}
+        let query = (&self.session, self.keys.as_deref(), key.as_str());
+        ask_member(query, (&head, state), self.timeout, |body| {
+            match body.strip_prefix(want.as_bytes()) {
+                Some(b"") => Some(true),
+                Some(b":behind") => Some(false),
+                _ => None,
             }
-        }
-        None
+        })
+        .await
     }
 }
 
@@ -308,67 +294,9 @@ pub(super) fn acknowledge(
     }
 }
 
-/// A handover payload: `head` (a request such as `hold:{id}`), a newline, then `rest`
-/// (a state, or nothing), sealed with the members' key when there are keys, bound to the
-/// key it is sent on.
-pub(super) fn seal(keys: Option<&Keyring>, key: &str, head: &str, rest: &[u8]) -> Vec<u8> {
-    let mut bytes = Vec::with_capacity(head.len() + 1 + rest.len());
-    bytes.extend_from_slice(head.as_bytes());
-    bytes.push(b'\n');
-    bytes.extend_from_slice(rest);
-    match keys {
-        Some(k) => k.seal_handover(&[key.as_bytes()], bytes),
-        None => bytes,
-    }
-}
-
-/// The request and what follows it in a handover payload, if it opens (with keys) and
-/// its head is text; `None` for anything else (forged, altered, unsealed, garbage).
-pub(super) fn open<'a>(
-    keys: Option<&Keyring>,
-    key: &str,
-    payload: &'a [u8],
-) -> Option<(&'a str, &'a [u8])> {
-    let body = match keys {
-        Some(k) => k.open_handover(&[key.as_bytes()], payload)?,
-        None => payload,
-    };
-    let (head, rest) = match body.iter().position(|&b| b == b'\n') {
-        Some(i) => (&body[..i], &body[i + 1..]),
-        None => (body, &[][..]),
-    };
-    Some((std::str::from_utf8(head).ok()?, rest))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn a_payload_opens_only_with_the_members_key_and_on_its_own_key() {
-        let ring = Keyring::new(protocol::auth::Secret::from_hex(&"ab".repeat(32)).unwrap());
-        let other = Keyring::new(protocol::auth::Secret::from_hex(&"cd".repeat(32)).unwrap());
-        let key = "mfc/v1/fleet/f/member/b/shard/3";
-        let p = seal(Some(&ring), key, "hold:a", b"\x00state\n");
-        assert_eq!(
-            open(Some(&ring), key, &p),
-            Some(("hold:a", &b"\x00state\n"[..]))
-        );
-        assert_eq!(open(Some(&other), key, &p), None, "another fleet's secret");
-        assert_eq!(
-            open(Some(&ring), "mfc/v1/fleet/f/member/c/shard/3", &p),
-            None
-        );
-        assert_eq!(open(Some(&ring), key, b"hold:a\nforged"), None, "unsealed");
-        let plain = seal(None, key, "release:a", &[]);
-        assert_eq!(open(None, key, &plain), Some(("release:a", &[][..])));
-        assert_eq!(open(None, key, b"release:a"), Some(("release:a", &[][..])));
-        assert_eq!(
-            open(None, key, b"\xff\xfe\n"),
-            None,
-            "a head that is not text"
-        );
-    }
 
     #[test]
     fn a_change_not_held_by_every_partner_is_not_acknowledged() {

@@ -23,7 +23,8 @@
 //!   change's way to its acknowledgment (its pieces in [`change`], its record in
 //!   [`crate::trail`], its entries numbered by [`gate`]), [`replies`] for what they
 //!   share, [`handover`] and [`hold`] for the fleet's and the hot standby's wiring around
-//!   their pure rules ([`crate::fleet`], [`crate::standby`]).
+//!   their pure rules ([`crate::fleet`], [`crate::standby`]), and [`ask`] for one member's question to another
+//!   (sealed, and answered only by a reply a member sealed, within its timeout).
 //! * [`routes`]: every Zenoh declaration, owned by a struct that undeclares it on drop.
 //! * [`log`]: throttled warnings. Every message the service does not serve lands in
 //!   exactly one counter of the service status, and warnings about them are throttled:
@@ -38,6 +39,7 @@
 //! [`precheck`]: crate::registry::precheck
 //! [`MAX_PAYLOAD`]: protocol::MAX_PAYLOAD
 
+mod ask;
 mod change;
 mod core;
 mod drops;
