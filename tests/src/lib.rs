@@ -51,10 +51,12 @@ pub fn lags_ratio_bound() -> f64 {
         .unwrap_or(2.0)
 }
 
-/// The largest fraction of periods a networked run may hold a stale command and still have
-/// its tracking judged against its offline twin: `MFC_TEST_MAX_HELD`, default 0.02. A run
-/// over it is the machine missing its deadlines, and is run again (see
-/// `tests/any_plant.rs`).
+/// The largest fraction of periods a networked run may spend off its controller's fresh
+/// commands and still be judged as served: `MFC_TEST_MAX_HELD`, default 0.02. A run over
+/// it is the machine missing its deadlines, and is run again. The tracking tests judge
+/// held periods instead, against a twin that holds the same ones
+/// (`mfc_lab::offline::simulate_holding`); they bound the fallback's periods with it
+/// (`tests/end_to_end.rs`), the gateway's tests its held periods (`tests/gateway.rs`).
 pub fn max_held_fraction() -> f64 {
     std::env::var("MFC_TEST_MAX_HELD")
         .ok()

@@ -4,12 +4,11 @@
 use std::path::{Path, PathBuf};
 
 use mfc_lab::harness::{run_fleet, service_config};
-use mfc_lab::offline::simulate;
+use mfc_lab::offline::{simulate, simulate_holding, IoTiming};
 use plant::scenario::{load_scenario, Scenario};
+use plant::LoopMode;
 use plant_agent::agent::End;
-use system_tests::{
-    lags_ratio_bound, max_held_fraction, scratch_dir, served_plant, workspace_root, SERIAL,
-};
+use system_tests::{lags_ratio_bound, scratch_dir, served_plant, workspace_root, SERIAL};
 
 /// A scenario of `n` coupled first-order lags (`plants/coupled-lags`), each channel with
 /// its own smooth step, and an iP per channel (alpha = b_i / tau_i, the driver's input
@@ -77,98 +76,78 @@ fn driver_plants_of_1_3_and_16_channels_run_offline() {
 // kept busy, the same. The bound, 2.0 by default, is [`lags_ratio_bound`]
 // (`MFC_TEST_LAGS_RATIO`).
 //
-// The ratio is judged only on a run whose commands came in time. A held period is the
+// The ratio is judged against a twin that holds where the run held. A held period is the
 // plant driven by a stale input for a whole period, and how many there are is the
 // machine's doing, not the service's: one CI run on an overloaded machine (round trip p99
 // 9 ms, 15 held periods of 401 for the 16-channel plant, 59 for the 1-channel one) gave
-// 2.01 on channel 10. A group whose plants held more than `MFC_TEST_MAX_HELD` (2 % of
-// periods, [`max_held_fraction`]) is run again, at most three times, every attempt
-// printed; the counters are asserted on every attempt, and if no attempt kept time the
-// test fails and says that this machine cannot judge tracking now.
+// 2.01 on channel 10 against the plain twin. Until 12-03 a group whose plants held more
+// than 2 % of periods was run again, at most three times, and the test failed if none
+// kept time; the twin now holds the same periods (`simulate_holding`), so every run is
+// judged, and the counters (commands for 95 % of periods, no fallback) still fail a loop
+// that holds for want of a controller.
 
 /// Over Zenoh through the service: a 1-channel and a 3-channel plant on one service, then
-/// a 16-channel one; each is served (commands, no fallback) and, on a run whose commands
-/// came in time, tracks within [`lags_ratio_bound`] of its offline twin.
+/// a 16-channel one; each is served (commands, no fallback) and tracks within
+/// [`lags_ratio_bound`] of its offline twin, holding where the run held.
 #[tokio::test(flavor = "multi_thread")]
 async fn driver_plants_of_1_3_and_16_channels_run_through_the_service() {
-    const ATTEMPTS: usize = 3;
     let _serial = SERIAL.lock().await;
     let dir = scratch_dir("lags-network");
     for group in [vec![1usize, 3], vec![16]] {
         let scenarios: Vec<Scenario> = group.iter().map(|n| load(&lags(&dir, *n, 4.0))).collect();
-        let mut judged = false;
-        for attempt in 1..=ATTEMPTS {
-            let mut config = controller_service::ServiceConfig::default();
-            let mut plants = Vec::new();
-            for s in &scenarios {
-                let id = s.name.clone();
-                config
-                    .devices
-                    .extend(service_config(s, &s.controller, std::slice::from_ref(&id)).devices);
-                plants.push(served_plant(s, &s.controller, &id));
-            }
-            let runs = run_fleet(plants, config).await.unwrap();
-            let mut in_time = true;
-            for (s, r) in scenarios.iter().zip(&runs) {
-                let rep = &r.report;
-                eprintln!("attempt {attempt}: {}", rep.headline());
-                assert_eq!(rep.end, End::Completed, "{rep:?}");
-                assert!(rep.safe_stop_applied && rep.controller_reached);
-                assert_eq!(rep.exit_code(), 0);
-                assert_eq!(rep.channels.len(), s.channels.len());
-                let k = &rep.counters;
+        let mut config = controller_service::ServiceConfig::default();
+        let mut plants = Vec::new();
+        for s in &scenarios {
+            let id = s.name.clone();
+            config
+                .devices
+                .extend(service_config(s, &s.controller, std::slice::from_ref(&id)).devices);
+            plants.push(served_plant(s, &s.controller, &id));
+        }
+        let runs = run_fleet(plants, config).await.unwrap();
+        for (s, r) in scenarios.iter().zip(&runs) {
+            let rep = &r.report;
+            eprintln!("{}", rep.headline());
+            assert_eq!(rep.end, End::Completed, "{rep:?}");
+            assert!(rep.safe_stop_applied && rep.controller_reached);
+            assert_eq!(rep.exit_code(), 0);
+            assert_eq!(rep.channels.len(), s.channels.len());
+            let k = &rep.counters;
+            eprintln!(
+                "{}: {k:?}; overruns {}, rtt p50 {:.0} p99 {:.0} us",
+                s.name, rep.overruns, rep.rtt_p50_us, rep.rtt_p99_us
+            );
+            assert!(
+                (k.commands + k.warming_up) as f64 >= 0.95 * k.periods as f64,
+                "{}: {k:?}",
+                s.name
+            );
+            assert_eq!(k.fallbacks, 0, "{}: {k:?}", s.name);
+            // The record has every channel's columns, and a mode a period.
+            assert_eq!(r.record.traces.len(), s.channels.len());
+            assert_eq!(r.record.modes.len(), r.record.len());
+            let held: Vec<bool> = r
+                .record
+                .modes
+                .iter()
+                .map(|m| *m == LoopMode::Holding)
+                .collect();
+            let offline = simulate_holding(s, &s.controller, false, IoTiming::default(), &held)
+                .unwrap()
+                .summary;
+            for (net, off) in r.report.channels.iter().zip(&offline.channels) {
+                let ratio = net.rms / off.rms;
                 eprintln!(
-                    "attempt {attempt}: {}: {k:?}; overruns {}, rtt p50 {:.0} p99 {:.0} us",
-                    s.name, rep.overruns, rep.rtt_p50_us, rep.rtt_p99_us
+                    "{} {}: ratio {ratio:.3} (the twin holding the run's {} held periods)",
+                    s.name, net.name, k.holding_periods
                 );
                 assert!(
-                    (k.commands + k.warming_up) as f64 >= 0.95 * k.periods as f64,
-                    "{}: {k:?}",
-                    s.name
+                    ratio < lags_ratio_bound(),
+                    "{} {}: ratio {ratio}",
+                    s.name,
+                    net.name
                 );
-                assert_eq!(k.fallbacks, 0, "{}: {k:?}", s.name);
-                // The record has every channel's columns.
-                assert_eq!(r.record.traces.len(), s.channels.len());
-                assert_eq!(r.record.modes.len(), r.record.len());
-                let held = k.holding_periods as f64 / k.periods.max(1) as f64;
-                if held > max_held_fraction() {
-                    eprintln!(
-                        "attempt {attempt}: {}: {:.1} % of periods held (bound {:.1} %): \
-                         tracking not judged on this attempt",
-                        s.name,
-                        100.0 * held,
-                        100.0 * max_held_fraction()
-                    );
-                    in_time = false;
-                }
             }
-            if !in_time {
-                continue;
-            }
-            for (s, r) in scenarios.iter().zip(&runs) {
-                let offline = simulate(s, &s.controller, false).unwrap().summary;
-                for (net, off) in r.report.channels.iter().zip(&offline.channels) {
-                    let ratio = net.rms / off.rms;
-                    eprintln!(
-                        "attempt {attempt}: {} {}: ratio {ratio:.3}",
-                        s.name, net.name
-                    );
-                    assert!(
-                        ratio < lags_ratio_bound(),
-                        "{} {}: ratio {ratio}",
-                        s.name,
-                        net.name
-                    );
-                }
-            }
-            judged = true;
-            break;
         }
-        assert!(
-            judged,
-            "group {group:?}: no attempt of {ATTEMPTS} had its commands in time (held periods \
-             over {:.1} %): this machine cannot judge tracking now",
-            100.0 * max_held_fraction()
-        );
     }
 }
