@@ -64,6 +64,33 @@ pub fn max_held_fraction() -> f64 {
         .unwrap_or(0.02)
 }
 
+/// A networked run's offline twin: `scenario` under `controller` with the I/O `timing`,
+/// holding where the run held (the agent's `Holding` periods: its command came after the
+/// period's end, a busy host's missed deadline), so that what is left between the two
+/// is the loop (`mfc_lab::offline::simulate_holding`). Until 12-03 a run holding more
+/// than 2 % of its periods was not judged at all, and on a loaded host often no attempt
+/// was.
+pub fn holding_twin(
+    scenario: &plant::scenario::Scenario,
+    controller: &plant::scenario::ControllerSet,
+    timing: mfc_lab::offline::IoTiming,
+    run: &plant_agent::agent::AgentRun,
+) -> mfc_lab::offline::OfflineSummary {
+    let modes = &run.record.modes;
+    assert_eq!(
+        modes.len() as u64,
+        run.report.counters.periods,
+        "a mode a period"
+    );
+    let held: Vec<bool> = modes
+        .iter()
+        .map(|m| *m == plant::LoopMode::Holding)
+        .collect();
+    mfc_lab::offline::simulate_holding(scenario, controller, false, timing, &held)
+        .unwrap()
+        .summary
+}
+
 /// A plant for a test that asserts it is served throughout (no fallback): the agent's
 /// default safety, with the hold widened by [`margin_periods`]. What such a test checks
 /// is that the loop is served, and a stall of the machine longer than the default hold

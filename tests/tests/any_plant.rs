@@ -4,11 +4,12 @@
 use std::path::{Path, PathBuf};
 
 use mfc_lab::harness::{run_fleet, service_config};
-use mfc_lab::offline::{simulate, simulate_holding, IoTiming};
+use mfc_lab::offline::{simulate, IoTiming};
 use plant::scenario::{load_scenario, Scenario};
-use plant::LoopMode;
 use plant_agent::agent::End;
-use system_tests::{lags_ratio_bound, scratch_dir, served_plant, workspace_root, SERIAL};
+use system_tests::{
+    holding_twin, lags_ratio_bound, scratch_dir, served_plant, workspace_root, SERIAL,
+};
 
 /// A scenario of `n` coupled first-order lags (`plants/coupled-lags`), each channel with
 /// its own smooth step, and an iP per channel (alpha = b_i / tau_i, the driver's input
@@ -126,15 +127,7 @@ async fn driver_plants_of_1_3_and_16_channels_run_through_the_service() {
             // The record has every channel's columns, and a mode a period.
             assert_eq!(r.record.traces.len(), s.channels.len());
             assert_eq!(r.record.modes.len(), r.record.len());
-            let held: Vec<bool> = r
-                .record
-                .modes
-                .iter()
-                .map(|m| *m == LoopMode::Holding)
-                .collect();
-            let offline = simulate_holding(s, &s.controller, false, IoTiming::default(), &held)
-                .unwrap()
-                .summary;
+            let offline = holding_twin(s, &s.controller, IoTiming::default(), r);
             for (net, off) in r.report.channels.iter().zip(&offline.channels) {
                 let ratio = net.rms / off.rms;
                 eprintln!(

@@ -5,13 +5,12 @@ use std::time::Duration;
 
 use controller_service::config::ServiceConfig;
 use mfc_lab::harness::{run_plant, service_config, PlantSpec, ServiceHandle};
-use mfc_lab::offline::{simulate, simulate_holding, IoTiming, OfflineSummary};
+use mfc_lab::offline::{simulate, IoTiming};
 use plant::scenario::{load_scenario, shipped_controller, ControllerSet, Scenario};
-use plant_agent::agent::AgentRun;
 use plant_agent::safety::{LoopMode, SupervisorCounters};
 use protocol::convert::channel_to_pb;
 use protocol::{decode, encode, keys, pb, PROTOCOL_VERSION};
-use system_tests::{max_held_fraction, query, rms_ratio_bound, served_plant, SERIAL};
+use system_tests::{holding_twin, max_held_fraction, query, rms_ratio_bound, served_plant, SERIAL};
 
 /// Runs of a tracking test before it gives up on this machine: tracking is judged on the
 /// first whose commands came in time ([`in_time`]).
@@ -21,7 +20,7 @@ const ATTEMPTS: usize = 3;
 /// service: at most [`max_held_fraction`] of its periods ran on the plant's own fallback
 /// (a machine that stalls the loop for 50 ms, a busy CI host, gives those; a sample or
 /// command the service loses gives `missing`, judged elsewhere). Periods that held a
-/// command are judged: the twin holds the same ones ([`twin_of`]).
+/// command are judged: the twin holds the same ones ([`holding_twin`]).
 fn in_time(id: &str, attempt: usize, k: &SupervisorCounters) -> bool {
     let late = k.local_periods as f64 / k.periods.max(1) as f64;
     if late > max_held_fraction() {
@@ -33,28 +32,6 @@ fn in_time(id: &str, attempt: usize, k: &SupervisorCounters) -> bool {
         );
     }
     late <= max_held_fraction()
-}
-
-/// A run's offline twin: the same scenario and law, holding where the run held (the
-/// agent's `Holding` periods: its command came after the period's end, a busy host's
-/// missed deadline), so that what is left between them is the service. Until 12-03 a run
-/// holding more than 2 % of its periods was not judged at all, and on a loaded host no
-/// attempt of three was.
-fn twin_of(s: &Scenario, c: &ControllerSet, run: &AgentRun) -> OfflineSummary {
-    let held: Vec<bool> = run
-        .record
-        .modes
-        .iter()
-        .map(|m| *m == LoopMode::Holding)
-        .collect();
-    assert_eq!(
-        held.len() as u64,
-        run.report.counters.periods,
-        "a mode a period"
-    );
-    simulate_holding(s, c, false, IoTiming::default(), &held)
-        .unwrap()
-        .summary
 }
 
 /// What a tracking test says when no attempt came in time.
@@ -107,7 +84,7 @@ async fn one_aero_once(s: &Scenario, c: &ControllerSet, attempt: usize) -> bool 
     if !in_time("aero-1", attempt, &report.counters) {
         return false;
     }
-    let offline = twin_of(s, c, &run);
+    let offline = holding_twin(s, c, IoTiming::default(), &run);
     for (net, off) in report.channels.iter().zip(&offline.channels) {
         let ratio = net.rms / off.rms;
         eprintln!(
@@ -213,7 +190,7 @@ async fn several_plants_once(attempt: usize) -> bool {
         return false;
     }
     for ((id, s, c), run) in runs.iter().zip(&done) {
-        let offline = twin_of(s, c, run);
+        let offline = holding_twin(s, c, IoTiming::default(), run);
         let k = &run.report.counters;
         for (net, off) in run.report.channels.iter().zip(&offline.channels) {
             let ratio = net.rms / off.rms;

@@ -5,12 +5,11 @@
 //! old as a subscription makes them) does, and are left with their safe value in the server.
 
 use mfc_lab::harness::{run_fleet, service_config};
-use mfc_lab::offline::{simulate_holding, IoTiming};
+use mfc_lab::offline::IoTiming;
 use plant::modbus::RegisterKind;
 use plant::scenario::{load_scenario, PlantSource, Scenario};
-use plant::LoopMode;
 use plant_agent::agent::End;
-use system_tests::{rms_ratio_bound, served_plant, SERIAL};
+use system_tests::{holding_twin, rms_ratio_bound, served_plant, SERIAL};
 
 #[path = "../../plant-agent/tests/support/plant_server.rs"]
 mod plant_server;
@@ -124,14 +123,6 @@ async fn tracks_as_its_twin(
         );
         assert_eq!(k.fallbacks, 0, "{k:?}");
         assert_eq!(input_now(&server), SAFE, "the safe value was left");
-        // The twin holds where the run held: a busy machine's late commands are in both.
-        let held: Vec<bool> = run
-            .record
-            .modes
-            .iter()
-            .map(|m| *m == LoopMode::Holding)
-            .collect();
-        assert_eq!(held.len() as u64, k.periods, "one mode per period");
         assert!(
             rep.rtt_p50_us < MAX_RTT_P50_US,
             "median round trip {} us",
@@ -144,9 +135,8 @@ async fn tracks_as_its_twin(
                 ..timing
             },
         };
-        let offline = simulate_holding(&twin, &twin.controller, false, timing, &held)
-            .unwrap()
-            .summary;
+        // The twin holds where the run held: a busy machine's late commands are in both.
+        let offline = holding_twin(&twin, &twin.controller, timing, &run);
         let ratio = rep.channels[0].rms / offline.channels[0].rms;
         eprintln!(
             "{protocol:?} attempt {attempt}: RMS {:.3e} through the server, {:.3e} offline \
